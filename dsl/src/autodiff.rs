@@ -1,0 +1,146 @@
+//! Reverse-mode differentiation as a graph transform.
+//!
+//! [`vjp`] appends to a graph the nodes that compute a vector-Jacobian product: the adjoints of chosen
+//! values (inputs or params) given cotangents of chosen outputs. The new nodes are ordinary ops, so the
+//! result can be differentiated again: the gradient of a loss on ∇ₓf with respect to the params (the eikonal
+//! loss) is `vjp` applied to a graph that already holds a `vjp`.
+
+use crate::ir::{Graph, Op, V};
+
+/// Appends to `g` the nodes computing, for each `w` in `wrt`, Σₖ cotₖ · ∂outₖ/∂w, where `seeds` pairs each
+/// output value `outₖ` with its cotangent value `cotₖ`. Values of `wrt` that no output depends on get 0.
+pub fn vjp(g: &mut Graph, seeds: &[(V, V)], wrt: &[V]) -> Vec<V> {
+    let n = g.len();
+    let mut depends = vec![false; n];
+    for w in wrt {
+        depends[w.0 as usize] = true;
+    }
+    for i in 0..n {
+        if !depends[i] && g.ops()[i].args().iter().any(|a| depends[a.0 as usize]) {
+            depends[i] = true;
+        }
+    }
+    let mut adjoint: Vec<Option<V>> = vec![None; n];
+    for &(out, cot) in seeds {
+        accumulate(g, &mut adjoint, &depends, out, cot);
+    }
+    for i in (0..n).rev() {
+        let (Some(gy), true) = (adjoint[i], depends[i]) else {
+            continue;
+        };
+        let y = V(i as u32);
+        for (arg, contrib) in local_adjoints(g, y, gy) {
+            accumulate(g, &mut adjoint, &depends, arg, contrib);
+        }
+    }
+    wrt.iter()
+        .map(|w| adjoint[w.0 as usize].unwrap_or_else(|| g.constant(0.0)))
+        .collect()
+}
+
+fn accumulate(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool], at: V, contrib: V) {
+    let i = at.0 as usize;
+    if !depends[i] || g.const_value(contrib) == Some(0.0) {
+        return;
+    }
+    adjoint[i] = Some(match adjoint[i] {
+        Some(prev) => g.push(Op::Add(prev, contrib)),
+        None => contrib,
+    });
+}
+
+/// The contribution `gy · ∂y/∂arg` for each argument of the op computing `y`.
+fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
+    use Op::*;
+    let zero = g.constant(0.0);
+    let one = g.constant(1.0);
+    match g.op(y) {
+        Const(_) | Input(_) | Param(_) | Sign(_) | Floor(_) | Lt(..) | Le(..) | Eq(..) => vec![],
+        Neg(a) => vec![(a, g.push(Neg(gy)))],
+        Abs(a) => {
+            let s = g.push(Sign(a));
+            vec![(a, g.push(Mul(gy, s)))]
+        }
+        Sqrt(a) => {
+            let half = g.constant(0.5);
+            let t = g.push(Div(half, y));
+            vec![(a, g.push(Mul(gy, t)))]
+        }
+        Exp(a) => vec![(a, g.push(Mul(gy, y)))],
+        Log(a) => vec![(a, g.push(Div(gy, a)))],
+        Sin(a) => {
+            let c = g.push(Cos(a));
+            vec![(a, g.push(Mul(gy, c)))]
+        }
+        Cos(a) => {
+            let s = g.push(Sin(a));
+            let t = g.push(Mul(gy, s));
+            vec![(a, g.push(Neg(t)))]
+        }
+        Tan(a) => {
+            let y2 = g.push(Mul(y, y));
+            let d = g.push(Add(one, y2));
+            vec![(a, g.push(Mul(gy, d)))]
+        }
+        Tanh(a) => {
+            let y2 = g.push(Mul(y, y));
+            let d = g.push(Sub(one, y2));
+            vec![(a, g.push(Mul(gy, d)))]
+        }
+        Sigmoid(a) => {
+            let c = g.push(Sub(one, y));
+            let d = g.push(Mul(y, c));
+            vec![(a, g.push(Mul(gy, d)))]
+        }
+        Softplus(a) => {
+            let s = g.push(Sigmoid(a));
+            vec![(a, g.push(Mul(gy, s)))]
+        }
+        Add(a, b) => vec![(a, gy), (b, gy)],
+        Sub(a, b) => vec![(a, gy), (b, g.push(Neg(gy)))],
+        Mul(a, b) => vec![(a, g.push(Mul(gy, b))), (b, g.push(Mul(gy, a)))],
+        Div(a, b) => {
+            let ga = g.push(Div(gy, b));
+            let t = g.push(Mul(ga, y));
+            vec![(a, ga), (b, g.push(Neg(t)))]
+        }
+        Min(a, b) => {
+            // min(a, b) = b < a ? b : a
+            let takes_b = g.push(Lt(b, a));
+            vec![
+                (a, g.push(Select(takes_b, zero, gy))),
+                (b, g.push(Select(takes_b, gy, zero))),
+            ]
+        }
+        Max(a, b) => {
+            // max(a, b) = a < b ? b : a
+            let takes_b = g.push(Lt(a, b));
+            vec![
+                (a, g.push(Select(takes_b, zero, gy))),
+                (b, g.push(Select(takes_b, gy, zero))),
+            ]
+        }
+        Select(c, a, b) => vec![(a, g.push(Select(c, gy, zero))), (b, g.push(Select(c, zero, gy)))],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::interp::eval_point;
+
+    #[test]
+    fn gradient_of_product_and_second_order() {
+        // f(x, y) = x² y;  ∂f/∂x = 2xy, ∂f/∂y = x²;  ∂²f/∂x² = 2y
+        let mut g = Graph::new();
+        let (x, y) = (g.input(0), g.input(1));
+        let x2 = g.push(Op::Mul(x, x));
+        let f = g.push(Op::Mul(x2, y));
+        let one = g.constant(1.0);
+        let grads = vjp(&mut g, &[(f, one)], &[x, y]);
+        let second = vjp(&mut g, &[(grads[0], one)], &[x]);
+        g.outputs = vec![f, grads[0], grads[1], second[0]];
+        let e = eval_point(&g, &[3.0, 5.0], &[]);
+        assert_eq!(e.outputs, vec![45.0, 30.0, 9.0, 10.0]);
+    }
+}

@@ -1,0 +1,115 @@
+//! The reference interpreter: evaluates any [`Graph`] in f64, point by point. It is the oracle against
+//! which the JIT and the derivatives are tested, so it is written for clarity, not speed.
+
+use crate::ir::{Graph, Op};
+
+/// What one evaluation produced.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Eval {
+    /// The per-point outputs.
+    pub outputs: Vec<f64>,
+    /// The reductions (for one point: that point's terms; for a batch: their sums).
+    pub reductions: Vec<f64>,
+}
+
+/// The exact semantics of one op applied to argument values (constants carry their value in the op).
+pub fn apply(op: Op, a: &[f64]) -> f64 {
+    use Op::*;
+    let bool01 = |b: bool| if b { 1.0 } else { 0.0 };
+    match op {
+        Const(bits) => f64::from_bits(bits),
+        Input(_) | Param(_) => f64::NAN,
+        Neg(_) => -a[0],
+        Abs(_) => a[0].abs(),
+        Sign(_) => {
+            if a[0] > 0.0 {
+                1.0
+            } else if a[0] < 0.0 {
+                -1.0
+            } else {
+                0.0
+            }
+        }
+        Floor(_) => a[0].floor(),
+        Sqrt(_) => a[0].sqrt(),
+        Exp(_) => a[0].exp(),
+        Log(_) => a[0].ln(),
+        Sin(_) => a[0].sin(),
+        Cos(_) => a[0].cos(),
+        Tan(_) => a[0].tan(),
+        Tanh(_) => a[0].tanh(),
+        Sigmoid(_) => 1.0 / (1.0 + (-a[0]).exp()),
+        Softplus(_) => a[0].max(0.0) + (-a[0].abs()).exp().ln_1p(),
+        Add(..) => a[0] + a[1],
+        Sub(..) => a[0] - a[1],
+        Mul(..) => a[0] * a[1],
+        Div(..) => a[0] / a[1],
+        Min(..) => {
+            if a[1] < a[0] {
+                a[1]
+            } else {
+                a[0]
+            }
+        }
+        Max(..) => {
+            if a[0] < a[1] {
+                a[1]
+            } else {
+                a[0]
+            }
+        }
+        Lt(..) => bool01(a[0] < a[1]),
+        Le(..) => bool01(a[0] <= a[1]),
+        Eq(..) => bool01(a[0] == a[1]),
+        Select(..) => {
+            if a[0] != 0.0 {
+                a[1]
+            } else {
+                a[2]
+            }
+        }
+    }
+}
+
+/// Evaluates `g` at one point.
+pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
+    let mut vals = vec![0.0; g.len()];
+    let mut args = Vec::with_capacity(3);
+    for (i, op) in g.ops().iter().enumerate() {
+        vals[i] = match *op {
+            Op::Input(k) => inputs.get(k as usize).copied().unwrap_or(f64::NAN),
+            Op::Param(k) => params.get(k as usize).copied().unwrap_or(f64::NAN),
+            _ => {
+                args.clear();
+                args.extend(op.args().iter().map(|a| vals[a.0 as usize]));
+                apply(*op, &args)
+            }
+        };
+    }
+    Eval {
+        outputs: g.outputs.iter().map(|v| vals[v.0 as usize]).collect(),
+        reductions: g.reductions.iter().map(|v| vals[v.0 as usize]).collect(),
+    }
+}
+
+/// Evaluates `g` at every point; `inputs[i]` holds input i of all points. Returns the outputs per point
+/// (`outputs[o][point]`) and the reductions summed over the points.
+pub fn eval_batch(g: &Graph, inputs: &[Vec<f64>], params: &[f64]) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let n = inputs.first().map_or(0, Vec::len);
+    let mut outputs = vec![Vec::with_capacity(n); g.outputs.len()];
+    let mut sums = vec![0.0; g.reductions.len()];
+    let mut point = vec![0.0; inputs.len()];
+    for p in 0..n {
+        for (slot, column) in point.iter_mut().zip(inputs) {
+            *slot = column[p];
+        }
+        let e = eval_point(g, &point, params);
+        for (column, v) in outputs.iter_mut().zip(e.outputs) {
+            column.push(v);
+        }
+        for (s, r) in sums.iter_mut().zip(e.reductions) {
+            *s += r;
+        }
+    }
+    (outputs, sums)
+}

@@ -1,0 +1,405 @@
+//! The IR: a typed SSA graph of scalar operations, one value per point.
+//!
+//! Vectors of the language are lowered to one scalar value per component, so every IR value is one f32 per
+//! point and a JIT kernel evaluates each value for 4 points in one SIMD register. Nodes live in an arena in
+//! topological order (arguments always precede their users) and are addressed by [`V`]. The builder
+//! ([`Graph::push`]) hash-conses every node (common-subexpression elimination) and folds constants and
+//! algebraic identities as it goes, so graphs are kept small during lowering and differentiation.
+//!
+//! A graph has per-point `outputs` and `reductions`: values summed over all points of a batch (the gradient
+//! of a loss with respect to params). Kernels of every kind (value, gradient, vector-Jacobian product,
+//! second order) are graphs of this one form.
+//!
+//! ```
+//! use nerfjit_dsl::ir::{Graph, Op};
+//! let mut g = Graph::new();
+//! let x = g.input(0);
+//! let y = g.push(Op::Mul(x, x));
+//! let two = g.constant(2.0);
+//! let z = g.push(Op::Add(y, two));
+//! g.outputs.push(z);
+//! assert_eq!(nerfjit_dsl::interp::eval_point(&g, &[3.0], &[]).outputs, vec![11.0]);
+//! ```
+
+use std::collections::HashMap;
+use std::fmt;
+
+/// A value in a [`Graph`]: the index of the node that computes it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct V(pub u32);
+
+/// One scalar operation. Comparisons give 1.0 or 0.0.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Op {
+    /// A constant (stored as f64 bits so that ops can be hashed).
+    Const(u64),
+    /// The i-th per-point input.
+    Input(u32),
+    /// The i-th learnable parameter (the same for every point).
+    Param(u32),
+    /// `-a`
+    Neg(V),
+    /// `|a|`
+    Abs(V),
+    /// 1 for a > 0, −1 for a < 0, else 0.
+    Sign(V),
+    /// Largest integer ≤ a.
+    Floor(V),
+    /// Square root.
+    Sqrt(V),
+    /// e^a
+    Exp(V),
+    /// Natural logarithm.
+    Log(V),
+    /// Sine.
+    Sin(V),
+    /// Cosine.
+    Cos(V),
+    /// Tangent.
+    Tan(V),
+    /// Hyperbolic tangent.
+    Tanh(V),
+    /// 1 / (1 + e^−a)
+    Sigmoid(V),
+    /// ln(1 + e^a)
+    Softplus(V),
+    /// a + b
+    Add(V, V),
+    /// a − b
+    Sub(V, V),
+    /// a · b
+    Mul(V, V),
+    /// a / b
+    Div(V, V),
+    /// `b < a ? b : a` (a NaN in `a` propagates; the SIMD `minps` semantics).
+    Min(V, V),
+    /// `a < b ? b : a`.
+    Max(V, V),
+    /// 1 if a < b else 0.
+    Lt(V, V),
+    /// 1 if a ≤ b else 0.
+    Le(V, V),
+    /// 1 if a = b else 0.
+    Eq(V, V),
+    /// `c != 0 ? a : b`.
+    Select(V, V, V),
+}
+
+impl Op {
+    /// The values this op reads.
+    pub fn args(&self) -> Vec<V> {
+        use Op::*;
+        match *self {
+            Const(_) | Input(_) | Param(_) => vec![],
+            Neg(a) | Abs(a) | Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Sin(a) | Cos(a) | Tan(a)
+            | Tanh(a) | Sigmoid(a) | Softplus(a) => vec![a],
+            Add(a, b)
+            | Sub(a, b)
+            | Mul(a, b)
+            | Div(a, b)
+            | Min(a, b)
+            | Max(a, b)
+            | Lt(a, b)
+            | Le(a, b)
+            | Eq(a, b) => vec![a, b],
+            Select(c, a, b) => vec![c, a, b],
+        }
+    }
+
+    /// The same op reading `f(arg)` for each argument.
+    pub fn map_args(&self, mut f: impl FnMut(V) -> V) -> Op {
+        use Op::*;
+        match *self {
+            Const(_) | Input(_) | Param(_) => *self,
+            Neg(a) => Neg(f(a)),
+            Abs(a) => Abs(f(a)),
+            Sign(a) => Sign(f(a)),
+            Floor(a) => Floor(f(a)),
+            Sqrt(a) => Sqrt(f(a)),
+            Exp(a) => Exp(f(a)),
+            Log(a) => Log(f(a)),
+            Sin(a) => Sin(f(a)),
+            Cos(a) => Cos(f(a)),
+            Tan(a) => Tan(f(a)),
+            Tanh(a) => Tanh(f(a)),
+            Sigmoid(a) => Sigmoid(f(a)),
+            Softplus(a) => Softplus(f(a)),
+            Add(a, b) => Add(f(a), f(b)),
+            Sub(a, b) => Sub(f(a), f(b)),
+            Mul(a, b) => Mul(f(a), f(b)),
+            Div(a, b) => Div(f(a), f(b)),
+            Min(a, b) => Min(f(a), f(b)),
+            Max(a, b) => Max(f(a), f(b)),
+            Lt(a, b) => Lt(f(a), f(b)),
+            Le(a, b) => Le(f(a), f(b)),
+            Eq(a, b) => Eq(f(a), f(b)),
+            Select(c, a, b) => Select(f(c), f(a), f(b)),
+        }
+    }
+
+    /// The op's name as printed in IR listings.
+    pub fn name(&self) -> &'static str {
+        use Op::*;
+        match self {
+            Const(_) => "const",
+            Input(_) => "input",
+            Param(_) => "param",
+            Neg(_) => "neg",
+            Abs(_) => "abs",
+            Sign(_) => "sign",
+            Floor(_) => "floor",
+            Sqrt(_) => "sqrt",
+            Exp(_) => "exp",
+            Log(_) => "log",
+            Sin(_) => "sin",
+            Cos(_) => "cos",
+            Tan(_) => "tan",
+            Tanh(_) => "tanh",
+            Sigmoid(_) => "sigmoid",
+            Softplus(_) => "softplus",
+            Add(..) => "add",
+            Sub(..) => "sub",
+            Mul(..) => "mul",
+            Div(..) => "div",
+            Min(..) => "min",
+            Max(..) => "max",
+            Lt(..) => "lt",
+            Le(..) => "le",
+            Eq(..) => "eq",
+            Select(..) => "select",
+        }
+    }
+}
+
+/// A graph of scalar ops with per-point outputs and per-batch reductions.
+#[derive(Clone, Debug, Default)]
+pub struct Graph {
+    ops: Vec<Op>,
+    memo: HashMap<Op, V>,
+    /// Values written per point, in order.
+    pub outputs: Vec<V>,
+    /// Values summed over all points of a batch, in order.
+    pub reductions: Vec<V>,
+    /// The number of per-point inputs a kernel of this graph takes (at least 1 + the largest input index).
+    pub n_inputs: u32,
+}
+
+impl Graph {
+    /// An empty graph.
+    pub fn new() -> Graph {
+        Graph::default()
+    }
+
+    /// The ops, in topological order.
+    pub fn ops(&self) -> &[Op] {
+        &self.ops
+    }
+
+    /// The op that computes `v`.
+    pub fn op(&self, v: V) -> Op {
+        self.ops[v.0 as usize]
+    }
+
+    /// The number of nodes.
+    pub fn len(&self) -> usize {
+        self.ops.len()
+    }
+
+    /// Whether the graph has no nodes.
+    pub fn is_empty(&self) -> bool {
+        self.ops.is_empty()
+    }
+
+    /// The constant `c`.
+    pub fn constant(&mut self, c: f64) -> V {
+        // -0.0 and 0.0 are one constant: they behave alike in every op but division by zero.
+        let c = if c == 0.0 { 0.0 } else { c };
+        self.insert(Op::Const(c.to_bits()))
+    }
+
+    /// Per-point input `i`.
+    pub fn input(&mut self, i: u32) -> V {
+        self.n_inputs = self.n_inputs.max(i + 1);
+        self.insert(Op::Input(i))
+    }
+
+    /// Learnable parameter `i`.
+    pub fn param(&mut self, i: u32) -> V {
+        self.insert(Op::Param(i))
+    }
+
+    /// The constant value of `v`, if it is a constant.
+    pub fn const_value(&self, v: V) -> Option<f64> {
+        match self.op(v) {
+            Op::Const(bits) => Some(f64::from_bits(bits)),
+            _ => None,
+        }
+    }
+
+    fn is_const(&self, v: V, c: f64) -> bool {
+        self.const_value(v) == Some(c)
+    }
+
+    fn insert(&mut self, op: Op) -> V {
+        if let Some(&v) = self.memo.get(&op) {
+            return v;
+        }
+        let v = V(u32::try_from(self.ops.len()).expect("graph larger than 2^32 nodes"));
+        self.ops.push(op);
+        self.memo.insert(op, v);
+        v
+    }
+
+    /// Adds `op`, or finds an equal node, after folding constants and simple identities
+    /// (x+0, x·1, x·0, x−x, −−x, select on a constant condition, ...).
+    ///
+    /// `x·0 = 0` is applied even though it is not IEEE-exact for infinite x: it keeps gradient graphs
+    /// free of terms that are zero by construction, as symbolic-zero autodiff systems do.
+    pub fn push(&mut self, op: Op) -> V {
+        use Op::*;
+        let args = op.args();
+        if !args.is_empty() && args.iter().all(|&a| self.const_value(a).is_some()) {
+            let vals: Vec<f64> = args.iter().map(|&a| self.const_value(a).unwrap_or(0.0)).collect();
+            return self.constant(crate::interp::apply(op, &vals));
+        }
+        let op = match op {
+            Add(a, b) | Mul(a, b) | Eq(a, b) if a > b => op.map_args(|x| if x == a { b } else { a }),
+            _ => op,
+        };
+        match op {
+            Add(a, b) if self.is_const(b, 0.0) => a,
+            Add(a, b) if self.is_const(a, 0.0) => b,
+            Sub(a, b) if self.is_const(b, 0.0) => a,
+            Sub(a, b) if self.is_const(a, 0.0) => self.push(Neg(b)),
+            Sub(a, b) if a == b => self.constant(0.0),
+            Mul(a, b) if self.is_const(a, 0.0) || self.is_const(b, 0.0) => self.constant(0.0),
+            Mul(a, b) if self.is_const(a, 1.0) => b,
+            Mul(a, b) if self.is_const(b, 1.0) => a,
+            Mul(a, b) if self.is_const(a, -1.0) => self.push(Neg(b)),
+            Mul(a, b) if self.is_const(b, -1.0) => self.push(Neg(a)),
+            Div(a, b) if self.is_const(b, 1.0) => a,
+            Div(a, _) if self.is_const(a, 0.0) => self.constant(0.0),
+            Neg(a) => match self.op(a) {
+                Neg(x) => x,
+                _ => self.insert(op),
+            },
+            Select(c, a, _) if self.const_value(c).is_some_and(|c| c != 0.0) => a,
+            Select(c, _, b) if self.is_const(c, 0.0) => b,
+            Select(_, a, b) if a == b => a,
+            Min(a, b) | Max(a, b) if a == b => a,
+            _ => self.insert(op),
+        }
+    }
+
+    /// A copy holding only the nodes that outputs and reductions need, rebuilt through [`Graph::push`]
+    /// (dead-code elimination, with CSE and folding applied again). `n_inputs` is kept.
+    pub fn compact(&self) -> Graph {
+        let live = self.live();
+        let mut out = Graph::new();
+        let mut map = vec![V(0); self.ops.len()];
+        for (i, op) in self.ops.iter().enumerate() {
+            if live[i] {
+                map[i] = out.push(op.map_args(|a| map[a.0 as usize]));
+            }
+        }
+        out.outputs = self.outputs.iter().map(|v| map[v.0 as usize]).collect();
+        out.reductions = self.reductions.iter().map(|v| map[v.0 as usize]).collect();
+        out.n_inputs = self.n_inputs;
+        out
+    }
+
+    /// Which nodes the outputs and reductions depend on.
+    pub fn live(&self) -> Vec<bool> {
+        let mut live = vec![false; self.ops.len()];
+        for v in self.outputs.iter().chain(&self.reductions) {
+            live[v.0 as usize] = true;
+        }
+        for i in (0..self.ops.len()).rev() {
+            if live[i] {
+                for a in self.ops[i].args() {
+                    live[a.0 as usize] = true;
+                }
+            }
+        }
+        live
+    }
+
+    /// The number of live nodes of each op name, for compile reports.
+    pub fn stats(&self) -> Vec<(&'static str, usize)> {
+        let mut counts: Vec<(&'static str, usize)> = Vec::new();
+        for (op, live) in self.ops.iter().zip(self.live()) {
+            if !live {
+                continue;
+            }
+            match counts.iter_mut().find(|(n, _)| *n == op.name()) {
+                Some(entry) => entry.1 += 1,
+                None => counts.push((op.name(), 1)),
+            }
+        }
+        counts
+    }
+}
+
+impl fmt::Display for Graph {
+    /// Prints the live nodes, one per line: `v3 = mul v1, v2`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let live = self.live();
+        for (i, op) in self.ops.iter().enumerate() {
+            if !live[i] {
+                continue;
+            }
+            write!(f, "v{i} = {}", op.name())?;
+            match *op {
+                Op::Const(bits) => write!(f, " {}", f64::from_bits(bits))?,
+                Op::Input(k) | Op::Param(k) => write!(f, " {k}")?,
+                _ => {
+                    let args: Vec<String> = op.args().iter().map(|a| format!("v{}", a.0)).collect();
+                    write!(f, " {}", args.join(", "))?;
+                }
+            }
+            writeln!(f)?;
+        }
+        for (k, v) in self.outputs.iter().enumerate() {
+            writeln!(f, "output {k} = v{}", v.0)?;
+        }
+        for (k, v) in self.reductions.iter().enumerate() {
+            writeln!(f, "reduce {k} = sum v{}", v.0)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builder_folds_and_dedupes() {
+        let mut g = Graph::new();
+        let x = g.input(0);
+        let two = g.constant(2.0);
+        let three = g.constant(3.0);
+        let six = g.push(Op::Mul(two, three));
+        assert_eq!(g.const_value(six), Some(6.0));
+        let a = g.push(Op::Add(x, six));
+        let b = g.push(Op::Add(six, x));
+        assert_eq!(a, b, "commutative ops are deduplicated");
+        let zero = g.constant(0.0);
+        assert_eq!(g.push(Op::Mul(a, zero)), zero);
+        assert_eq!(g.push(Op::Add(a, zero)), a);
+        let n = g.push(Op::Neg(a));
+        assert_eq!(g.push(Op::Neg(n)), a);
+    }
+
+    #[test]
+    fn compact_drops_dead_nodes() {
+        let mut g = Graph::new();
+        let x = g.input(0);
+        let _dead = g.push(Op::Sin(x));
+        let y = g.push(Op::Exp(x));
+        g.outputs.push(y);
+        let c = g.compact();
+        assert_eq!(c.len(), 2);
+        assert_eq!(c.n_inputs, 1);
+    }
+}

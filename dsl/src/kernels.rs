@@ -1,0 +1,83 @@
+//! The graphs of each kernel kind, built from a lowered function by the IR transforms.
+//!
+//! Every kind is one [`Graph`]: per-point inputs and outputs, and reductions summed over a batch.
+//! - [`value`]: the function's outputs.
+//! - [`with_gradient`]: outputs, then ∂outₖ/∂inputs for each output k (the Jacobian, row by row).
+//! - [`vjp`]: inputs followed by one cotangent per output; outputs, then the input gradient Σₖ cₖ ∂outₖ/∂x;
+//!   reductions: the param gradient Σₖ cₖ ∂outₖ/∂θ for every param.
+//! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
+//!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
+//!   param gradient from this kernel.
+
+use crate::autodiff;
+use crate::ir::{Graph, V};
+use crate::program::Lowered;
+
+fn inputs(g: &mut Graph, count: u32) -> Vec<V> {
+    (0..count).map(|i| g.input(i)).collect()
+}
+
+fn params(g: &mut Graph, n_params: usize) -> Vec<V> {
+    (0..n_params as u32).map(|i| g.param(i)).collect()
+}
+
+/// The function's values.
+pub fn value(f: &Lowered) -> Graph {
+    f.graph.compact()
+}
+
+/// The values, then the gradient of each output with respect to all inputs.
+pub fn with_gradient(f: &Lowered) -> Graph {
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let one = g.constant(1.0);
+    let outs = g.outputs.clone();
+    for &o in &outs {
+        let grad = autodiff::vjp(&mut g, &[(o, one)], &xs);
+        g.outputs.extend(grad);
+    }
+    g.compact()
+}
+
+/// The vector-Jacobian product with respect to inputs (per point) and params (reduced).
+pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let outs = g.outputs.clone();
+    let seeds: Vec<(V, V)> = outs
+        .iter()
+        .enumerate()
+        .map(|(k, &o)| (o, g.input(n_in + k as u32)))
+        .collect();
+    let mut wrt = xs.clone();
+    wrt.extend(params(&mut g, n_params));
+    let grads = autodiff::vjp(&mut g, &seeds, &wrt);
+    g.outputs.extend(&grads[..xs.len()]);
+    g.reductions = grads[xs.len()..].to_vec();
+    g.compact()
+}
+
+/// The second-order kernel of a scalar function (see the module docs).
+pub fn second_order(f: &Lowered, n_params: usize) -> Graph {
+    assert_eq!(
+        f.graph.outputs.len(),
+        1,
+        "second-order kernels are for scalar functions"
+    );
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let out = g.outputs[0];
+    let one = g.constant(1.0);
+    let grad_x = autodiff::vjp(&mut g, &[(out, one)], &xs);
+    let mut seeds = vec![(out, g.input(n_in))];
+    for (k, &gk) in grad_x.iter().enumerate() {
+        seeds.push((gk, g.input(n_in + 1 + k as u32)));
+    }
+    let ps = params(&mut g, n_params);
+    g.reductions = autodiff::vjp(&mut g, &seeds, &ps);
+    g.outputs = std::iter::once(out).chain(grad_x).collect();
+    g.compact()
+}

@@ -1,0 +1,594 @@
+//! Recursive-descent parser: tokens to a [`Script`]. Nesting depth and program size are limited so that
+//! no input can overflow the stack.
+
+use crate::ast::*;
+use crate::diag::{Diagnostic, Span};
+use crate::lexer::{lex, Tok, Token};
+use crate::types::Type;
+
+/// Deepest nesting of expressions the parser accepts.
+pub const MAX_DEPTH: usize = 200;
+/// Largest script the parser accepts, in bytes.
+pub const MAX_SOURCE_BYTES: usize = 4 << 20;
+/// Largest vector or matrix dimension a type may name.
+pub const MAX_DIM: usize = 1 << 16;
+
+/// Parses a whole script whose spans start at byte offset `base` (see [`crate::diag::SourceMap`]).
+pub fn parse(source: &str, base: usize) -> Result<Script, Diagnostic> {
+    if source.len() > MAX_SOURCE_BYTES {
+        return Err(Diagnostic::new(
+            Span::new(base, base),
+            format!(
+                "script is too large ({} bytes; the limit is {MAX_SOURCE_BYTES})",
+                source.len()
+            ),
+        ));
+    }
+    let shift = |s: Span| Span::new(s.start as usize + base, s.end as usize + base);
+    let mut tokens = lex(source).map_err(|mut d| {
+        d.span = shift(d.span);
+        d
+    })?;
+    for t in &mut tokens {
+        t.span = shift(t.span);
+    }
+    let mut p = Parser {
+        tokens,
+        pos: 0,
+        depth: 0,
+    };
+    let mut script = Script::default();
+    while p.peek() != &Tok::Eof {
+        script.items.push(p.item()?);
+    }
+    Ok(script)
+}
+
+struct Parser {
+    tokens: Vec<Token>,
+    pos: usize,
+    depth: usize,
+}
+
+type PResult<T> = Result<T, Diagnostic>;
+
+impl Parser {
+    fn peek(&self) -> &Tok {
+        &self.tokens[self.pos].tok
+    }
+
+    fn peek_at(&self, ahead: usize) -> &Tok {
+        &self.tokens[(self.pos + ahead).min(self.tokens.len() - 1)].tok
+    }
+
+    fn span(&self) -> Span {
+        self.tokens[self.pos].span
+    }
+
+    fn prev_span(&self) -> Span {
+        self.tokens[self.pos.saturating_sub(1)].span
+    }
+
+    fn bump(&mut self) -> Token {
+        let t = self.tokens[self.pos].clone();
+        if self.pos + 1 < self.tokens.len() {
+            self.pos += 1;
+        }
+        t
+    }
+
+    fn is(&self, punct: &str) -> bool {
+        matches!(self.peek(), Tok::Punct(p) if *p == punct)
+    }
+
+    fn eat(&mut self, punct: &str) -> bool {
+        let found = self.is(punct);
+        if found {
+            self.bump();
+        }
+        found
+    }
+
+    fn is_keyword(&self, word: &str) -> bool {
+        matches!(self.peek(), Tok::Ident(w) if w == word)
+    }
+
+    fn describe(tok: &Tok) -> String {
+        match tok {
+            Tok::Ident(s) => format!("'{s}'"),
+            Tok::Number(n) => format!("number {n}"),
+            Tok::Str(s) => format!("string \"{s}\""),
+            Tok::Punct(p) => format!("'{p}'"),
+            Tok::Eof => "end of file".into(),
+        }
+    }
+
+    fn expect(&mut self, punct: &str) -> PResult<Span> {
+        if self.is(punct) {
+            return Ok(self.bump().span);
+        }
+        let found = Self::describe(self.peek());
+        let err = Diagnostic::new(self.span(), format!("expected '{punct}', found {found}"));
+        Err(match punct {
+            ")" | "]" | "}" => err.with_hint(format!("is a '{punct}' missing?")),
+            _ => err,
+        })
+    }
+
+    fn ident(&mut self, what: &str) -> PResult<Ident> {
+        match self.peek().clone() {
+            Tok::Ident(name) => {
+                let span = self.bump().span;
+                Ok(Ident { name, span })
+            }
+            other => Err(Diagnostic::new(
+                self.span(),
+                format!("expected {what}, found {}", Self::describe(&other)),
+            )),
+        }
+    }
+
+    fn enter(&mut self) -> PResult<()> {
+        self.depth += 1;
+        if self.depth > MAX_DEPTH {
+            return Err(Diagnostic::new(self.span(), "expression nested too deeply")
+                .with_hint(format!("the limit is {MAX_DEPTH} levels; split it with 'let'")));
+        }
+        Ok(())
+    }
+
+    fn item(&mut self) -> PResult<Item> {
+        let Tok::Ident(word) = self.peek().clone() else {
+            return Err(Diagnostic::new(
+                self.span(),
+                format!("expected an item, found {}", Self::describe(self.peek())),
+            )
+            .with_hint("a script holds 'fn', 'param', 'const' and blocks such as 'render { ... }'"));
+        };
+        match word.as_str() {
+            "fn" => self.fn_def().map(Item::Fn),
+            "param" => {
+                self.bump();
+                let name = self.ident("a param name")?;
+                self.expect(":")?;
+                let ty = self.type_expr()?;
+                self.expect("=")?;
+                let init = self.expr()?;
+                self.eat(";");
+                Ok(Item::Param(ParamDecl { name, ty, init }))
+            }
+            "const" => {
+                self.bump();
+                let name = self.ident("a constant name")?;
+                self.expect("=")?;
+                let value = self.expr()?;
+                self.eat(";");
+                Ok(Item::Const(ConstDecl { name, value }))
+            }
+            _ => self.config_block().map(Item::Block),
+        }
+    }
+
+    fn fn_def(&mut self) -> PResult<FnDef> {
+        self.bump();
+        let name = self.ident("a function name")?;
+        self.expect("(")?;
+        let mut params = Vec::new();
+        while !self.is(")") {
+            let pname = self.ident("a parameter name")?;
+            self.expect(":")?;
+            let ty = self.type_expr()?;
+            let default = if self.eat("=") { Some(self.expr()?) } else { None };
+            params.push(FnParam {
+                name: pname,
+                ty,
+                default,
+            });
+            if !self.eat(",") {
+                break;
+            }
+        }
+        self.expect(")")?;
+        if !self.is("->") {
+            return Err(Diagnostic::new(self.span(), "expected '->' and the result type")
+                .with_hint("write e.g. 'fn sdf(p: vec3) -> f32 { ... }'"));
+        }
+        self.bump();
+        let ret = self.type_expr()?;
+        let body = if self.eat("=") {
+            let e = self.expr()?;
+            self.eat(";");
+            e
+        } else if self.is("{") {
+            self.block()?
+        } else {
+            return Err(Diagnostic::new(
+                self.span(),
+                format!("expected '{{' or '=' for the body of '{}'", name.name),
+            ));
+        };
+        Ok(FnDef {
+            name,
+            params,
+            ret,
+            body,
+        })
+    }
+
+    fn dim(&mut self) -> PResult<usize> {
+        let span = self.span();
+        match self.bump().tok {
+            Tok::Number(n) if n >= 1.0 && n.fract() == 0.0 && n <= MAX_DIM as f64 => Ok(n as usize),
+            _ => Err(Diagnostic::new(span, "expected a dimension (a whole number ≥ 1)")
+                .with_hint(format!("dimensions range from 1 to {MAX_DIM}"))),
+        }
+    }
+
+    fn type_expr(&mut self) -> PResult<TypeExpr> {
+        let start = self.span();
+        if self.eat("(") {
+            let mut types = Vec::new();
+            while !self.is(")") {
+                types.push(self.type_expr()?.ty);
+                if !self.eat(",") {
+                    break;
+                }
+            }
+            self.expect(")")?;
+            return Ok(TypeExpr {
+                ty: Type::Tuple(types),
+                span: start.to(self.prev_span()),
+            });
+        }
+        let name = self.ident("a type")?;
+        let ty = match name.name.as_str() {
+            "f32" => Type::F32,
+            "vec2" => Type::Vec(2),
+            "vec3" => Type::Vec(3),
+            "vec4" => Type::Vec(4),
+            "vec" => {
+                self.expect("<")?;
+                let n = self.dim()?;
+                self.expect(">")?;
+                Type::Vec(n)
+            }
+            "mat" => {
+                self.expect("<")?;
+                let r = self.dim()?;
+                self.expect(",")?;
+                let c = self.dim()?;
+                self.expect(">")?;
+                Type::Mat(r, c)
+            }
+            other => {
+                let mut d = Diagnostic::new(name.span, format!("unknown type '{other}'"));
+                let names = ["f32", "vec2", "vec3", "vec4", "vec", "mat"];
+                if let Some(c) = crate::diag::closest(other, names) {
+                    d = d.with_hint(format!("did you mean '{c}'?"));
+                } else {
+                    d = d.with_hint("types are f32, vec2, vec3, vec4, vec<N> and mat<R, C>");
+                }
+                return Err(d);
+            }
+        };
+        Ok(TypeExpr {
+            ty,
+            span: start.to(self.prev_span()),
+        })
+    }
+
+    fn config_block(&mut self) -> PResult<ConfigBlock> {
+        let kind = self.ident("a block kind")?;
+        let name = if matches!(self.peek(), Tok::Ident(_)) {
+            Some(self.ident("a block name")?)
+        } else {
+            None
+        };
+        if !self.is("{") {
+            return Err(Diagnostic::new(
+                kind.span,
+                format!("unknown item '{}'", kind.name),
+            )
+            .with_hint("items start with 'fn', 'param', 'const', or are blocks like 'render sphere_trace { ... }'"));
+        }
+        self.bump();
+        let mut entries = Vec::new();
+        while !self.is("}") {
+            let key = self.ident("a setting name")?;
+            self.expect(":")?;
+            let value = self.expr()?;
+            entries.push(ConfigEntry { key, value });
+            if !self.eat(",") && !self.eat(";") {
+                break;
+            }
+        }
+        self.expect("}")?;
+        let span = kind.span.to(self.prev_span());
+        Ok(ConfigBlock {
+            kind,
+            name,
+            entries,
+            span,
+        })
+    }
+
+    fn block(&mut self) -> PResult<Expr> {
+        self.enter()?;
+        let start = self.expect("{")?;
+        let mut lets = Vec::new();
+        while self.is_keyword("let") {
+            self.bump();
+            let pattern = if self.eat("(") {
+                let mut names = Vec::new();
+                while !self.is(")") {
+                    names.push(self.ident("a name")?);
+                    if !self.eat(",") {
+                        break;
+                    }
+                }
+                self.expect(")")?;
+                Pattern::Tuple(names)
+            } else {
+                Pattern::Name(self.ident("a name after 'let'")?)
+            };
+            self.expect("=")?;
+            let value = self.expr()?;
+            self.eat(";");
+            lets.push(Let { pattern, value });
+        }
+        if self.is("}") {
+            return Err(
+                Diagnostic::new(self.span(), "a block must end with an expression")
+                    .with_hint("the last line of a block is its value, e.g. 'length(q) - 0.25'"),
+            );
+        }
+        let value = self.expr()?;
+        self.eat(";");
+        let end = self.expect("}")?;
+        self.depth -= 1;
+        Ok(Expr {
+            kind: ExprKind::Block(lets, Box::new(value)),
+            span: start.to(end),
+        })
+    }
+
+    /// Parses an expression (lowest precedence: `||`).
+    pub fn expr(&mut self) -> PResult<Expr> {
+        self.enter()?;
+        let e = self.binary(0)?;
+        self.depth -= 1;
+        Ok(e)
+    }
+
+    fn binary(&mut self, level: usize) -> PResult<Expr> {
+        const LEVELS: [&[(&str, BinOp)]; 5] = [
+            &[("||", BinOp::Or)],
+            &[("&&", BinOp::And)],
+            &[
+                ("<=", BinOp::Le),
+                (">=", BinOp::Ge),
+                ("==", BinOp::Eq),
+                ("!=", BinOp::Ne),
+                ("<", BinOp::Lt),
+                (">", BinOp::Gt),
+            ],
+            &[("+", BinOp::Add), ("-", BinOp::Sub)],
+            &[("*", BinOp::Mul), ("/", BinOp::Div)],
+        ];
+        if level == LEVELS.len() {
+            return self.unary();
+        }
+        let mut lhs = self.binary(level + 1)?;
+        while let Some(&(_, op)) = LEVELS[level].iter().find(|(s, _)| self.is(s)) {
+            self.bump();
+            let rhs = self.binary(level + 1)?;
+            let span = lhs.span.to(rhs.span);
+            lhs = Expr {
+                kind: ExprKind::Binary(op, Box::new(lhs), Box::new(rhs)),
+                span,
+            };
+        }
+        Ok(lhs)
+    }
+
+    fn unary(&mut self) -> PResult<Expr> {
+        let start = self.span();
+        let op = if self.eat("-") {
+            UnOp::Neg
+        } else if self.eat("!") {
+            UnOp::Not
+        } else {
+            return self.postfix();
+        };
+        self.enter()?;
+        let operand = self.unary()?;
+        self.depth -= 1;
+        let span = start.to(operand.span);
+        Ok(Expr {
+            kind: ExprKind::Unary(op, Box::new(operand)),
+            span,
+        })
+    }
+
+    fn postfix(&mut self) -> PResult<Expr> {
+        let mut e = self.primary()?;
+        loop {
+            if self.eat(".") {
+                let field = self.ident("a swizzle such as 'xy' after '.'")?;
+                let span = e.span.to(field.span);
+                e = Expr {
+                    kind: ExprKind::Swizzle(Box::new(e), field),
+                    span,
+                };
+            } else if self.eat("[") {
+                let first = self.expr()?;
+                let kind = if self.eat("..") {
+                    let end = self.expr()?;
+                    ExprKind::Slice(Box::new(e.clone()), Box::new(first), Box::new(end))
+                } else {
+                    ExprKind::Index(Box::new(e.clone()), Box::new(first))
+                };
+                let close = self.expect("]")?;
+                e = Expr {
+                    kind,
+                    span: e.span.to(close),
+                };
+            } else {
+                return Ok(e);
+            }
+        }
+    }
+
+    fn list(&mut self, close: &str) -> PResult<Vec<Expr>> {
+        let mut items = Vec::new();
+        while !self.is(close) {
+            items.push(self.expr()?);
+            if !self.eat(",") {
+                break;
+            }
+        }
+        self.expect(close)?;
+        Ok(items)
+    }
+
+    fn primary(&mut self) -> PResult<Expr> {
+        let start = self.span();
+        let kind = match self.peek().clone() {
+            Tok::Number(n) => {
+                self.bump();
+                ExprKind::Number(n)
+            }
+            Tok::Str(s) => {
+                self.bump();
+                ExprKind::Str(s)
+            }
+            Tok::Ident(word) if word == "if" => return self.if_expr(),
+            Tok::Ident(_) => {
+                let name = self.ident("a name")?;
+                if self.eat("(") {
+                    let mut args = Vec::new();
+                    while !self.is(")") {
+                        let arg_name = match (self.peek(), self.peek_at(1)) {
+                            (Tok::Ident(_), Tok::Punct(":")) => {
+                                let n = self.ident("an argument name")?;
+                                self.bump();
+                                Some(n)
+                            }
+                            _ => None,
+                        };
+                        let value = self.expr()?;
+                        args.push(Arg {
+                            name: arg_name,
+                            value,
+                        });
+                        if !self.eat(",") {
+                            break;
+                        }
+                    }
+                    self.expect(")")?;
+                    ExprKind::Call(name, args)
+                } else {
+                    ExprKind::Var(name.name)
+                }
+            }
+            Tok::Punct("(") => {
+                self.bump();
+                let mut items = self.list(")")?;
+                if items.len() == 1 {
+                    let mut inner = items.pop().expect("one item");
+                    inner.span = start.to(self.prev_span());
+                    return Ok(inner);
+                }
+                ExprKind::Tuple(items)
+            }
+            Tok::Punct("[") => {
+                self.bump();
+                ExprKind::List(self.list("]")?)
+            }
+            Tok::Punct("{") => return self.block(),
+            other => {
+                return Err(Diagnostic::new(
+                    start,
+                    format!("expected an expression, found {}", Self::describe(&other)),
+                ))
+            }
+        };
+        Ok(Expr {
+            kind,
+            span: start.to(self.prev_span()),
+        })
+    }
+
+    fn if_expr(&mut self) -> PResult<Expr> {
+        self.enter()?;
+        let start = self.bump().span;
+        let cond = self.expr_no_block()?;
+        let then = self.block()?;
+        if !self.is_keyword("else") {
+            return Err(Diagnostic::new(self.span(), "'if' needs an 'else' branch")
+                .with_hint("both branches give a value: 'if c { a } else { b }'"));
+        }
+        self.bump();
+        let other = if self.is_keyword("if") {
+            self.if_expr()?
+        } else {
+            self.block()?
+        };
+        let span = start.to(other.span);
+        self.depth -= 1;
+        Ok(Expr {
+            kind: ExprKind::If(Box::new(cond), Box::new(then), Box::new(other)),
+            span,
+        })
+    }
+
+    /// An `if` condition: an expression that does not start with `{` (the `{` opens the branch).
+    fn expr_no_block(&mut self) -> PResult<Expr> {
+        if self.is("{") {
+            return Err(Diagnostic::new(self.span(), "expected a condition after 'if'"));
+        }
+        self.expr()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_functions_params_and_blocks() {
+        let src = "param c: vec3 = [0, 0, 0]\nconst k = 2\n\
+                   fn f(p: vec3, r: f32 = 1) -> f32 { let q = p - c; length(q) * k - r }\n\
+                   render sphere_trace { size: 256, out: \"a.gif\", camera: surround(radius: 3, up: z) }";
+        let s = parse(src, 0).unwrap();
+        assert_eq!(s.items.len(), 4);
+        let Item::Block(b) = &s.items[3] else {
+            panic!("expected a block")
+        };
+        assert_eq!(b.entries.len(), 3);
+        assert_eq!(b.name.as_ref().unwrap().name, "sphere_trace");
+    }
+
+    #[test]
+    fn precedence_binds_mul_tighter() {
+        let s = parse("fn f(x: f32) -> f32 = 1 + 2 * x", 0).unwrap();
+        let Item::Fn(f) = &s.items[0] else { panic!() };
+        let ExprKind::Binary(BinOp::Add, _, rhs) = &f.body.kind else {
+            panic!("{:?}", f.body)
+        };
+        assert!(matches!(rhs.kind, ExprKind::Binary(BinOp::Mul, _, _)));
+    }
+
+    #[test]
+    fn deep_nesting_is_an_error_not_a_crash() {
+        let src = format!(
+            "fn f(x: f32) -> f32 = {}x{}",
+            "(".repeat(100_000),
+            ")".repeat(100_000)
+        );
+        let err = parse(&src, 0).unwrap_err();
+        assert!(err.message.contains("nested too deeply"), "{}", err.message);
+        let src = format!("fn f(x: f32) -> f32 = {}x", "-".repeat(100_000));
+        assert!(parse(&src, 0).is_err());
+    }
+}

@@ -1,0 +1,436 @@
+//! A checked program: a script with the prelude, its params with initial values, and lowering of any of
+//! its functions to IR.
+
+use std::collections::HashMap;
+
+use crate::ast::*;
+use crate::builtins;
+use crate::diag::{Diagnostic, Report, SourceMap, Span};
+use crate::elaborate::{Elaborator, Globals, ParamSlot};
+use crate::init::Initializer;
+use crate::ir::Graph;
+use crate::parser::parse;
+use crate::types::Type;
+use crate::value::Val;
+
+/// The standard library, written in the language itself.
+pub const PRELUDE: &str = include_str!("../prelude.sdf");
+
+/// A learnable param of a program.
+#[derive(Clone, Debug)]
+pub struct ParamInfo {
+    /// Its name.
+    pub name: String,
+    /// Its type.
+    pub ty: Type,
+    /// Its first index in the flat param vector (matrices are row-major).
+    pub offset: usize,
+}
+
+/// A function's signature.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Signature {
+    /// The function's name.
+    pub name: String,
+    /// Parameter names and types, in order.
+    pub inputs: Vec<(String, Type)>,
+    /// The result type.
+    pub output: Type,
+}
+
+impl std::fmt::Display for Signature {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ps: Vec<String> = self.inputs.iter().map(|(n, t)| format!("{n}: {t}")).collect();
+        write!(f, "fn {}({}) -> {}", self.name, ps.join(", "), self.output)
+    }
+}
+
+/// A function lowered to IR: one graph input per scalar of its parameters, one output per scalar of its
+/// result.
+#[derive(Clone, Debug)]
+pub struct Lowered {
+    /// The function's signature.
+    pub signature: Signature,
+    /// The graph.
+    pub graph: Graph,
+}
+
+/// A parsed and type-checked script, with the prelude.
+#[derive(Debug)]
+pub struct Program {
+    /// The prelude and the script, for diagnostics.
+    pub sources: SourceMap,
+    prelude: Script,
+    script: Script,
+    /// The learnable params, in declaration order.
+    pub params: Vec<ParamInfo>,
+    /// The initial value of every param scalar, concatenated in the order of `params`.
+    pub param_values: Vec<f32>,
+}
+
+/// Parses and checks `source` (named `file` in diagnostics).
+pub fn compile(file: &str, source: &str) -> Result<Program, Report> {
+    let mut sources = SourceMap::default();
+    sources.add("<prelude>", PRELUDE);
+    let base = sources.add(file, source);
+    let fail = |sources: &SourceMap, diagnostics| Report {
+        sources: sources.clone(),
+        diagnostics,
+    };
+    let prelude = parse(PRELUDE, 0).map_err(|d| fail(&sources, vec![d]))?;
+    let script = parse(source, base).map_err(|d| fail(&sources, vec![d]))?;
+    let mut program = Program {
+        sources,
+        prelude,
+        script,
+        params: Vec::new(),
+        param_values: Vec::new(),
+    };
+    let mut diagnostics = program.check_names();
+    diagnostics.extend(program.init_params());
+    if diagnostics.is_empty() {
+        diagnostics.extend(program.check_functions());
+    }
+    if diagnostics.is_empty() {
+        Ok(program)
+    } else {
+        diagnostics.sort_by_key(|d| (d.span.start, d.span.end));
+        diagnostics.dedup();
+        Err(fail(&program.sources, diagnostics))
+    }
+}
+
+impl Program {
+    fn user_items(&self) -> impl Iterator<Item = &Item> {
+        self.script.items.iter()
+    }
+
+    fn fn_defs(&self) -> impl Iterator<Item = &FnDef> {
+        self.prelude
+            .items
+            .iter()
+            .chain(&self.script.items)
+            .filter_map(|i| match i {
+                Item::Fn(f) => Some(f),
+                _ => None,
+            })
+    }
+
+    /// The names every function body sees: user functions shadow prelude ones.
+    fn globals(&self) -> Globals<'_> {
+        let mut g = Globals::default();
+        for f in self.fn_defs() {
+            g.functions.insert(f.name.name.clone(), f);
+        }
+        for item in self.user_items() {
+            if let Item::Const(c) = item {
+                g.consts.insert(c.name.name.clone(), &c.value);
+            }
+        }
+        for p in &self.params {
+            g.params.insert(
+                p.name.clone(),
+                ParamSlot {
+                    ty: p.ty.clone(),
+                    offset: p.offset as u32,
+                },
+            );
+        }
+        g
+    }
+
+    fn check_names(&self) -> Vec<Diagnostic> {
+        let mut diagnostics = Vec::new();
+        let mut fns: HashMap<&str, Span> = HashMap::new();
+        let mut values: HashMap<&str, Span> = HashMap::new();
+        for item in self.user_items() {
+            let (name, table) = match item {
+                Item::Fn(f) => (&f.name, &mut fns),
+                Item::Param(p) => (&p.name, &mut values),
+                Item::Const(c) => (&c.name, &mut values),
+                Item::Block(_) => continue,
+            };
+            if builtins::is_builtin(&name.name) || builtins::is_initializer(&name.name) {
+                diagnostics.push(
+                    Diagnostic::new(name.span, format!("'{}' is the name of a builtin", name.name))
+                        .with_hint("choose another name"),
+                );
+            } else if let Some(first) = table.insert(&name.name, name.span) {
+                let (line, _) = self.line_of(first);
+                diagnostics.push(
+                    Diagnostic::new(name.span, format!("duplicate name '{}'", name.name))
+                        .with_hint(format!("'{}' is already defined on line {line}", name.name)),
+                );
+            }
+        }
+        diagnostics
+    }
+
+    fn line_of(&self, span: Span) -> (usize, usize) {
+        match self.sources.file_at(span.start as usize) {
+            Some(f) => crate::diag::line_col(&f.text, span.start as usize - f.base),
+            None => (0, 0),
+        }
+    }
+
+    fn init_params(&mut self) -> Vec<Diagnostic> {
+        let decls: Vec<ParamDecl> = self
+            .user_items()
+            .filter_map(|i| match i {
+                Item::Param(p) => Some(p.clone()),
+                _ => None,
+            })
+            .collect();
+        let mut diagnostics = Vec::new();
+        for (index, decl) in decls.iter().enumerate() {
+            let offset = self.param_values.len();
+            match self.initial_value(decl, index) {
+                Ok(values) => {
+                    self.param_values.extend(values);
+                    self.params.push(ParamInfo {
+                        name: decl.name.name.clone(),
+                        ty: decl.ty.ty.clone(),
+                        offset,
+                    });
+                }
+                Err(d) => diagnostics.push(d),
+            }
+        }
+        diagnostics
+    }
+
+    /// Evaluates `e` to constants (consts are visible, params are not).
+    fn constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
+        let globals = Globals {
+            params: HashMap::new(),
+            ..self.globals()
+        };
+        let mut g = Graph::new();
+        let v = Elaborator::new(&globals, &mut g).expr(e)?;
+        let scalars = v
+            .flatten()
+            .ok_or_else(|| Diagnostic::new(e.span, format!("expected a constant, found {}", v.ty())))?;
+        scalars
+            .iter()
+            .map(|&s| g.const_value(s))
+            .collect::<Option<Vec<f64>>>()
+            .ok_or_else(|| {
+                Diagnostic::new(e.span, "expected a constant value")
+                    .with_hint("a param's initial value cannot depend on inputs or params")
+            })
+    }
+
+    fn initial_value(&self, decl: &ParamDecl, index: usize) -> Result<Vec<f32>, Diagnostic> {
+        let ty = &decl.ty.ty;
+        if let Type::Tuple(_) = ty {
+            return Err(Diagnostic::new(decl.ty.span, "a param cannot be a tuple")
+                .with_hint("declare one param per value"));
+        }
+        let count = ty.scalars();
+        if let ExprKind::Call(name, args) = &decl.init.kind {
+            if builtins::is_initializer(&name.name) {
+                return self.random_init(decl, name, args, index);
+            }
+        }
+        let values = self.constant(&decl.init)?;
+        match values.len() {
+            1 => Ok(vec![values[0] as f32; count]),
+            n if n == count && !matches!(ty, Type::Mat(..)) => Ok(values.iter().map(|&x| x as f32).collect()),
+            n => Err(Diagnostic::new(
+                decl.init.span,
+                format!("param '{}' of type {ty} cannot start from a value of {n} components", decl.name.name),
+            )
+            .with_hint("give one value to repeat, a vector of the same length, or an initializer such as xavier(seed: 1)")),
+        }
+    }
+
+    fn random_init(
+        &self,
+        decl: &ParamDecl,
+        name: &Ident,
+        args: &[Arg],
+        index: usize,
+    ) -> Result<Vec<f32>, Diagnostic> {
+        let ty = &decl.ty.ty;
+        let mut positional = Vec::new();
+        let mut named = HashMap::new();
+        for a in args {
+            let v = self.constant(&a.value)?;
+            if v.len() != 1 {
+                return Err(Diagnostic::new(a.value.span, "initializer arguments are numbers"));
+            }
+            match &a.name {
+                Some(n) => {
+                    named.insert(n.name.as_str(), (v[0], n.span));
+                }
+                None => positional.push(v[0]),
+            }
+        }
+        let allowed: &[&str] = match name.name.as_str() {
+            "uniform" | "normal" => &["seed"],
+            _ => &["seed", "fan_in"],
+        };
+        if let Some((key, (_, span))) = named.iter().find(|(k, _)| !allowed.contains(k)) {
+            return Err(
+                Diagnostic::new(*span, format!("'{}' has no argument '{key}'", name.name))
+                    .with_hint(format!("its named arguments are: {}", allowed.join(", "))),
+            );
+        }
+        let seed = named.get("seed").map_or(index as u64 + 1, |s| s.0 as u64);
+        let (fan_out, fan_in) = match ty {
+            Type::Mat(r, c) => (Some(*r as f64), named.get("fan_in").map_or(*c as f64, |f| f.0)),
+            _ => (None, named.get("fan_in").map_or(f64::NAN, |f| f.0)),
+        };
+        let expect = |n: usize| -> Result<(), Diagnostic> {
+            if positional.len() == n {
+                Ok(())
+            } else {
+                Err(Diagnostic::new(
+                    name.span,
+                    format!(
+                        "wrong number of arguments: '{}' takes {n} besides seed, got {}",
+                        name.name,
+                        positional.len()
+                    ),
+                ))
+            }
+        };
+        let needs_fan_in = || {
+            Diagnostic::new(name.span, format!("'{}' needs fan_in for a {ty}", name.name))
+                .with_hint(format!("write {}(fan_in: 64, seed: 1)", name.name))
+        };
+        let init = match name.name.as_str() {
+            "uniform" => {
+                expect(2)?;
+                Initializer::Uniform(positional[0], positional[1])
+            }
+            "normal" => {
+                expect(2)?;
+                Initializer::Normal(positional[0], positional[1])
+            }
+            "xavier" => {
+                expect(0)?;
+                let Some(fan_out) = fan_out else {
+                    return Err(Diagnostic::new(name.span, "'xavier' initializes a matrix")
+                        .with_hint("for a bias use linear_init(fan_in: N) or a constant"));
+                };
+                let bound = (6.0 / (fan_in + fan_out)).sqrt();
+                Initializer::Uniform(-bound, bound)
+            }
+            _ => {
+                expect(0)?;
+                if fan_in.is_nan() {
+                    return Err(needs_fan_in());
+                }
+                // kaiming: He uniform for ReLU; linear_init: PyTorch's default for nn.Linear.
+                let bound = if name.name == "kaiming" {
+                    (6.0 / fan_in).sqrt()
+                } else {
+                    1.0 / fan_in.sqrt()
+                };
+                Initializer::Uniform(-bound, bound)
+            }
+        };
+        Ok(init.sample(ty.scalars(), seed))
+    }
+
+    fn check_functions(&self) -> Vec<Diagnostic> {
+        let globals = self.globals();
+        let mut diagnostics = Vec::new();
+        for f in self.fn_defs() {
+            let mut g = Graph::new();
+            if let Err(d) = Elaborator::new(&globals, &mut g).check_fn(f) {
+                diagnostics.push(d);
+            }
+        }
+        diagnostics
+    }
+
+    /// The signatures of the script's own functions (not the prelude's), in source order.
+    pub fn functions(&self) -> Vec<Signature> {
+        self.user_items()
+            .filter_map(|i| match i {
+                Item::Fn(f) => Some(signature(f)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The signature of function `name` (script or prelude).
+    pub fn signature(&self, name: &str) -> Option<Signature> {
+        self.globals().functions.get(name).map(|f| signature(f))
+    }
+
+    /// The configuration blocks of the script, in source order.
+    pub fn blocks(&self) -> Vec<&ConfigBlock> {
+        self.user_items()
+            .filter_map(|i| match i {
+                Item::Block(b) => Some(b),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The number of param scalars.
+    pub fn n_params(&self) -> usize {
+        self.param_values.len()
+    }
+
+    /// Lowers function `name` to IR (outputs are the result's scalars).
+    pub fn lower(&self, name: &str) -> Result<Lowered, Report> {
+        let globals = self.globals();
+        let report = |diagnostics| Report {
+            sources: self.sources.clone(),
+            diagnostics,
+        };
+        let Some(&f) = globals.functions.get(name) else {
+            let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
+            let mut d = Diagnostic::new(Span::default(), format!("no function '{name}' in the script"));
+            if let Some(c) = crate::diag::closest(name, names.iter().map(String::as_str)) {
+                d = d.with_hint(format!("did you mean '{c}'?"));
+            } else {
+                d = d.with_hint(format!("the script defines: {}", names.join(", ")));
+            }
+            return Err(report(vec![d]));
+        };
+        let mut graph = Graph::new();
+        let result = Elaborator::new(&globals, &mut graph)
+            .lower_entry(f)
+            .map_err(|d| report(vec![d]))?;
+        let sig = signature(f);
+        graph.n_inputs = sig.inputs.iter().map(|(_, t)| t.scalars() as u32).sum();
+        graph.outputs = result.flatten().unwrap_or_default();
+        Ok(Lowered {
+            signature: sig,
+            graph: graph.compact(),
+        })
+    }
+
+    /// Lowers a standalone constant expression in the context of this program (consts visible).
+    pub fn eval_constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
+        self.constant(e)
+    }
+}
+
+fn signature(f: &FnDef) -> Signature {
+    Signature {
+        name: f.name.name.clone(),
+        inputs: f
+            .params
+            .iter()
+            .map(|p| (p.name.name.clone(), p.ty.ty.clone()))
+            .collect(),
+        output: f.ret.ty.clone(),
+    }
+}
+
+impl Elaborator<'_, '_> {
+    /// Type-checks `f`, lowering it with fresh inputs (matrix params are bound to a placeholder matrix).
+    pub fn check_fn(&mut self, f: &FnDef) -> Result<Val, Diagnostic> {
+        if f.params.iter().any(|p| matches!(p.ty.ty, Type::Mat(..))) {
+            // Functions taking a matrix are checked where they are called with a real matrix param.
+            return Ok(Val::Tuple(vec![]));
+        }
+        self.lower_entry(f)
+    }
+}

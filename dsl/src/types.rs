@@ -1,0 +1,64 @@
+//! The types of the language.
+
+use std::fmt;
+
+/// A value's type. Vectors of any length share one representation: `vec3` is `Vec(3)`.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub enum Type {
+    /// A scalar.
+    F32,
+    /// A vector of n scalars (`vec2`, `vec3`, `vec4`, `vec<n>`).
+    Vec(usize),
+    /// A matrix of rows × columns (params only), used by `dense`.
+    Mat(usize, usize),
+    /// Several results of a function.
+    Tuple(Vec<Type>),
+}
+
+impl Type {
+    /// How many scalars a value of this type holds.
+    pub fn scalars(&self) -> usize {
+        match self {
+            Type::F32 => 1,
+            Type::Vec(n) => *n,
+            Type::Mat(r, c) => r * c,
+            Type::Tuple(ts) => ts.iter().map(Type::scalars).sum(),
+        }
+    }
+
+    /// Whether a value of type `self` may stand where `target` is expected (`vec<1>` passes as f32).
+    pub fn coerces_to(&self, target: &Type) -> bool {
+        self == target
+            || matches!(
+                (self, target),
+                (Type::Vec(1), Type::F32) | (Type::F32, Type::Vec(1))
+            )
+            || match (self, target) {
+                (Type::Tuple(a), Type::Tuple(b)) => {
+                    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.coerces_to(y))
+                }
+                _ => false,
+            }
+    }
+}
+
+impl fmt::Display for Type {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Type::F32 => write!(f, "f32"),
+            Type::Vec(n @ 2..=4) => write!(f, "vec{n}"),
+            Type::Vec(n) => write!(f, "vec<{n}>"),
+            Type::Mat(r, c) => write!(f, "mat<{r}, {c}>"),
+            Type::Tuple(ts) => {
+                write!(f, "(")?;
+                for (i, t) in ts.iter().enumerate() {
+                    if i > 0 {
+                        write!(f, ", ")?;
+                    }
+                    write!(f, "{t}")?;
+                }
+                write!(f, ")")
+            }
+        }
+    }
+}
