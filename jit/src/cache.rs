@@ -1,0 +1,58 @@
+//! A cache of compiled kernels, keyed by their graph, so that each kernel is compiled once per process.
+
+use std::collections::HashMap;
+use std::hash::{Hash, Hasher};
+use std::sync::{Arc, Mutex};
+
+use nerfjit_dsl::ir::Graph;
+
+use crate::kernel::{JitError, Kernel, Options};
+
+/// Compiled kernels by graph.
+#[derive(Default)]
+pub struct KernelCache {
+    entries: Mutex<HashMap<u64, Vec<(Graph, Arc<Kernel>)>>>,
+}
+
+fn same(a: &Graph, b: &Graph) -> bool {
+    a.ops() == b.ops() && a.outputs == b.outputs && a.reductions == b.reductions && a.n_inputs == b.n_inputs
+}
+
+fn fingerprint(g: &Graph) -> u64 {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    g.ops().hash(&mut h);
+    g.outputs.hash(&mut h);
+    g.reductions.hash(&mut h);
+    g.n_inputs.hash(&mut h);
+    h.finish()
+}
+
+impl KernelCache {
+    /// An empty cache.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The kernel of `graph`, compiled on first request.
+    pub fn get(&self, graph: &Graph, options: Options) -> Result<Arc<Kernel>, JitError> {
+        let graph = graph.compact();
+        let key = fingerprint(&graph);
+        let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, k)) = entries.get(&key).and_then(|v| v.iter().find(|(g, _)| same(g, &graph))) {
+            return Ok(k.clone());
+        }
+        let kernel = Arc::new(Kernel::compile(&graph, options)?);
+        entries.entry(key).or_default().push((graph, kernel.clone()));
+        Ok(kernel)
+    }
+
+    /// How many kernels are cached.
+    pub fn len(&self) -> usize {
+        self.entries.lock().map_or(0, |e| e.values().map(Vec::len).sum())
+    }
+
+    /// Whether the cache is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}

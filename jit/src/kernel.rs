@@ -1,0 +1,252 @@
+//! Compiled kernels: native code for one IR graph, and the safe entry points that run it on slices.
+
+use std::time::Instant;
+
+use cranelift_codegen::settings::{self, Configurable};
+use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
+use cranelift_jit::{JITBuilder, JITModule};
+use cranelift_module::{default_libcall_names, Linkage, Module};
+use nerfjit_dsl::ir::{Graph, Op};
+
+use crate::codegen;
+
+type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
+
+/// How to compile a kernel.
+#[derive(Clone, Copy, Debug)]
+pub struct Options {
+    /// Independent groups of 4 points per loop iteration (more streams hide latency; 1 for huge graphs).
+    pub unroll: usize,
+    /// Keep the Cranelift IR text for `nerfjit ir`.
+    pub keep_clif: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            unroll: 2,
+            keep_clif: false,
+        }
+    }
+}
+
+/// What a compilation did, for reports.
+#[derive(Clone, Debug, Default)]
+pub struct CompileStats {
+    /// Live IR nodes compiled.
+    pub nodes: usize,
+    /// Machine code bytes.
+    pub code_bytes: usize,
+    /// Wall time of code generation, in seconds.
+    pub seconds: f64,
+    /// The Cranelift IR, when [`Options::keep_clif`] asked for it.
+    pub clif: Option<String>,
+}
+
+/// An error of code generation (a bug or an unsupported host, never a user error).
+#[derive(Debug)]
+pub struct JitError(pub String);
+
+impl std::fmt::Display for JitError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "JIT compilation failed: {}", self.0)
+    }
+}
+
+impl std::error::Error for JitError {}
+
+/// A native kernel for one graph: evaluates its outputs per point and sums its reductions over a batch.
+pub struct Kernel {
+    module: Option<JITModule>,
+    func: KernelFn,
+    /// Per-point inputs.
+    pub n_inputs: usize,
+    /// Per-point outputs.
+    pub n_outputs: usize,
+    /// Reductions (summed over the batch).
+    pub n_reductions: usize,
+    /// The smallest param slice the kernel may read (1 + the largest param index used).
+    pub n_params: usize,
+    /// What the compilation did.
+    pub stats: CompileStats,
+}
+
+// SAFETY: the module is only kept to own the code memory and is never used again after finalization; the
+// generated code is immutable and reentrant (it touches only the buffers passed to each call).
+unsafe impl Send for Kernel {}
+// SAFETY: as above; `eval` takes `&self` and shares no mutable state between calls.
+unsafe impl Sync for Kernel {}
+
+impl Drop for Kernel {
+    fn drop(&mut self) {
+        if let Some(module) = self.module.take() {
+            // SAFETY: `func` points into this module's memory and dies with `self`.
+            unsafe { module.free_memory() };
+        }
+    }
+}
+
+fn host_module() -> Result<JITModule, JitError> {
+    let err = |e: &dyn std::fmt::Display| JitError(e.to_string());
+    let mut flags = settings::builder();
+    flags.set("opt_level", "speed").map_err(|e| err(&e))?;
+    flags.set("use_colocated_libcalls", "false").map_err(|e| err(&e))?;
+    flags.set("is_pic", "false").map_err(|e| err(&e))?;
+    let isa = cranelift_native::builder()
+        .map_err(|e| err(&e))?
+        .finish(settings::Flags::new(flags))
+        .map_err(|e| err(&e))?;
+    Ok(JITModule::new(JITBuilder::with_isa(isa, default_libcall_names())))
+}
+
+impl Kernel {
+    /// Compiles `graph` to native code.
+    pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
+        let start = Instant::now();
+        let graph = graph.compact();
+        let mut module = host_module()?;
+        let mut ctx = module.make_context();
+        codegen::signature(&mut ctx.func.signature, module.target_config().pointer_type());
+        let mut fctx = FunctionBuilderContext::new();
+        let mut builder = FunctionBuilder::new(&mut ctx.func, &mut fctx);
+        codegen::build(&mut builder, &graph, options.unroll.max(1));
+        builder.finalize(module.target_config());
+        let clif = options.keep_clif.then(|| ctx.func.display().to_string());
+        let id = module
+            .declare_function("kernel", Linkage::Export, &ctx.func.signature)
+            .map_err(|e| JitError(e.to_string()))?;
+        module
+            .define_function(id, &mut ctx)
+            .map_err(|e| JitError(format!("{e:?}")))?;
+        let code_bytes = ctx.compiled_code().map_or(0, |c| c.code_buffer().len());
+        module.clear_context(&mut ctx);
+        module.finalize_definitions().map_err(|e| JitError(e.to_string()))?;
+        let ptr = module.get_finalized_function(id);
+        // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
+        let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
+        let n_params = graph
+            .ops()
+            .iter()
+            .filter_map(|op| match op {
+                Op::Param(k) => Some(*k as usize + 1),
+                _ => None,
+            })
+            .max()
+            .unwrap_or(0);
+        Ok(Kernel {
+            module: Some(module),
+            func,
+            n_inputs: graph.n_inputs as usize,
+            n_outputs: graph.outputs.len(),
+            n_reductions: graph.reductions.len(),
+            n_params,
+            stats: CompileStats {
+                nodes: graph.len(),
+                code_bytes,
+                seconds: start.elapsed().as_secs_f64(),
+                clif,
+            },
+        })
+    }
+
+    fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {
+        assert_eq!(inputs.len(), self.n_inputs, "kernel takes {} inputs", self.n_inputs);
+        assert_eq!(outputs.len(), self.n_outputs, "kernel writes {} outputs", self.n_outputs);
+        assert!(inputs.iter().all(|c| c.len() >= n), "an input column is shorter than {n}");
+        assert!(outputs.iter().all(|c| c.len() >= n), "an output column is shorter than {n}");
+        assert!(params.len() >= self.n_params, "kernel reads {} params", self.n_params);
+        assert_eq!(reductions.len(), self.n_reductions, "kernel sums {} reductions", self.n_reductions);
+    }
+
+    /// Evaluates points `0..n` on this thread: writes `outputs[o][0..n]` and adds the reductions over the
+    /// points to `reductions`. Panics if a slice is shorter than the kernel needs.
+    pub fn eval(
+        &self,
+        n: usize,
+        inputs: &[&[f32]],
+        outputs: &mut [&mut [f32]],
+        params: &[f32],
+        reductions: &mut [f32],
+    ) {
+        self.check(n, inputs, outputs, params, reductions);
+        let mut accum = vec![0.0f32; 4 * self.n_reductions];
+        let full = n / 4 * 4;
+        if full > 0 {
+            let ins: Vec<*const f32> = inputs.iter().map(|c| c.as_ptr()).collect();
+            let outs: Vec<*mut f32> = outputs.iter_mut().map(|c| c.as_mut_ptr()).collect();
+            // SAFETY: every column holds at least `full` points (checked above), a multiple of 4, and the
+            // kernel accesses exactly points 0..full of each column and 4 lanes per reduction of `accum`.
+            unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), full as i64) };
+        }
+        let rest = n - full;
+        if rest > 0 {
+            // The last partial group runs on padded copies so that the kernel never reads past a column.
+            let pad_in: Vec<[f32; 4]> = inputs
+                .iter()
+                .map(|c| {
+                    let mut a = [0.0; 4];
+                    a[..rest].copy_from_slice(&c[full..n]);
+                    a
+                })
+                .collect();
+            let mut pad_out = vec![[0.0f32; 4]; self.n_outputs];
+            let ins: Vec<*const f32> = pad_in.iter().map(|c| c.as_ptr()).collect();
+            let outs: Vec<*mut f32> = pad_out.iter_mut().map(|c| c.as_mut_ptr()).collect();
+            // SAFETY: each padded column holds 4 points; the kernel masks the reduction lanes ≥ rest.
+            unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), rest as i64) };
+            for (col, pad) in outputs.iter_mut().zip(&pad_out) {
+                col[full..n].copy_from_slice(&pad[..rest]);
+            }
+        }
+        for (r, lanes) in reductions.iter_mut().zip(accum.chunks_exact(4)) {
+            *r += lanes.iter().map(|&x| f64::from(x)).sum::<f64>() as f32;
+        }
+    }
+
+    /// Like [`Kernel::eval`], with the points split over `threads` threads.
+    pub fn eval_parallel(
+        &self,
+        n: usize,
+        inputs: &[&[f32]],
+        outputs: &mut [&mut [f32]],
+        params: &[f32],
+        reductions: &mut [f32],
+        threads: usize,
+    ) {
+        self.check(n, inputs, outputs, params, reductions);
+        let threads = threads.clamp(1, n.div_ceil(4096).max(1));
+        if threads == 1 {
+            return self.eval(n, inputs, outputs, params, reductions);
+        }
+        let chunk = n.div_ceil(threads).div_ceil(4) * 4;
+        let mut out_parts: Vec<Vec<&mut [f32]>> = (0..threads).map(|_| Vec::new()).collect();
+        for col in outputs.iter_mut() {
+            for (t, piece) in col[..n].chunks_mut(chunk).enumerate() {
+                out_parts[t].push(piece);
+            }
+        }
+        let sums: Vec<Vec<f32>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = out_parts
+                .into_iter()
+                .enumerate()
+                .filter(|(_, outs)| !outs.is_empty() || self.n_outputs == 0)
+                .map(|(t, mut outs)| {
+                    let start = (t * chunk).min(n);
+                    let end = ((t + 1) * chunk).min(n);
+                    let ins: Vec<&[f32]> = inputs.iter().map(|c| &c[start..end]).collect();
+                    scope.spawn(move || {
+                        let mut part = vec![0.0f32; self.n_reductions];
+                        self.eval(end - start, &ins, &mut outs, params, &mut part);
+                        part
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().expect("kernel thread panicked")).collect()
+        });
+        for part in sums {
+            for (r, x) in reductions.iter_mut().zip(part) {
+                *r += x;
+            }
+        }
+    }
+}

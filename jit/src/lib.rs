@@ -1,0 +1,26 @@
+//! Cranelift code generation for nerfjit: IR graphs to native kernels that evaluate 4 points per f32x4
+//! vector, in structure-of-arrays buffers, with host features (SSE4.1, AVX, FMA) from `cranelift-native`.
+//!
+//! Every Cranelift call of the project lives in this crate. A [`Kernel`] is compiled from any
+//! [`nerfjit_dsl::ir::Graph`]; the kernel kinds (value, gradient, vector-Jacobian product, second order)
+//! differ only in the graph, built by [`nerfjit_dsl::kernels`].
+//!
+//! ```
+//! use nerfjit_dsl::{compile, kernels};
+//! let program = compile("s.sdf", "fn sdf(p: vec3) -> f32 = length(p) - 1.0").unwrap();
+//! let f = program.lower("sdf").unwrap();
+//! let k = nerfjit_jit::Kernel::compile(&kernels::value(&f), Default::default()).unwrap();
+//! let (x, y, z) = ([2.0f32, 0.0], [0.0f32, 0.5], [0.0f32, 0.0]);
+//! let mut d = [0.0f32; 2];
+//! k.eval(2, &[&x, &y, &z], &mut [&mut d], &[], &mut []);
+//! assert_eq!(d, [1.0, -0.5]);
+//! ```
+#![warn(missing_docs)]
+
+mod cache;
+mod codegen;
+mod kernel;
+mod simd;
+
+pub use cache::KernelCache;
+pub use kernel::{CompileStats, JitError, Kernel, Options};
