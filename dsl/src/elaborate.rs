@@ -15,9 +15,9 @@ use crate::value::Val;
 /// The most nested user-function calls in one lowering.
 pub const MAX_CALL_DEPTH: usize = 64;
 /// The most IR nodes one lowering may create.
-pub const MAX_NODES: usize = 20_000_000;
+pub const MAX_NODES: usize = 10_000_000;
 /// The most expression nodes one lowering may visit (inlining can repeat a body many times).
-pub const MAX_STEPS: usize = 20_000_000;
+pub const MAX_STEPS: usize = 1_000_000;
 
 /// A learnable param as the lowering sees it.
 #[derive(Clone, Debug)]

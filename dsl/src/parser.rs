@@ -263,7 +263,9 @@ impl Parser {
             other => {
                 let mut d = Diagnostic::new(name.span, format!("unknown type '{other}'"));
                 let names = ["f32", "vec2", "vec3", "vec4", "vec", "mat"];
-                if let Some(c) = crate::diag::closest(other, names) {
+                if matches!(other, "float" | "double" | "f64" | "real" | "scalar") {
+                    d = d.with_hint("did you mean 'f32'?");
+                } else if let Some(c) = crate::diag::closest(other, names) {
                     d = d.with_hint(format!("did you mean '{c}'?"));
                 } else {
                     d = d.with_hint("types are f32, vec2, vec3, vec4, vec<N> and mat<R, C>");

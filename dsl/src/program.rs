@@ -16,6 +16,9 @@ use crate::value::Val;
 /// The standard library, written in the language itself.
 pub const PRELUDE: &str = include_str!("../prelude.sdf");
 
+/// The kinds of configuration block a script may hold.
+pub const BLOCK_KINDS: &[&str] = &["render", "train", "mesh", "viz"];
+
 /// A learnable param of a program.
 #[derive(Clone, Debug)]
 pub struct ParamInfo {
@@ -148,7 +151,17 @@ impl Program {
                 Item::Fn(f) => (&f.name, &mut fns),
                 Item::Param(p) => (&p.name, &mut values),
                 Item::Const(c) => (&c.name, &mut values),
-                Item::Block(_) => continue,
+                Item::Block(b) => {
+                if !BLOCK_KINDS.contains(&b.kind.name.as_str()) {
+                    let mut d = Diagnostic::new(b.kind.span, format!("unknown block '{}'", b.kind.name));
+                    d = match crate::diag::closest(&b.kind.name, BLOCK_KINDS.iter().copied()) {
+                        Some(c) => d.with_hint(format!("did you mean '{c}'?")),
+                        None => d.with_hint(format!("blocks are: {}", BLOCK_KINDS.join(", "))),
+                    };
+                    diagnostics.push(d);
+                }
+                continue;
+            }
             };
             if builtins::is_builtin(&name.name) || builtins::is_initializer(&name.name) {
                 diagnostics.push(

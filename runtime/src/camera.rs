@@ -1,0 +1,348 @@
+//! Perspective pinhole cameras with one internal representation and two exact constructors:
+//! PyTorch3D NDC cameras ([`Camera::look_at`]) and Blender / NeRF-synthetic cameras
+//! ([`Camera::from_blender`]).
+//!
+//! Internally a camera is a camera-to-world rotation whose columns are the camera axes in
+//! PyTorch3D's view convention (+X image left, +Y image up, +Z forward), the camera position,
+//! and intrinsics in NDC: `x_ndc = fx·X/Z + px`, `y_ndc = fy·Y/Z + py` for a view-space point
+//! (X, Y, Z). NDC relates to pixels by an [`NdcScale`] `S`: a pixel at continuous coordinates
+//! (row, col) has `x_ndc = (W − 2·col)/S`, `y_ndc = (H − 2·row)/S`.
+//!
+//! Continuous pixel coordinates: pixel (i, j) covers rows [i, i+1) and columns [j, j+1), so its
+//! center is at (i + 0.5, j + 0.5).
+
+use glam::{Mat3, Mat4, Vec2, Vec3};
+
+use crate::error::{Error, Result};
+
+/// Which image side spans NDC [−1, 1] (between the outer pixel edges).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NdcScale {
+    /// PyTorch3D: the shorter side spans [−1, 1], the longer one more.
+    ShorterSide,
+    /// Blender / NeRF: the width spans [−1, 1] (focal from the horizontal field of view).
+    Width,
+}
+
+impl NdcScale {
+    fn pixels(self, width: u32, height: u32) -> f32 {
+        match self {
+            NdcScale::ShorterSide => width.min(height) as f32,
+            NdcScale::Width => width as f32,
+        }
+    }
+}
+
+/// Checks a horizontal field of view in radians.
+pub(crate) fn check_field_of_view(camera_angle_x: f32) -> Result<()> {
+    if !(camera_angle_x > 0.0 && camera_angle_x < std::f32::consts::PI) {
+        return Err(Error::Invalid(format!(
+            "camera_angle_x {camera_angle_x} must be in (0, π) radians"
+        )));
+    }
+    Ok(())
+}
+
+/// A perspective pinhole camera. See the module docs for the conventions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// Camera-to-world rotation; columns are the view axes (+X left, +Y up, +Z forward).
+    rotation: Mat3,
+    position: Vec3,
+    focal: Vec2,
+    principal: Vec2,
+    scale: NdcScale,
+}
+
+impl Camera {
+    /// PyTorch3D `look_at_view_transform(eye, at, up)` with `PerspectiveCameras(focal,
+    /// principal_point)` in NDC: z = normalize(at − eye), x = normalize(up × z),
+    /// y = normalize(z × x); R has these axes as columns and a world point X (row vector) maps
+    /// to view space by X·R + T with T = −Rᵀ·eye.
+    pub fn look_at(eye: Vec3, at: Vec3, up: Vec3, focal: Vec2, principal: Vec2) -> Result<Camera> {
+        let all_finite = [eye, at, up].iter().all(|v| v.is_finite());
+        if !all_finite || !principal.is_finite() {
+            return Err(Error::Invalid(format!(
+                "camera eye {eye}, at {at}, up {up} and principal point {principal} must be finite"
+            )));
+        }
+        let z = (at - eye).normalize_or_zero();
+        if z == Vec3::ZERO {
+            return Err(Error::Invalid(format!(
+                "camera eye and target are the same point {eye}"
+            )));
+        }
+        let x = up.cross(z).normalize_or_zero();
+        if x == Vec3::ZERO {
+            return Err(Error::Invalid(format!(
+                "camera up {up} is zero or parallel to the viewing direction {z}"
+            )));
+        }
+        let y = z.cross(x).normalize();
+        Camera::new(
+            Mat3::from_cols(x, y, z),
+            eye,
+            focal,
+            principal,
+            NdcScale::ShorterSide,
+        )
+    }
+
+    /// A Blender / NeRF-synthetic camera: `c2w` is the camera-to-world `transform_matrix`
+    /// (camera looks down −Z, +Y up, +X right) and `camera_angle_x` the horizontal field of
+    /// view in radians, so `focal_px = 0.5·W / tan(0.5·camera_angle_x)`.
+    pub fn from_blender(c2w: Mat4, camera_angle_x: f32) -> Result<Camera> {
+        check_field_of_view(camera_angle_x)?;
+        let rot = Mat3::from_mat4(c2w);
+        let orthonormal = (rot.transpose() * rot).abs_diff_eq(Mat3::IDENTITY, 1e-3);
+        if !c2w.is_finite() || !orthonormal || rot.determinant() < 0.0 {
+            return Err(Error::Invalid(format!(
+                "transform_matrix {c2w} must be finite with a rotation (orthonormal, right-handed) 3×3 part"
+            )));
+        }
+        // Blender right/up/back axes → view left/up/forward.
+        let rotation = Mat3::from_cols(-rot.x_axis, rot.y_axis, -rot.z_axis);
+        let focal = Vec2::splat(1.0 / (0.5 * camera_angle_x).tan());
+        Camera::new(
+            rotation,
+            c2w.w_axis.truncate(),
+            focal,
+            Vec2::ZERO,
+            NdcScale::Width,
+        )
+    }
+
+    fn new(rotation: Mat3, position: Vec3, focal: Vec2, principal: Vec2, scale: NdcScale) -> Result<Camera> {
+        if !focal.is_finite() || focal.x == 0.0 || focal.y == 0.0 {
+            return Err(Error::Invalid(format!(
+                "camera focal length {focal} must be finite and non-zero"
+            )));
+        }
+        Ok(Camera {
+            rotation,
+            position,
+            focal,
+            principal,
+            scale,
+        })
+    }
+
+    /// The camera center in world space.
+    pub fn position(&self) -> Vec3 {
+        self.position
+    }
+
+    /// Which image side spans NDC [−1, 1]: the shorter side for PyTorch3D cameras, the width
+    /// for Blender cameras.
+    pub fn ndc_scale(&self) -> NdcScale {
+        self.scale
+    }
+
+    /// Camera-to-world rotation; its columns are the view axes +X (image left), +Y (image up)
+    /// and +Z (forward) in world space.
+    pub fn rotation(&self) -> Mat3 {
+        self.rotation
+    }
+
+    /// NDC (x, y) of continuous pixel coordinates (`row`, `col`) in a `width`×`height` image:
+    /// +x left, +y up; the side chosen by the camera's [`NdcScale`] spans [−1, 1].
+    pub fn pixel_ndc(&self, row: f32, col: f32, width: u32, height: u32) -> Vec2 {
+        let s = self.scale.pixels(width, height);
+        Vec2::new((width as f32 - 2.0 * col) / s, (height as f32 - 2.0 * row) / s)
+    }
+
+    /// View-space X/Z of the ray through continuous column `col` of a `width`×`height` image.
+    pub(crate) fn view_x(&self, col: f32, width: u32, height: u32) -> f32 {
+        let ndc = self.pixel_ndc(0.0, col, width, height).x;
+        (ndc - self.principal.x) / self.focal.x
+    }
+
+    /// View-space Y/Z of the ray through continuous row `row` of a `width`×`height` image.
+    pub(crate) fn view_y(&self, row: f32, width: u32, height: u32) -> f32 {
+        let ndc = self.pixel_ndc(row, 0.0, width, height).y;
+        (ndc - self.principal.y) / self.focal.y
+    }
+
+    /// Unit world direction of the view-space direction (x, y, 1).
+    pub(crate) fn direction(&self, x: f32, y: f32) -> Vec3 {
+        (self.rotation.x_axis * x + self.rotation.y_axis * y + self.rotation.z_axis).normalize()
+    }
+
+    /// The ray (origin, unit direction) through the center of pixel (`row`, `col`) of a
+    /// `width`×`height` image. Width and height must be at least 1.
+    pub fn ray(&self, row: u32, col: u32, width: u32, height: u32) -> (Vec3, Vec3) {
+        self.ray_at(row as f32 + 0.5, col as f32 + 0.5, width, height)
+    }
+
+    /// The ray (origin, unit direction) through continuous pixel coordinates (`row`, `col`);
+    /// pixel (i, j) has its center at (i + 0.5, j + 0.5).
+    pub fn ray_at(&self, row: f32, col: f32, width: u32, height: u32) -> (Vec3, Vec3) {
+        let x = self.view_x(col, width, height);
+        let y = self.view_y(row, width, height);
+        (self.position, self.direction(x, y))
+    }
+
+    /// Continuous pixel coordinates (row, col) of world point `p` in a `width`×`height` image
+    /// (pixel (i, j) has its center at (i + 0.5, j + 0.5)); `None` if `p` is not in front of
+    /// the camera. The result may lie outside the image.
+    pub fn project(&self, p: Vec3, width: u32, height: u32) -> Option<(f32, f32)> {
+        let v = self.rotation.transpose() * (p - self.position);
+        if !v.is_finite() || v.z <= 0.0 {
+            return None;
+        }
+        let s = self.scale.pixels(width, height);
+        let x_ndc = self.focal.x * v.x / v.z + self.principal.x;
+        let y_ndc = self.focal.y * v.y / v.z + self.principal.y;
+        let col = 0.5 * (width as f32 - x_ndc * s);
+        let row = 0.5 * (height as f32 - y_ndc * s);
+        Some((row, col))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn course_camera() -> Camera {
+        Camera::look_at(
+            Vec3::new(-2.5, 0.0, 0.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::ONE,
+            Vec2::ZERO,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn pytorch3d_known_point_projects_to_known_pixel() {
+        let cam = course_camera();
+        // R columns: x = up × z = (0,0,−1), y = (0,1,0), z = (1,0,0); T = (0, 0, 2.5).
+        // p = (0, 0.5, 0.5) → view (−0.5, 0.5, 2.5) → NDC (−0.2, 0.2).
+        let (row, col) = cam.project(Vec3::new(0.0, 0.5, 0.5), 256, 256).unwrap();
+        assert!((col - 0.5 * (256.0 + 0.2 * 256.0)).abs() < 1e-3, "col {col}");
+        assert!((row - 0.5 * (256.0 - 0.2 * 256.0)).abs() < 1e-3, "row {row}");
+    }
+
+    #[test]
+    fn pytorch3d_orientation_matches_course_data() {
+        let cam = course_camera();
+        let (cr, cc) = cam.project(Vec3::ZERO, 256, 256).unwrap();
+        assert!((cr - 128.0).abs() < 1e-4 && (cc - 128.0).abs() < 1e-4);
+        // +Y world is up in the image (smaller row), same column.
+        let (r, c) = cam.project(Vec3::new(0.0, 0.5, 0.0), 256, 256).unwrap();
+        assert!(r < cr - 10.0 && (c - cc).abs() < 1e-4);
+        // View +X (image left) is world −z, so world +z lands right of the center.
+        let (r, c) = cam.project(Vec3::new(0.0, 0.0, 0.5), 256, 256).unwrap();
+        assert!(c > cc + 10.0 && (r - cr).abs() < 1e-4);
+        // Points behind the camera do not project.
+        assert!(cam.project(Vec3::new(-3.0, 0.0, 0.0), 256, 256).is_none());
+    }
+
+    #[test]
+    fn pytorch3d_pixel_centers_follow_ndc_convention() {
+        let cam = course_camera();
+        // Pixel (0, 0) center: NDC (1 − 1/W, 1 − 1/H), i.e. top left is +x (left), +y (up).
+        let (o, d) = cam.ray(0, 0, 4, 4);
+        assert_eq!(o, Vec3::new(-2.5, 0.0, 0.0));
+        let expected = (Vec3::new(1.0, 0.75, -0.75)).normalize();
+        assert!(d.abs_diff_eq(expected, 1e-6), "{d}");
+        // Non-square: the shorter side (height 2) spans [−1, 1], the width [−2, 2].
+        let (_, d) = cam.ray_at(0.0, 0.0, 4, 2);
+        assert!(d.abs_diff_eq(Vec3::new(1.0, 1.0, -2.0).normalize(), 1e-6), "{d}");
+    }
+
+    #[test]
+    fn blender_known_point_projects_to_known_pixel() {
+        // Identity pose, 90° field of view: focal_px = W/2.
+        let cam = Camera::from_blender(Mat4::IDENTITY, std::f32::consts::FRAC_PI_2).unwrap();
+        let (row, col) = cam.project(Vec3::new(1.0, 0.5, -2.0), 200, 100).unwrap();
+        assert!((col - (100.0 + 100.0 * 0.5)).abs() < 1e-3, "col {col}");
+        assert!((row - (50.0 - 100.0 * 0.25)).abs() < 1e-3, "row {row}");
+        assert!(cam.project(Vec3::new(0.0, 0.0, 1.0), 200, 100).is_none());
+        // Ray through pixel (i, j): ((j+0.5 − W/2)/f, −(i+0.5 − H/2)/f, −1).
+        let (_, d) = cam.ray(10, 30, 200, 100);
+        let expected = Vec3::new((30.5 - 100.0) / 100.0, -(10.5 - 50.0) / 100.0, -1.0);
+        assert!(d.abs_diff_eq(expected.normalize(), 1e-6), "{d}");
+    }
+
+    #[test]
+    fn blender_matches_nerf_formula_on_a_lego_pose() {
+        let rows = [
+            [-0.9305422, 0.11707554, -0.3469646, -1.3986591],
+            [-0.36618456, -0.29751042, 0.88170075, 3.5542498],
+            [7.450581e-9, 0.947513, 0.31971723, 1.2888215],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let c2w = Mat4::from_cols_array_2d(&rows).transpose();
+        let fov = 0.691_111_2_f32;
+        let cam = Camera::from_blender(c2w, fov).unwrap();
+        let (w, h) = (800, 800);
+        let f = 0.5 * w as f32 / (0.5 * fov).tan();
+        let p = Vec3::new(0.3, -0.2, 0.4);
+        let rot = Mat3::from_mat4(c2w);
+        let pc = rot.transpose() * (p - c2w.w_axis.truncate());
+        let (u, v) = (400.0 + f * pc.x / -pc.z, 400.0 - f * pc.y / -pc.z);
+        let (row, col) = cam.project(p, w, h).unwrap();
+        assert!(
+            (col - u).abs() < 1e-2 && (row - v).abs() < 1e-2,
+            "{row},{col} vs {v},{u}"
+        );
+    }
+
+    #[test]
+    fn degenerate_cameras_are_errors() {
+        let e = Camera::look_at(Vec3::ONE, Vec3::ONE, Vec3::Y, Vec2::ONE, Vec2::ZERO);
+        assert!(e.is_err());
+        let e = Camera::look_at(Vec3::Y, Vec3::ZERO, Vec3::Y, Vec2::ONE, Vec2::ZERO);
+        assert!(e.unwrap_err().to_string().contains("parallel"));
+        let e = Camera::look_at(Vec3::X, Vec3::ZERO, Vec3::Y, Vec2::ZERO, Vec2::ZERO);
+        assert!(e.is_err());
+        assert!(Camera::from_blender(Mat4::IDENTITY, 0.0).is_err());
+        assert!(Camera::from_blender(Mat4::from_scale(Vec3::splat(2.0)), 1.0).is_err());
+    }
+
+    fn check_round_trip(cam: &Camera, p: Vec3, w: u32, h: u32) -> std::result::Result<(), TestCaseError> {
+        let Some((row, col)) = cam.project(p, w, h) else {
+            return Ok(());
+        };
+        let (o, d) = cam.ray_at(row, col, w, h);
+        let to_p = p - o;
+        let miss = (to_p - d * to_p.dot(d)).length();
+        prop_assert!(miss <= 1e-4 * (1.0 + to_p.length()), "ray misses p by {}", miss);
+        prop_assert!(to_p.dot(d) > 0.0);
+        Ok(())
+    }
+
+    proptest! {
+        #[test]
+        fn ray_of_projection_passes_through_point_pytorch3d(
+            eye in prop::array::uniform3(-5.0f32..5.0),
+            p in prop::array::uniform3(-1.0f32..1.0),
+            focal in 0.5f32..3.0,
+            w in 1u32..400,
+            h in 1u32..400,
+        ) {
+            let eye = Vec3::from(eye);
+            prop_assume!(eye.length() > 2.0 && eye.normalize().y.abs() < 0.95);
+            let cam = Camera::look_at(eye, Vec3::ZERO, Vec3::Y, Vec2::splat(focal), Vec2::new(0.1, -0.05)).unwrap();
+            check_round_trip(&cam, Vec3::from(p), w, h)?;
+        }
+
+        #[test]
+        fn ray_of_projection_passes_through_point_blender(
+            angles in prop::array::uniform3(-3.0f32..3.0),
+            t in prop::array::uniform3(-4.0f32..4.0),
+            p in prop::array::uniform3(-1.0f32..1.0),
+            fov in 0.2f32..2.5,
+            w in 1u32..400,
+            h in 1u32..400,
+        ) {
+            let q = glam::Quat::from_euler(glam::EulerRot::XYZ, angles[0], angles[1], angles[2]);
+            let c2w = Mat4::from_rotation_translation(q, Vec3::from(t));
+            let cam = Camera::from_blender(c2w, fov).unwrap();
+            check_round_trip(&cam, Vec3::from(p), w, h)?;
+        }
+    }
+}
