@@ -51,6 +51,9 @@ pub fn lex(source: &str) -> Result<Vec<Token>, Diagnostic> {
         } else if c.is_ascii_digit() || (c == b'.' && bytes.get(i + 1).is_some_and(u8::is_ascii_digit)) {
             let start = i;
             i = number_end(bytes, i);
+            while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
+                i += 1;
+            }
             let text = &source[start..i];
             let value: f64 = text.parse().map_err(|_| {
                 Diagnostic::new(Span::new(start, i), format!("malformed number '{text}'"))

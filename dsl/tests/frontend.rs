@@ -76,7 +76,7 @@ fn syntax_errors() {
     assert!(error("fn f(x: f32) f32 = x").contains("expected '->'"));
     assert!(error("fn f(x: f32) -> f32 = if x > 0.0 { 1.0 }").contains("'if' needs an 'else' branch"));
     assert!(error("fn f(x: f32) -> f32 = x @ 2").contains("unexpected character '@'"));
-    assert!(error("fn f(x: f32) -> f32 = 1.5e").contains("expected"));
+    assert!(error("fn f(x: f32) -> f32 = 1.5e").contains("malformed number '1.5e'"));
     assert!(error("rendr { size: 3 }\nfn f(x: f32) -> f32 = x").contains("unknown block 'rendr'"));
 }
 
