@@ -24,7 +24,7 @@ pub struct Options {
 impl Default for Options {
     fn default() -> Self {
         Options {
-            unroll: 2,
+            unroll: 1,
             keep_clif: false,
         }
     }
@@ -118,7 +118,12 @@ impl Kernel {
         module
             .define_function(id, &mut ctx)
             .map_err(|e| JitError(format!("{e:?}")))?;
-        let code_bytes = ctx.compiled_code().map_or(0, |c| c.code_buffer().len());
+        let code = ctx.compiled_code().map(|c| c.code_buffer().to_vec()).unwrap_or_default();
+        if let Some(path) = std::env::var_os("NERFJIT_DUMP_CODE") {
+            // A debugging aid: the raw machine code, for `objdump -D -b binary -m i386:x86-64`.
+            std::fs::write(&path, &code).map_err(|e| JitError(format!("NERFJIT_DUMP_CODE: {e}")))?;
+        }
+        let code_bytes = code.len();
         module.clear_context(&mut ctx);
         module.finalize_definitions().map_err(|e| JitError(e.to_string()))?;
         let ptr = module.get_finalized_function(id);

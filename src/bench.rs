@@ -1,0 +1,143 @@
+//! `nerfjit bench`: the benchmark workloads of `shared/bench/WORKLOADS.md`, timed after warm-up, medians of
+//! several repetitions, JIT compile time reported separately.
+
+use std::time::Instant;
+
+use nerfjit_dsl::config::Settings;
+use nerfjit_dsl::kernels;
+use nerfjit_jit::{Kernel, Options};
+use nerfjit_runtime::{Rng, Shading};
+
+use crate::failure::{Failure, Result};
+use crate::render::RenderPlan;
+use crate::script;
+
+/// A benchmark workload.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum Workload {
+    /// W7: the 20-primitive scene's distance (and distance + gradient) at 1,048,576 random points.
+    W7,
+    /// W1: the course's torus, 20 sphere-traced 256×256 frames.
+    W1,
+}
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    median(
+        (0..reps.max(1))
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64()
+            })
+            .collect(),
+    )
+}
+
+/// Runs a workload and prints its figures.
+pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()> {
+    match workload {
+        Workload::W7 => w7(reps, threads),
+        Workload::W1 => w1(reps),
+    }
+}
+
+fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
+    const N: usize = 1 << 20;
+    let program = script::load("examples/complex_scene.sdf")?;
+    let f = program.lower("sdf")?;
+    let mut rng = Rng::new(7);
+    let cols: Vec<Vec<f32>> = (0..3).map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect()).collect();
+    let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
+    println!("W7 sdf_eval: {N} points, 20 primitives, median of {reps}");
+    let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    for (label, graph) in [("distance", kernels::value(&f)), ("distance+gradient", kernels::with_gradient(&f))] {
+        let kernel = Kernel::compile(&graph, Options::default())?;
+        let mut outs = vec![vec![0.0f32; N]; kernel.n_outputs];
+        for t in [1, max_threads] {
+            let seconds = time_reps(reps, || {
+                let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
+                kernel.eval_parallel(N, &ins, &mut refs, &program.param_values, &mut [], t);
+            });
+            println!(
+                "  {label:<18} {t} thread{}: {:6.2} ns/point   (JIT compile {:.1} ms, {} IR nodes, {} bytes)",
+                if t == 1 { " " } else { "s" },
+                seconds * 1e9 / N as f64,
+                kernel.stats.seconds * 1e3,
+                kernel.stats.nodes,
+                kernel.stats.code_bytes
+            );
+            if t == max_threads {
+                break;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Plain sphere tracing of the torus in f64, one ray at a time: the reference for W1's output.
+fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
+    let (w, h) = plan.size;
+    let cam = &plan.cameras[camera];
+    let s = &plan.trace;
+    let sdf = |p: [f64; 3]| ((p[0].hypot(p[1]) - 1.0).hypot(p[2])) - 0.25;
+    let mut out = Vec::with_capacity((w * h) as usize);
+    for row in 0..h {
+        for col in 0..w {
+            let (o, d) = cam.ray(row, col, w, h);
+            let (o, d) = (o.as_dvec3(), d.as_dvec3());
+            let mut t = f64::from(s.near);
+            let mut color = s.background;
+            for _ in 0..s.max_steps {
+                let p = o + t * d;
+                let dist = sdf(p.to_array());
+                if dist < f64::from(s.eps) {
+                    color = p.to_array().map(|c| c.abs().clamp(0.02, 0.98) as f32);
+                    break;
+                }
+                t += dist;
+                if t > f64::from(s.far) {
+                    break;
+                }
+            }
+            out.push(color);
+        }
+    }
+    out
+}
+
+fn w1(reps: usize) -> Result<()> {
+    let program = script::load("examples/torus.sdf")?;
+    let block = program.blocks().into_iter().next().ok_or_else(|| Failure::Message("torus.sdf has no render block".into()))?;
+    let settings = Settings::new(&program, block).map_err(|d| crate::failure::at(&program, d))?;
+    let plan = RenderPlan::new(&program, settings, std::path::Path::new("."), Some(&std::env::temp_dir()))?;
+    let cache = nerfjit_jit::KernelCache::new();
+    let t = Instant::now();
+    let (sdf, color) = plan.compile_fields(&program, &cache)?;
+    let compile_s = t.elapsed().as_secs_f64();
+    let color = color.ok_or_else(|| Failure::Message("torus.sdf must shade with color".into()))?;
+    let shading = Shading::Color { color: &color, gradient: None };
+    let (w, h) = plan.size;
+    let mut frames = Vec::new();
+    let seconds = time_reps(reps, || {
+        frames = nerfjit_runtime::render_frames(&plan.cameras, w, h, &sdf, &shading, &plan.trace, None)
+            .expect("validated settings render");
+    });
+    let per_frame = seconds / plan.cameras.len() as f64;
+    let mut diff = 0.0f64;
+    for (i, frame) in frames.iter().enumerate() {
+        let reference = reference_torus_frame(&plan, i);
+        let byte = |x: f32| f64::from((x.clamp(0.0, 1.0) * 255.0) as u8);
+        diff += frame.rgb.iter().zip(&reference).map(|(a, b)| (0..3).map(|c| (byte(a[c]) - byte(b[c])).abs()).sum::<f64>()).sum::<f64>();
+    }
+    let mean_diff = diff / (frames.len() as f64 * f64::from(w * h) * 3.0);
+    println!("W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}", frames.len());
+    println!("  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)", per_frame * 1e3, f64::from(w * h) / per_frame / 1e6, compile_s * 1e3);
+    println!("  mean |difference| from plain f64 sphere tracing: {mean_diff:.4} of 255 per channel");
+    Ok(())
+}

@@ -1,0 +1,21 @@
+//! `nerfjit check`: diagnostics, or a summary of the script's functions, params and blocks.
+
+use crate::failure::Result;
+use crate::script;
+
+/// Checks the script and describes what it defines.
+pub fn run(path: &str) -> Result<String> {
+    let program = script::load(path)?;
+    let mut out = format!("{path}: ok\n");
+    for sig in program.functions() {
+        out += &format!("  {sig}\n");
+    }
+    for p in &program.params {
+        out += &format!("  param {}: {} ({} values)\n", p.name, p.ty, p.ty.scalars());
+    }
+    for b in program.blocks() {
+        let name = b.name.as_ref().map(|n| format!(" {}", n.name)).unwrap_or_default();
+        out += &format!("  {}{name} {{ {} settings }}\n", b.kind.name, b.entries.len());
+    }
+    Ok(out)
+}

@@ -1,0 +1,83 @@
+//! `nerfjit eval`: evaluates a function at points read as CSV, with the JIT or the f64 interpreter.
+
+use std::io::{BufRead, Write};
+
+use nerfjit_dsl::{interp, kernels};
+use nerfjit_jit::{Kernel, Options};
+
+use crate::failure::{Failure, Result};
+use crate::script;
+
+/// Where the points come from and what to print.
+pub struct EvalArgs<'a> {
+    /// The script.
+    pub script: &'a str,
+    /// The function.
+    pub function: &'a str,
+    /// A CSV file of points, or `-` for standard input.
+    pub points: &'a str,
+    /// Append the gradient of each output with respect to the inputs.
+    pub grad: bool,
+    /// Use the f64 reference interpreter instead of the JIT.
+    pub interp: bool,
+}
+
+/// Parses CSV rows of `width` numbers (blank lines and `#` comments skipped).
+fn read_points(reader: impl BufRead, source: &str, width: usize) -> Result<Vec<Vec<f64>>> {
+    let mut rows = Vec::new();
+    for (i, line) in reader.lines().enumerate() {
+        let line = line.map_err(|e| Failure::Message(format!("cannot read {source}: {e}")))?;
+        let text = line.trim();
+        if text.is_empty() || text.starts_with('#') {
+            continue;
+        }
+        let row = text
+            .split(',')
+            .map(|f| f.trim().parse::<f64>())
+            .collect::<std::result::Result<Vec<_>, _>>()
+            .map_err(|e| Failure::Message(format!("{source}:{}: {e} in '{text}'", i + 1)))?;
+        if row.len() != width {
+            return Err(Failure::Message(format!(
+                "{source}:{}: expected {width} numbers per row (one per input scalar), found {}",
+                i + 1,
+                row.len()
+            )));
+        }
+        rows.push(row);
+    }
+    Ok(rows)
+}
+
+/// Runs the command, writing CSV to `out`.
+pub fn run(args: &EvalArgs, out: &mut dyn Write) -> Result<()> {
+    let program = script::load(args.script)?;
+    let lowered = program.lower(args.function)?;
+    let graph = if args.grad { kernels::with_gradient(&lowered) } else { kernels::value(&lowered) };
+    let width = graph.n_inputs as usize;
+    let points = if args.points == "-" {
+        read_points(std::io::stdin().lock(), "<stdin>", width)?
+    } else {
+        let file = std::fs::File::open(args.points)
+            .map_err(|e| Failure::Message(format!("cannot read points file '{}': {e}", args.points)))?;
+        read_points(std::io::BufReader::new(file), args.points, width)?
+    };
+    let rows: Vec<Vec<f64>> = if args.interp {
+        let params = program.param_values_f64();
+        points.iter().map(|p| interp::eval_point(&graph, p, &params).outputs).collect()
+    } else {
+        let kernel = Kernel::compile(&graph, Options::default())?;
+        let n = points.len();
+        let cols: Vec<Vec<f32>> = (0..width).map(|c| points.iter().map(|p| p[c] as f32).collect()).collect();
+        let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
+        let mut outs = vec![vec![0.0f32; n]; graph.outputs.len()];
+        let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
+        kernel.eval(n, &ins, &mut refs, &program.param_values, &mut []);
+        (0..n).map(|i| outs.iter().map(|o| f64::from(o[i])).collect()).collect()
+    };
+    let io = |e: std::io::Error| Failure::Message(format!("cannot write output: {e}"));
+    for row in rows {
+        let text: Vec<String> = row.iter().map(|x| format!("{x}")).collect();
+        writeln!(out, "{}", text.join(",")).map_err(io)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,110 @@
+//! `nerfjit`: neural volume and surface rendering on the CPU, driven by `.sdf` scene scripts.
+
+mod bench;
+mod check;
+mod eval;
+mod failure;
+mod field;
+mod ir_dump;
+mod render;
+mod run;
+mod script;
+mod settings;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a script: render its `render` blocks.
+    Run {
+        /// The script (a path, or the name of a shipped example such as `torus`).
+        script: String,
+        /// Write outputs into this folder instead of the paths the script names.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Check a script: print diagnostics, or its functions, params and blocks.
+    Check {
+        /// The script.
+        script: String,
+    },
+    /// Evaluate a function at points given as CSV rows (one column per input scalar).
+    Eval {
+        /// The script.
+        script: String,
+        /// The function to evaluate.
+        function: String,
+        /// A CSV file of points, or `-` for standard input.
+        #[arg(long, default_value = "-")]
+        points: String,
+        /// Append the gradient of each output with respect to the inputs.
+        #[arg(long)]
+        grad: bool,
+        /// Use the f64 reference interpreter instead of the JIT.
+        #[arg(long)]
+        interp: bool,
+    },
+    /// Print the IR of a function and the Cranelift IR of its kernel.
+    Ir {
+        /// The script.
+        script: String,
+        /// The function.
+        function: String,
+        /// Show the gradient kernel instead of the value kernel.
+        #[arg(long)]
+        grad: bool,
+    },
+    /// Run a benchmark workload and print its figures (medians).
+    Bench {
+        /// The workload: w7 (SDF evaluation) or w1 (sphere-traced torus).
+        workload: bench::Workload,
+        /// Repetitions; the median is reported.
+        #[arg(long, default_value_t = 9)]
+        reps: usize,
+    },
+    /// List the example scripts built into the binary, or print one.
+    Examples {
+        /// The example to print.
+        name: Option<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Some(n) = cli.threads {
+        // Ignored if a pool exists already; this is the first thing the program does.
+        let _ = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global();
+    }
+    let result = match cli.command {
+        Command::Run { script, out } => run::run(&script, out.as_deref()),
+        Command::Check { script } => check::run(&script).map(|text| print!("{text}")),
+        Command::Eval { script, function, points, grad, interp } => {
+            let args = eval::EvalArgs { script: &script, function: &function, points: &points, grad, interp };
+            eval::run(&args, &mut std::io::stdout().lock())
+        }
+        Command::Ir { script, function, grad } => ir_dump::run(&script, &function, grad).map(|text| print!("{text}")),
+        Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
+        Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(failure) => {
+            eprint!("{failure}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,51 @@
+//! `nerfjit run`: does what the script's blocks say.
+
+use std::path::Path;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use nerfjit_dsl::config::Settings;
+use nerfjit_dsl::Diagnostic;
+
+use crate::failure::{at, Failure, Result};
+use crate::render::RenderPlan;
+use crate::script;
+
+/// Runs every block of the script in order; all blocks are checked before the first one runs.
+pub fn run(path: &str, out_dir: Option<&Path>) -> Result<()> {
+    let program = script::load(path)?;
+    if let Some(dir) = out_dir {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", dir.display())))?;
+    }
+    let script_dir = Path::new(path).parent().unwrap_or(Path::new("."));
+    let mut plans = Vec::new();
+    for block in program.blocks() {
+        let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
+        match (settings.kind.as_str(), settings.name.as_deref()) {
+            ("render", Some("sphere_trace")) => plans.push(RenderPlan::new(&program, settings, script_dir, out_dir)?),
+            (kind, name) => {
+                let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
+                return Err(at(
+                    &program,
+                    Diagnostic::new(block.kind.span, format!("'{what}' blocks are not supported yet"))
+                        .with_hint("this version renders 'render sphere_trace { ... }' blocks"),
+                ));
+            }
+        }
+    }
+    if plans.is_empty() {
+        return Err(Failure::Message(format!(
+            "{path} has nothing to run: add a block such as 'render sphere_trace {{ camera: ..., out: \"scene.gif\" }}'"
+        )));
+    }
+    for plan in &plans {
+        let bar = ProgressBar::new(plan.cameras.len() as u64).with_style(
+            ProgressStyle::with_template("{spinner} rendering [{bar:30}] {pos}/{len} frames {elapsed}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        let summary = plan.run(&program, &|done| bar.set_position(done as u64))?;
+        bar.finish_and_clear();
+        println!("{summary}");
+    }
+    Ok(())
+}

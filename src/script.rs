@@ -1,0 +1,38 @@
+//! Loading scripts: from a file, or one of the examples embedded in the binary by `build.rs`.
+
+use std::path::Path;
+
+use nerfjit_dsl::{compile, Program};
+
+use crate::failure::{Failure, Result};
+
+include!(concat!(env!("OUT_DIR"), "/examples.rs"));
+
+/// Reads and checks the script at `path`. A path that does not exist but names an embedded example
+/// (`torus`, `torus.sdf` or `examples/torus.sdf`) loads that example.
+pub fn load(path: &str) -> Result<Program> {
+    let (name, source) = read(path)?;
+    compile(&name, &source).map_err(Failure::Script)
+}
+
+fn read(path: &str) -> Result<(String, String)> {
+    match std::fs::read_to_string(path) {
+        Ok(source) => Ok((path.to_string(), source)),
+        Err(e) => {
+            let file = Path::new(path).file_name().and_then(|f| f.to_str()).unwrap_or(path);
+            let wanted = if file.ends_with(".sdf") { file.to_string() } else { format!("{file}.sdf") };
+            match EXAMPLES.iter().find(|(n, _)| *n == wanted) {
+                Some((n, source)) if !Path::new(path).exists() => Ok((format!("examples/{n}"), source.to_string())),
+                _ => Err(Failure::Message(format!("cannot read script '{path}': {e}"))),
+            }
+        }
+    }
+}
+
+/// The list of embedded examples, or the source of one.
+pub fn examples(name: Option<&str>) -> Result<String> {
+    match name {
+        None => Ok(EXAMPLES.iter().map(|(n, _)| format!("{n}\n")).collect()),
+        Some(name) => read(name).map(|(_, source)| source),
+    }
+}

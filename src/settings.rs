@@ -1,0 +1,102 @@
+//! Typed reading of configuration-block values, with errors that point into the script.
+
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::{Diagnostic, Span};
+
+/// The arguments of a call value such as `surround(radius: 3, frames: 20)`, matched to named slots.
+pub struct CallArgs {
+    name: String,
+    span: Span,
+    values: Vec<Option<Spanned>>,
+    slots: &'static [&'static str],
+}
+
+impl CallArgs {
+    /// Matches the positional and named arguments of call `v` to `slots`.
+    pub fn new(v: &Spanned, slots: &'static [&'static str]) -> Result<CallArgs, Diagnostic> {
+        let Value::Call(name, args) = &v.value else {
+            return Err(Diagnostic::new(v.span, format!("expected a call, found {}", v.describe())));
+        };
+        let mut values: Vec<Option<Spanned>> = vec![None; slots.len()];
+        for (i, (arg_name, value)) in args.iter().enumerate() {
+            let slot = match arg_name {
+                Some(n) => slots.iter().position(|s| s == n).ok_or_else(|| {
+                    Diagnostic::new(value.span, format!("'{name}' has no argument '{n}'"))
+                        .with_hint(format!("its arguments are: {}", slots.join(", ")))
+                })?,
+                None if i < slots.len() => i,
+                None => {
+                    return Err(Diagnostic::new(value.span, format!("too many arguments for '{name}'"))
+                        .with_hint(format!("its arguments are: {}", slots.join(", "))))
+                }
+            };
+            values[slot] = Some(value.clone());
+        }
+        Ok(CallArgs {
+            name: name.clone(),
+            span: v.span,
+            values,
+            slots,
+        })
+    }
+
+    /// The value of argument `slot`, if given.
+    pub fn raw(&self, slot: &str) -> Option<&Spanned> {
+        let i = self.slots.iter().position(|s| *s == slot).expect("known slot");
+        self.values[i].as_ref()
+    }
+
+    /// Argument `slot` as a number, or `default`.
+    pub fn number(&self, slot: &str, default: Option<f64>) -> Result<f64, Diagnostic> {
+        match (self.raw(slot), default) {
+            (Some(v), _) => v.number(),
+            (None, Some(d)) => Ok(d),
+            (None, None) => Err(Diagnostic::new(self.span, format!("'{}' needs the argument '{slot}'", self.name))),
+        }
+    }
+
+    /// Argument `slot` as a bare name among `choices`, or `default`.
+    pub fn choice(&self, slot: &str, choices: &[&str], default: &'static str) -> Result<String, Diagnostic> {
+        match self.raw(slot) {
+            None => Ok(default.to_string()),
+            Some(v) => name_among(v, choices),
+        }
+    }
+
+    /// Argument `slot` as a string.
+    pub fn string(&self, slot: &str) -> Result<String, Diagnostic> {
+        match self.raw(slot) {
+            Some(v) => v.string().map(str::to_string),
+            None => Err(Diagnostic::new(self.span, format!("'{}' needs the argument '{slot}'", self.name))),
+        }
+    }
+}
+
+/// A bare name among `choices`.
+pub fn name_among(v: &Spanned, choices: &[&str]) -> Result<String, Diagnostic> {
+    match &v.value {
+        Value::Name(n) if choices.contains(&n.as_str()) => Ok(n.clone()),
+        _ => Err(Diagnostic::new(v.span, format!("expected one of {}, found {}", choices.join(", "), v.describe()))),
+    }
+}
+
+/// A whole number in `lo..=hi`.
+pub fn whole(v: &Spanned, lo: u64, hi: u64) -> Result<u64, Diagnostic> {
+    let x = v.number()?;
+    if x.fract() == 0.0 && x >= lo as f64 && x <= hi as f64 {
+        Ok(x as u64)
+    } else {
+        Err(Diagnostic::new(v.span, format!("{x} is out of range"))
+            .with_hint(format!("expected a whole number from {lo} to {hi}")))
+    }
+}
+
+/// A number in `lo..=hi`.
+pub fn ranged(v: &Spanned, lo: f64, hi: f64) -> Result<f64, Diagnostic> {
+    let x = v.number()?;
+    if x >= lo && x <= hi {
+        Ok(x)
+    } else {
+        Err(Diagnostic::new(v.span, format!("{x} is out of range")).with_hint(format!("expected a number from {lo} to {hi}")))
+    }
+}
