@@ -18,12 +18,18 @@ fn main() {
     code += "pub const EXAMPLES: &[(&str, &str)] = &[\n";
     for path in &entries {
         println!("cargo:rerun-if-changed={}", path.display());
-        let name = path.file_name().and_then(|n| n.to_str()).expect("UTF-8 file name");
+        let name = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .expect("UTF-8 file name");
         let source = fs::read_to_string(path).expect("readable example");
         if let Err(report) = nerfjit_dsl::compile(&format!("examples/{name}"), &source) {
             panic!("example {name} does not check:\n{report}");
         }
-        code += &format!("    ({name:?}, include_str!({:?})),\n", path.display().to_string());
+        code += &format!(
+            "    ({name:?}, include_str!({:?})),\n",
+            path.display().to_string()
+        );
     }
     code += "];\n";
     let out = Path::new(&std::env::var("OUT_DIR").expect("OUT_DIR")).join("examples.rs");

@@ -52,11 +52,16 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
     let program = script::load("examples/complex_scene.sdf")?;
     let f = program.lower("sdf")?;
     let mut rng = Rng::new(7);
-    let cols: Vec<Vec<f32>> = (0..3).map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect()).collect();
+    let cols: Vec<Vec<f32>> = (0..3)
+        .map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect())
+        .collect();
     let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
     println!("W7 sdf_eval: {N} points, 20 primitives, median of {reps}");
     let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    for (label, graph) in [("distance", kernels::value(&f)), ("distance+gradient", kernels::with_gradient(&f))] {
+    for (label, graph) in [
+        ("distance", kernels::value(&f)),
+        ("distance+gradient", kernels::with_gradient(&f)),
+    ] {
         let kernel = Kernel::compile(&graph, Options::default())?;
         let mut outs = vec![vec![0.0f32; N]; kernel.n_outputs];
         for t in [1, max_threads] {
@@ -113,15 +118,27 @@ fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
 
 fn w1(reps: usize) -> Result<()> {
     let program = script::load("examples/torus.sdf")?;
-    let block = program.blocks().into_iter().next().ok_or_else(|| Failure::Message("torus.sdf has no render block".into()))?;
+    let block = program
+        .blocks()
+        .into_iter()
+        .next()
+        .ok_or_else(|| Failure::Message("torus.sdf has no render block".into()))?;
     let settings = Settings::new(&program, block).map_err(|d| crate::failure::at(&program, d))?;
-    let plan = RenderPlan::new(&program, settings, std::path::Path::new("."), Some(&std::env::temp_dir()))?;
+    let plan = RenderPlan::new(
+        &program,
+        settings,
+        std::path::Path::new("."),
+        Some(&std::env::temp_dir()),
+    )?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
     let (sdf, color) = plan.compile_fields(&program, &cache)?;
     let compile_s = t.elapsed().as_secs_f64();
     let color = color.ok_or_else(|| Failure::Message("torus.sdf must shade with color".into()))?;
-    let shading = Shading::Color { color: &color, gradient: None };
+    let shading = Shading::Color {
+        color: &color,
+        gradient: None,
+    };
     let (w, h) = plan.size;
     let mut frames = Vec::new();
     let seconds = time_reps(reps, || {
@@ -133,11 +150,24 @@ fn w1(reps: usize) -> Result<()> {
     for (i, frame) in frames.iter().enumerate() {
         let reference = reference_torus_frame(&plan, i);
         let byte = |x: f32| f64::from((x.clamp(0.0, 1.0) * 255.0) as u8);
-        diff += frame.rgb.iter().zip(&reference).map(|(a, b)| (0..3).map(|c| (byte(a[c]) - byte(b[c])).abs()).sum::<f64>()).sum::<f64>();
+        diff += frame
+            .rgb
+            .iter()
+            .zip(&reference)
+            .map(|(a, b)| (0..3).map(|c| (byte(a[c]) - byte(b[c])).abs()).sum::<f64>())
+            .sum::<f64>();
     }
     let mean_diff = diff / (frames.len() as f64 * f64::from(w * h) * 3.0);
-    println!("W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}", frames.len());
-    println!("  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)", per_frame * 1e3, f64::from(w * h) / per_frame / 1e6, compile_s * 1e3);
+    println!(
+        "W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}",
+        frames.len()
+    );
+    println!(
+        "  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)",
+        per_frame * 1e3,
+        f64::from(w * h) / per_frame / 1e6,
+        compile_s * 1e3
+    );
     println!("  mean |difference| from plain f64 sphere tracing: {mean_diff:.4} of 255 per channel");
     Ok(())
 }

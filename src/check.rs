@@ -14,7 +14,11 @@ pub fn run(path: &str) -> Result<String> {
         out += &format!("  param {}: {} ({} values)\n", p.name, p.ty, p.ty.scalars());
     }
     for b in program.blocks() {
-        let name = b.name.as_ref().map(|n| format!(" {}", n.name)).unwrap_or_default();
+        let name = b
+            .name
+            .as_ref()
+            .map(|n| format!(" {}", n.name))
+            .unwrap_or_default();
         out += &format!("  {}{name} {{ {} settings }}\n", b.kind.name, b.entries.len());
     }
     Ok(out)

@@ -52,7 +52,11 @@ fn read_points(reader: impl BufRead, source: &str, width: usize) -> Result<Vec<V
 pub fn run(args: &EvalArgs, out: &mut dyn Write) -> Result<()> {
     let program = script::load(args.script)?;
     let lowered = program.lower(args.function)?;
-    let graph = if args.grad { kernels::with_gradient(&lowered) } else { kernels::value(&lowered) };
+    let graph = if args.grad {
+        kernels::with_gradient(&lowered)
+    } else {
+        kernels::value(&lowered)
+    };
     let width = graph.n_inputs as usize;
     let points = if args.points == "-" {
         read_points(std::io::stdin().lock(), "<stdin>", width)?
@@ -63,16 +67,23 @@ pub fn run(args: &EvalArgs, out: &mut dyn Write) -> Result<()> {
     };
     let rows: Vec<Vec<f64>> = if args.interp {
         let params = program.param_values_f64();
-        points.iter().map(|p| interp::eval_point(&graph, p, &params).outputs).collect()
+        points
+            .iter()
+            .map(|p| interp::eval_point(&graph, p, &params).outputs)
+            .collect()
     } else {
         let kernel = Kernel::compile(&graph, Options::default())?;
         let n = points.len();
-        let cols: Vec<Vec<f32>> = (0..width).map(|c| points.iter().map(|p| p[c] as f32).collect()).collect();
+        let cols: Vec<Vec<f32>> = (0..width)
+            .map(|c| points.iter().map(|p| p[c] as f32).collect())
+            .collect();
         let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
         let mut outs = vec![vec![0.0f32; n]; graph.outputs.len()];
         let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
         kernel.eval(n, &ins, &mut refs, &program.param_values, &mut []);
-        (0..n).map(|i| outs.iter().map(|o| f64::from(o[i])).collect()).collect()
+        (0..n)
+            .map(|i| outs.iter().map(|o| f64::from(o[i])).collect())
+            .collect()
     };
     let io = |e: std::io::Error| Failure::Message(format!("cannot write output: {e}"));
     for row in rows {

@@ -10,8 +10,18 @@ use crate::script;
 pub fn run(path: &str, function: &str, grad: bool) -> Result<String> {
     let program = script::load(path)?;
     let lowered = program.lower(function)?;
-    let graph = if grad { kernels::with_gradient(&lowered) } else { kernels::value(&lowered) };
-    let kernel = Kernel::compile(&graph, Options { unroll: 1, keep_clif: true })?;
+    let graph = if grad {
+        kernels::with_gradient(&lowered)
+    } else {
+        kernels::value(&lowered)
+    };
+    let kernel = Kernel::compile(
+        &graph,
+        Options {
+            unroll: 1,
+            keep_clif: true,
+        },
+    )?;
     let stats: Vec<String> = graph.stats().iter().map(|(op, n)| format!("{op} {n}")).collect();
     Ok(format!(
         "; {}{}\n; {} nodes: {}\n{graph}\n; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",

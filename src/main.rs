@@ -87,16 +87,34 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
         // Ignored if a pool exists already; this is the first thing the program does.
-        let _ = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global();
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global();
     }
     let result = match cli.command {
         Command::Run { script, out } => run::run(&script, out.as_deref()),
         Command::Check { script } => check::run(&script).map(|text| print!("{text}")),
-        Command::Eval { script, function, points, grad, interp } => {
-            let args = eval::EvalArgs { script: &script, function: &function, points: &points, grad, interp };
+        Command::Eval {
+            script,
+            function,
+            points,
+            grad,
+            interp,
+        } => {
+            let args = eval::EvalArgs {
+                script: &script,
+                function: &function,
+                points: &points,
+                grad,
+                interp,
+            };
             eval::run(&args, &mut std::io::stdout().lock())
         }
-        Command::Ir { script, function, grad } => ir_dump::run(&script, &function, grad).map(|text| print!("{text}")),
+        Command::Ir {
+            script,
+            function,
+            grad,
+        } => ir_dump::run(&script, &function, grad).map(|text| print!("{text}")),
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
     };

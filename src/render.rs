@@ -8,8 +8,8 @@ use nerfjit_dsl::config::{Settings, Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    depth_image, load_blender_cameras, load_box_cameras, normal_image, orbit, render_frames, rgb_image, save_gif,
-    save_png, surround, Camera, Frame, Quantize, Shading, TraceSettings, Up,
+    depth_image, load_blender_cameras, load_box_cameras, normal_image, orbit, render_frames, rgb_image,
+    save_gif, save_png, surround, Camera, Frame, Quantize, Shading, TraceSettings, Up,
 };
 
 use crate::failure::{at, Failure, Result};
@@ -17,8 +17,21 @@ use crate::field::{self, JitFn, Kind};
 use crate::settings::{name_among, ranged, whole, CallArgs};
 
 const KEYS: &[&str] = &[
-    "camera", "size", "near", "far", "eps", "max_steps", "background", "shading", "light", "albedo", "bounds", "out",
-    "depth", "normals", "frame_ms",
+    "camera",
+    "size",
+    "near",
+    "far",
+    "eps",
+    "max_steps",
+    "background",
+    "shading",
+    "light",
+    "albedo",
+    "bounds",
+    "out",
+    "depth",
+    "normals",
+    "frame_ms",
 ];
 
 /// How hit points are shaded.
@@ -61,10 +74,17 @@ fn triple(v: &Spanned) -> std::result::Result<[f32; 3], Diagnostic> {
 }
 
 fn up(args: &CallArgs) -> std::result::Result<Up, Diagnostic> {
-    Ok(if args.choice("up", &["y", "z"], "y")? == "z" { Up::Z } else { Up::Y })
+    Ok(if args.choice("up", &["y", "z"], "y")? == "z" {
+        Up::Z
+    } else {
+        Up::Y
+    })
 }
 
-fn cameras(v: &Spanned, script_dir: &Path) -> std::result::Result<std::result::Result<Vec<Camera>, String>, Diagnostic> {
+fn cameras(
+    v: &Spanned,
+    script_dir: &Path,
+) -> std::result::Result<std::result::Result<Vec<Camera>, String>, Diagnostic> {
     let Value::Call(name, _) = &v.value else {
         return Err(Diagnostic::new(v.span, format!("expected a camera path, found {}", v.describe()))
             .with_hint("write surround(radius: 3, frames: 20, up: z, focal: 1), orbit(...) or cameras(\"file.json\")"));
@@ -73,7 +93,12 @@ fn cameras(v: &Spanned, script_dir: &Path) -> std::result::Result<std::result::R
         "surround" => {
             let a = CallArgs::new(v, &["radius", "frames", "up", "focal"])?;
             let frames = a.number("frames", Some(20.0))?;
-            surround(a.number("radius", None)? as f32, frames as usize, up(&a)?, a.number("focal", Some(1.0))? as f32)
+            surround(
+                a.number("radius", None)? as f32,
+                frames as usize,
+                up(&a)?,
+                a.number("focal", Some(1.0))? as f32,
+            )
         }
         "orbit" => {
             let a = CallArgs::new(v, &["radius", "elevation", "frames", "up", "focal"])?;
@@ -89,7 +114,11 @@ fn cameras(v: &Spanned, script_dir: &Path) -> std::result::Result<std::result::R
             let a = CallArgs::new(v, &["file"])?;
             let file = script_dir.join(a.string("file")?);
             let text = std::fs::read_to_string(&file).unwrap_or_default();
-            let set = if text.contains("\"frames\"") { load_blender_cameras(&file) } else { load_box_cameras(&file) };
+            let set = if text.contains("\"frames\"") {
+                load_blender_cameras(&file)
+            } else {
+                load_box_cameras(&file)
+            };
             set.map(|s| s.cameras)
         }
         "look_at" => {
@@ -101,8 +130,14 @@ fn cameras(v: &Spanned, script_dir: &Path) -> std::result::Result<std::result::R
                 }))
             };
             let focal = a.number("focal", Some(1.0))? as f32;
-            Camera::look_at(vec3("eye", [0.0, 0.0, -3.0])?, vec3("at", [0.0; 3])?, vec3("up", [0.0, 1.0, 0.0])?, Vec2::splat(focal), Vec2::ZERO)
-                .map(|c| vec![c])
+            Camera::look_at(
+                vec3("eye", [0.0, 0.0, -3.0])?,
+                vec3("at", [0.0; 3])?,
+                vec3("up", [0.0, 1.0, 0.0])?,
+                Vec2::splat(focal),
+                Vec2::ZERO,
+            )
+            .map(|c| vec![c])
         }
         other => {
             return Err(Diagnostic::new(v.span, format!("unknown camera path '{other}'"))
@@ -121,24 +156,46 @@ fn output(v: &Spanned, out_dir: Option<&Path>, allowed: &[&str]) -> std::result:
     };
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
     if !allowed.contains(&ext) {
-        return Err(Diagnostic::new(v.span, format!("cannot write '{}': unknown image format", path.display()))
-            .with_hint(format!("use a file ending in .{}", allowed.join(" or ."))));
+        return Err(Diagnostic::new(
+            v.span,
+            format!("cannot write '{}': unknown image format", path.display()),
+        )
+        .with_hint(format!("use a file ending in .{}", allowed.join(" or ."))));
     }
-    let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let folder = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
     if !folder.is_dir() {
-        return Err(Diagnostic::new(v.span, format!("cannot write '{}': folder '{}' does not exist", path.display(), folder.display()))
-            .with_hint("create the folder first, or pass --out DIR"));
+        return Err(Diagnostic::new(
+            v.span,
+            format!(
+                "cannot write '{}': folder '{}' does not exist",
+                path.display(),
+                folder.display()
+            ),
+        )
+        .with_hint("create the folder first, or pass --out DIR"));
     }
     Ok(path)
 }
 
 impl RenderPlan {
     /// Reads and checks a `render sphere_trace` block.
-    pub fn new(program: &Program, mut s: Settings, script_dir: &Path, out_dir: Option<&Path>) -> Result<RenderPlan> {
+    pub fn new(
+        program: &Program,
+        mut s: Settings,
+        script_dir: &Path,
+        out_dir: Option<&Path>,
+    ) -> Result<RenderPlan> {
         let err = |d| at(program, d);
         let block_span = s.span;
         let missing = |key: &str| {
-            at(program, Diagnostic::new(block_span, format!("the render block needs '{key}'")).with_hint(format!("add e.g. {}", example(key))))
+            at(
+                program,
+                Diagnostic::new(block_span, format!("the render block needs '{key}'"))
+                    .with_hint(format!("add e.g. {}", example(key))),
+            )
         };
         let camera_v = s.take("camera").ok_or_else(|| missing("camera"))?;
         let cams = cameras(&camera_v, script_dir).map_err(err)?;
@@ -146,9 +203,10 @@ impl RenderPlan {
         let size = match s.take("size") {
             None => (256, 256),
             Some(v) => match &v.value {
-                Value::List(items) if items.len() == 2 => {
-                    (whole(&items[0], 1, 8192).map_err(err)? as u32, whole(&items[1], 1, 8192).map_err(err)? as u32)
-                }
+                Value::List(items) if items.len() == 2 => (
+                    whole(&items[0], 1, 8192).map_err(err)? as u32,
+                    whole(&items[1], 1, 8192).map_err(err)? as u32,
+                ),
                 _ => {
                     let n = whole(&v, 1, 8192).map_err(err)? as u32;
                     (n, n)
@@ -164,7 +222,10 @@ impl RenderPlan {
         let near = num(&mut s, "near", 0.0, 1e6, 0.0)?;
         let far = num(&mut s, "far", 0.0, 1e9, 10.0)?;
         if far <= near {
-            return Err(at(program, Diagnostic::new(block_span, format!("far ({far}) must exceed near ({near})"))));
+            return Err(at(
+                program,
+                Diagnostic::new(block_span, format!("far ({far}) must exceed near ({near})")),
+            ));
         }
         let eps = num(&mut s, "eps", 1e-12, 1.0, 1e-5)?;
         let max_steps = match s.take("max_steps") {
@@ -202,7 +263,9 @@ impl RenderPlan {
         };
         let shading = if shading == "color" {
             if !has_color {
-                return Err(Failure::Message("shading 'color' needs a function 'fn color(p: vec3) -> vec3' in the script".into()));
+                return Err(Failure::Message(
+                    "shading 'color' needs a function 'fn color(p: vec3) -> vec3' in the script".into(),
+                ));
             }
             ShadingChoice::Color
         } else {
@@ -210,8 +273,16 @@ impl RenderPlan {
         };
         let out_v = s.take("out").ok_or_else(|| missing("out"))?;
         let out = output(&out_v, out_dir, &["gif", "png"]).map_err(err)?;
-        let depth = s.take("depth").map(|v| output(&v, out_dir, &["gif", "png"])).transpose().map_err(err)?;
-        let normals = s.take("normals").map(|v| output(&v, out_dir, &["gif", "png"])).transpose().map_err(err)?;
+        let depth = s
+            .take("depth")
+            .map(|v| output(&v, out_dir, &["gif", "png"]))
+            .transpose()
+            .map_err(err)?;
+        let normals = s
+            .take("normals")
+            .map(|v| output(&v, out_dir, &["gif", "png"]))
+            .transpose()
+            .map_err(err)?;
         let frame_ms = match s.take("frame_ms") {
             Some(v) => whole(&v, 10, 10_000).map_err(err)? as u32,
             None => 50,
@@ -241,7 +312,14 @@ impl RenderPlan {
         let vec3 = [Type::Vec(3)];
         let sdf = field::compile(program, cache, "sdf", &vec3, &Type::F32, Kind::Value)?;
         let color = match self.shading {
-            ShadingChoice::Color => Some(field::compile(program, cache, "color", &vec3, &Type::Vec(3), Kind::Value)?),
+            ShadingChoice::Color => Some(field::compile(
+                program,
+                cache,
+                "color",
+                &vec3,
+                &Type::Vec(3),
+                Kind::Value,
+            )?),
             ShadingChoice::Lambert { .. } => None,
         };
         Ok((sdf, color))
@@ -252,18 +330,34 @@ impl RenderPlan {
         let cache = KernelCache::new();
         let compile_start = Instant::now();
         let (sdf, color) = self.compile_fields(program, &cache)?;
-        let gradient = field::compile(program, &cache, "sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)?;
+        let gradient = field::compile(
+            program,
+            &cache,
+            "sdf",
+            &[Type::Vec(3)],
+            &Type::F32,
+            Kind::Gradient,
+        )?;
         let compile_s = compile_start.elapsed().as_secs_f64();
         let shading = match (&self.shading, &color) {
-            (ShadingChoice::Color, Some(c)) => Shading::Color { color: c, gradient: Some(&gradient) },
-            (ShadingChoice::Lambert { light, albedo }, _) => Shading::Lambert { gradient: &gradient, light_dir: *light, albedo: *albedo },
+            (ShadingChoice::Color, Some(c)) => Shading::Color {
+                color: c,
+                gradient: Some(&gradient),
+            },
+            (ShadingChoice::Lambert { light, albedo }, _) => Shading::Lambert {
+                gradient: &gradient,
+                light_dir: *light,
+                albedo: *albedo,
+            },
             _ => unreachable!("a color kernel exists for color shading"),
         };
         let start = Instant::now();
         let (w, h) = self.size;
         let frames = render_frames(&self.cameras, w, h, &sdf, &shading, &self.trace, Some(progress))?;
         let seconds = start.elapsed().as_secs_f64();
-        write_frames(&self.out, &frames, self.frame_ms, |f| rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate))?;
+        write_frames(&self.out, &frames, self.frame_ms, |f| {
+            rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)
+        })?;
         if let Some(path) = &self.depth {
             let (near, far) = (self.trace.near, self.trace.far);
             write_frames(path, &frames, self.frame_ms, |f| {
@@ -301,7 +395,10 @@ fn write_frames(
     frame_ms: u32,
     to_image: impl Fn(&Frame) -> nerfjit_runtime::Result<image::RgbImage>,
 ) -> Result<()> {
-    let images = frames.iter().map(to_image).collect::<nerfjit_runtime::Result<Vec<_>>>()?;
+    let images = frames
+        .iter()
+        .map(to_image)
+        .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     if path.extension().is_some_and(|e| e == "gif") {
         save_gif(path, &images, frame_ms)?;
     } else if images.len() == 1 {

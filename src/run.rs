@@ -22,7 +22,9 @@ pub fn run(path: &str, out_dir: Option<&Path>) -> Result<()> {
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
         match (settings.kind.as_str(), settings.name.as_deref()) {
-            ("render", Some("sphere_trace")) => plans.push(RenderPlan::new(&program, settings, script_dir, out_dir)?),
+            ("render", Some("sphere_trace")) => {
+                plans.push(RenderPlan::new(&program, settings, script_dir, out_dir)?)
+            }
             (kind, name) => {
                 let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
                 return Err(at(

@@ -19,10 +19,19 @@ fn read(path: &str) -> Result<(String, String)> {
     match std::fs::read_to_string(path) {
         Ok(source) => Ok((path.to_string(), source)),
         Err(e) => {
-            let file = Path::new(path).file_name().and_then(|f| f.to_str()).unwrap_or(path);
-            let wanted = if file.ends_with(".sdf") { file.to_string() } else { format!("{file}.sdf") };
+            let file = Path::new(path)
+                .file_name()
+                .and_then(|f| f.to_str())
+                .unwrap_or(path);
+            let wanted = if file.ends_with(".sdf") {
+                file.to_string()
+            } else {
+                format!("{file}.sdf")
+            };
             match EXAMPLES.iter().find(|(n, _)| *n == wanted) {
-                Some((n, source)) if !Path::new(path).exists() => Ok((format!("examples/{n}"), source.to_string())),
+                Some((n, source)) if !Path::new(path).exists() => {
+                    Ok((format!("examples/{n}"), source.to_string()))
+                }
                 _ => Err(Failure::Message(format!("cannot read script '{path}': {e}"))),
             }
         }

@@ -15,7 +15,10 @@ impl CallArgs {
     /// Matches the positional and named arguments of call `v` to `slots`.
     pub fn new(v: &Spanned, slots: &'static [&'static str]) -> Result<CallArgs, Diagnostic> {
         let Value::Call(name, args) = &v.value else {
-            return Err(Diagnostic::new(v.span, format!("expected a call, found {}", v.describe())));
+            return Err(Diagnostic::new(
+                v.span,
+                format!("expected a call, found {}", v.describe()),
+            ));
         };
         let mut values: Vec<Option<Spanned>> = vec![None; slots.len()];
         for (i, (arg_name, value)) in args.iter().enumerate() {
@@ -26,8 +29,10 @@ impl CallArgs {
                 })?,
                 None if i < slots.len() => i,
                 None => {
-                    return Err(Diagnostic::new(value.span, format!("too many arguments for '{name}'"))
-                        .with_hint(format!("its arguments are: {}", slots.join(", "))))
+                    return Err(
+                        Diagnostic::new(value.span, format!("too many arguments for '{name}'"))
+                            .with_hint(format!("its arguments are: {}", slots.join(", "))),
+                    )
                 }
             };
             values[slot] = Some(value.clone());
@@ -51,7 +56,10 @@ impl CallArgs {
         match (self.raw(slot), default) {
             (Some(v), _) => v.number(),
             (None, Some(d)) => Ok(d),
-            (None, None) => Err(Diagnostic::new(self.span, format!("'{}' needs the argument '{slot}'", self.name))),
+            (None, None) => Err(Diagnostic::new(
+                self.span,
+                format!("'{}' needs the argument '{slot}'", self.name),
+            )),
         }
     }
 
@@ -67,7 +75,10 @@ impl CallArgs {
     pub fn string(&self, slot: &str) -> Result<String, Diagnostic> {
         match self.raw(slot) {
             Some(v) => v.string().map(str::to_string),
-            None => Err(Diagnostic::new(self.span, format!("'{}' needs the argument '{slot}'", self.name))),
+            None => Err(Diagnostic::new(
+                self.span,
+                format!("'{}' needs the argument '{slot}'", self.name),
+            )),
         }
     }
 }
@@ -76,7 +87,10 @@ impl CallArgs {
 pub fn name_among(v: &Spanned, choices: &[&str]) -> Result<String, Diagnostic> {
     match &v.value {
         Value::Name(n) if choices.contains(&n.as_str()) => Ok(n.clone()),
-        _ => Err(Diagnostic::new(v.span, format!("expected one of {}, found {}", choices.join(", "), v.describe()))),
+        _ => Err(Diagnostic::new(
+            v.span,
+            format!("expected one of {}, found {}", choices.join(", "), v.describe()),
+        )),
     }
 }
 
@@ -97,6 +111,7 @@ pub fn ranged(v: &Spanned, lo: f64, hi: f64) -> Result<f64, Diagnostic> {
     if x >= lo && x <= hi {
         Ok(x)
     } else {
-        Err(Diagnostic::new(v.span, format!("{x} is out of range")).with_hint(format!("expected a number from {lo} to {hi}")))
+        Err(Diagnostic::new(v.span, format!("{x} is out of range"))
+            .with_hint(format!("expected a number from {lo} to {hi}")))
     }
 }

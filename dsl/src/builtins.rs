@@ -148,7 +148,7 @@ fn unary(g: &mut Graph, name: &str, x: V) -> V {
 /// `x^y`, with small integer and half powers of a constant exponent lowered to products and roots.
 pub fn pow(g: &mut Graph, x: V, y: V) -> V {
     match g.const_value(y) {
-        Some(e) if e == 0.5 => g.push(Op::Sqrt(x)),
+        Some(0.5) => g.push(Op::Sqrt(x)),
         Some(e) if e.fract() == 0.0 && e.abs() <= 16.0 => {
             let one = g.constant(1.0);
             let mut result = one;

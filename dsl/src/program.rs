@@ -152,16 +152,16 @@ impl Program {
                 Item::Param(p) => (&p.name, &mut values),
                 Item::Const(c) => (&c.name, &mut values),
                 Item::Block(b) => {
-                if !BLOCK_KINDS.contains(&b.kind.name.as_str()) {
-                    let mut d = Diagnostic::new(b.kind.span, format!("unknown block '{}'", b.kind.name));
-                    d = match crate::diag::closest(&b.kind.name, BLOCK_KINDS.iter().copied()) {
-                        Some(c) => d.with_hint(format!("did you mean '{c}'?")),
-                        None => d.with_hint(format!("blocks are: {}", BLOCK_KINDS.join(", "))),
-                    };
-                    diagnostics.push(d);
+                    if !BLOCK_KINDS.contains(&b.kind.name.as_str()) {
+                        let mut d = Diagnostic::new(b.kind.span, format!("unknown block '{}'", b.kind.name));
+                        d = match crate::diag::closest(&b.kind.name, BLOCK_KINDS.iter().copied()) {
+                            Some(c) => d.with_hint(format!("did you mean '{c}'?")),
+                            None => d.with_hint(format!("blocks are: {}", BLOCK_KINDS.join(", "))),
+                        };
+                        diagnostics.push(d);
+                    }
+                    continue;
                 }
-                continue;
-            }
             };
             if builtins::is_builtin(&name.name) || builtins::is_initializer(&name.name) {
                 diagnostics.push(

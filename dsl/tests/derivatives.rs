@@ -127,7 +127,11 @@ fn derivatives_match_closed_forms() {
         for i in 0..41 {
             let x = -2.0 + 0.1 * f64::from(i);
             let got = eval_point(&g, &[x, 0.0, 0.0], &[]).outputs[1];
-            assert!((got - df(x)).abs() < 1e-12 * (1.0 + df(x).abs()), "{expr} at {x}: {got} vs {}", df(x));
+            assert!(
+                (got - df(x)).abs() < 1e-12 * (1.0 + df(x).abs()),
+                "{expr} at {x}: {got} vs {}",
+                df(x)
+            );
         }
     }
 }
@@ -136,7 +140,11 @@ fn derivatives_match_closed_forms() {
 fn second_order_kernel_gives_the_eikonal_gradient() {
     // d(p) = |p| * s with param s: ∇ₓd = s p/|p|, so |∇ₓd| = s and the eikonal loss (|∇d| − 1)² has
     // dL/ds = 2 (s − 1). The kernel returns ∂/∂s (c_g · ∇ₓd); with c_g = ∂L/∂∇d = 2(|∇d| − 1) ∇d/|∇d|.
-    let p = compile("e.sdf", "param s: f32 = 1.5\nfn d(p: vec3) -> f32 = length(p) * s").unwrap();
+    let p = compile(
+        "e.sdf",
+        "param s: f32 = 1.5\nfn d(p: vec3) -> f32 = length(p) * s",
+    )
+    .unwrap();
     let g = kernels::second_order(&p.lower("d").unwrap(), p.n_params());
     let x = [0.3, -0.4, 1.2];
     let first = eval_point(&g, &[x[0], x[1], x[2], 0.0, 0.0, 0.0, 0.0], &[1.5]).outputs;
@@ -145,5 +153,9 @@ fn second_order_kernel_gives_the_eikonal_gradient() {
     assert!((norm - 1.5).abs() < 1e-12);
     let cg: Vec<f64> = grad.iter().map(|v| 2.0 * (norm - 1.0) * v / norm).collect();
     let e = eval_point(&g, &[x[0], x[1], x[2], 0.0, cg[0], cg[1], cg[2]], &[1.5]);
-    assert!((e.reductions[0] - 2.0 * (1.5 - 1.0)).abs() < 1e-12, "{:?}", e.reductions);
+    assert!(
+        (e.reductions[0] - 2.0 * (1.5 - 1.0)).abs() < 1e-12,
+        "{:?}",
+        e.reductions
+    );
 }

@@ -23,9 +23,15 @@ fn typo_in_a_function_name() {
 #[test]
 fn wrong_arity_shows_the_signature() {
     let text = error("fn sdf(p: vec3) -> f32 = clamp(p.x, 0.0)");
-    assert!(text.contains("wrong number of arguments: 'clamp' takes 3, got 2"), "{text}");
+    assert!(
+        text.contains("wrong number of arguments: 'clamp' takes 3, got 2"),
+        "{text}"
+    );
     assert!(text.contains("scene.sdf:1:26"), "{text}");
-    assert!(text.contains("hint: write clamp(x: T, lo: T, hi: T) -> T"), "{text}");
+    assert!(
+        text.contains("hint: write clamp(x: T, lo: T, hi: T) -> T"),
+        "{text}"
+    );
 }
 
 #[test]
@@ -34,9 +40,15 @@ fn type_mismatch_names_both_types() {
     assert!(text.contains("mismatched types for '+': vec2 and vec3"), "{text}");
     assert!(text.contains("scene.sdf:2:11"), "{text}");
     let text = error("fn sdf(p: vec3) -> f32 = p * 2.0");
-    assert!(text.contains("'sdf' declares result type f32 but its body has type vec3"), "{text}");
+    assert!(
+        text.contains("'sdf' declares result type f32 but its body has type vec3"),
+        "{text}"
+    );
     let text = error("fn sdf(p: vec3) -> f32 = sphere(p.xy, 1.0)");
-    assert!(text.contains("argument 'p' of 'sphere' must be vec3, found vec2"), "{text}");
+    assert!(
+        text.contains("argument 'p' of 'sphere' must be vec3, found vec2"),
+        "{text}"
+    );
 }
 
 #[test]
@@ -49,18 +61,30 @@ fn recursion_is_reported() {
 #[test]
 fn unknown_swizzle_and_names() {
     let text = error("fn sdf(p: vec3) -> f32 = p.xq.x");
-    assert!(text.contains("unknown swizzle '.xq' on a value of type vec3"), "{text}");
-    assert!(text.contains("scene.sdf:1:28") && text.contains("p.xq.x\n  |                            ^^\n"), "{text}");
+    assert!(
+        text.contains("unknown swizzle '.xq' on a value of type vec3"),
+        "{text}"
+    );
+    assert!(
+        text.contains("scene.sdf:1:28") && text.contains("p.xq.x\n  |                            ^^\n"),
+        "{text}"
+    );
     let text = error("fn sdf(p: vec3) -> f32 = p.w");
     assert!(text.contains("unknown swizzle '.w'"), "{text}");
     let text = error("fn sdf(pos: vec3) -> f32 = length(po)");
-    assert!(text.contains("unknown name 'po'") && text.contains("did you mean 'pos'?"), "{text}");
+    assert!(
+        text.contains("unknown name 'po'") && text.contains("did you mean 'pos'?"),
+        "{text}"
+    );
 }
 
 #[test]
 fn duplicate_names() {
     let text = error("fn f(x: f32) -> f32 = x\n\nfn f(x: f32) -> f32 = 2.0 * x");
-    assert!(text.contains("duplicate name 'f'") && text.contains("already defined on line 1"), "{text}");
+    assert!(
+        text.contains("duplicate name 'f'") && text.contains("already defined on line 1"),
+        "{text}"
+    );
     assert!(text.contains("scene.sdf:3:4"), "{text}");
     let text = error("fn length(x: f32) -> f32 = x");
     assert!(text.contains("'length' is the name of a builtin"), "{text}");
@@ -87,14 +111,25 @@ fn params_need_valid_initial_values() {
     assert!(error("param b: vec<4> = linear_init(seed: 1)").contains("needs fan_in"));
     assert!(error("fn f(x: f32) -> f32 = xavier(x)").contains("can only initialize a param"));
     let text = error("param w: mat<2, 3> = uniform(0, 1, sed: 3)");
-    assert!(text.contains("'uniform' has no argument 'sed'") && text.contains("named arguments are: seed"), "{text}");
+    assert!(
+        text.contains("'uniform' has no argument 'sed'") && text.contains("named arguments are: seed"),
+        "{text}"
+    );
 }
 
 #[test]
 fn limits_give_errors_not_stack_overflows() {
-    let deep = format!("fn f(x: f32) -> f32 = {}x{}", "sin(".repeat(5000), ")".repeat(5000));
+    let deep = format!(
+        "fn f(x: f32) -> f32 = {}x{}",
+        "sin(".repeat(5000),
+        ")".repeat(5000)
+    );
     assert!(error(&deep).contains("nested too deeply"));
-    let blocks = format!("fn f(x: f32) -> f32 = {}x{}", "{ ".repeat(5000), " }".repeat(5000));
+    let blocks = format!(
+        "fn f(x: f32) -> f32 = {}x{}",
+        "{ ".repeat(5000),
+        " }".repeat(5000)
+    );
     assert!(error(&blocks).contains("nested too deeply"));
     // Each level calls the previous one twice: 2^40 inlined calls without the step limit.
     let mut src = String::from("fn f0(x: f32) -> f32 = x * 1.5\n");

@@ -8,10 +8,13 @@ use nerfjit_dsl::ir::Graph;
 
 use crate::kernel::{JitError, Kernel, Options};
 
+/// The kernels whose graphs share one fingerprint, with their graphs (to tell collisions apart).
+type Bucket = Vec<(Graph, Arc<Kernel>)>;
+
 /// Compiled kernels by graph.
 #[derive(Default)]
 pub struct KernelCache {
-    entries: Mutex<HashMap<u64, Vec<(Graph, Arc<Kernel>)>>>,
+    entries: Mutex<HashMap<u64, Bucket>>,
 }
 
 fn same(a: &Graph, b: &Graph) -> bool {
@@ -38,7 +41,10 @@ impl KernelCache {
         let graph = graph.compact();
         let key = fingerprint(&graph);
         let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((_, k)) = entries.get(&key).and_then(|v| v.iter().find(|(g, _)| same(g, &graph))) {
+        if let Some((_, k)) = entries
+            .get(&key)
+            .and_then(|v| v.iter().find(|(g, _)| same(g, &graph)))
+        {
             return Ok(k.clone());
         }
         let kernel = Arc::new(Kernel::compile(&graph, options)?);

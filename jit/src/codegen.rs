@@ -185,7 +185,12 @@ fn emit_groups(
                     c
                 }
                 Op::Param(k) => {
-                    let p = s.b.ins().load(types::F32, MemFlagsData::trusted().with_readonly(), bufs.params, (k * 4) as i32);
+                    let p = s.b.ins().load(
+                        types::F32,
+                        MemFlagsData::trusted().with_readonly(),
+                        bufs.params,
+                        (k * 4) as i32,
+                    );
                     let p = s.b.ins().splat(types::F32X4, p);
                     shared[idx] = Some(p);
                     p

@@ -90,7 +90,9 @@ fn host_module() -> Result<JITModule, JitError> {
     let err = |e: &dyn std::fmt::Display| JitError(e.to_string());
     let mut flags = settings::builder();
     flags.set("opt_level", "speed").map_err(|e| err(&e))?;
-    flags.set("use_colocated_libcalls", "false").map_err(|e| err(&e))?;
+    flags
+        .set("use_colocated_libcalls", "false")
+        .map_err(|e| err(&e))?;
     flags.set("is_pic", "false").map_err(|e| err(&e))?;
     let isa = cranelift_native::builder()
         .map_err(|e| err(&e))?
@@ -118,14 +120,19 @@ impl Kernel {
         module
             .define_function(id, &mut ctx)
             .map_err(|e| JitError(format!("{e:?}")))?;
-        let code = ctx.compiled_code().map(|c| c.code_buffer().to_vec()).unwrap_or_default();
+        let code = ctx
+            .compiled_code()
+            .map(|c| c.code_buffer().to_vec())
+            .unwrap_or_default();
         if let Some(path) = std::env::var_os("NERFJIT_DUMP_CODE") {
             // A debugging aid: the raw machine code, for `objdump -D -b binary -m i386:x86-64`.
             std::fs::write(&path, &code).map_err(|e| JitError(format!("NERFJIT_DUMP_CODE: {e}")))?;
         }
         let code_bytes = code.len();
         module.clear_context(&mut ctx);
-        module.finalize_definitions().map_err(|e| JitError(e.to_string()))?;
+        module
+            .finalize_definitions()
+            .map_err(|e| JitError(e.to_string()))?;
         let ptr = module.get_finalized_function(id);
         // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
         let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
@@ -155,12 +162,37 @@ impl Kernel {
     }
 
     fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {
-        assert_eq!(inputs.len(), self.n_inputs, "kernel takes {} inputs", self.n_inputs);
-        assert_eq!(outputs.len(), self.n_outputs, "kernel writes {} outputs", self.n_outputs);
-        assert!(inputs.iter().all(|c| c.len() >= n), "an input column is shorter than {n}");
-        assert!(outputs.iter().all(|c| c.len() >= n), "an output column is shorter than {n}");
-        assert!(params.len() >= self.n_params, "kernel reads {} params", self.n_params);
-        assert_eq!(reductions.len(), self.n_reductions, "kernel sums {} reductions", self.n_reductions);
+        assert_eq!(
+            inputs.len(),
+            self.n_inputs,
+            "kernel takes {} inputs",
+            self.n_inputs
+        );
+        assert_eq!(
+            outputs.len(),
+            self.n_outputs,
+            "kernel writes {} outputs",
+            self.n_outputs
+        );
+        assert!(
+            inputs.iter().all(|c| c.len() >= n),
+            "an input column is shorter than {n}"
+        );
+        assert!(
+            outputs.iter().all(|c| c.len() >= n),
+            "an output column is shorter than {n}"
+        );
+        assert!(
+            params.len() >= self.n_params,
+            "kernel reads {} params",
+            self.n_params
+        );
+        assert_eq!(
+            reductions.len(),
+            self.n_reductions,
+            "kernel sums {} reductions",
+            self.n_reductions
+        );
     }
 
     /// Evaluates points `0..n` on this thread: writes `outputs[o][0..n]` and adds the reductions over the
@@ -181,7 +213,15 @@ impl Kernel {
             let outs: Vec<*mut f32> = outputs.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: every column holds at least `full` points (checked above), a multiple of 4, and the
             // kernel accesses exactly points 0..full of each column and 4 lanes per reduction of `accum`.
-            unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), full as i64) };
+            unsafe {
+                (self.func)(
+                    ins.as_ptr(),
+                    outs.as_ptr(),
+                    params.as_ptr(),
+                    accum.as_mut_ptr(),
+                    full as i64,
+                )
+            };
         }
         let rest = n - full;
         if rest > 0 {
@@ -198,7 +238,15 @@ impl Kernel {
             let ins: Vec<*const f32> = pad_in.iter().map(|c| c.as_ptr()).collect();
             let outs: Vec<*mut f32> = pad_out.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: each padded column holds 4 points; the kernel masks the reduction lanes ≥ rest.
-            unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), rest as i64) };
+            unsafe {
+                (self.func)(
+                    ins.as_ptr(),
+                    outs.as_ptr(),
+                    params.as_ptr(),
+                    accum.as_mut_ptr(),
+                    rest as i64,
+                )
+            };
             for (col, pad) in outputs.iter_mut().zip(&pad_out) {
                 col[full..n].copy_from_slice(&pad[..rest]);
             }
@@ -246,7 +294,10 @@ impl Kernel {
                     })
                 })
                 .collect();
-            handles.into_iter().map(|h| h.join().expect("kernel thread panicked")).collect()
+            handles
+                .into_iter()
+                .map(|h| h.join().expect("kernel thread panicked"))
+                .collect()
         });
         for part in sums {
             for (r, x) in reductions.iter_mut().zip(part) {

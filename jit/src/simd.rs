@@ -113,7 +113,14 @@ impl Simd<'_, '_> {
         let r = self.fma(nk, c2, r);
         let p = self.horner(
             r,
-            &[1.987_569_1e-4, 1.398_2e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_5e-1, 5.000_000_1e-1],
+            &[
+                1.987_569_1e-4,
+                1.398_2e-3,
+                8.333_452e-3,
+                4.166_579_6e-2,
+                1.666_666_5e-1,
+                0.5,
+            ],
         );
         let r2 = self.b.ins().fmul(r, r);
         let one = self.f(1.0);
@@ -233,7 +240,10 @@ impl Simd<'_, '_> {
         let one = self.i(1);
         let odd = self.b.ins().band(q, one);
         let zero = self.i(0);
-        let odd = self.b.ins().icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
+        let odd = self
+            .b
+            .ins()
+            .icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
         let odd = self.float(odd);
         let v = self.select(odd, c, s);
         let two = self.i(2);
@@ -251,7 +261,10 @@ impl Simd<'_, '_> {
         let one = self.i(1);
         let odd = self.b.ins().band(q, one);
         let zero = self.i(0);
-        let odd = self.b.ins().icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
+        let odd = self
+            .b
+            .ins()
+            .icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
         let odd = self.float(odd);
         let t_even = self.b.ins().fdiv(s, c);
         let nc = self.b.ins().fneg(c);

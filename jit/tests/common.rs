@@ -7,7 +7,12 @@ use nerfjit_dsl::ir::Graph;
 use nerfjit_jit::{Kernel, Options};
 
 /// Runs `g` through the JIT on `points[i][k]` (point i, input k); returns outputs per point and reductions.
-pub fn jit_eval(g: &Graph, points: &[Vec<f64>], params: &[f64], options: Options) -> (Vec<Vec<f32>>, Vec<f32>) {
+pub fn jit_eval(
+    g: &Graph,
+    points: &[Vec<f64>],
+    params: &[f64],
+    options: Options,
+) -> (Vec<Vec<f32>>, Vec<f32>) {
     let k = Kernel::compile(g, options).expect("compiles");
     let n = points.len();
     let cols: Vec<Vec<f32>> = (0..g.n_inputs as usize)

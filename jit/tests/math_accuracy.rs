@@ -26,7 +26,9 @@ fn max_error(op: fn(V) -> Op, xs: &[f32], abs_floor: f64) -> (f64, f32) {
         let want = interp::eval_point(&g, &[f64::from(x)], &[]).outputs[0];
         if !want.is_finite() {
             assert!(
-                (want.is_nan() && y.is_nan()) || f64::from(y) == want || (want.abs() > 3.4e38 && y.is_infinite()),
+                (want.is_nan() && y.is_nan())
+                    || f64::from(y) == want
+                    || (want.abs() > 3.4e38 && y.is_infinite()),
                 "{:?} at {x}: got {y}, want {want}",
                 op(V(0))
             );
@@ -45,10 +47,22 @@ fn max_error(op: fn(V) -> Op, xs: &[f32], abs_floor: f64) -> (f64, f32) {
 }
 
 fn sweep(lo: f32, hi: f32, n: usize) -> Vec<f32> {
-    (0..n).map(|i| lo + (hi - lo) * i as f32 / (n - 1) as f32).collect()
+    (0..n)
+        .map(|i| lo + (hi - lo) * i as f32 / (n - 1) as f32)
+        .collect()
 }
 
-const SPECIAL: [f32; 9] = [0.0, -0.0, 1.0, -1.0, f32::INFINITY, f32::NEG_INFINITY, f32::NAN, 1e-40, -1e-40];
+const SPECIAL: [f32; 9] = [
+    0.0,
+    -0.0,
+    1.0,
+    -1.0,
+    f32::INFINITY,
+    f32::NEG_INFINITY,
+    f32::NAN,
+    1e-40,
+    -1e-40,
+];
 
 #[test]
 fn exp_is_accurate_everywhere() {
@@ -61,9 +75,19 @@ fn exp_is_accurate_everywhere() {
 
 #[test]
 fn log_is_accurate_everywhere() {
-    let mut xs: Vec<f32> = (0..100_000).map(|i| 10f32.powf(-44.0 + 82.0 * i as f32 / 100_000.0)).collect();
+    let mut xs: Vec<f32> = (0..100_000)
+        .map(|i| 10f32.powf(-44.0 + 82.0 * i as f32 / 100_000.0))
+        .collect();
     xs.extend(SPECIAL);
-    xs.extend([f32::MIN_POSITIVE, f32::MAX, -5.0, 0.70710677, 0.7071068, 1.0000001, 0.9999999]);
+    xs.extend([
+        f32::MIN_POSITIVE,
+        f32::MAX,
+        -5.0,
+        0.70710677,
+        0.7071068,
+        1.0000001,
+        0.9999999,
+    ]);
     let (err, at) = max_error(Op::Log, &xs, 1e-7);
     assert!(err < 3e-7, "log: error {err} at {at}");
 }
@@ -90,7 +114,11 @@ fn tan_is_accurate_away_from_poles() {
 fn activations_are_accurate() {
     let mut xs = sweep(-60.0, 60.0, 60_001);
     xs.extend(SPECIAL);
-    for (op, tol) in [(Op::Tanh as fn(V) -> Op, 6e-7), (Op::Sigmoid, 6e-7), (Op::Softplus, 6e-7)] {
+    for (op, tol) in [
+        (Op::Tanh as fn(V) -> Op, 6e-7),
+        (Op::Sigmoid, 6e-7),
+        (Op::Softplus, 6e-7),
+    ] {
         let (err, at) = max_error(op, &xs, 1.0);
         assert!(err < tol, "{:?}: error {err} at {at}", op(V(0)));
     }

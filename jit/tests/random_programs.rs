@@ -108,7 +108,12 @@ fn inputs_and_params(g: &mut Graph) -> Vec<V> {
 
 /// The sum of the outputs of `g`, weighted by `w`, as a function of inputs and params, in f64.
 fn weighted(g: &Graph, w: &[f64], x: &[f64], p: &[f64]) -> f64 {
-    eval_point(g, x, p).outputs.iter().zip(w).map(|(o, w)| o * w).sum()
+    eval_point(g, x, p)
+        .outputs
+        .iter()
+        .zip(w)
+        .map(|(o, w)| o * w)
+        .sum()
 }
 
 proptest! {

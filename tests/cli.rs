@@ -1,0 +1,221 @@
+//! End-to-end tests of the `nerfjit` binary on scripts the tests write themselves and on the shipped examples.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+
+fn nerfjit(args: &[&str], stdin: Option<&str>) -> Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_nerfjit"));
+    cmd.args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut child = cmd.spawn().expect("nerfjit runs");
+    if let Some(text) = stdin {
+        child
+            .stdin
+            .take()
+            .expect("stdin")
+            .write_all(text.as_bytes())
+            .expect("write stdin");
+    }
+    drop(child.stdin.take());
+    child.wait_with_output().expect("nerfjit finishes")
+}
+
+fn text(o: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("nerfjit-test-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn write(dir: &Path, file: &str, source: &str) -> String {
+    let path = dir.join(file);
+    std::fs::write(&path, source).expect("write script");
+    path.display().to_string()
+}
+
+fn examples() -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/examples"))
+        .expect("examples")
+        .filter_map(|e| e.ok().map(|e| e.path().display().to_string()))
+        .filter(|p| p.ends_with(".sdf"))
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn check_passes_on_every_example() {
+    let all = examples();
+    assert!(all.len() >= 2);
+    for ex in all {
+        let out = nerfjit(&["check", &ex], None);
+        let (stdout, stderr) = text(&out);
+        assert!(out.status.success(), "{ex}: {stderr}");
+        assert!(stdout.contains("fn sdf(p: vec3) -> f32"), "{stdout}");
+    }
+}
+
+#[test]
+fn a_typo_gets_a_diagnostic_with_caret_and_hint() {
+    let dir = scratch("typo");
+    let path = write(
+        &dir,
+        "typo.sdf",
+        "fn sdf(p: vec3) -> f32 {\n    lenght(p) - 1.0\n}\n",
+    );
+    let out = nerfjit(&["check", &path], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(stderr.contains(&format!("{path}:2:5")), "{stderr}");
+    assert!(stderr.contains("    lenght(p) - 1.0\n  |     ^^^^^^"), "{stderr}");
+    assert!(stderr.contains("hint: did you mean 'length'?"), "{stderr}");
+}
+
+fn parse_rows(s: &str) -> Vec<Vec<f64>> {
+    s.lines()
+        .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
+        .collect()
+}
+
+#[test]
+fn eval_agrees_with_the_interpreter_and_finite_differences() {
+    let points = "0.3,0.2,0.1\n-1.2,0.5,0.7\n2.0,-1.0,0.25\n0.9,0.1,-0.2\n1.5,1.5,1.5\n";
+    for ex in examples() {
+        let jit = nerfjit(&["eval", &ex, "sdf", "--grad"], Some(points));
+        let interp = nerfjit(&["eval", &ex, "sdf", "--grad", "--interp"], Some(points));
+        assert!(
+            jit.status.success() && interp.status.success(),
+            "{}",
+            text(&jit).1
+        );
+        let (a, b) = (parse_rows(&text(&jit).0), parse_rows(&text(&interp).0));
+        assert_eq!(a.len(), 5);
+        for (ra, rb) in a.iter().zip(&b) {
+            assert_eq!(ra.len(), 4);
+            for (x, y) in ra.iter().zip(rb) {
+                assert!(
+                    (x - y).abs() <= 1e-5 * (1.0 + y.abs()),
+                    "{ex}: jit {ra:?} vs interpreter {rb:?}"
+                );
+            }
+        }
+        // The gradient against central differences of the interpreter's values.
+        let h = 1e-4;
+        for (row, line) in b.iter().zip(points.lines()) {
+            let p: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+            let mut shifted = String::new();
+            for k in 0..3 {
+                for s in [h, -h] {
+                    let mut q = p.clone();
+                    q[k] += s;
+                    shifted += &format!("{},{},{}\n", q[0], q[1], q[2]);
+                }
+            }
+            let vals = parse_rows(&text(&nerfjit(&["eval", &ex, "sdf", "--interp"], Some(&shifted))).0);
+            for k in 0..3 {
+                let fd = (vals[2 * k][0] - vals[2 * k + 1][0]) / (2.0 * h);
+                assert!(
+                    (fd - row[1 + k]).abs() < 1e-4,
+                    "{ex} at {p:?}: d/d{k} {} vs {fd}",
+                    row[1 + k]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn eval_reports_bad_points() {
+    let out = nerfjit(&["eval", "examples/torus.sdf", "sdf"], Some("1,2\n"));
+    assert!(!out.status.success());
+    assert!(
+        text(&out).1.contains("<stdin>:1: expected 3 numbers per row"),
+        "{}",
+        text(&out).1
+    );
+    let out = nerfjit(&["eval", "examples/torus.sdf", "sdf"], Some("1,x,2\n"));
+    assert!(
+        text(&out).1.contains("<stdin>:1: invalid float literal"),
+        "{}",
+        text(&out).1
+    );
+}
+
+#[test]
+fn run_writes_the_torus_gif() {
+    let dir = scratch("torus");
+    let out = nerfjit(
+        &["run", "examples/torus.sdf", "--out", dir.to_str().unwrap()],
+        None,
+    );
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("rendered 20 frames of 256×256"), "{stdout}");
+    let file = std::fs::File::open(dir.join("torus.gif")).expect("torus.gif written");
+    let decoder = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(file)).expect("a GIF");
+    use image::AnimationDecoder;
+    let frames = decoder.into_frames().collect_frames().expect("frames");
+    assert_eq!(frames.len(), 20);
+    let first = frames[0].buffer();
+    assert_eq!(first.dimensions(), (256, 256));
+    // The torus fills part of the image: some pixels are lit, the corners are background.
+    let lit = first
+        .pixels()
+        .filter(|p| p[0] as u32 + p[1] as u32 + p[2] as u32 > 60)
+        .count();
+    assert!(lit > 2000 && lit < 40000, "{lit} lit pixels");
+    assert_eq!(first.get_pixel(0, 0).0[..3], [0, 0, 0]);
+}
+
+#[test]
+fn run_rejects_bad_scripts_before_any_work() {
+    let dir = scratch("bad");
+    let cases = [
+        ("fn color(p: vec3) -> vec3 = p\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "no function 'sdf'"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", sise: 4 }", "unknown setting 'sise' in 'render' block"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: \"big\" }", "expected a number, found string"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"missing/a.gif\" }", "folder 'missing' does not exist"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 0 }", "0 is out of range"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 100000 }", "100000 is out of range"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { out: \"a.gif\" }", "the render block needs 'camera'"),
+        ("fn sdf(p: vec2) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "must have the signature fn sdf(vec3) -> f32"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\n", "nothing to run"),
+    ];
+    for (i, (src, expected)) in cases.iter().enumerate() {
+        let path = write(&dir, &format!("bad{i}.sdf"), src);
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+            .args(["run", &path])
+            .current_dir(&dir)
+            .output()
+            .expect("runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "case {i} should fail");
+        assert!(
+            stderr.contains(expected),
+            "case {i}: expected '{expected}' in:\n{stderr}"
+        );
+        assert!(!dir.join("a.gif").exists(), "case {i} wrote output");
+    }
+}
+
+#[test]
+fn ir_prints_both_irs() {
+    let out = nerfjit(&["ir", "examples/torus.sdf", "sdf", "--grad"], None);
+    let (stdout, _) = text(&out);
+    assert!(out.status.success());
+    assert!(stdout.contains("output 3 = v"), "{stdout}");
+    assert!(
+        stdout.contains("function u0:0(i64, i64, i64, i64, i64)") || stdout.contains("fadd"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("sqrt"));
+}
