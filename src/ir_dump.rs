@@ -15,13 +15,7 @@ pub fn run(path: &str, function: &str, grad: bool) -> Result<String> {
     } else {
         kernels::value(&lowered)
     };
-    let kernel = Kernel::compile(
-        &graph,
-        Options {
-            unroll: 1,
-            keep_clif: true,
-        },
-    )?;
+    let kernel = Kernel::compile(&graph, Options { keep_clif: true })?;
     let stats: Vec<String> = graph.stats().iter().map(|(op, n)| format!("{op} {n}")).collect();
     Ok(format!(
         "; {}{}\n; {} nodes: {}\n{graph}\n; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
@@ -29,8 +23,8 @@ pub fn run(path: &str, function: &str, grad: bool) -> Result<String> {
         if grad { ", with the gradient of each output" } else { "" },
         graph.len(),
         stats.join(", "),
-        kernel.stats.code_bytes,
-        kernel.stats.seconds * 1e3,
-        kernel.stats.clif.as_deref().unwrap_or("")
+        kernel.stats().code_bytes,
+        kernel.stats().seconds * 1e3,
+        kernel.stats().clif.as_deref().unwrap_or("")
     ))
 }

@@ -310,7 +310,7 @@ impl RenderPlan {
     /// Compiles the script's `sdf` and, for color shading, its `color`.
     pub fn compile_fields(&self, program: &Program, cache: &KernelCache) -> Result<(JitFn, Option<JitFn>)> {
         let vec3 = [Type::Vec(3)];
-        let sdf = field::compile(program, cache, "sdf", &vec3, &Type::F32, Kind::Value)?;
+        let sdf = field::compile(program, cache, "sdf", &vec3, &Type::F32, Kind::Sdf)?;
         let color = match self.shading {
             ShadingChoice::Color => Some(field::compile(
                 program,

@@ -3,8 +3,8 @@
 //! The function's signature is
 //! `fn(inputs: *const *const f32, outputs: *const *mut f32, params: *const f32, accum: *mut f32, n: i64)`:
 //! `inputs` and `outputs` point to arrays of column pointers (structure of arrays), `accum` holds 4 lanes per
-//! reduction. A main loop evaluates `unroll` independent groups of 4 points per iteration; a second loop
-//! takes single groups, masking reduction lanes at or beyond `n`. The caller guarantees that every column
+//! reduction. A main loop evaluates whole groups of 4 points; a last partial group masks the reduction
+//! lanes at or beyond `n`. The caller guarantees that every column
 //! holds `n` rounded up to a multiple of 4 points (see [`crate::Kernel`]), so no access leaves the buffers.
 
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
@@ -71,134 +71,45 @@ fn fused_muls(g: &Graph) -> Vec<bool> {
     fused
 }
 
-/// Emits the body of the kernel function for `g` into `b` (whose signature is [`signature`]).
-pub fn build(b: &mut FunctionBuilder, g: &Graph, unroll: usize) {
-    let ptr = types::I64;
-    let entry = b.create_block();
-    b.append_block_params_for_function_params(entry);
-    b.switch_to_block(entry);
-    b.seal_block(entry);
-    let args = b.block_params(entry).to_vec();
-    let (in_arr, out_arr, params, accum, n) = (args[0], args[1], args[2], args[3], args[4]);
-    let flags = MemFlagsData::trusted().with_readonly();
-    let inputs = (0..g.n_inputs)
-        .map(|k| b.ins().load(ptr, flags, in_arr, (k * 8) as i32))
-        .collect();
-    let outputs = (0..g.outputs.len())
-        .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
-        .collect();
-    let bufs = Buffers {
-        inputs,
-        outputs,
-        params,
-        accum,
-    };
-    let fused = fused_muls(g);
-    let live = g.live();
-
-    let main_head = b.create_block();
-    let main_body = b.create_block();
-    let tail_head = b.create_block();
-    let tail_body = b.create_block();
-    let exit = b.create_block();
-    for block in [main_head, tail_head] {
-        b.append_block_param(block, ptr);
-    }
-    let zero = b.ins().iconst(ptr, 0);
-    b.ins().jump(main_head, &[zero.into()]);
-
-    // Main loop: while i + 4·unroll <= n, evaluate `unroll` groups without masks.
-    b.switch_to_block(main_head);
-    let i = b.block_params(main_head)[0];
-    let step = (4 * unroll) as i64;
-    let next = b.ins().iadd_imm_s(i, step);
-    let more = b.ins().icmp(IntCC::SignedLessThanOrEqual, next, n);
-    b.ins().brif(more, main_body, &[], tail_head, &[i.into()]);
-    b.switch_to_block(main_body);
-    b.seal_block(main_body);
-    let offset = b.ins().ishl_imm_s(i, 2);
-    emit_groups(b, g, &bufs, &fused, &live, offset, unroll, None);
-    b.ins().jump(main_head, &[next.into()]);
-    b.seal_block(main_head);
-
-    // Tail loop: single groups while i < n, reductions masked to the lanes below n.
-    b.switch_to_block(tail_head);
-    let i = b.block_params(tail_head)[0];
-    let more = b.ins().icmp(IntCC::SignedLessThan, i, n);
-    b.ins().brif(more, tail_body, &[], exit, &[]);
-    b.switch_to_block(tail_body);
-    b.seal_block(tail_body);
-    let offset = b.ins().ishl_imm_s(i, 2);
-    let remaining = b.ins().isub(n, i);
-    let remaining = b.ins().ireduce(types::I32, remaining);
-    let remaining = b.ins().splat(types::I32X4, remaining);
-    let lanes = b.func.dfg.constants.insert(
-        [0u32, 1, 2, 3]
-            .iter()
-            .flat_map(|x| x.to_le_bytes())
-            .collect::<Vec<u8>>()
-            .into(),
-    );
-    let lanes = b.ins().vconst(types::I32X4, lanes);
-    let mask = b.ins().icmp(IntCC::SignedLessThan, lanes, remaining);
-    emit_groups(b, g, &bufs, &fused, &live, offset, 1, Some(mask));
-    let next = b.ins().iadd_imm_s(i, 4);
-    b.ins().jump(tail_head, &[next.into()]);
-    b.seal_block(tail_head);
-
-    b.switch_to_block(exit);
-    b.seal_block(exit);
-    b.ins().return_(&[]);
+/// Emits the IR ops of one graph as f32x4 instructions.
+pub struct GraphEmitter<'g> {
+    g: &'g Graph,
+    fused: Vec<bool>,
+    live: Vec<bool>,
 }
 
-/// Emits `groups` copies of the graph for the groups of 4 points at byte offsets `offset + 16·k`.
-#[allow(clippy::too_many_arguments)]
-fn emit_groups(
-    b: &mut FunctionBuilder,
-    g: &Graph,
-    bufs: &Buffers,
-    fused: &[bool],
-    live: &[bool],
-    offset: Value,
-    groups: usize,
-    lane_mask: Option<Value>,
-) {
-    let addr_of = |b: &mut FunctionBuilder, base: Value| b.ins().iadd(base, offset);
-    let in_addrs: Vec<Value> = bufs.inputs.iter().map(|&p| addr_of(b, p)).collect();
-    let out_addrs: Vec<Value> = bufs.outputs.iter().map(|&p| addr_of(b, p)).collect();
-    let mut shared: Vec<Option<Value>> = vec![None; g.len()];
-    for group in 0..groups {
-        let disp = (16 * group) as i32;
-        let mut vals: Vec<Option<Value>> = shared.clone();
+impl<'g> GraphEmitter<'g> {
+    /// Prepares `g` for emission (liveness and FMA fusion).
+    pub fn new(g: &'g Graph) -> Self {
+        GraphEmitter {
+            g,
+            fused: fused_muls(g),
+            live: g.live(),
+        }
+    }
+
+    /// Emits the graph in the current block with input k = `inputs[k]` and params read from `params`;
+    /// returns the values of the outputs and of the reductions.
+    pub fn emit(&self, b: &mut FunctionBuilder, inputs: &[Value], params: Value) -> (Vec<Value>, Vec<Value>) {
+        let g = self.g;
+        let fused = &self.fused;
+        let mut vals: Vec<Option<Value>> = vec![None; g.len()];
         // Masks of comparisons, kept so that a select on a comparison needs no conversion.
         let mut masks: Vec<Option<Value>> = vec![None; g.len()];
         for (idx, op) in g.ops().iter().enumerate() {
-            if !live[idx] || fused[idx] || vals[idx].is_some() {
+            if !self.live[idx] || fused[idx] {
                 continue;
             }
             let mut s = Simd { b };
             let v = |x: V| vals[x.0 as usize].expect("argument emitted before use");
             let value = match *op {
-                Op::Const(bits) => {
-                    let c = s.f(f64::from_bits(bits) as f32);
-                    shared[idx] = Some(c);
-                    c
-                }
+                Op::Const(bits) => s.f(f64::from_bits(bits) as f32),
                 Op::Param(k) => {
-                    let p = s.b.ins().load(
-                        types::F32,
-                        MemFlagsData::trusted().with_readonly(),
-                        bufs.params,
-                        (k * 4) as i32,
-                    );
-                    let p = s.b.ins().splat(types::F32X4, p);
-                    shared[idx] = Some(p);
-                    p
+                    let flags = MemFlagsData::trusted().with_readonly();
+                    let p = s.b.ins().load(types::F32, flags, params, (k * 4) as i32);
+                    s.b.ins().splat(types::F32X4, p)
                 }
-                Op::Input(k) => {
-                    let flags = MemFlagsData::new().with_notrap().with_readonly();
-                    s.b.ins().load(types::F32X4, flags, in_addrs[k as usize], disp)
-                }
+                Op::Input(k) => inputs[k as usize],
                 Op::Neg(a) => s.b.ins().fneg(v(a)),
                 Op::Abs(a) => s.b.ins().fabs(v(a)),
                 Op::Sign(a) => {
@@ -269,25 +180,126 @@ fn emit_groups(
             };
             vals[idx] = Some(value);
         }
-        let get = |x: V| vals[x.0 as usize].expect("output emitted");
-        for (k, &o) in g.outputs.iter().enumerate() {
-            let flags = MemFlagsData::new().with_notrap();
-            b.ins().store(flags, get(o), out_addrs[k], disp);
+        let get = |x: &V| vals[x.0 as usize].expect("emitted");
+        (
+            g.outputs.iter().map(get).collect(),
+            g.reductions.iter().map(get).collect(),
+        )
+    }
+}
+
+/// Emits the body of the kernel function for `g` into `b` (whose signature is [`signature`]).
+pub fn build(b: &mut FunctionBuilder, g: &Graph) {
+    let ptr = types::I64;
+    let entry = b.create_block();
+    b.append_block_params_for_function_params(entry);
+    b.switch_to_block(entry);
+    b.seal_block(entry);
+    let args = b.block_params(entry).to_vec();
+    let (in_arr, out_arr, params, accum, n) = (args[0], args[1], args[2], args[3], args[4]);
+    let flags = MemFlagsData::trusted().with_readonly();
+    let inputs = (0..g.n_inputs)
+        .map(|k| b.ins().load(ptr, flags, in_arr, (k * 8) as i32))
+        .collect();
+    let outputs = (0..g.outputs.len())
+        .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
+        .collect();
+    let bufs = Buffers {
+        inputs,
+        outputs,
+        params,
+        accum,
+    };
+    let emitter = GraphEmitter::new(g);
+
+    let main_head = b.create_block();
+    let main_body = b.create_block();
+    let tail_head = b.create_block();
+    let tail_body = b.create_block();
+    let exit = b.create_block();
+    for block in [main_head, tail_head] {
+        b.append_block_param(block, ptr);
+    }
+    let zero = b.ins().iconst(ptr, 0);
+    b.ins().jump(main_head, &[zero.into()]);
+
+    // Main loop: whole groups of 4 points (i + 4 <= n), no masks.
+    b.switch_to_block(main_head);
+    let i = b.block_params(main_head)[0];
+    let next = b.ins().iadd_imm_s(i, 4);
+    let more = b.ins().icmp(IntCC::SignedLessThanOrEqual, next, n);
+    b.ins().brif(more, main_body, &[], tail_head, &[i.into()]);
+    b.switch_to_block(main_body);
+    b.seal_block(main_body);
+    emit_group(b, &emitter, &bufs, i, None);
+    b.ins().jump(main_head, &[next.into()]);
+    b.seal_block(main_head);
+
+    // Tail: at most one partial group, reductions masked to the lanes below n.
+    b.switch_to_block(tail_head);
+    let i = b.block_params(tail_head)[0];
+    let more = b.ins().icmp(IntCC::SignedLessThan, i, n);
+    b.ins().brif(more, tail_body, &[], exit, &[]);
+    b.switch_to_block(tail_body);
+    b.seal_block(tail_body);
+    let remaining = b.ins().isub(n, i);
+    let remaining = b.ins().ireduce(types::I32, remaining);
+    let remaining = b.ins().splat(types::I32X4, remaining);
+    let lanes = lane_indices(b);
+    let mask = b.ins().icmp(IntCC::SignedLessThan, lanes, remaining);
+    emit_group(b, &emitter, &bufs, i, Some(mask));
+    b.ins().jump(exit, &[]);
+    b.seal_block(tail_head);
+
+    b.switch_to_block(exit);
+    b.seal_block(exit);
+    b.ins().return_(&[]);
+}
+
+/// The vector [0, 1, 2, 3] of i32 lanes.
+pub fn lane_indices(b: &mut FunctionBuilder) -> Value {
+    let bytes: Vec<u8> = [0u32, 1, 2, 3].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let lanes = b.func.dfg.constants.insert(bytes.into());
+    b.ins().vconst(types::I32X4, lanes)
+}
+
+/// Emits the graph for the group of 4 points starting at point `i`: loads, ops, stores, reductions.
+fn emit_group(
+    b: &mut FunctionBuilder,
+    emitter: &GraphEmitter,
+    bufs: &Buffers,
+    i: Value,
+    lane_mask: Option<Value>,
+) {
+    let offset = b.ins().ishl_imm_s(i, 2);
+    let flags = MemFlagsData::new().with_notrap();
+    let inputs: Vec<Value> = bufs
+        .inputs
+        .iter()
+        .map(|&p| {
+            let addr = b.ins().iadd(p, offset);
+            b.ins().load(types::F32X4, flags.with_readonly(), addr, 0)
+        })
+        .collect();
+    let (outputs, reductions) = emitter.emit(b, &inputs, bufs.params);
+    for (&value, &base) in outputs.iter().zip(&bufs.outputs) {
+        let addr = b.ins().iadd(base, offset);
+        b.ins().store(flags, value, addr, 0);
+    }
+    for (k, (&term, &r)) in reductions.iter().zip(&emitter.g.reductions).enumerate() {
+        if emitter.g.const_value(r) == Some(0.0) {
+            continue;
         }
-        for (k, &r) in g.reductions.iter().enumerate() {
-            if g.const_value(r) == Some(0.0) {
-                continue;
-            }
-            let mut term = get(r);
-            if let Some(mask) = lane_mask {
+        let term = match lane_mask {
+            Some(mask) => {
                 let mut s = Simd { b };
                 let mask = s.float(mask);
-                term = s.b.ins().band(term, mask);
+                s.b.ins().band(term, mask)
             }
-            let flags = MemFlagsData::new().with_notrap();
-            let acc = b.ins().load(types::F32X4, flags, bufs.accum, (k * 16) as i32);
-            let sum = b.ins().fadd(acc, term);
-            b.ins().store(flags, sum, bufs.accum, (k * 16) as i32);
-        }
+            None => term,
+        };
+        let acc = b.ins().load(types::F32X4, flags, bufs.accum, (k * 16) as i32);
+        let sum = b.ins().fadd(acc, term);
+        b.ins().store(flags, sum, bufs.accum, (k * 16) as i32);
     }
 }

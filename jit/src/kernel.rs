@@ -13,21 +13,10 @@ use crate::codegen;
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 
 /// How to compile a kernel.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct Options {
-    /// Independent groups of 4 points per loop iteration (more streams hide latency; 1 for huge graphs).
-    pub unroll: usize,
     /// Keep the Cranelift IR text for `nerfjit ir`.
     pub keep_clif: bool,
-}
-
-impl Default for Options {
-    fn default() -> Self {
-        Options {
-            unroll: 1,
-            keep_clif: false,
-        }
-    }
 }
 
 /// What a compilation did, for reports.
@@ -55,9 +44,90 @@ impl std::fmt::Display for JitError {
 
 impl std::error::Error for JitError {}
 
+/// Native code and the JIT module that owns its memory (freed on drop).
+pub(crate) struct CompiledCode {
+    module: Option<JITModule>,
+    /// What the compilation did.
+    pub stats: CompileStats,
+}
+
+// SAFETY: the module is only kept to own the code memory and is never used again after finalization; the
+// generated code is immutable and reentrant (it touches only the buffers passed to each call).
+unsafe impl Send for CompiledCode {}
+// SAFETY: as above; nothing in it is mutated after construction.
+unsafe impl Sync for CompiledCode {}
+
+impl Drop for CompiledCode {
+    fn drop(&mut self) {
+        if let Some(module) = self.module.take() {
+            // SAFETY: every function pointer into this memory is owned next to it and dies with it.
+            unsafe { module.free_memory() };
+        }
+    }
+}
+
+impl CompiledCode {
+    /// Compiles the function built in `ctx` and returns its code and entry point.
+    pub(crate) fn finish(
+        mut module: JITModule,
+        mut ctx: cranelift_codegen::Context,
+        name: &str,
+        start: Instant,
+        nodes: usize,
+        keep_clif: bool,
+    ) -> Result<(CompiledCode, *const u8), JitError> {
+        let clif = keep_clif.then(|| ctx.func.display().to_string());
+        let id = module
+            .declare_function(name, Linkage::Export, &ctx.func.signature)
+            .map_err(|e| JitError(e.to_string()))?;
+        module
+            .define_function(id, &mut ctx)
+            .map_err(|e| JitError(format!("{e:?}")))?;
+        let code = ctx
+            .compiled_code()
+            .map(|c| c.code_buffer().to_vec())
+            .unwrap_or_default();
+        if let Some(path) = std::env::var_os("NERFJIT_DUMP_CODE") {
+            // A debugging aid: the raw machine code, for `objdump -D -b binary -m i386:x86-64`.
+            std::fs::write(&path, &code).map_err(|e| JitError(format!("NERFJIT_DUMP_CODE: {e}")))?;
+        }
+        module.clear_context(&mut ctx);
+        module
+            .finalize_definitions()
+            .map_err(|e| JitError(e.to_string()))?;
+        let ptr = module.get_finalized_function(id);
+        let stats = CompileStats {
+            nodes,
+            code_bytes: code.len(),
+            seconds: start.elapsed().as_secs_f64(),
+            clif,
+        };
+        Ok((
+            CompiledCode {
+                module: Some(module),
+                stats,
+            },
+            ptr,
+        ))
+    }
+}
+
+/// 1 + the largest param index `graph` reads (0 if none).
+pub(crate) fn params_read(graph: &Graph) -> usize {
+    graph
+        .ops()
+        .iter()
+        .filter_map(|op| match op {
+            Op::Param(k) => Some(*k as usize + 1),
+            _ => None,
+        })
+        .max()
+        .unwrap_or(0)
+}
+
 /// A native kernel for one graph: evaluates its outputs per point and sums its reductions over a batch.
 pub struct Kernel {
-    module: Option<JITModule>,
+    code: CompiledCode,
     func: KernelFn,
     /// Per-point inputs.
     pub n_inputs: usize,
@@ -67,26 +137,9 @@ pub struct Kernel {
     pub n_reductions: usize,
     /// The smallest param slice the kernel may read (1 + the largest param index used).
     pub n_params: usize,
-    /// What the compilation did.
-    pub stats: CompileStats,
 }
 
-// SAFETY: the module is only kept to own the code memory and is never used again after finalization; the
-// generated code is immutable and reentrant (it touches only the buffers passed to each call).
-unsafe impl Send for Kernel {}
-// SAFETY: as above; `eval` takes `&self` and shares no mutable state between calls.
-unsafe impl Sync for Kernel {}
-
-impl Drop for Kernel {
-    fn drop(&mut self) {
-        if let Some(module) = self.module.take() {
-            // SAFETY: `func` points into this module's memory and dies with `self`.
-            unsafe { module.free_memory() };
-        }
-    }
-}
-
-fn host_module() -> Result<JITModule, JitError> {
+pub(crate) fn host_module() -> Result<JITModule, JitError> {
     let err = |e: &dyn std::fmt::Display| JitError(e.to_string());
     let mut flags = settings::builder();
     flags.set("opt_level", "speed").map_err(|e| err(&e))?;
@@ -106,59 +159,29 @@ impl Kernel {
     pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
         let start = Instant::now();
         let graph = graph.compact();
-        let mut module = host_module()?;
+        let module = host_module()?;
         let mut ctx = module.make_context();
         codegen::signature(&mut ctx.func.signature, module.target_config().pointer_type());
         let mut fctx = FunctionBuilderContext::new();
         let mut builder = FunctionBuilder::new(&mut ctx.func, &mut fctx);
-        codegen::build(&mut builder, &graph, options.unroll.max(1));
+        codegen::build(&mut builder, &graph);
         builder.finalize(module.target_config());
-        let clif = options.keep_clif.then(|| ctx.func.display().to_string());
-        let id = module
-            .declare_function("kernel", Linkage::Export, &ctx.func.signature)
-            .map_err(|e| JitError(e.to_string()))?;
-        module
-            .define_function(id, &mut ctx)
-            .map_err(|e| JitError(format!("{e:?}")))?;
-        let code = ctx
-            .compiled_code()
-            .map(|c| c.code_buffer().to_vec())
-            .unwrap_or_default();
-        if let Some(path) = std::env::var_os("NERFJIT_DUMP_CODE") {
-            // A debugging aid: the raw machine code, for `objdump -D -b binary -m i386:x86-64`.
-            std::fs::write(&path, &code).map_err(|e| JitError(format!("NERFJIT_DUMP_CODE: {e}")))?;
-        }
-        let code_bytes = code.len();
-        module.clear_context(&mut ctx);
-        module
-            .finalize_definitions()
-            .map_err(|e| JitError(e.to_string()))?;
-        let ptr = module.get_finalized_function(id);
+        let (code, ptr) = CompiledCode::finish(module, ctx, "kernel", start, graph.len(), options.keep_clif)?;
         // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
         let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
-        let n_params = graph
-            .ops()
-            .iter()
-            .filter_map(|op| match op {
-                Op::Param(k) => Some(*k as usize + 1),
-                _ => None,
-            })
-            .max()
-            .unwrap_or(0);
         Ok(Kernel {
-            module: Some(module),
+            code,
             func,
             n_inputs: graph.n_inputs as usize,
             n_outputs: graph.outputs.len(),
             n_reductions: graph.reductions.len(),
-            n_params,
-            stats: CompileStats {
-                nodes: graph.len(),
-                code_bytes,
-                seconds: start.elapsed().as_secs_f64(),
-                clif,
-            },
+            n_params: params_read(&graph),
         })
+    }
+
+    /// What the compilation did.
+    pub fn stats(&self) -> &CompileStats {
+        &self.code.stats
     }
 
     fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {

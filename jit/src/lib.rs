@@ -20,7 +20,9 @@
 mod cache;
 mod codegen;
 mod kernel;
+mod march;
 mod simd;
 
 pub use cache::KernelCache;
 pub use kernel::{CompileStats, JitError, Kernel, Options};
+pub use march::{Marcher, Rays, Stop};

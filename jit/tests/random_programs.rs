@@ -120,10 +120,9 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(96))]
 
     #[test]
-    fn jit_matches_interpreter(gen in nodes(), pts in prop::collection::vec(point(), 0..=17), p in params(),
-                               unroll in 1usize..=3) {
+    fn jit_matches_interpreter(gen in nodes(), pts in prop::collection::vec(point(), 0..=17), p in params()) {
         let g = build(&gen, true);
-        let (got, _) = jit_eval(&g, &pts, &p, Options { unroll, keep_clif: false });
+        let (got, _) = jit_eval(&g, &pts, &p, Options::default());
         let (want, _) = interp_eval(&g, &pts, &p);
         for (gp, wp) in got.iter().zip(&want) {
             for (&gv, &wv) in gp.iter().zip(wp) {

@@ -1,4 +1,5 @@
-//! The one interface between renderers and compiled kernels: [`BatchFn`].
+//! The interfaces between renderers and compiled kernels: [`BatchFn`] for values and
+//! [`BatchVjp`] for their gradients with respect to parameters.
 
 use crate::error::{Error, Result};
 
@@ -13,6 +14,12 @@ pub trait BatchFn: Sync {
     fn n_outputs(&self) -> usize;
     /// Evaluates points 0..n. `inputs[i]` and `outputs[o]` each have length >= n.
     fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]);
+
+    /// A fused sphere tracer of this function, if it is an SDF that offers one; the sphere tracer then
+    /// marches whole rays in one call instead of calling [`BatchFn::eval`] once per step.
+    fn as_marcher(&self) -> Option<&dyn crate::march::RayMarcher> {
+        None
+    }
 }
 
 /// Checks that `f` has the arity a renderer expects; `role` names the function in the error.
@@ -26,6 +33,38 @@ pub(crate) fn check_arity(f: &dyn BatchFn, role: &str, inputs: usize, outputs: u
     }
     Ok(())
 }
+
+/// The vector-Jacobian product of a [`BatchFn`] with respect to its parameters θ: for each
+/// point, given cotangents of its outputs, accumulates the gradient of Σ cotangent·output.
+///
+/// Trainers call [`BatchVjp::vjp`] from several threads at once, each with its own buffers.
+pub trait BatchVjp: Sync {
+    /// Number of scalar inputs per point, the same as the forward function's.
+    fn n_inputs(&self) -> usize;
+    /// Number of cotangents per point (the forward function's number of outputs).
+    fn n_outputs(&self) -> usize;
+    /// Number of parameters.
+    fn n_params(&self) -> usize;
+    /// Adds Σ_points Σ_k `cotangents[k][p]`·∂out_k(p)/∂θ to `param_grads` (length
+    /// `n_params`) for points 0..n. `inputs[i]` and `cotangents[k]` each have length >= n.
+    fn vjp(&self, n: usize, inputs: &[&[f32]], cotangents: &[&[f32]], param_grads: &mut [f32]);
+}
+
+/// Checks that `vjp` is the backward pass of a function of `inputs` inputs and `outputs`
+/// outputs.
+pub(crate) fn check_vjp_arity(vjp: &dyn BatchVjp, inputs: usize, outputs: usize) -> Result<()> {
+    if vjp.n_inputs() != inputs || vjp.n_outputs() != outputs {
+        return Err(Error::Invalid(format!(
+            "the gradient function must take {inputs} inputs and {outputs} cotangents like the field, but it takes {} and {}",
+            vjp.n_inputs(),
+            vjp.n_outputs()
+        )));
+    }
+    Ok(())
+}
+
+/// Points per block of [`ClosureFn::eval`].
+const CLOSURE_BLOCK: usize = 64;
 
 /// A [`BatchFn`] made from a Rust closure evaluated one point at a time, e.g. an analytic SDF
 /// for tests: `ClosureFn::new(3, 1, |p, out| out[0] = (p[0]*p[0] + p[1]*p[1] + p[2]*p[2]).sqrt() - 1.0)`.
@@ -56,16 +95,78 @@ impl<F: Fn(&[f32], &mut [f32]) + Sync> BatchFn for ClosureFn<F> {
     }
 
     fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        // Blocks of points are copied to and from point-major buffers in loops of their own:
+        // copying each point just before the call would stall reading what was just written.
+        let (n_in, n_out) = (self.n_inputs.max(1), self.n_outputs.max(1));
+        let mut points = vec![0.0; CLOSURE_BLOCK * n_in];
+        let mut values = vec![0.0; CLOSURE_BLOCK * n_out];
+        for start in (0..n).step_by(CLOSURE_BLOCK) {
+            let end = n.min(start + CLOSURE_BLOCK);
+            for (i, column) in inputs.iter().enumerate().take(self.n_inputs) {
+                for (k, x) in column[start..end].iter().enumerate() {
+                    points[k * n_in + i] = *x;
+                }
+            }
+            let calls = points.chunks_exact(n_in).zip(values.chunks_exact_mut(n_out));
+            for (point, values) in calls.take(end - start) {
+                (self.f)(&point[..self.n_inputs], &mut values[..self.n_outputs]);
+            }
+            for (o, column) in outputs.iter_mut().enumerate().take(self.n_outputs) {
+                for (k, y) in column[start..end].iter_mut().enumerate() {
+                    *y = values[k * n_out + o];
+                }
+            }
+        }
+    }
+}
+
+/// A [`BatchVjp`] made from a Rust closure evaluated one point at a time:
+/// `f(point, cotangent, param_grads)` adds Σ_k cotangent[k]·∂out_k/∂θ at `point` to
+/// `param_grads`.
+pub struct ClosureVjp<F> {
+    n_inputs: usize,
+    n_outputs: usize,
+    n_params: usize,
+    f: F,
+}
+
+impl<F: Fn(&[f32], &[f32], &mut [f32]) + Sync> ClosureVjp<F> {
+    /// Wraps `f`, which reads `n_inputs` scalars of one point and `n_outputs` cotangents and
+    /// accumulates into `n_params` gradients.
+    pub fn new(n_inputs: usize, n_outputs: usize, n_params: usize, f: F) -> Self {
+        ClosureVjp {
+            n_inputs,
+            n_outputs,
+            n_params,
+            f,
+        }
+    }
+}
+
+impl<F: Fn(&[f32], &[f32], &mut [f32]) + Sync> BatchVjp for ClosureVjp<F> {
+    fn n_inputs(&self) -> usize {
+        self.n_inputs
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.n_outputs
+    }
+
+    fn n_params(&self) -> usize {
+        self.n_params
+    }
+
+    fn vjp(&self, n: usize, inputs: &[&[f32]], cotangents: &[&[f32]], param_grads: &mut [f32]) {
         let mut point = vec![0.0; self.n_inputs];
-        let mut values = vec![0.0; self.n_outputs];
+        let mut cotangent = vec![0.0; self.n_outputs];
         for k in 0..n {
             for (x, column) in point.iter_mut().zip(inputs) {
                 *x = column[k];
             }
-            (self.f)(&point, &mut values);
-            for (column, v) in outputs.iter_mut().zip(&values) {
-                column[k] = *v;
+            for (c, column) in cotangent.iter_mut().zip(cotangents) {
+                *c = column[k];
             }
+            (self.f)(&point, &cotangent, param_grads);
         }
     }
 }
@@ -86,6 +187,33 @@ mod tests {
         f.eval(2, &[&a, &b], &mut [&mut sum, &mut prod]);
         assert_eq!(sum, [5.0, 7.0, 0.0]);
         assert_eq!(prod, [4.0, 10.0, 0.0]);
+        // Several blocks of points, the last one partial.
+        let n = 2 * CLOSURE_BLOCK + 5;
+        let (a, b): (Vec<f32>, Vec<f32>) = (0..n + 1).map(|k| (k as f32, 0.5 * k as f32)).unzip();
+        let (mut sum, mut prod) = (vec![-1.0; n + 1], vec![-1.0; n + 1]);
+        f.eval(n, &[&a, &b], &mut [&mut sum, &mut prod]);
+        for k in 0..n {
+            assert_eq!((sum[k], prod[k]), (1.5 * k as f32, 0.5 * (k * k) as f32));
+        }
+        assert_eq!((sum[n], prod[n]), (-1.0, -1.0));
+    }
+
+    #[test]
+    fn closure_vjp_accumulates_over_points() {
+        // out = (θ₀·x, θ₁·x·y): Σ cot·out has gradient (Σ c₀x, Σ c₁xy).
+        let vjp = ClosureVjp::new(2, 2, 2, |p, c, g| {
+            g[0] += c[0] * p[0];
+            g[1] += c[1] * p[0] * p[1];
+        });
+        assert_eq!((vjp.n_inputs(), vjp.n_outputs(), vjp.n_params()), (2, 2, 2));
+        let (x, y) = ([1.0, 2.0, 100.0], [3.0, 4.0, 100.0]);
+        let (c0, c1) = ([1.0, -1.0, 100.0], [0.5, 2.0, 100.0]);
+        let mut grads = [10.0, 0.0];
+        vjp.vjp(2, &[&x, &y], &[&c0, &c1], &mut grads);
+        assert_eq!(grads, [10.0 + 1.0 - 2.0, 1.5 + 16.0]);
+        assert!(check_vjp_arity(&vjp, 2, 2).is_ok());
+        let e = check_vjp_arity(&vjp, 3, 2).unwrap_err().to_string();
+        assert!(e.contains("take 3 inputs and 2 cotangents"), "{e}");
     }
 
     #[test]

@@ -8,28 +8,51 @@
 //! - [`rays`]: [`RayBatch`], rays of a full image or of random pixels.
 //! - [`mod@sphere_trace`]: the tiled, parallel sphere tracer producing [`Frame`]s.
 //! - [`image_out`] and [`npy`]: PNG, GIF and `.npy` files; [`viz`]: teaching images.
+//! - Volume rendering: [`transmittance`] through piecewise-constant media, [`sampler`] for
+//!   depths along rays, [`composite`] (the compositor and its backward pass) and [`volume`]
+//!   ([`render_volume`], producing [`VolumeFrame`]s).
+//! - Training: [`BatchVjp`] (a kernel's backward pass), [`train`] ([`volume_step`]),
+//!   [`optim`] (Adam, learning-rate schedules), [`metrics`] (PSNR, SSIM) and [`dataset`]
+//!   (the course's views).
 #![warn(missing_docs)]
 
 pub mod camera;
 pub mod camera_files;
+pub mod composite;
+pub mod dataset;
 pub mod error;
 pub mod field;
 pub mod image_out;
 mod json;
+pub mod march;
+pub mod metrics;
 pub mod npy;
+pub mod optim;
 pub mod paths;
 pub mod rays;
 pub mod rng;
+pub mod sampler;
 pub mod sphere_trace;
+pub mod train;
+pub mod transmittance;
 pub mod viz;
+pub mod volume;
 
 pub use camera::{Camera, NdcScale};
 pub use camera_files::{load_blender_cameras, load_box_cameras, CameraSet};
+pub use composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
+pub use dataset::{load_box_views, read_rgb_image, Views};
 pub use error::{Error, Result};
-pub use field::{BatchFn, ClosureFn};
+pub use field::{BatchFn, BatchVjp, ClosureFn, ClosureVjp};
 pub use image_out::{depth_image, normal_image, rgb_image, save_gif, save_png, Quantize};
+pub use metrics::{mse, psnr, ssim};
 pub use npy::{read_npy_rgb, write_npy_rgb, ImageF32};
+pub use optim::{Adam, Schedule};
 pub use paths::{orbit, surround, Up};
 pub use rays::RayBatch;
 pub use rng::Rng;
-pub use sphere_trace::{render_frames, sphere_trace, Frame, Shading, TraceSettings};
+pub use sampler::{sample_depths, sample_points, DepthRange, Spacing};
+pub use sphere_trace::{render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings};
+pub use train::{volume_step, StepResult};
+pub use transmittance::{Medium, Segment, Transmittance};
+pub use volume::{render_volume, VolumeFrame, VolumeSettings};

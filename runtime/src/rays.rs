@@ -103,6 +103,17 @@ impl RayBatch {
         Ok((batch, pixels))
     }
 
+    /// Checks that the six columns have the same length (the fields are public).
+    pub(crate) fn check(&self) -> Result<()> {
+        let lens = [&self.ox, &self.oy, &self.oz, &self.dx, &self.dy, &self.dz].map(Vec::len);
+        if lens.iter().any(|&l| l != lens[0]) {
+            return Err(Error::Invalid(format!(
+                "ray batch columns ox, oy, oz, dx, dy, dz have different lengths {lens:?}"
+            )));
+        }
+        Ok(())
+    }
+
     /// Number of rays.
     pub fn len(&self) -> usize {
         self.ox.len()
@@ -147,6 +158,11 @@ mod tests {
         let (_, d) = batch.ray(14).unwrap();
         assert!((d.length() - 1.0).abs() < 1e-6);
         assert!(RayBatch::full_image(&cam, 0, 3).is_err());
+        assert!(batch.check().is_ok());
+        let mut broken = batch;
+        broken.dz.pop();
+        let e = broken.check().unwrap_err().to_string();
+        assert!(e.contains("[15, 15, 15, 15, 15, 14]"), "{e}");
     }
 
     #[test]

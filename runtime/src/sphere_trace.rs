@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use crate::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::{check_arity, BatchFn};
+use crate::march::{MarchRays, RayMarcher};
 
 /// Number of pixels (consecutive in row-major order) traced together as one batch.
 pub const TILE: usize = 1024;
@@ -215,6 +216,10 @@ struct Tile {
     /// Shading outputs: color (3) and gradient (4).
     color: [Vec<f32>; 3],
     grad: [Vec<f32>; 4],
+    /// Columns of a fused march: origins, ray ends, and the hit flags it returns.
+    origin: [Vec<f32>; 3],
+    t_end: Vec<f32>,
+    hit_flag: Vec<f32>,
 }
 
 impl Tile {
@@ -233,6 +238,9 @@ impl Tile {
             hit_points: [v(), v(), v()],
             color: [v(), v(), v()],
             grad: [v(), v(), v(), v()],
+            origin: [v(), v(), v()],
+            t_end: v(),
+            hit_flag: v(),
         }
     }
 
@@ -254,14 +262,23 @@ impl Tile {
             let seg = (job.width - col).min(start + len - pixel);
             let y = job.ys[row];
             let [dx, dy, dz] = &mut self.dirs;
-            let columns = job.xs[col..col + seg].iter();
+            // d = normalize(x·X + y·Y + Z) for the view axes X, Y, Z, one component array at a time
+            // (a loop the compiler vectorizes).
+            let r = job.camera.rotation();
+            // Summed in the order of `Camera::direction`, so the rays are bit-identical to `Camera::ray`.
+            let (ya, z) = (r.y_axis * y, r.z_axis);
+            let columns = &job.xs[col..col + seg];
             for (((x, dx), dy), dz) in columns
+                .iter()
                 .zip(&mut dx[..seg])
                 .zip(&mut dy[..seg])
                 .zip(&mut dz[..seg])
             {
-                let d = job.camera.direction(*x, y);
-                (*dx, *dy, *dz) = (d.x, d.y, d.z);
+                let vx = r.x_axis.x * x + ya.x + z.x;
+                let vy = r.x_axis.y * x + ya.y + z.y;
+                let vz = r.x_axis.z * x + ya.z + z.z;
+                let inv = 1.0 / (vx * vx + vy * vy + vz * vz).sqrt();
+                (*dx, *dy, *dz) = (vx * inv, vy * inv, vz * inv);
             }
             // ... then the rays that survive culling.
             for k in 0..seg {
@@ -289,8 +306,54 @@ impl Tile {
         n
     }
 
+    /// Sphere traces the first `n` rays in one call of a fused marcher, recording hits.
+    fn march_fused(&mut self, job: &Job, marcher: &dyn RayMarcher, n: usize) {
+        let o = job.camera.position();
+        for (column, value) in self.origin.iter_mut().zip(o.to_array()) {
+            column[..n].fill(value);
+        }
+        for (k, ray) in self.rays[..n].iter().enumerate() {
+            (self.dirs[0][k], self.dirs[1][k], self.dirs[2][k]) = (ray.dx, ray.dy, ray.dz);
+            self.t_end[k] = ray.t_end;
+        }
+        let rays = MarchRays {
+            origin: [&self.origin[0][..n], &self.origin[1][..n], &self.origin[2][..n]],
+            direction: [&self.dirs[0][..n], &self.dirs[1][..n], &self.dirs[2][..n]],
+            t0: &self.t[..n],
+            t1: &self.t_end[..n],
+        };
+        let settings = job.settings;
+        // The marcher reads t0 from `t` and writes the final t to `dist`.
+        marcher.march(
+            n,
+            &rays,
+            settings.eps,
+            settings.max_steps,
+            &mut self.dist[..n],
+            &mut self.hit_flag[..n],
+        );
+        let mut n_hits = 0;
+        for k in 0..n {
+            if self.hit_flag[k] == 1.0 {
+                let ray = self.rays[k];
+                let t = self.dist[k];
+                self.hit_pixel[n_hits] = ray.pixel;
+                self.hit_t[n_hits] = t;
+                // The marcher computes p = o + t·d with a fused multiply-add; so does this.
+                self.hit_points[0][n_hits] = t.mul_add(ray.dx, o.x);
+                self.hit_points[1][n_hits] = t.mul_add(ray.dy, o.y);
+                self.hit_points[2][n_hits] = t.mul_add(ray.dz, o.z);
+                n_hits += 1;
+            }
+        }
+        self.n_hits = n_hits;
+    }
+
     /// Sphere traces the first `n` rays, recording hits; rays still live at the end miss.
     fn march(&mut self, job: &Job, mut n: usize) {
+        if let Some(marcher) = job.sdf.as_marcher() {
+            return self.march_fused(job, marcher, n);
+        }
         let settings = job.settings;
         let o = job.camera.position();
         let Tile {
@@ -415,6 +478,35 @@ pub fn sphere_trace(
     shading: &Shading,
     settings: &TraceSettings,
 ) -> Result<Frame> {
+    let mut frame = Frame::empty();
+    sphere_trace_into(camera, width, height, sdf, shading, settings, &mut frame)?;
+    Ok(frame)
+}
+
+impl Frame {
+    /// A 0×0 frame, to be filled by [`sphere_trace_into`].
+    pub fn empty() -> Frame {
+        Frame {
+            width: 0,
+            height: 0,
+            rgb: Vec::new(),
+            depth: Vec::new(),
+            normal: Vec::new(),
+            hit: Vec::new(),
+        }
+    }
+}
+
+/// [`sphere_trace`] into an existing frame, reusing its memory (every pixel is overwritten).
+pub fn sphere_trace_into(
+    camera: &Camera,
+    width: u32,
+    height: u32,
+    sdf: &dyn BatchFn,
+    shading: &Shading,
+    settings: &TraceSettings,
+    frame: &mut Frame,
+) -> Result<()> {
     check_size(width, height)?;
     check_arity(sdf, "the SDF", 3, 1)?;
     shading.check()?;
@@ -433,14 +525,11 @@ pub fn sphere_trace(
         settings,
     };
     let n = width as usize * height as usize;
-    let mut frame = Frame {
-        width,
-        height,
-        rgb: vec![[0.0; 3]; n],
-        depth: vec![0.0; n],
-        normal: vec![[0.0; 3]; n],
-        hit: vec![false; n],
-    };
+    (frame.width, frame.height) = (width, height);
+    frame.rgb.resize(n, [0.0; 3]);
+    frame.depth.resize(n, 0.0);
+    frame.normal.resize(n, [0.0; 3]);
+    frame.hit.resize(n, false);
     frame
         .rgb
         .par_chunks_mut(TILE)
@@ -457,7 +546,7 @@ pub fn sphere_trace(
             };
             with_tile(|tile| tile.render(&job, k * TILE, out));
         });
-    Ok(frame)
+    Ok(())
 }
 
 /// Sphere traces one frame per camera (see [`sphere_trace`]); `progress`, when given, is

@@ -125,7 +125,13 @@ mod tests {
     fn course_example_by_hand() {
         let m = Medium::parse("2:1,1:0.5,3:10").unwrap();
         assert_eq!(m.segments().len(), 3);
-        let cases = [((0, 1), 2.0), ((0, 2), 2.5), ((1, 3), 30.5), ((0, 3), 32.5), ((2, 2), 0.0)];
+        let cases = [
+            ((0, 1), 2.0),
+            ((0, 2), 2.5),
+            ((1, 3), 30.5),
+            ((0, 3), 32.5),
+            ((2, 2), 0.0),
+        ];
         for ((from, to), x) in cases {
             let t = m.transmittance(from, to).unwrap();
             assert_eq!(t.optical_depth, x, "T({from},{to})");
@@ -133,7 +139,10 @@ mod tests {
             assert!(((t.value as f64) - expected).abs() <= 1e-6 * expected, "{t}");
             assert_eq!(m.transmittance(to, from).unwrap(), t);
         }
-        assert_eq!(m.transmittance(0, 1).unwrap().to_string(), format!("e^-2 = {}", (-2f32).exp()));
+        assert_eq!(
+            m.transmittance(0, 1).unwrap().to_string(),
+            format!("e^-2 = {}", (-2f32).exp())
+        );
     }
 
     #[test]
@@ -171,7 +180,14 @@ mod tests {
         };
         assert!(Medium::new(vec![bad]).is_err());
         assert_eq!(
-            Medium::new(vec![Segment { length: 2.0, density: 0.5 }]).unwrap().transmittance(0, 1).unwrap().optical_depth,
+            Medium::new(vec![Segment {
+                length: 2.0,
+                density: 0.5
+            }])
+            .unwrap()
+            .transmittance(0, 1)
+            .unwrap()
+            .optical_depth,
             1.0
         );
     }

@@ -1,0 +1,374 @@
+//! One training step of a volume-rendered field: sample, evaluate, composite, MSE against
+//! target colors, and back through the compositor and the field to the field's parameters.
+//!
+//! Rays are cut into tiles of about [`TILE_POINTS`](crate::volume::TILE_POINTS) sample
+//! points laid out sample-major (sample j of ray k at `j·rays + k`), evaluated in one field
+//! call, composited and back-propagated across rays (loops that vectorize), then passed to
+//! one call of the field's backward pass with their cotangents. Tiles are grouped into
+//! chunks of about [`CHUNK_POINTS`] points processed in parallel, each with its own gradient
+//! accumulator; the chunks' gradients are summed in order, so a step's result does not depend
+//! on the number of threads.
+
+use rayon::prelude::*;
+
+use crate::composite::RayOutput;
+use crate::error::{Error, Result};
+use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
+use crate::metrics::psnr;
+use crate::rays::RayBatch;
+use crate::rng::Rng;
+use crate::sampler::{jittered_depth, linspace};
+use crate::volume::{check_field, with_scratch, Scratch, VolumeSettings};
+
+/// Sample points per chunk of tiles sharing one gradient accumulator.
+pub const CHUNK_POINTS: usize = 32768;
+
+/// The outcome of [`volume_step`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepResult {
+    /// Mean squared error over rays and color channels.
+    pub loss: f32,
+    /// PSNR of that error for colors in [0, 1].
+    pub psnr: f32,
+    /// ∂loss/∂θ for the parameters θ of the field (length `vjp.n_params()`).
+    pub param_grads: Vec<f32>,
+}
+
+/// What every tile of a step needs to know.
+struct Job<'a> {
+    rays: &'a RayBatch,
+    targets: &'a [[f32; 3]],
+    field: &'a dyn BatchFn,
+    vjp: &'a dyn BatchVjp,
+    settings: &'a VolumeSettings,
+    /// `Some(linspace(near, far, samples))` when the depths are not jittered.
+    linspace: Option<Vec<f32>>,
+    view_dependent: bool,
+    /// ∂loss/∂color = scale·(color − target).
+    scale: f32,
+}
+
+/// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
+/// summed squared error. Jitter, if any, comes from a generator seeded with `seed`.
+fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, grads: &mut [f32]) -> f64 {
+    let samples = job.settings.samples;
+    let len = n * samples;
+    s.reserve(len, n);
+    let Scratch {
+        inputs: [x, y, z, vx, vy, vz],
+        outputs: [raw, r, g, b],
+        cotangents: [g_raw, g_r, g_g, g_b],
+        depths,
+        lanes,
+        ..
+    } = s;
+    let depths = &mut depths[..len];
+    match &job.linspace {
+        Some(linspace) => {
+            for (row, &t) in depths.chunks_exact_mut(n).zip(linspace) {
+                row.fill(t);
+            }
+        }
+        None => {
+            let VolumeSettings { near, far, .. } = *job.settings;
+            let bin = (far - near) / samples as f32;
+            let mut rng = Rng::new(seed);
+            for k in 0..n {
+                for j in 0..samples {
+                    depths[j * n + k] = jittered_depth(near, bin, j, rng.next_f32());
+                }
+            }
+        }
+    }
+    let rays = first..first + n;
+    let rb = job.rays;
+    let (ox, oy, oz) = (&rb.ox[rays.clone()], &rb.oy[rays.clone()], &rb.oz[rays.clone()]);
+    let (dx, dy, dz) = (&rb.dx[rays.clone()], &rb.dy[rays.clone()], &rb.dz[rays]);
+    for (j, t) in depths.chunks_exact(n).enumerate() {
+        let row = j * n..(j + 1) * n;
+        let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
+        for k in 0..n {
+            x[k] = ox[k] + dx[k] * t[k];
+            y[k] = oy[k] + dy[k] * t[k];
+            z[k] = oz[k] + dz[k] * t[k];
+        }
+        if job.view_dependent {
+            vx[row.clone()].copy_from_slice(dx);
+            vy[row.clone()].copy_from_slice(dy);
+            vz[row].copy_from_slice(dz);
+        }
+    }
+    let inputs: [&[f32]; 6] = [
+        &x[..len],
+        &y[..len],
+        &z[..len],
+        &vx[..len],
+        &vy[..len],
+        &vz[..len],
+    ];
+    let inputs = &inputs[..if job.view_dependent { 6 } else { 3 }];
+    job.field.eval(
+        len,
+        inputs,
+        &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
+    );
+    let mut squared_error = 0.0f64;
+    lanes.reset(n);
+    lanes.forward_backward(
+        &job.settings.compositor(),
+        depths,
+        &raw[..len],
+        [&r[..len], &g[..len], &b[..len]],
+        [
+            &mut g_raw[..len],
+            &mut g_r[..len],
+            &mut g_g[..len],
+            &mut g_b[..len],
+        ],
+        |k, out| {
+            let target = job.targets[first + k];
+            let error = [0, 1, 2].map(|c| out.rgb[c] - target[c]);
+            squared_error += error.iter().map(|e| f64::from(e * e)).sum::<f64>();
+            RayOutput {
+                rgb: error.map(|e| job.scale * e),
+                ..RayOutput::default()
+            }
+        },
+    );
+    let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
+    job.vjp.vjp(len, inputs, &cotangents, grads);
+    squared_error
+}
+
+/// One training step on `rays` with target colors `targets` (one per ray): samples each ray
+/// between `settings.near` and `settings.far` (`linspace`, or stratified with uniform jitter
+/// drawn from `jitter` when given), evaluates `field`, composites, takes the mean squared
+/// error over rays and channels, and back-propagates it through the compositor and `vjp`
+/// (the field's backward pass) to the field's parameters.
+pub fn volume_step(
+    rays: &RayBatch,
+    targets: &[[f32; 3]],
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    jitter: Option<&mut Rng>,
+) -> Result<StepResult> {
+    if rays.is_empty() || targets.len() != rays.len() {
+        return Err(Error::Invalid(format!(
+            "a training step needs at least one ray and one target color per ray, got {} rays and {} targets",
+            rays.len(),
+            targets.len()
+        )));
+    }
+    rays.check()?;
+    settings.check()?;
+    let view_dependent = check_field(field)?;
+    check_vjp_arity(vjp, field.n_inputs(), field.n_outputs())?;
+    let tile = settings.rays_per_tile();
+    let n_tiles = rays.len().div_ceil(tile);
+    // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
+    let (linspace, seeds) = match jitter {
+        Some(rng) => (None, (0..n_tiles).map(|_| rng.next_u64()).collect()),
+        None => {
+            let mut depths = vec![0.0; settings.samples];
+            linspace(settings.near, settings.far, &mut depths);
+            (Some(depths), vec![0; n_tiles])
+        }
+    };
+    let job = Job {
+        rays,
+        targets,
+        field,
+        vjp,
+        settings,
+        linspace,
+        view_dependent,
+        scale: 2.0 / (3.0 * rays.len() as f32),
+    };
+    let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
+    let n_params = vjp.n_params();
+    let chunks: Vec<(f64, Vec<f32>)> = seeds
+        .par_chunks(tiles_per_chunk)
+        .enumerate()
+        .map(|(c, seeds)| {
+            let mut grads = vec![0.0; n_params];
+            let mut squared_error = 0.0;
+            with_scratch(|s| {
+                for (j, &seed) in seeds.iter().enumerate() {
+                    let first = (c * tiles_per_chunk + j) * tile;
+                    let n = tile.min(rays.len() - first);
+                    squared_error += train_tile(&job, s, first, n, seed, &mut grads);
+                }
+            });
+            (squared_error, grads)
+        })
+        .collect();
+    let mut param_grads = vec![0.0; n_params];
+    let mut squared_error = 0.0;
+    for (e, grads) in chunks {
+        squared_error += e;
+        for (total, g) in param_grads.iter_mut().zip(grads) {
+            *total += g;
+        }
+    }
+    let loss = (squared_error / (3.0 * rays.len() as f64)) as f32;
+    Ok(StepResult {
+        loss,
+        psnr: psnr(loss),
+        param_grads,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::composite::Mode;
+    use crate::field::{ClosureFn, ClosureVjp};
+    use glam::{Vec2, Vec3};
+
+    /// A Gaussian blob e = exp(−|p − c|²) around c = (θ₁, θ₂, θ₃) of density (or opacity)
+    /// θ₀·e and color (θ₄·e, θ₅·|d_x|, θ₆·p_y) (d the view direction).
+    fn blob_value(theta: &[f32], p: &[f32]) -> [f32; 4] {
+        let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+        let e = (-(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])).exp();
+        [theta[0] * e, theta[4] * e, theta[5] * p[3].abs(), theta[6] * p[1]]
+    }
+
+    fn blob_vjp(theta: &[f32], p: &[f32], cot: &[f32], grads: &mut [f32]) {
+        let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+        let e = (-(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])).exp();
+        let d_e = cot[0] * theta[0] + cot[1] * theta[4];
+        grads[0] += cot[0] * e;
+        for i in 0..3 {
+            grads[1 + i] += d_e * e * 2.0 * q[i];
+        }
+        grads[4] += cot[1] * e;
+        grads[5] += cot[2] * p[3].abs();
+        grads[6] += cot[3] * p[1];
+    }
+
+    fn rays() -> RayBatch {
+        let cam = Camera::look_at(
+            Vec3::new(0.3, 0.5, -3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::splat(1.5),
+            Vec2::ZERO,
+        )
+        .unwrap();
+        RayBatch::random_pixels(&cam, 16, 16, 150, 5).unwrap().0
+    }
+
+    fn targets(n: usize) -> Vec<[f32; 3]> {
+        (0..n)
+            .map(|k| [0.1 * (k % 7) as f32, 0.5, 0.05 * (k % 13) as f32])
+            .collect()
+    }
+
+    fn step(theta: &[f32], settings: &VolumeSettings, jitter: Option<&mut Rng>) -> StepResult {
+        let theta2 = theta.to_vec();
+        let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&theta2, p)));
+        let theta3 = theta.to_vec();
+        let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&theta3, p, c, g));
+        let rays = rays();
+        volume_step(&rays, &targets(rays.len()), &field, &vjp, settings, jitter).unwrap()
+    }
+
+    #[test]
+    fn gradients_match_finite_differences_of_the_loss() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        for mode in [Mode::Density, Mode::Opacity] {
+            let theta = match mode {
+                Mode::Density => theta,
+                Mode::Opacity => [0.05, theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]],
+            };
+            let settings = VolumeSettings {
+                near: 1.0,
+                far: 5.0,
+                // Small tiles: several tiles and chunks per step.
+                samples: 1000,
+                mode,
+                background: Some([0.3, 0.9, 0.1]),
+                early_termination: None,
+            };
+            let result = step(&theta, &settings, None);
+            assert_eq!(result.param_grads.len(), 7);
+            assert!((result.psnr - psnr(result.loss)).abs() < 1e-6);
+            for i in 0..7 {
+                let h = 0.01 * theta[i].abs().max(0.1);
+                let (mut plus, mut minus) = (theta, theta);
+                plus[i] += h;
+                minus[i] -= h;
+                let fd = (step(&plus, &settings, None).loss - step(&minus, &settings, None).loss) / (2.0 * h);
+                let got = result.param_grads[i];
+                assert!(
+                    (got - fd).abs() <= 2e-3 * fd.abs().max(1e-2),
+                    "{mode:?} θ{i}: {got} vs {fd}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn jitter_is_seeded_and_changes_the_samples() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let settings = VolumeSettings {
+            near: 1.0,
+            far: 5.0,
+            samples: 32,
+            mode: Mode::Density,
+            background: None,
+            early_termination: None,
+        };
+        let a = step(&theta, &settings, Some(&mut Rng::new(1)));
+        let b = step(&theta, &settings, Some(&mut Rng::new(1)));
+        let c = step(&theta, &settings, Some(&mut Rng::new(2)));
+        let fixed = step(&theta, &settings, None);
+        assert_eq!(a, b);
+        assert_ne!(a.loss, c.loss);
+        assert_ne!(a.loss, fixed.loss);
+        // Jittered and fixed samples estimate the same image.
+        assert!(
+            (a.loss - fixed.loss).abs() < 0.05 * fixed.loss,
+            "{} vs {}",
+            a.loss,
+            fixed.loss
+        );
+    }
+
+    #[test]
+    fn bad_arguments_are_errors() {
+        let rays = rays();
+        let field = ClosureFn::new(3, 4, |_, out| out.fill(0.5));
+        let vjp = ClosureVjp::new(3, 4, 1, |_, _, _| {});
+        let settings = VolumeSettings {
+            near: 0.0,
+            far: 5.0,
+            samples: 8,
+            mode: Mode::Opacity,
+            background: None,
+            early_termination: None,
+        };
+        let t = targets(rays.len());
+        let ok = volume_step(&rays, &t, &field, &vjp, &settings, None).unwrap();
+        // Opacity 0.5 per sample, color 0.5: the image is 0.5·(1 − 2⁻⁸) everywhere.
+        let c = 0.5 * (1.0 - 0.5f32.powi(8));
+        let mse = t.iter().flatten().map(|x| (x - c) * (x - c)).sum::<f32>() / (3 * t.len()) as f32;
+        assert!((ok.loss - mse).abs() < 1e-6, "{} vs {mse}", ok.loss);
+        assert_eq!(ok.param_grads, vec![0.0]);
+        let e = volume_step(&rays, &t[1..], &field, &vjp, &settings, None).unwrap_err();
+        assert!(e.to_string().contains("149 targets"), "{e}");
+        let vjp6 = ClosureVjp::new(6, 4, 1, |_, _, _| {});
+        assert!(volume_step(&rays, &t, &field, &vjp6, &settings, None).is_err());
+        let bad = VolumeSettings {
+            samples: 0,
+            ..settings
+        };
+        assert!(volume_step(&rays, &t, &field, &vjp, &bad, None).is_err());
+        assert!(volume_step(&RayBatch::default(), &[], &field, &vjp, &settings, None).is_err());
+        let mut broken = rays.clone();
+        broken.oy.pop();
+        assert!(volume_step(&broken, &t, &field, &vjp, &settings, None).is_err());
+    }
+}
