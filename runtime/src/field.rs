@@ -121,7 +121,7 @@ impl<F: Fn(&[f32], &mut [f32]) + Sync> BatchFn for ClosureFn<F> {
 }
 
 /// A [`BatchVjp`] made from a Rust closure evaluated one point at a time:
-/// `f(point, cotangent, param_grads)` adds Σ_k cotangent[k]·∂out_k/∂θ at `point` to
+/// `f(point, cotangent, param_grads)` adds Σ_k `cotangent[k]`·∂out_k/∂θ at `point` to
 /// `param_grads`.
 pub struct ClosureVjp<F> {
     n_inputs: usize,
