@@ -132,7 +132,12 @@ fn w1(reps: usize) -> Result<()> {
     )?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let (sdf, color) = plan.compile_fields(&program, &cache)?;
+    let compiler = crate::field::Compiler {
+        program: &program,
+        params: &program.param_values,
+        cache: &cache,
+    };
+    let (sdf, color) = plan.compile_fields(&compiler)?;
     let compile_s = t.elapsed().as_secs_f64();
     let color = color.ok_or_else(|| Failure::Message("torus.sdf must shade with color".into()))?;
     let shading = Shading::Color {

@@ -4,8 +4,9 @@ use std::sync::Arc;
 
 use nerfjit_dsl::{kernels, Program, Type};
 use nerfjit_jit::{Kernel, KernelCache, Marcher, Options, Rays, Stop};
+use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::march::{MarchRays, RayMarcher};
-use nerfjit_runtime::BatchFn;
+use nerfjit_runtime::{BatchFn, BatchVjp};
 
 use crate::failure::{Failure, Result};
 
@@ -62,36 +63,179 @@ pub enum Kind {
     Gradient,
 }
 
-/// Compiles function `name` of `program` after checking its signature against `inputs` → `output`.
-pub fn compile(
-    program: &Program,
-    cache: &KernelCache,
-    name: &str,
-    inputs: &[Type],
-    output: &Type,
-    kind: Kind,
-) -> Result<JitFn> {
-    let lowered = program.lower(name)?;
-    let sig = &lowered.signature;
-    let got: Vec<&Type> = sig.inputs.iter().map(|(_, t)| t).collect();
-    if got != inputs.iter().collect::<Vec<_>>() || !sig.output.coerces_to(output) {
-        let want: Vec<String> = inputs.iter().map(Type::to_string).collect();
-        return Err(Failure::Message(format!(
-            "'{name}' must have the signature fn {name}({}) -> {output}, but the script has {sig}",
-            want.join(", ")
-        )));
+/// Compiles functions of a program, bound to param values, through a kernel cache.
+pub struct Compiler<'a> {
+    /// The program.
+    pub program: &'a Program,
+    /// The param values the kernels read.
+    pub params: &'a [f32],
+    /// Where compiled kernels are kept.
+    pub cache: &'a KernelCache,
+}
+
+impl Compiler<'_> {
+    /// Compiles function `name` after checking its signature against `inputs` → `output`.
+    pub fn function(&self, name: &str, inputs: &[Type], output: &Type, kind: Kind) -> Result<JitFn> {
+        let (program, cache) = (self.program, self.cache);
+        let lowered = program.lower(name)?;
+        let sig = &lowered.signature;
+        let got: Vec<&Type> = sig.inputs.iter().map(|(_, t)| t).collect();
+        if got != inputs.iter().collect::<Vec<_>>() || !sig.output.coerces_to(output) {
+            let want: Vec<String> = inputs.iter().map(Type::to_string).collect();
+            return Err(Failure::Message(format!(
+                "'{name}' must have the signature fn {name}({}) -> {output}, but the script has {sig}",
+                want.join(", ")
+            )));
+        }
+        let graph = match kind {
+            Kind::Value | Kind::Sdf => kernels::value(&lowered),
+            Kind::Gradient => kernels::with_gradient(&lowered),
+        };
+        let marcher = match kind {
+            Kind::Sdf => Some(Marcher::compile(&graph)?),
+            _ => None,
+        };
+        Ok(JitFn {
+            kernel: cache.get(&graph, Options::default())?,
+            marcher,
+            params: self.params.into(),
+        })
     }
-    let graph = match kind {
-        Kind::Value | Kind::Sdf => kernels::value(&lowered),
-        Kind::Gradient => kernels::with_gradient(&lowered),
+}
+
+/// A kernel bound to a param slice, as the runtime's [`BatchFn`] (per-point outputs only).
+pub struct Bound<'a> {
+    kernel: &'a Kernel,
+    params: &'a [f32],
+}
+
+impl BatchFn for Bound<'_> {
+    fn n_inputs(&self) -> usize {
+        self.kernel.n_inputs
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.kernel.n_outputs
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        self.kernel.eval(n, inputs, outputs, self.params, &mut []);
+    }
+}
+
+/// A param-gradient kernel bound to a param slice, as the runtime's [`BatchVjp`].
+pub struct BoundVjp<'a> {
+    kernel: &'a Kernel,
+    params: &'a [f32],
+    n_outputs: usize,
+    /// One gradient per param: the kernel's reductions.
+    n_grads: usize,
+}
+
+impl BatchVjp for BoundVjp<'_> {
+    fn n_inputs(&self) -> usize {
+        self.kernel.n_inputs - self.n_outputs
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.n_outputs
+    }
+
+    fn n_params(&self) -> usize {
+        self.n_grads
+    }
+
+    fn vjp(&self, n: usize, inputs: &[&[f32]], cotangents: &[&[f32]], param_grads: &mut [f32]) {
+        let all: Vec<&[f32]> = inputs.iter().chain(cotangents).copied().collect();
+        self.kernel.eval(n, &all, &mut [], self.params, param_grads);
+    }
+}
+
+/// A volume field of a script: `density(p)` or `opacity(p)`, and `color(p)` or `color(p, d)`, compiled
+/// together forward (4 outputs) and backward (param gradients).
+pub struct VolumeField {
+    forward: Arc<Kernel>,
+    backward: Arc<Kernel>,
+    /// Whether the first output is a density or the course's per-sample opacity.
+    pub mode: Mode,
+}
+
+impl VolumeField {
+    /// Finds and compiles the field functions of `program`.
+    pub fn compile(program: &Program, cache: &KernelCache) -> Result<VolumeField> {
+        let has = |name: &str| program.signature(name).is_some();
+        let (first, mode) = match (has("density"), has("opacity")) {
+            (true, false) => ("density", Mode::Density),
+            (false, true) => ("opacity", Mode::Opacity),
+            (true, true) => {
+                return Err(Failure::Message(
+                    "the script defines both 'density' and 'opacity': a volume has one of them".into(),
+                ))
+            }
+            (false, false) => {
+                return Err(Failure::Message(
+                    "volume rendering needs 'fn density(p: vec3) -> f32' (or the course's per-sample \
+                     'fn opacity(p: vec3) -> f32') and 'fn color(p: vec3) -> vec3'"
+                        .into(),
+                ))
+            }
+        };
+        let vec3 = Type::Vec(3);
+        check_signature(program, first, &[std::slice::from_ref(&vec3)], &Type::F32)?;
+        check_signature(
+            program,
+            "color",
+            &[std::slice::from_ref(&vec3), &[vec3.clone(), vec3.clone()]],
+            &Type::Vec(3),
+        )?;
+        let lowered = program.lower_many(&[first, "color"])?;
+        let forward = cache.get(&kernels::value(&lowered), Options::default())?;
+        let backward = cache.get(
+            &kernels::param_vjp(&lowered, program.n_params()),
+            Options::default(),
+        )?;
+        Ok(VolumeField {
+            forward,
+            backward,
+            mode,
+        })
+    }
+
+    /// The forward and backward kernels bound to `params`.
+    pub fn bind<'a>(&'a self, params: &'a [f32]) -> (Bound<'a>, BoundVjp<'a>) {
+        (
+            Bound {
+                kernel: &self.forward,
+                params,
+            },
+            BoundVjp {
+                kernel: &self.backward,
+                params,
+                n_outputs: 4,
+                n_grads: self.backward.n_reductions,
+            },
+        )
+    }
+}
+
+/// Checks that function `name` takes one of `inputs` and returns `output`.
+fn check_signature(program: &Program, name: &str, inputs: &[&[Type]], output: &Type) -> Result<()> {
+    let Some(sig) = program.signature(name) else {
+        return Err(Failure::Message(format!("the script needs a function '{name}'")));
     };
-    let marcher = match kind {
-        Kind::Sdf => Some(Marcher::compile(&graph)?),
-        _ => None,
-    };
-    Ok(JitFn {
-        kernel: cache.get(&graph, Options::default())?,
-        marcher,
-        params: program.param_values.clone().into(),
-    })
+    let got: Vec<Type> = sig.inputs.iter().map(|(_, t)| t.clone()).collect();
+    if inputs.contains(&got.as_slice()) && sig.output.coerces_to(output) {
+        return Ok(());
+    }
+    let forms: Vec<String> = inputs
+        .iter()
+        .map(|ins| {
+            let ts: Vec<String> = ins.iter().map(Type::to_string).collect();
+            format!("fn {name}({}) -> {output}", ts.join(", "))
+        })
+        .collect();
+    Err(Failure::Message(format!(
+        "'{name}' must be {}, but the script has {sig}",
+        forms.join(" or ")
+    )))
 }

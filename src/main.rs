@@ -2,14 +2,19 @@
 
 mod bench;
 mod check;
+mod checkpoint;
 mod eval;
 mod failure;
 mod field;
 mod ir_dump;
+mod output;
 mod render;
 mod run;
 mod script;
 mod settings;
+mod train;
+mod transmittance;
+mod volume;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -29,13 +34,28 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run a script: render its `render` blocks.
+    /// Run a script: its `train` and `render` blocks, in order.
     Run {
         /// The script (a path, or the name of a shipped example such as `torus`).
         script: String,
         /// Write outputs into this folder instead of the paths the script names.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Continue training from the train block's checkpoint, if it exists.
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Transmittance through a piecewise-constant medium along a ray.
+    Transmittance {
+        /// Segments as length:density, e.g. 2:1,1:0.5,3:10.
+        #[arg(long)]
+        segments: String,
+        /// From this boundary (0 = the start of the first segment); all pairs when omitted.
+        #[arg(long, requires = "to")]
+        from: Option<usize>,
+        /// To this boundary.
+        #[arg(long, requires = "from")]
+        to: Option<usize>,
     },
     /// Check a script: print diagnostics, or its functions, params and blocks.
     Check {
@@ -92,7 +112,10 @@ fn main() -> ExitCode {
             .build_global();
     }
     let result = match cli.command {
-        Command::Run { script, out } => run::run(&script, out.as_deref()),
+        Command::Run { script, out, resume } => run::run(&script, out.as_deref(), resume),
+        Command::Transmittance { segments, from, to } => {
+            transmittance::run(&segments, from.zip(to)).map(|text| print!("{text}"))
+        }
         Command::Check { script } => check::run(&script).map(|text| print!("{text}")),
         Command::Eval {
             script,

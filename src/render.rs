@@ -9,11 +9,12 @@ use nerfjit_dsl::{Diagnostic, Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
     depth_image, load_blender_cameras, load_box_cameras, normal_image, orbit, render_frames, rgb_image,
-    save_gif, save_png, surround, Camera, Frame, Quantize, Shading, TraceSettings, Up,
+    surround, Camera, Frame, Quantize, Shading, TraceSettings, Up,
 };
 
 use crate::failure::{at, Failure, Result};
-use crate::field::{self, JitFn, Kind};
+use crate::field::{Compiler, JitFn, Kind};
+use crate::output::write_images;
 use crate::settings::{name_among, ranged, whole, CallArgs};
 
 const KEYS: &[&str] = &[
@@ -68,7 +69,8 @@ pub struct RenderPlan {
     pub frame_ms: u32,
 }
 
-fn triple(v: &Spanned) -> std::result::Result<[f32; 3], Diagnostic> {
+/// Three numbers (a single number is repeated).
+pub fn triple(v: &Spanned) -> std::result::Result<[f32; 3], Diagnostic> {
     let x = v.numbers(3)?;
     Ok([x[0] as f32, x[1] as f32, x[2] as f32])
 }
@@ -147,8 +149,9 @@ fn cameras(
     Ok(result.map_err(|e| e.to_string()))
 }
 
-/// Resolves an output file: its folder must exist; `out_dir` replaces the folder when given.
-fn output(v: &Spanned, out_dir: Option<&Path>, allowed: &[&str]) -> std::result::Result<PathBuf, Diagnostic> {
+/// An image output file (`.gif` or `.png`): its folder must exist; `out_dir` replaces the folder when given.
+pub fn output_setting(v: &Spanned, out_dir: Option<&Path>) -> std::result::Result<PathBuf, Diagnostic> {
+    let allowed = ["gif", "png"];
     let written = PathBuf::from(v.string()?);
     let path = match out_dir {
         Some(dir) => dir.join(written.file_name().unwrap_or_default()),
@@ -180,6 +183,30 @@ fn output(v: &Spanned, out_dir: Option<&Path>, allowed: &[&str]) -> std::result:
     Ok(path)
 }
 
+/// The `camera` setting: a camera path or a camera file.
+pub fn cameras_setting(program: &Program, v: &Spanned, script_dir: &Path) -> Result<Vec<Camera>> {
+    let made = cameras(v, script_dir).map_err(|d| at(program, d))?;
+    made.map_err(|e| at(program, Diagnostic::new(v.span, e)))
+}
+
+/// The `size` setting: `N` or `[width, height]`, 1 to 8192; 256 when absent.
+pub fn size_setting(program: &Program, v: Option<Spanned>) -> Result<(u32, u32)> {
+    let err = |d| at(program, d);
+    Ok(match v {
+        None => (256, 256),
+        Some(v) => match &v.value {
+            Value::List(items) if items.len() == 2 => (
+                whole(&items[0], 1, 8192).map_err(err)? as u32,
+                whole(&items[1], 1, 8192).map_err(err)? as u32,
+            ),
+            _ => {
+                let n = whole(&v, 1, 8192).map_err(err)? as u32;
+                (n, n)
+            }
+        },
+    })
+}
+
 impl RenderPlan {
     /// Reads and checks a `render sphere_trace` block.
     pub fn new(
@@ -198,21 +225,8 @@ impl RenderPlan {
             )
         };
         let camera_v = s.take("camera").ok_or_else(|| missing("camera"))?;
-        let cams = cameras(&camera_v, script_dir).map_err(err)?;
-        let cameras = cams.map_err(|e| at(program, Diagnostic::new(camera_v.span, e)))?;
-        let size = match s.take("size") {
-            None => (256, 256),
-            Some(v) => match &v.value {
-                Value::List(items) if items.len() == 2 => (
-                    whole(&items[0], 1, 8192).map_err(err)? as u32,
-                    whole(&items[1], 1, 8192).map_err(err)? as u32,
-                ),
-                _ => {
-                    let n = whole(&v, 1, 8192).map_err(err)? as u32;
-                    (n, n)
-                }
-            },
-        };
+        let cameras = cameras_setting(program, &camera_v, script_dir)?;
+        let size = size_setting(program, s.take("size"))?;
         let num = |s: &mut Settings, key: &str, lo: f64, hi: f64, default: f64| -> Result<f32> {
             match s.take(key) {
                 Some(v) => Ok(ranged(&v, lo, hi).map_err(|d| at(program, d))? as f32),
@@ -272,15 +286,15 @@ impl RenderPlan {
             ShadingChoice::Lambert { light, albedo }
         };
         let out_v = s.take("out").ok_or_else(|| missing("out"))?;
-        let out = output(&out_v, out_dir, &["gif", "png"]).map_err(err)?;
+        let out = output_setting(&out_v, out_dir).map_err(err)?;
         let depth = s
             .take("depth")
-            .map(|v| output(&v, out_dir, &["gif", "png"]))
+            .map(|v| output_setting(&v, out_dir))
             .transpose()
             .map_err(err)?;
         let normals = s
             .take("normals")
-            .map(|v| output(&v, out_dir, &["gif", "png"]))
+            .map(|v| output_setting(&v, out_dir))
             .transpose()
             .map_err(err)?;
         let frame_ms = match s.take("frame_ms") {
@@ -308,36 +322,27 @@ impl RenderPlan {
     }
 
     /// Compiles the script's `sdf` and, for color shading, its `color`.
-    pub fn compile_fields(&self, program: &Program, cache: &KernelCache) -> Result<(JitFn, Option<JitFn>)> {
+    pub fn compile_fields(&self, compiler: &Compiler) -> Result<(JitFn, Option<JitFn>)> {
         let vec3 = [Type::Vec(3)];
-        let sdf = field::compile(program, cache, "sdf", &vec3, &Type::F32, Kind::Sdf)?;
+        let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
         let color = match self.shading {
-            ShadingChoice::Color => Some(field::compile(
-                program,
-                cache,
-                "color",
-                &vec3,
-                &Type::Vec(3),
-                Kind::Value,
-            )?),
+            ShadingChoice::Color => Some(compiler.function("color", &vec3, &Type::Vec(3), Kind::Value)?),
             ShadingChoice::Lambert { .. } => None,
         };
         Ok((sdf, color))
     }
 
     /// Compiles the script's functions and renders every frame; writes the outputs and returns a summary.
-    pub fn run(&self, program: &Program, progress: &dyn Fn(usize)) -> Result<String> {
+    pub fn run(&self, program: &Program, params: &[f32], progress: &dyn Fn(usize)) -> Result<String> {
         let cache = KernelCache::new();
-        let compile_start = Instant::now();
-        let (sdf, color) = self.compile_fields(program, &cache)?;
-        let gradient = field::compile(
+        let compiler = Compiler {
             program,
-            &cache,
-            "sdf",
-            &[Type::Vec(3)],
-            &Type::F32,
-            Kind::Gradient,
-        )?;
+            params,
+            cache: &cache,
+        };
+        let compile_start = Instant::now();
+        let (sdf, color) = self.compile_fields(&compiler)?;
+        let gradient = compiler.function("sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)?;
         let compile_s = compile_start.elapsed().as_secs_f64();
         let shading = match (&self.shading, &color) {
             (ShadingChoice::Color, Some(c)) => Shading::Color {
@@ -388,7 +393,7 @@ fn example(key: &str) -> &'static str {
     }
 }
 
-/// Writes frames as a GIF, a PNG (one frame), or numbered PNGs (`name_000.png`, ...).
+/// Converts frames to images with `to_image` and writes them.
 fn write_frames(
     path: &Path,
     frames: &[Frame],
@@ -399,15 +404,5 @@ fn write_frames(
         .iter()
         .map(to_image)
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
-    if path.extension().is_some_and(|e| e == "gif") {
-        save_gif(path, &images, frame_ms)?;
-    } else if images.len() == 1 {
-        save_png(path, images.into_iter().next().expect("one image"))?;
-    } else {
-        let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("frame");
-        for (i, img) in images.into_iter().enumerate() {
-            save_png(&path.with_file_name(format!("{stem}_{i:03}.png")), img)?;
-        }
-    }
-    Ok(())
+    write_images(path, images, frame_ms)
 }

@@ -9,9 +9,28 @@ use nerfjit_dsl::Diagnostic;
 use crate::failure::{at, Failure, Result};
 use crate::render::RenderPlan;
 use crate::script;
+use crate::train::TrainPlan;
+use crate::volume::VolumePlan;
 
-/// Runs every block of the script in order; all blocks are checked before the first one runs.
-pub fn run(path: &str, out_dir: Option<&Path>) -> Result<()> {
+/// What one block of a script does.
+enum Plan {
+    Trace(RenderPlan),
+    Volume(VolumePlan),
+    Train(TrainPlan),
+}
+
+fn bar(len: usize, what: &str) -> ProgressBar {
+    ProgressBar::new(len as u64).with_style(
+        ProgressStyle::with_template(&format!(
+            "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} frames {{elapsed}}"
+        ))
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    )
+}
+
+/// Runs every block of the script in order; all blocks are checked before the first one runs. Training
+/// updates the params that later blocks render with.
+pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
     let program = script::load(path)?;
     if let Some(dir) = out_dir {
         std::fs::create_dir_all(dir)
@@ -22,15 +41,23 @@ pub fn run(path: &str, out_dir: Option<&Path>) -> Result<()> {
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
         match (settings.kind.as_str(), settings.name.as_deref()) {
-            ("render", Some("sphere_trace")) => {
-                plans.push(RenderPlan::new(&program, settings, script_dir, out_dir)?)
-            }
+            ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(
+                &program, settings, script_dir, out_dir,
+            )?)),
+            ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(
+                &program, settings, script_dir, out_dir,
+            )?)),
+            ("train", None) => plans.push(Plan::Train(TrainPlan::new(
+                &program, settings, script_dir, out_dir,
+            )?)),
             (kind, name) => {
                 let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
                 return Err(at(
                     &program,
                     Diagnostic::new(block.kind.span, format!("'{what}' blocks are not supported yet"))
-                        .with_hint("this version renders 'render sphere_trace { ... }' blocks"),
+                        .with_hint(
+                            "blocks are 'render sphere_trace { }', 'render volume { }' and 'train { }'",
+                        ),
                 ));
             }
         }
@@ -40,13 +67,23 @@ pub fn run(path: &str, out_dir: Option<&Path>) -> Result<()> {
             "{path} has nothing to run: add a block such as 'render sphere_trace {{ camera: ..., out: \"scene.gif\" }}'"
         )));
     }
+    let mut params = program.param_values.clone();
     for plan in &plans {
-        let bar = ProgressBar::new(plan.cameras.len() as u64).with_style(
-            ProgressStyle::with_template("{spinner} rendering [{bar:30}] {pos}/{len} frames {elapsed}")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        let summary = plan.run(&program, &|done| bar.set_position(done as u64))?;
-        bar.finish_and_clear();
+        let summary = match plan {
+            Plan::Trace(p) => {
+                let bar = bar(p.cameras.len(), "rendering");
+                let summary = p.run(&program, &params, &|done| bar.set_position(done as u64))?;
+                bar.finish_and_clear();
+                summary
+            }
+            Plan::Volume(p) => {
+                let bar = bar(p.cameras.len(), "volume rendering");
+                let summary = p.run(&program, &params, &|done| bar.set_position(done as u64))?;
+                bar.finish_and_clear();
+                summary
+            }
+            Plan::Train(p) => p.run(&program, &mut params, resume)?,
+        };
         println!("{summary}");
     }
     Ok(())

@@ -60,7 +60,7 @@ fn check_passes_on_every_example() {
         let out = nerfjit(&["check", &ex], None);
         let (stdout, stderr) = text(&out);
         assert!(out.status.success(), "{ex}: {stderr}");
-        assert!(stdout.contains("fn sdf(p: vec3) -> f32"), "{stdout}");
+        assert!(stdout.contains(": ok\n") && stdout.contains("fn "), "{stdout}");
     }
 }
 
@@ -89,7 +89,12 @@ fn parse_rows(s: &str) -> Vec<Vec<f64>> {
 #[test]
 fn eval_agrees_with_the_interpreter_and_finite_differences() {
     let points = "0.3,0.2,0.1\n-1.2,0.5,0.7\n2.0,-1.0,0.25\n0.9,0.1,-0.2\n1.5,1.5,1.5\n";
-    for ex in examples() {
+    let surfaces: Vec<String> = examples()
+        .into_iter()
+        .filter(|e| std::fs::read_to_string(e).unwrap().contains("fn sdf("))
+        .collect();
+    assert!(surfaces.len() >= 3);
+    for ex in surfaces {
         let jit = nerfjit(&["eval", &ex, "sdf", "--grad"], Some(points));
         let interp = nerfjit(&["eval", &ex, "sdf", "--grad", "--interp"], Some(points));
         assert!(

@@ -4,6 +4,9 @@
 //! values (inputs or params) given cotangents of chosen outputs. The new nodes are ordinary ops, so the
 //! result can be differentiated again: the gradient of a loss on ∇ₓf with respect to the params (the eikonal
 //! loss) is `vjp` applied to a graph that already holds a `vjp`.
+//!
+//! One convention departs from the textbook: the derivative of `sqrt` at 0 is 0 rather than +∞, so that
+//! the gradient of `length(v)` at v = 0 is 0 (a subgradient) and not NaN.
 
 use crate::ir::{Graph, Op, V};
 
@@ -62,9 +65,13 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
             vec![(a, g.push(Mul(gy, s)))]
         }
         Sqrt(a) => {
+            // d√a = 1/(2√a), taken as 0 where √a = 0 (as PyTorch does for norms): `length` of a zero
+            // vector, as in the box SDF's length(max(q, 0)), then has a zero gradient instead of NaN.
             let half = g.constant(0.5);
             let t = g.push(Div(half, y));
-            vec![(a, g.push(Mul(gy, t)))]
+            let at_zero = g.push(Eq(y, zero));
+            let d = g.push(Select(at_zero, zero, t));
+            vec![(a, g.push(Mul(gy, d)))]
         }
         Exp(a) => vec![(a, g.push(Mul(gy, y)))],
         Log(a) => vec![(a, g.push(Div(gy, a)))],

@@ -5,6 +5,7 @@
 //! - [`with_gradient`]: outputs, then ∂outₖ/∂inputs for each output k (the Jacobian, row by row).
 //! - [`vjp`]: inputs followed by one cotangent per output; outputs, then the input gradient Σₖ cₖ ∂outₖ/∂x;
 //!   reductions: the param gradient Σₖ cₖ ∂outₖ/∂θ for every param.
+//! - [`param_vjp`]: as [`vjp`] without per-point outputs, for training.
 //! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
@@ -56,6 +57,14 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
     let grads = autodiff::vjp(&mut g, &seeds, &wrt);
     g.outputs.extend(&grads[..xs.len()]);
     g.reductions = grads[xs.len()..].to_vec();
+    g.compact()
+}
+
+/// The param gradient alone: inputs, then one cotangent per output; no per-point outputs; reductions
+/// Σₖ cₖ ∂outₖ/∂θ for every param (the backward pass of training).
+pub fn param_vjp(f: &Lowered, n_params: usize) -> Graph {
+    let mut g = vjp(f, n_params);
+    g.outputs.clear();
     g.compact()
 }
 

@@ -419,6 +419,42 @@ impl Program {
         })
     }
 
+    /// Lowers several functions into one graph whose outputs are theirs, concatenated. Functions share the
+    /// graph's inputs from the first: `density(p)` and `color(p, d)` read inputs 0..3 for `p`, and `color`'s
+    /// `d` reads 3..6. Common subexpressions of the functions are computed once.
+    pub fn lower_many(&self, names: &[&str]) -> Result<Lowered, Report> {
+        let mut graph = Graph::new();
+        let mut outputs = Vec::new();
+        let mut widest: Option<Signature> = None;
+        let mut results = Vec::new();
+        for name in names {
+            let f = self.lower(name)?;
+            let sig = f.signature.clone();
+            let globals = self.globals();
+            let def = globals.functions[*name];
+            let v = Elaborator::new(&globals, &mut graph)
+                .lower_entry(def)
+                .map_err(|d| Report {
+                    sources: self.sources.clone(),
+                    diagnostics: vec![d],
+                })?;
+            outputs.extend(v.flatten().unwrap_or_default());
+            results.push(sig.output.clone());
+            if widest.as_ref().is_none_or(|w| sig.inputs.len() > w.inputs.len()) {
+                widest = Some(sig);
+            }
+        }
+        let mut signature = widest.expect("at least one function");
+        signature.name = names.join("+");
+        signature.output = Type::Tuple(results);
+        graph.n_inputs = signature.inputs.iter().map(|(_, t)| t.scalars() as u32).sum();
+        graph.outputs = outputs;
+        Ok(Lowered {
+            signature,
+            graph: graph.compact(),
+        })
+    }
+
     /// Lowers a standalone constant expression in the context of this program (consts visible).
     pub fn eval_constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
         self.constant(e)

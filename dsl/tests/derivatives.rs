@@ -105,9 +105,12 @@ proptest! {
     }
 }
 
+/// An expression in x and its derivative.
+type ClosedForm = (&'static str, fn(f64) -> f64);
+
 #[test]
 fn derivatives_match_closed_forms() {
-    let cases: &[(&str, fn(f64) -> f64)] = &[
+    let cases: &[ClosedForm] = &[
         ("sin(x)", f64::cos),
         ("cos(x)", |x| -x.sin()),
         ("exp(x)", f64::exp),

@@ -12,12 +12,14 @@ fn plain(
     k: &Kernel,
     o: [f32; 3],
     d: [f32; 3],
-    t0: f32,
-    t1: f32,
-    eps: f32,
-    steps: u32,
+    (t0, t1): (f32, f32),
+    stop: Stop,
     params: &[f32],
 ) -> (f32, bool) {
+    let Stop {
+        eps,
+        max_steps: steps,
+    } = stop;
     let mut t = t0;
     for _ in 0..steps {
         let p: Vec<f32> = (0..3).map(|c| t.mul_add(d[c], o[c])).collect();
@@ -76,7 +78,7 @@ proptest! {
         for i in 0..n {
             let o = [cols[0][i], cols[1][i], cols[2][i]];
             let d = [cols[3][i], cols[4][i], cols[5][i]];
-            let (want_t, want_hit) = plain(&kernel, o, d, cols[6][i], 6.0, 1e-4, steps, &program.param_values);
+            let (want_t, want_hit) = plain(&kernel, o, d, (cols[6][i], 6.0), Stop { eps: 1e-4, max_steps: steps }, &program.param_values);
             prop_assert_eq!(hit[i] == 1.0, want_hit, "ray {}", i);
             prop_assert!(hit[i] == 0.0 || hit[i] == 1.0);
             if want_hit {

@@ -83,8 +83,10 @@ fn log_is_accurate_everywhere() {
         f32::MIN_POSITIVE,
         f32::MAX,
         -5.0,
-        0.70710677,
-        0.7071068,
+        // Both sides of the reduction's switch at √½.
+        std::f32::consts::FRAC_1_SQRT_2,
+        f32::from_bits(std::f32::consts::FRAC_1_SQRT_2.to_bits() + 1),
+        f32::from_bits(std::f32::consts::FRAC_1_SQRT_2.to_bits() - 1),
         1.0000001,
         0.9999999,
     ]);

@@ -483,10 +483,39 @@ impl Lanes {
         }
     }
 
-    /// Whether any ray is still live.
-    pub(crate) fn any_live(&self, c: &Compositor) -> bool {
-        let threshold = c.threshold();
-        self.transmittance.iter().any(|&t| t >= threshold)
+    /// Whether ray `k` is still live (its transmittance is not below the threshold).
+    pub(crate) fn is_live(&self, c: &Compositor, k: usize) -> bool {
+        self.transmittance[k] >= c.threshold()
+    }
+
+    /// Moves the state of ray `from` to ray `to`.
+    pub(crate) fn move_ray(&mut self, from: usize, to: usize) {
+        let [r, g, b] = &mut self.rgb;
+        for v in [
+            &mut self.transmittance,
+            r,
+            g,
+            b,
+            &mut self.depth,
+            &mut self.opacity,
+        ] {
+            v[to] = v[from];
+        }
+    }
+
+    /// Keeps rays 0..n only.
+    pub(crate) fn truncate(&mut self, n: usize) {
+        let [r, g, b] = &mut self.rgb;
+        for v in [
+            &mut self.transmittance,
+            r,
+            g,
+            b,
+            &mut self.depth,
+            &mut self.opacity,
+        ] {
+            v.truncate(n);
+        }
     }
 
     /// The composited ray `k`.
@@ -749,7 +778,7 @@ mod tests {
                 lanes.add(&c, &t[start..end], &delta[start..end], &raw[rows.clone()],
                     [&r[rows.clone()], &g[rows.clone()], &b[rows]]);
             }
-            let mut any_live = false;
+            let (mut live, mut kept) = (0, Vec::new());
             for ray in 0..k {
                 let per_ray = |channel| (0..n).map(|j| at(channel, ray, j)).collect::<Vec<_>>();
                 let (raw, r, g, b) = (per_ray(0), per_ray(1), per_ray(2), per_ray(3));
@@ -762,9 +791,16 @@ mod tests {
                     }
                     trans *= c.alpha(raw[j], delta[j]).1;
                 }
-                any_live |= trans >= c.threshold();
+                prop_assert_eq!(lanes.is_live(&c, ray), trans >= c.threshold());
+                if lanes.is_live(&c, ray) {
+                    kept.push(lanes.output(&c, ray));
+                    lanes.move_ray(ray, live);
+                    live += 1;
+                }
             }
-            prop_assert_eq!(lanes.any_live(&c), any_live);
+            // Compaction keeps the live rays' state.
+            lanes.truncate(live);
+            prop_assert_eq!((0..live).map(|k| lanes.output(&c, k)).collect::<Vec<_>>(), kept);
         }
     }
 

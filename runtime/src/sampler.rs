@@ -46,7 +46,7 @@ impl DepthRange<'_> {
 
     /// Checks that every interval is finite with near < far (near == far when `samples` is
     /// 1), and that there is one per ray of `n_rays`.
-    pub(crate) fn check(&self, n_rays: usize, samples: usize) -> Result<()> {
+    fn check(&self, n_rays: usize, samples: usize) -> Result<()> {
         if samples == 0 {
             return Err(Error::Invalid("rays need at least 1 sample".into()));
         }

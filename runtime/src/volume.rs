@@ -9,14 +9,15 @@
 //! with buffers allocated once per worker. A tile lays its points out sample-major (sample j
 //! of ray k at `j·rays + k`), evaluates them in one field call and composites across rays,
 //! a loop that vectorizes. With early termination, a tile goes [`CHUNK_SAMPLES`] samples at
-//! a time and stops once all its rays have stopped, which skips field evaluations.
+//! a time and drops the rays that have stopped after each step, so that the field is only
+//! evaluated where it still matters.
 
 use std::cell::RefCell;
 
 use rayon::prelude::*;
 
 use crate::camera::Camera;
-use crate::composite::{Compositor, Lanes, Mode, LAST_DELTA};
+use crate::composite::{Compositor, Lanes, Mode, RayOutput, LAST_DELTA};
 use crate::error::{check_size, Error, Result};
 use crate::field::BatchFn;
 use crate::sampler::linspace;
@@ -114,6 +115,8 @@ pub(crate) struct Scratch {
     pub(crate) depths: Vec<f32>,
     /// Unit direction of each ray of the tile (rendering).
     pub(crate) directions: [Vec<f32>; 3],
+    /// Pixel in the tile of each ray of the tile (rendering).
+    pub(crate) pixels: Vec<usize>,
     /// Accumulators of the rays of the tile.
     pub(crate) lanes: Lanes,
 }
@@ -180,9 +183,16 @@ struct TileOut<'a> {
     opacity: &'a mut [f32],
 }
 
+impl TileOut<'_> {
+    /// Writes `ray` as pixel `pixel` of the tile.
+    fn write(&mut self, pixel: usize, ray: RayOutput) {
+        (self.rgb[pixel], self.depth[pixel], self.opacity[pixel]) = (ray.rgb, ray.depth, ray.opacity);
+    }
+}
+
 /// Renders the pixels `start..start + out.rgb.len()` into `out`.
-fn render_tile(job: &Job, s: &mut Scratch, start: usize, out: TileOut) {
-    let n = out.rgb.len();
+fn render_tile(job: &Job, s: &mut Scratch, start: usize, mut out: TileOut) {
+    let mut n = out.rgb.len();
     s.reserve(job.chunk * n, n);
     let [dx, dy, dz] = &mut s.directions;
     for (k, ((dx, dy), dz)) in dx[..n].iter_mut().zip(&mut dy[..n]).zip(&mut dz[..n]).enumerate() {
@@ -192,20 +202,26 @@ fn render_tile(job: &Job, s: &mut Scratch, start: usize, out: TileOut) {
             .direction(job.xs[pixel % job.width], job.ys[pixel / job.width]);
         (*dx, *dy, *dz) = (d.x, d.y, d.z);
     }
+    s.pixels.clear();
+    s.pixels.extend(0..n);
     s.lanes.reset(n);
     let o = job.camera.position();
     let n_inputs = if job.view_dependent { 6 } else { 3 };
     let samples = job.depths.len();
     for first in (0..samples).step_by(job.chunk) {
+        if n == 0 {
+            break;
+        }
         let m = job.chunk.min(samples - first);
         let len = m * n;
         let [x, y, z, vx, vy, vz] = &mut s.inputs;
+        let [dx, dy, dz] = &s.directions;
         let depths = &job.depths[first..first + m];
         for (j, &t) in depths.iter().enumerate() {
             let row = j * n..(j + 1) * n;
             let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
             for ((((x, y), z), dx), (dy, dz)) in
-                x.iter_mut().zip(y).zip(z).zip(&dx[..n]).zip(dy.iter().zip(&*dz))
+                x.iter_mut().zip(y).zip(z).zip(&dx[..n]).zip(dy.iter().zip(dz))
             {
                 *x = o.x + dx * t;
                 *y = o.y + dy * t;
@@ -239,18 +255,34 @@ fn render_tile(job: &Job, s: &mut Scratch, start: usize, out: TileOut) {
             &raw[..len],
             [&r[..len], &g[..len], &b[..len]],
         );
-        if job.compositor.early_termination.is_some() && !s.lanes.any_live(&job.compositor) {
-            break;
+        if job.compositor.early_termination.is_some() {
+            // Compaction: stopped rays are written out; the others move to `live`, which
+            // advances only for them, so the next field call sees live rays only.
+            let mut live = 0;
+            for k in 0..n {
+                let pixel = s.pixels[k];
+                if s.lanes.is_live(&job.compositor, k) {
+                    s.lanes.move_ray(k, live);
+                    s.pixels[live] = pixel;
+                    for d in &mut s.directions {
+                        d[live] = d[k];
+                    }
+                    live += 1;
+                } else {
+                    out.write(pixel, s.lanes.output(&job.compositor, k));
+                }
+            }
+            s.lanes.truncate(live);
+            n = live;
         }
     }
     for k in 0..n {
-        let ray = s.lanes.output(&job.compositor, k);
-        (out.rgb[k], out.depth[k], out.opacity[k]) = (ray.rgb, ray.depth, ray.opacity);
+        out.write(s.pixels[k], s.lanes.output(&job.compositor, k));
     }
 }
 
 /// The δ of each of `depths`: the gap to the next one, [`LAST_DELTA`] for the last.
-pub(crate) fn deltas(depths: &[f32]) -> Vec<f32> {
+fn deltas(depths: &[f32]) -> Vec<f32> {
     let mut deltas: Vec<f32> = depths.windows(2).map(|w| w[1] - w[0]).collect();
     deltas.push(LAST_DELTA);
     deltas

@@ -1,0 +1,64 @@
+//! Training checkpoints: params and optimizer state as JSON, written atomically (temporary file, then
+//! rename) so that an interrupted write never replaces a good checkpoint.
+
+use std::path::Path;
+
+use crate::failure::{Failure, Result};
+
+/// A saved training state.
+pub struct Checkpoint {
+    /// Steps done.
+    pub step: u32,
+    /// Param values.
+    pub params: Vec<f32>,
+    /// The optimizer's state.
+    pub adam: Vec<f32>,
+}
+
+/// Writes `text` to `path` atomically.
+pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    let fail = |e: std::io::Error| Failure::Message(format!("cannot write '{}': {e}", path.display()));
+    std::fs::write(&tmp, text).map_err(fail)?;
+    std::fs::rename(&tmp, path).map_err(fail)
+}
+
+/// Saves a checkpoint.
+pub fn write(path: &Path, step: u32, params: &[f32], adam: &[f32]) -> Result<()> {
+    let json =
+        serde_json::json!({ "format": "nerfjit-checkpoint-1", "step": step, "params": params, "adam": adam });
+    write_atomic(path, &json.to_string())
+}
+
+/// Reads a checkpoint for a program of `n_params` params.
+pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
+    let bad = |why: &str| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
+    let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| bad(&format!("invalid JSON ({e})")))?;
+    let floats = |key: &str| -> Result<Vec<f32>> {
+        json[key]
+            .as_array()
+            .ok_or_else(|| bad(&format!("no '{key}' array")))?
+            .iter()
+            .map(|v| {
+                v.as_f64()
+                    .map(|x| x as f32)
+                    .ok_or_else(|| bad(&format!("'{key}' holds a non-number")))
+            })
+            .collect()
+    };
+    let step = json["step"].as_u64().ok_or_else(|| bad("no 'step'"))? as u32;
+    let params = floats("params")?;
+    if params.len() != n_params {
+        return Err(bad(&format!(
+            "it holds {} params but the script has {n_params}",
+            params.len()
+        )));
+    }
+    Ok(Checkpoint {
+        step,
+        params,
+        adam: floats("adam")?,
+    })
+}

@@ -1,0 +1,23 @@
+//! Writing rendered frames: a GIF of all frames, a PNG of one, or numbered PNGs (`name_000.png`, ...).
+
+use std::path::Path;
+
+use image::RgbImage;
+use nerfjit_runtime::{save_gif, save_png};
+
+use crate::failure::Result;
+
+/// Writes `images` to `path` by its extension.
+pub fn write_images(path: &Path, images: Vec<RgbImage>, frame_ms: u32) -> Result<()> {
+    if path.extension().is_some_and(|e| e == "gif") {
+        save_gif(path, &images, frame_ms)?;
+    } else if images.len() == 1 {
+        save_png(path, images.into_iter().next().expect("one image"))?;
+    } else {
+        let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("frame");
+        for (i, img) in images.into_iter().enumerate() {
+            save_png(&path.with_file_name(format!("{stem}_{i:03}.png")), img)?;
+        }
+    }
+    Ok(())
+}

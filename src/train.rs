@@ -1,0 +1,417 @@
+//! `train { ... }`: fits the script's params to images by differentiable volume rendering, with Adam,
+//! checkpoints (atomic, resumable), a NaN guard, preview renders and a JSON summary.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use nerfjit_dsl::config::{Settings, Spanned, Value};
+use nerfjit_dsl::{Diagnostic, Program};
+use nerfjit_jit::KernelCache;
+use nerfjit_runtime::{
+    load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng, Schedule, Views,
+    VolumeSettings,
+};
+
+use crate::failure::{at, Failure, Result};
+use crate::field::VolumeField;
+use crate::settings::{name_among, ranged, whole, CallArgs};
+
+const KEYS: &[&str] = &[
+    "data",
+    "near",
+    "far",
+    "samples",
+    "background",
+    "steps",
+    "batch",
+    "lr",
+    "schedule",
+    "views",
+    "jitter",
+    "seed",
+    "checkpoint",
+    "checkpoint_every",
+    "summary",
+    "preview",
+    "preview_every",
+];
+
+/// A checked `train` block.
+pub struct TrainPlan {
+    data: PathBuf,
+    near: f32,
+    far: f32,
+    samples: usize,
+    background: Option<[f32; 3]>,
+    steps: u32,
+    batch: usize,
+    schedule: Schedule,
+    random_views: bool,
+    jitter: bool,
+    seed: u64,
+    checkpoint: Option<PathBuf>,
+    checkpoint_every: u32,
+    summary: Option<PathBuf>,
+    preview: Option<PathBuf>,
+    preview_every: u32,
+}
+
+/// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
+/// script's folder.
+fn data_path(written: &str, script_dir: &Path) -> PathBuf {
+    let direct = PathBuf::from(written);
+    if direct.exists() || direct.is_absolute() {
+        direct
+    } else {
+        let beside = script_dir.join(written);
+        if beside.exists() {
+            beside
+        } else {
+            direct
+        }
+    }
+}
+
+fn file_setting(v: &Spanned, out_dir: Option<&Path>) -> std::result::Result<PathBuf, Diagnostic> {
+    let written = PathBuf::from(v.string()?);
+    let path = match out_dir {
+        Some(dir) => dir.join(written.file_name().unwrap_or_default()),
+        None => written,
+    };
+    let folder = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !folder.is_dir() {
+        return Err(Diagnostic::new(
+            v.span,
+            format!(
+                "cannot write '{}': folder '{}' does not exist",
+                path.display(),
+                folder.display()
+            ),
+        )
+        .with_hint("create the folder first, or pass --out DIR"));
+    }
+    Ok(path)
+}
+
+fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
+    let Some(v) = v else {
+        return Ok(Schedule::Constant { lr });
+    };
+    if let Value::Name(n) = &v.value {
+        if n == "constant" {
+            return Ok(Schedule::Constant { lr });
+        }
+    }
+    let Value::Call(name, _) = &v.value else {
+        return Err(
+            Diagnostic::new(v.span, format!("expected a schedule, found {}", v.describe())).with_hint(
+                "write constant, exponential(gamma: 0.1, every: 1000) or step(factor: 0.8, every: 50)",
+            ),
+        );
+    };
+    let a = CallArgs::new(&v, &["gamma", "factor", "every"])?;
+    let every = a.number("every", None)?;
+    if every < 1.0 || every.fract() != 0.0 {
+        return Err(Diagnostic::new(
+            v.span,
+            "'every' must be a whole number of steps ≥ 1",
+        ));
+    }
+    match name.as_str() {
+        "exponential" => Ok(Schedule::Exponential {
+            lr,
+            gamma: a.number("gamma", None)? as f32,
+            steps_per_decay: every as u32,
+        }),
+        "step" => Ok(Schedule::Step {
+            lr,
+            factor: a.number("factor", None)? as f32,
+            every: every as u32,
+        }),
+        other => Err(Diagnostic::new(v.span, format!("unknown schedule '{other}'"))
+            .with_hint("use constant, exponential(gamma, every) or step(factor, every)")),
+    }
+}
+
+impl TrainPlan {
+    /// Reads and checks a `train` block.
+    pub fn new(
+        program: &Program,
+        mut s: Settings,
+        script_dir: &Path,
+        out_dir: Option<&Path>,
+    ) -> Result<TrainPlan> {
+        let err = |d| at(program, d);
+        let span = s.span;
+        let data_v = s.take("data").ok_or_else(|| {
+            err(Diagnostic::new(span, "the train block needs 'data'")
+                .with_hint("add data: views(\"box_cameras.json\")"))
+        })?;
+        let a = CallArgs::new(&data_v, &["file"]).map_err(err)?;
+        let data = data_path(&a.string("file").map_err(err)?, script_dir);
+        if !data.is_file() {
+            return Err(err(Diagnostic::new(
+                data_v.span,
+                format!("data file '{}' not found", data.display()),
+            )
+            .with_hint("paths are relative to the working folder or to the script")));
+        }
+        let mut num = |key: &str, lo: f64, hi: f64, default: f64| -> Result<f64> {
+            Ok(match s.take(key) {
+                Some(v) => ranged(&v, lo, hi).map_err(|d| at(program, d))?,
+                None => default,
+            })
+        };
+        let near = num("near", 0.0, 1e6, 0.0)? as f32;
+        let far = num("far", 0.0, 1e9, 5.0)? as f32;
+        let lr = num("lr", 1e-12, 10.0, 5e-4)? as f32;
+        let mut int = |key: &str, lo: u64, hi: u64, default: u64| -> Result<u64> {
+            Ok(match s.take(key) {
+                Some(v) => whole(&v, lo, hi).map_err(|d| at(program, d))?,
+                None => default,
+            })
+        };
+        let samples = int("samples", 2, 4096, 64)? as usize;
+        let steps = int("steps", 1, 100_000_000, 1000)? as u32;
+        let batch = int("batch", 1, 1 << 20, 4096)? as usize;
+        let seed = int("seed", 0, u64::MAX >> 1, 0)?;
+        let checkpoint_every = int("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
+        let preview_every = int("preview_every", 1, u64::from(u32::MAX), 500)? as u32;
+        if far <= near {
+            return Err(err(Diagnostic::new(
+                span,
+                format!("far ({far}) must exceed near ({near})"),
+            )));
+        }
+        let background = s
+            .take("background")
+            .map(|v| crate::render::triple(&v))
+            .transpose()
+            .map_err(err)?;
+        let schedule = schedule(s.take("schedule"), lr).map_err(err)?;
+        let random_views = match s.take("views") {
+            Some(v) => name_among(&v, &["cycle", "random"]).map_err(err)? == "random",
+            None => false,
+        };
+        let jitter = match s.take("jitter") {
+            Some(v) => name_among(&v, &["true", "false"]).map_err(err)? == "true",
+            None => false,
+        };
+        let checkpoint = s
+            .take("checkpoint")
+            .map(|v| file_setting(&v, out_dir))
+            .transpose()
+            .map_err(err)?;
+        let summary = s
+            .take("summary")
+            .map(|v| file_setting(&v, out_dir))
+            .transpose()
+            .map_err(err)?;
+        let preview = s
+            .take("preview")
+            .map(|v| file_setting(&v, out_dir))
+            .transpose()
+            .map_err(err)?;
+        s.finish(KEYS).map_err(err)?;
+        Ok(TrainPlan {
+            data,
+            near,
+            far,
+            samples,
+            background,
+            steps,
+            batch,
+            schedule,
+            random_views,
+            jitter,
+            seed,
+            checkpoint,
+            checkpoint_every,
+            summary,
+            preview,
+            preview_every,
+        })
+    }
+
+    fn settings(&self, field: &VolumeField) -> VolumeSettings {
+        VolumeSettings {
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            mode: field.mode,
+            background: self.background,
+            early_termination: None,
+        }
+    }
+
+    /// Trains `params` in place (resuming from the checkpoint when asked); returns a summary line.
+    pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
+        let views = load_box_views(&self.data)?;
+        let cache = KernelCache::new();
+        let t = Instant::now();
+        let field = VolumeField::compile(program, &cache)?;
+        let compile_s = t.elapsed().as_secs_f64();
+        let settings = self.settings(&field);
+        let n = params.len();
+        let mut adam = Adam::new(n, self.schedule.lr(0));
+        let mut first = 0u32;
+        if resume {
+            if let Some(path) = self.checkpoint.as_ref().filter(|p| p.exists()) {
+                let ck = crate::checkpoint::read(path, n)?;
+                *params = ck.params;
+                adam = Adam::from_state(n, self.schedule.lr(ck.step), &ck.adam)?;
+                first = ck.step;
+                eprintln!("resuming from {} at step {first}", path.display());
+            }
+        }
+        let bar = ProgressBar::new(u64::from(self.steps)).with_style(
+            ProgressStyle::with_template("{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_position(u64::from(first));
+        let mut rng = Rng::new(self.seed ^ 0x5eed);
+        let start = Instant::now();
+        let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
+        for step in first..self.steps {
+            let view = if self.random_views {
+                rng.below(views.len() as u64) as usize
+            } else {
+                step as usize % views.len()
+            };
+            let (rays, targets) =
+                views.random_rays(view, self.batch, self.seed.wrapping_add(u64::from(step)))?;
+            let (forward, backward) = field.bind(params);
+            let jitter = if self.jitter { Some(&mut rng) } else { None };
+            let result = volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?;
+            if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {
+                bar.abandon();
+                let kept = match &self.checkpoint {
+                    Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
+                    _ => "no checkpoint was written".to_string(),
+                };
+                return Err(Failure::Message(format!(
+                    "training diverged at step {step}: the loss or a gradient is not finite (loss {}); {kept}",
+                    result.loss
+                )));
+            }
+            adam.lr = self.schedule.lr(step);
+            let before = params.clone();
+            adam.step(params, &result.param_grads)?;
+            if params.iter().any(|p| !p.is_finite()) {
+                *params = before;
+                return Err(Failure::Message(format!(
+                    "training diverged at step {step}: a param became non-finite"
+                )));
+            }
+            (loss, psnr) = (result.loss, result.psnr);
+            let done = step + 1;
+            if done % 10 == 0 || done == self.steps {
+                let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
+                bar.set_message(format!(
+                    "loss {loss:.5} PSNR {psnr:.2} dB {:.0}k rays/s",
+                    rays_per_s / 1e3
+                ));
+            }
+            bar.set_position(u64::from(done));
+            if let Some(path) = &self.checkpoint {
+                if done % self.checkpoint_every == 0 || done == self.steps {
+                    crate::checkpoint::write(path, done, params, &adam.state())?;
+                }
+            }
+            if let Some(path) = &self.preview {
+                if done % self.preview_every == 0 || done == self.steps {
+                    self.write_preview(path, &views, &field, params, &settings)?;
+                }
+            }
+        }
+        bar.finish_and_clear();
+        let seconds = start.elapsed().as_secs_f64();
+        let trained = self.steps - first;
+        let ms_per_step = if trained > 0 {
+            1e3 * seconds / f64::from(trained)
+        } else {
+            0.0
+        };
+        let values = describe_params(program, params);
+        if let Some(path) = &self.summary {
+            let json = serde_json::json!({
+                "data": self.data.display().to_string(),
+                "steps": self.steps,
+                "resumed_from": first,
+                "final_loss": loss,
+                "final_psnr": psnr,
+                "seconds": seconds,
+                "ms_per_step": ms_per_step,
+                "compile_seconds": compile_s,
+                "params": params_json(program, params),
+            });
+            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        Ok(format!(
+            "trained {trained} steps in {seconds:.1} s ({ms_per_step:.2} ms/step, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{values}"
+        ))
+    }
+
+    fn write_preview(
+        &self,
+        path: &Path,
+        views: &Views,
+        field: &VolumeField,
+        params: &[f32],
+        settings: &VolumeSettings,
+    ) -> Result<()> {
+        let (forward, _) = field.bind(params);
+        let frame = render_volume(&views.cameras[0], views.width, views.height, &forward, settings)?;
+        // The preview shows the render next to the target view.
+        let target = &views.images[0];
+        let (w, h) = (views.width as usize, views.height as usize);
+        let mut side = vec![[0.0f32; 3]; 2 * w * h];
+        for row in 0..h {
+            for col in 0..w {
+                side[row * 2 * w + col] = frame.rgb[row * w + col];
+                side[row * 2 * w + w + col] = target.pixels[row * w + col];
+            }
+        }
+        save_png(
+            path,
+            rgb_image(2 * views.width, views.height, &side, Quantize::Truncate)?,
+        )?;
+        Ok(())
+    }
+}
+
+/// The params of `program` with their values, one per line.
+pub fn describe_params(program: &Program, params: &[f32]) -> String {
+    program
+        .params
+        .iter()
+        .map(|p| {
+            let values = &params[p.offset..p.offset + p.ty.scalars()];
+            if values.len() <= 8 {
+                let v: Vec<String> = values.iter().map(|x| format!("{x:.4}")).collect();
+                format!("  {} = [{}]", p.name, v.join(", "))
+            } else {
+                format!("  {}: {} values", p.name, values.len())
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
+    let map: serde_json::Map<String, serde_json::Value> = program
+        .params
+        .iter()
+        .map(|p| {
+            (
+                p.name.clone(),
+                serde_json::json!(params[p.offset..p.offset + p.ty.scalars()]),
+            )
+        })
+        .collect();
+    serde_json::Value::Object(map)
+}

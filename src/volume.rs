@@ -1,0 +1,193 @@
+//! `render volume { ... }`: volume rendering of the script's density (or opacity) and color.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nerfjit_dsl::config::Settings;
+use nerfjit_dsl::{Diagnostic, Program};
+use nerfjit_jit::KernelCache;
+use nerfjit_runtime::{render_volume, rgb_image, Camera, Quantize, VolumeFrame, VolumeSettings};
+
+use crate::failure::{at, Result};
+use crate::field::VolumeField;
+use crate::output::write_images;
+use crate::render::{cameras_setting, output_setting, size_setting, triple};
+use crate::settings::{ranged, whole};
+
+const KEYS: &[&str] = &[
+    "camera",
+    "size",
+    "near",
+    "far",
+    "samples",
+    "background",
+    "early_termination",
+    "out",
+    "depth",
+    "frame_ms",
+];
+
+/// A checked `render volume` block.
+pub struct VolumePlan {
+    /// One camera per frame.
+    pub cameras: Vec<Camera>,
+    /// Image width and height.
+    pub size: (u32, u32),
+    /// Sampling and compositing (the mode is filled in from the script's functions).
+    pub near: f32,
+    /// End of the sampled interval.
+    pub far: f32,
+    /// Samples per ray.
+    pub samples: usize,
+    /// Background seen through the remaining transmittance.
+    pub background: Option<[f32; 3]>,
+    /// Transmittance below which a ray stops.
+    pub early_termination: Option<f32>,
+    /// Color frames.
+    pub out: PathBuf,
+    /// Depth frames.
+    pub depth: Option<PathBuf>,
+    /// GIF frame time.
+    pub frame_ms: u32,
+}
+
+impl VolumePlan {
+    /// Reads and checks a `render volume` block.
+    pub fn new(
+        program: &Program,
+        mut s: Settings,
+        script_dir: &Path,
+        out_dir: Option<&Path>,
+    ) -> Result<VolumePlan> {
+        let err = |d| at(program, d);
+        let span = s.span;
+        let need = |key: &str| {
+            at(
+                program,
+                Diagnostic::new(span, format!("the render block needs '{key}'")),
+            )
+        };
+        let camera = s.take("camera").ok_or_else(|| need("camera"))?;
+        let cameras = cameras_setting(program, &camera, script_dir)?;
+        let size = size_setting(program, s.take("size"))?;
+        let mut num = |key: &str, lo: f64, hi: f64, default: f64| -> Result<f32> {
+            Ok(match s.take(key) {
+                Some(v) => ranged(&v, lo, hi).map_err(|d| at(program, d))? as f32,
+                None => default as f32,
+            })
+        };
+        let near = num("near", 0.0, 1e6, 0.0)?;
+        let far = num("far", 0.0, 1e9, 5.0)?;
+        if far <= near {
+            return Err(err(Diagnostic::new(
+                span,
+                format!("far ({far}) must exceed near ({near})"),
+            )));
+        }
+        let early = num("early_termination", 0.0, 1.0, 0.0)?;
+        let samples = match s.take("samples") {
+            Some(v) => whole(&v, 2, 4096).map_err(err)? as usize,
+            None => 64,
+        };
+        let background = s
+            .take("background")
+            .map(|v| triple(&v))
+            .transpose()
+            .map_err(err)?;
+        let out_v = s.take("out").ok_or_else(|| need("out"))?;
+        let out = output_setting(&out_v, out_dir).map_err(err)?;
+        let depth = s
+            .take("depth")
+            .map(|v| output_setting(&v, out_dir))
+            .transpose()
+            .map_err(err)?;
+        let frame_ms = match s.take("frame_ms") {
+            Some(v) => whole(&v, 10, 10_000).map_err(err)? as u32,
+            None => 50,
+        };
+        s.finish(KEYS).map_err(err)?;
+        Ok(VolumePlan {
+            cameras,
+            size,
+            near,
+            far,
+            samples,
+            background,
+            early_termination: (early > 0.0).then_some(early),
+            out,
+            depth,
+            frame_ms,
+        })
+    }
+
+    /// The renderer settings for a field of `mode`.
+    pub fn settings(&self, field: &VolumeField) -> VolumeSettings {
+        VolumeSettings {
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            mode: field.mode,
+            background: self.background,
+            early_termination: self.early_termination,
+        }
+    }
+
+    /// Renders every frame with `params` and writes the outputs; returns a summary line.
+    pub fn run(&self, program: &Program, params: &[f32], progress: &dyn Fn(usize)) -> Result<String> {
+        let cache = KernelCache::new();
+        let t = Instant::now();
+        let field = VolumeField::compile(program, &cache)?;
+        let compile_s = t.elapsed().as_secs_f64();
+        let (forward, _) = field.bind(params);
+        let settings = self.settings(&field);
+        let (w, h) = self.size;
+        let start = Instant::now();
+        let mut frames = Vec::with_capacity(self.cameras.len());
+        for (i, camera) in self.cameras.iter().enumerate() {
+            frames.push(render_volume(camera, w, h, &forward, &settings)?);
+            progress(i + 1);
+        }
+        let seconds = start.elapsed().as_secs_f64();
+        write(&self.out, &frames, self.frame_ms, |f| f.rgb.clone())?;
+        if let Some(path) = &self.depth {
+            // Depth in [near, far] as gray, scaled by the opacity (empty space stays black).
+            let (near, far) = (self.near, self.far);
+            write(path, &frames, self.frame_ms, |f| {
+                f.depth
+                    .iter()
+                    .zip(&f.opacity)
+                    .map(|(&d, &a)| {
+                        let v = if a > 1e-3 {
+                            (1.0 - (d / a - near) / (far - near)).clamp(0.0, 1.0) * a
+                        } else {
+                            0.0
+                        };
+                        [v; 3]
+                    })
+                    .collect()
+            })?;
+        }
+        Ok(format!(
+            "volume-rendered {} frame{} of {w}×{h}×{} samples in {seconds:.3} s ({:.2} ms/frame; JIT compile {compile_s:.3} s) → {}",
+            frames.len(),
+            if frames.len() == 1 { "" } else { "s" },
+            self.samples,
+            1e3 * seconds / frames.len() as f64,
+            self.out.display()
+        ))
+    }
+}
+
+/// Converts frames to images with `pixels` and writes them.
+fn write(
+    path: &Path,
+    frames: &[VolumeFrame],
+    frame_ms: u32,
+    pixels: impl Fn(&VolumeFrame) -> Vec<[f32; 3]>,
+) -> Result<()> {
+    let images = frames
+        .iter()
+        .map(|f| rgb_image(f.width, f.height, &pixels(f), Quantize::Truncate))
+        .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
+    write_images(path, images, frame_ms)
+}
