@@ -154,7 +154,14 @@ impl<'g> GraphEmitter<'g> {
                     }
                 }
                 Op::Mul(a, c) => s.b.ins().fmul(v(a), v(c)),
-                Op::Div(a, c) => s.b.ins().fdiv(v(a), v(c)),
+                // Division by a constant is a multiplication by its reciprocal (within 1 ulp; much faster).
+                Op::Div(a, c) => match g.const_value(c) {
+                    Some(k) if k != 0.0 && (1.0 / k).is_finite() => {
+                        let r = s.f((1.0 / k) as f32);
+                        s.b.ins().fmul(v(a), r)
+                    }
+                    _ => s.b.ins().fdiv(v(a), v(c)),
+                },
                 Op::Min(a, c) => s.min(v(a), v(c)),
                 Op::Max(a, c) => s.max(v(a), v(c)),
                 Op::Lt(a, c) | Op::Le(a, c) | Op::Eq(a, c) => {

@@ -1,0 +1,108 @@
+//! End-to-end training on data the test makes itself: render a known box to PNG views, then recover it
+//! with `train`; resume from a checkpoint; stop with a clear message when training diverges.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("nerfjit-train-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn run(dir: &Path, args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_nerfjit")).args(args).current_dir(dir).output().expect("runs");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+const CAMERAS: &str = r#"{
+  "image_size": [40, 40],
+  "cameras": [
+    {"image": "view_000.png", "focal": 1.0, "principal_point": [0, 0], "eye": [-2.5, 0.3, 0.0], "scene_center": [0, 0, 0], "up": [0, 1, 0]},
+    {"image": "view_001.png", "focal": 1.0, "principal_point": [0, 0], "eye": [-1.0, 0.5, -2.2], "scene_center": [0, 0, 0], "up": [0, 1, 0]},
+    {"image": "view_002.png", "focal": 1.0, "principal_point": [0, 0], "eye": [0.0, -0.4, -2.5], "scene_center": [0, 0, 0], "up": [0, 1, 0]},
+    {"image": "view_003.png", "focal": 1.0, "principal_point": [0, 0], "eye": [1.8, 0.8, -1.6], "scene_center": [0, 0, 0], "up": [0, 1, 0]}
+  ]
+}"#;
+
+const FIELD: &str = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, sides), alpha: 1.0, beta: 0.05)\n\
+                     fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)\n";
+
+fn make_views(dir: &Path) {
+    std::fs::write(dir.join("cams.json"), CAMERAS).unwrap();
+    let truth = format!(
+        "const center = [0.2, -0.1, 0.1]\nconst sides = [1.2, 0.8, 1.0]\n{FIELD}\
+         render volume {{ camera: cameras(\"cams.json\"), size: 40, near: 0, far: 5, samples: 48, out: \"view.png\" }}\n"
+    );
+    std::fs::write(dir.join("truth.sdf"), truth).unwrap();
+    let (ok, _, err) = run(dir, &["run", "truth.sdf"]);
+    assert!(ok, "{err}");
+    assert!(dir.join("view_003.png").exists());
+}
+
+fn trainer(steps: u32) -> String {
+    format!(
+        "param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1.0, 1.0, 1.0]\n{FIELD}\
+         train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: {steps}, batch: 800, lr: 0.01, \
+         schedule: exponential(gamma: 0.1, every: 400), checkpoint: \"box.ckpt.json\", checkpoint_every: 50, summary: \"summary.json\" }}\n"
+    )
+}
+
+fn learned(dir: &Path) -> (Vec<f64>, Vec<f64>, u64) {
+    let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
+    let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    let v = |k: &str| json["params"][k].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect::<Vec<_>>();
+    (v("center"), v("sides"), json["resumed_from"].as_u64().unwrap())
+}
+
+#[test]
+fn recovers_a_box_from_its_own_renders_and_resumes() {
+    let dir = scratch("box");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(200)).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("trained 200 steps"), "{out}");
+    // Resume the same run up to 500 steps from the checkpoint at step 200.
+    std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+    assert!(ok, "{err}");
+    assert!(err.contains("resuming from box.ckpt.json at step 200"), "{err}");
+    assert!(out.contains("trained 300 steps"), "{out}");
+    let (center, sides, resumed) = learned(&dir);
+    assert_eq!(resumed, 200);
+    for (got, want) in center.iter().chain(&sides).zip([0.2, -0.1, 0.1, 1.2, 0.8, 1.0]) {
+        assert!((got - want).abs() < 0.02, "learned {center:?} {sides:?}");
+    }
+}
+
+#[test]
+fn diverging_training_stops_with_a_message() {
+    let dir = scratch("nan");
+    make_views(&dir);
+    // The square root of a negative param is NaN from the first step on.
+    let src = "param s: f32 = -1.0\n\
+               fn opacity(p: vec3) -> f32 = opacity_laplace(length(p) - sqrt(s))\n\
+               fn color(p: vec3) -> vec3 = [0.5, 0.5, 0.5]\n\
+               train { data: views(\"cams.json\"), steps: 10, batch: 64, checkpoint: \"nan.ckpt.json\" }\n";
+    std::fs::write(dir.join("nan.sdf"), src).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "nan.sdf"]);
+    assert!(!ok);
+    assert!(err.contains("training diverged at step 0"), "{err}");
+    assert!(err.contains("no checkpoint was written"), "{err}");
+}
+
+#[test]
+fn missing_data_is_reported_before_training() {
+    let dir = scratch("missing");
+    let src = format!("param center: vec3 = [0, 0, 0]\nparam sides: vec3 = 1.0\n{FIELD}train {{ data: views(\"nowhere.json\") }}\n");
+    std::fs::write(dir.join("t.sdf"), src).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "t.sdf"]);
+    assert!(!ok);
+    assert!(err.contains("data file 'nowhere.json' not found"), "{err}");
+    assert!(err.contains("t.sdf:5:"), "{err}");
+}
