@@ -14,6 +14,7 @@ mod script;
 mod settings;
 mod train;
 mod transmittance;
+mod viz;
 mod volume;
 
 use std::path::PathBuf;

@@ -10,6 +10,7 @@ use crate::failure::{at, Failure, Result};
 use crate::render::RenderPlan;
 use crate::script;
 use crate::train::TrainPlan;
+use crate::viz::VizPlan;
 use crate::volume::VolumePlan;
 
 /// What one block of a script does.
@@ -17,6 +18,7 @@ enum Plan {
     Trace(RenderPlan),
     Volume(VolumePlan),
     Train(TrainPlan),
+    Viz(VizPlan),
 }
 
 fn bar(len: usize, what: &str) -> ProgressBar {
@@ -50,6 +52,7 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
             ("train", None) => plans.push(Plan::Train(TrainPlan::new(
                 &program, settings, script_dir, out_dir,
             )?)),
+            ("viz", None) => plans.push(Plan::Viz(VizPlan::new(&program, settings, script_dir, out_dir)?)),
             (kind, name) => {
                 let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
                 return Err(at(
@@ -83,6 +86,7 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
                 summary
             }
             Plan::Train(p) => p.run(&program, &mut params, resume)?,
+            Plan::Viz(p) => p.run()?,
         };
         println!("{summary}");
     }

@@ -248,6 +248,21 @@ impl TrainPlan {
         }
     }
 
+    /// Runs only the first `steps` steps (no checkpoints, previews or summary file), for benchmarks;
+    /// returns the ms per step of the training loop alone.
+    pub fn run_steps(&self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
+        let quiet = TrainPlan {
+            steps,
+            checkpoint: None,
+            summary: None,
+            preview: None,
+            data: self.data.clone(),
+            ..*self
+        };
+        let line = quiet.run(program, params, false)?;
+        Ok(line.lines().next().unwrap_or_default().to_string())
+    }
+
     /// Trains `params` in place (resuming from the checkpoint when asked); returns a summary line.
     pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
         let views = load_box_views(&self.data)?;

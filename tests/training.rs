@@ -11,7 +11,11 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn run(dir: &Path, args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_nerfjit")).args(args).current_dir(dir).output().expect("runs");
+    let out = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("runs");
     (
         out.status.success(),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -29,7 +33,8 @@ const CAMERAS: &str = r#"{
   ]
 }"#;
 
-const FIELD: &str = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, sides), alpha: 1.0, beta: 0.05)\n\
+const FIELD: &str =
+    "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, sides), alpha: 1.0, beta: 0.05)\n\
                      fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)\n";
 
 fn make_views(dir: &Path) {
@@ -55,7 +60,14 @@ fn trainer(steps: u32) -> String {
 fn learned(dir: &Path) -> (Vec<f64>, Vec<f64>, u64) {
     let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
     let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
-    let v = |k: &str| json["params"][k].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect::<Vec<_>>();
+    let v = |k: &str| {
+        json["params"][k]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect::<Vec<_>>()
+    };
     (v("center"), v("sides"), json["resumed_from"].as_u64().unwrap())
 }
 
