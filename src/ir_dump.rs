@@ -1,26 +1,48 @@
-//! `nerfjit ir`: the IR of a function (optionally its gradient graph) and the Cranelift IR of its kernel.
+//! `nerfjit ir`: the IR of a function's kernel of any kind and the Cranelift IR of its code.
 
 use nerfjit_dsl::kernels;
 use nerfjit_jit::{Kernel, Options};
 
-use crate::failure::Result;
+use crate::failure::{Failure, Result};
 use crate::script;
 
+/// Which kernel of a function to show.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum KernelKind {
+    /// The function's values.
+    Value,
+    /// Values and the gradient of each output with respect to the inputs.
+    Grad,
+    /// The vector-Jacobian product: input gradients per point, param gradients reduced.
+    Vjp,
+    /// The param gradient of c_f·f + c_g·∇ₓf (for the eikonal loss; scalar functions only).
+    SecondOrder,
+}
+
 /// Prints the IR, node statistics and the Cranelift IR.
-pub fn run(path: &str, function: &str, grad: bool) -> Result<String> {
+pub fn run(path: &str, function: &str, kind: KernelKind) -> Result<String> {
     let program = script::load(path)?;
     let lowered = program.lower(function)?;
-    let graph = if grad {
-        kernels::with_gradient(&lowered)
-    } else {
-        kernels::value(&lowered)
+    let n_params = program.n_params();
+    let (graph, what) = match kind {
+        KernelKind::Value => (kernels::value(&lowered), "values"),
+        KernelKind::Grad => (kernels::with_gradient(&lowered), "values and input gradients"),
+        KernelKind::Vjp => (kernels::vjp(&lowered, n_params), "vector-Jacobian product"),
+        KernelKind::SecondOrder => {
+            if lowered.graph.outputs.len() != 1 {
+                return Err(Failure::Message(format!(
+                    "the second-order kernel is for scalar functions; '{function}' has {} outputs",
+                    lowered.graph.outputs.len()
+                )));
+            }
+            (kernels::second_order(&lowered, n_params), "second-order param gradient")
+        }
     };
     let kernel = Kernel::compile(&graph, Options { keep_clif: true })?;
     let stats: Vec<String> = graph.stats().iter().map(|(op, n)| format!("{op} {n}")).collect();
     Ok(format!(
-        "; {}{}\n; {} nodes: {}\n{graph}\n; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
+        "; {}: {what}\n; {} nodes: {}\n{graph}\n; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
         lowered.signature,
-        if grad { ", with the gradient of each output" } else { "" },
         graph.len(),
         stats.join(", "),
         kernel.stats().code_bytes,

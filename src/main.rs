@@ -85,9 +85,9 @@ enum Command {
         script: String,
         /// The function.
         function: String,
-        /// Show the gradient kernel instead of the value kernel.
-        #[arg(long)]
-        grad: bool,
+        /// Which kernel.
+        #[arg(long, value_enum, default_value = "value")]
+        kind: ir_dump::KernelKind,
     },
     /// Run a benchmark workload and print its figures (medians).
     Bench {
@@ -134,11 +134,9 @@ fn main() -> ExitCode {
             };
             eval::run(&args, &mut std::io::stdout().lock())
         }
-        Command::Ir {
-            script,
-            function,
-            grad,
-        } => ir_dump::run(&script, &function, grad).map(|text| print!("{text}")),
+        Command::Ir { script, function, kind } => {
+            ir_dump::run(&script, &function, kind).map(|text| print!("{text}"))
+        }
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
     };

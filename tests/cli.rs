@@ -214,7 +214,7 @@ fn run_rejects_bad_scripts_before_any_work() {
 
 #[test]
 fn ir_prints_both_irs() {
-    let out = nerfjit(&["ir", "examples/torus.sdf", "sdf", "--grad"], None);
+    let out = nerfjit(&["ir", "examples/torus.sdf", "sdf", "--kind", "grad"], None);
     let (stdout, _) = text(&out);
     assert!(out.status.success());
     assert!(stdout.contains("output 3 = v"), "{stdout}");
@@ -223,4 +223,11 @@ fn ir_prints_both_irs() {
         "{stdout}"
     );
     assert!(stdout.contains("sqrt"));
+    let out = nerfjit(&["ir", "examples/train_box.sdf", "opacity", "--kind", "vjp"], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("reduce 5 = sum v"), "six param gradients: {stdout}");
+    let out = nerfjit(&["ir", "examples/torus.sdf", "color", "--kind", "second-order"], None);
+    assert!(!out.status.success());
+    assert!(text(&out).1.contains("for scalar functions"));
 }

@@ -9,7 +9,7 @@
 
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{types, AbiParam, InstBuilder, MemFlagsData, Signature, Value};
-use cranelift_frontend::FunctionBuilder;
+use cranelift_frontend::{FunctionBuilder, Variable};
 use nerfjit_dsl::ir::{Graph, Op, V};
 
 use crate::simd::Simd;
@@ -20,7 +20,21 @@ struct Buffers {
     outputs: Vec<Value>,
     params: Value,
     accum: Value,
+    sums: Sums,
 }
+
+/// Where the running sums of the reductions live during the loop.
+enum Sums {
+    /// In registers (one variable per reduction), loaded before and stored after the loop: no
+    /// loop-carried dependency through memory.
+    Registers(Vec<Variable>),
+    /// In the accumulator buffer, updated every group (for kernels with many reductions, e.g. the param
+    /// gradients of a network, which would not fit in registers).
+    Memory,
+}
+
+/// The most reductions kept in registers.
+const MAX_REGISTER_SUMS: usize = 12;
 
 /// The kernel's signature for a target with pointer type `ptr`.
 pub fn signature(sig: &mut Signature, ptr: types::Type) {
@@ -211,11 +225,22 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
     let outputs = (0..g.outputs.len())
         .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
         .collect();
+    let sums = if g.reductions.len() <= MAX_REGISTER_SUMS {
+        let vars: Vec<Variable> = (0..g.reductions.len()).map(|_| b.declare_var(types::F32X4)).collect();
+        for (k, &var) in vars.iter().enumerate() {
+            let start = b.ins().load(types::F32X4, MemFlagsData::new().with_notrap(), accum, (k * 16) as i32);
+            b.def_var(var, start);
+        }
+        Sums::Registers(vars)
+    } else {
+        Sums::Memory
+    };
     let bufs = Buffers {
         inputs,
         outputs,
         params,
         accum,
+        sums,
     };
     let emitter = GraphEmitter::new(g);
 
@@ -260,6 +285,12 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
 
     b.switch_to_block(exit);
     b.seal_block(exit);
+    if let Sums::Registers(vars) = &bufs.sums {
+        for (k, &var) in vars.iter().enumerate() {
+            let sum = b.use_var(var);
+            b.ins().store(MemFlagsData::new().with_notrap(), sum, accum, (k * 16) as i32);
+        }
+    }
     b.ins().return_(&[]);
 }
 
@@ -305,8 +336,17 @@ fn emit_group(
             }
             None => term,
         };
-        let acc = b.ins().load(types::F32X4, flags, bufs.accum, (k * 16) as i32);
-        let sum = b.ins().fadd(acc, term);
-        b.ins().store(flags, sum, bufs.accum, (k * 16) as i32);
+        match &bufs.sums {
+            Sums::Registers(vars) => {
+                let acc = b.use_var(vars[k]);
+                let sum = b.ins().fadd(acc, term);
+                b.def_var(vars[k], sum);
+            }
+            Sums::Memory => {
+                let acc = b.ins().load(types::F32X4, flags, bufs.accum, (k * 16) as i32);
+                let sum = b.ins().fadd(acc, term);
+                b.ins().store(flags, sum, bufs.accum, (k * 16) as i32);
+            }
+        }
     }
 }

@@ -109,3 +109,24 @@ fn reductions_sum_exactly_the_valid_points() {
             .all(|(i, o)| o[0] == 2.0 * (i as f32 + 1.0)));
     }
 }
+
+#[test]
+fn many_reductions_sum_in_memory_like_few_in_registers() {
+    // 20 reductions exceed what the kernel keeps in registers; both paths must agree with the sums.
+    for n in [0usize, 1, 3, 4, 5, 17, 64] {
+        let mut g = Graph::new();
+        let x = g.input(0);
+        for k in 0..20 {
+            let p = g.param(k);
+            let term = g.push(Op::Mul(x, p));
+            g.reductions.push(term);
+        }
+        let points: Vec<Vec<f64>> = (0..n).map(|i| vec![i as f64 + 0.5]).collect();
+        let params: Vec<f64> = (0..20).map(|k| k as f64 - 3.0).collect();
+        let (_, red) = jit_eval(&g, &points, &params, Options::default());
+        let total: f64 = points.iter().map(|p| p[0]).sum();
+        for (k, r) in red.iter().enumerate() {
+            assert_eq!(f64::from(*r), total * params[k], "n = {n}, reduction {k}");
+        }
+    }
+}
