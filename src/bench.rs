@@ -6,8 +6,9 @@ use std::time::Instant;
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::kernels;
 use nerfjit_jit::{Kernel, Options};
-use nerfjit_runtime::{render_frames, sphere_trace_into, Rng, Shading};
+use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
+use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::render::RenderPlan;
 use crate::script;
@@ -124,18 +125,7 @@ fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
 
 fn w1(reps: usize) -> Result<()> {
     let program = script::load("examples/torus.sdf")?;
-    let block = program
-        .blocks()
-        .into_iter()
-        .next()
-        .ok_or_else(|| Failure::Message("torus.sdf has no render block".into()))?;
-    let settings = Settings::new(&program, block).map_err(|d| crate::failure::at(&program, d))?;
-    let plan = RenderPlan::new(
-        &program,
-        settings,
-        std::path::Path::new("."),
-        Some(&std::env::temp_dir()),
-    )?;
+    let plan = RenderPlan::new(first_block(&program, "render", ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
     let compiler = crate::field::Compiler {
@@ -187,23 +177,26 @@ fn w1(reps: usize) -> Result<()> {
     Ok(())
 }
 
-fn first_block(program: &nerfjit_dsl::Program, kind: &str) -> Result<Settings> {
+/// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
+fn first_block<'p>(program: &'p nerfjit_dsl::Program, kind: &str, script_dir: &str) -> Result<Block<'p>> {
     let block = program
         .blocks()
         .into_iter()
         .find(|b| b.kind.name == kind)
         .ok_or_else(|| Failure::Message(format!("the benchmark script has no '{kind}' block")))?;
-    Settings::new(program, block).map_err(|d| crate::failure::at(program, d))
+    let settings = Settings::new(program, block).map_err(|d| crate::failure::at(program, d))?;
+    let temp = std::env::temp_dir();
+    Ok(Block::new(
+        program,
+        settings,
+        std::path::Path::new(script_dir),
+        Some(&temp),
+    ))
 }
 
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
-    let plan = crate::volume::VolumePlan::new(
-        &program,
-        first_block(&program, "render")?,
-        std::path::Path::new("."),
-        Some(&std::env::temp_dir()),
-    )?;
+    let plan = crate::volume::VolumePlan::new(first_block(&program, "render", ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
     let field = crate::field::VolumeField::compile(&program, &cache)?;
@@ -228,17 +221,43 @@ fn w2(reps: usize) -> Result<()> {
         (plan.cameras.len() * (w * h) as usize * plan.samples) as f64 / seconds / 1e6,
         compile_s * 1e3
     );
+    // Empty-space skipping: an occupancy grid over the box (half-side 0.875) and its falloff.
+    let t = Instant::now();
+    let grid =
+        nerfjit_runtime::OccupancyGrid::build(&forward, ([-1.25; 3], [1.25; 3]), 64, settings.mode, 1e-4)?;
+    let grid_ms = t.elapsed().as_secs_f64() * 1e3;
+    let render_grid =
+        |camera| nerfjit_runtime::render_volume_with(camera, w, h, &forward, &settings, Some(&grid));
+    let grid_seconds = time_reps(reps, || {
+        for camera in &plan.cameras {
+            render_grid(camera).expect("validated settings render");
+        }
+    });
+    // Error of the grid render in 8-bit color steps, over every channel of every frame.
+    let (mut max_err, mut sum_err, mut count) = (0u8, 0u64, 0u64);
+    for camera in &plan.cameras {
+        let exact = nerfjit_runtime::render_volume(camera, w, h, &forward, &settings)?;
+        let fast = render_grid(camera)?;
+        for (a, b) in exact.rgb.iter().flatten().zip(fast.rgb.iter().flatten()) {
+            let err = Quantize::Round.byte(*a).abs_diff(Quantize::Round.byte(*b));
+            (max_err, sum_err, count) = (max_err.max(err), sum_err + err as u64, count + 1);
+        }
+    }
+    let per_frame = |s: f64| 1e3 * s / plan.cameras.len() as f64;
+    println!(
+        "W2 {w}×{h}×{}: exact: {:.2} ms/frame; with occupancy grid: {:.2} ms/frame (grid built in {grid_ms:.1} ms, {:.1}% of 64³ cells occupied), max |Δ| {max_err}/255, mean {:.4}/255",
+        plan.samples,
+        per_frame(seconds),
+        per_frame(grid_seconds),
+        100.0 * grid.occupancy(),
+        sum_err as f64 / count as f64
+    );
     Ok(())
 }
 
 fn w3(reps: usize) -> Result<()> {
     let program = script::load("examples/train_box.sdf")?;
-    let plan = crate::train::TrainPlan::new(
-        &program,
-        first_block(&program, "train")?,
-        std::path::Path::new("examples"),
-        Some(&std::env::temp_dir()),
-    )?;
+    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
     let steps = 50 * reps.max(1);
     let mut params = program.param_values.clone();
     let t = Instant::now();

@@ -35,7 +35,10 @@ pub fn run(path: &str, function: &str, kind: KernelKind) -> Result<String> {
                     lowered.graph.outputs.len()
                 )));
             }
-            (kernels::second_order(&lowered, n_params), "second-order param gradient")
+            (
+                kernels::second_order(&lowered, n_params),
+                "second-order param gradient",
+            )
         }
     };
     let kernel = Kernel::compile(&graph, Options { keep_clif: true })?;

@@ -1,6 +1,8 @@
 //! `nerfjit`: neural volume and surface rendering on the CPU, driven by `.sdf` scene scripts.
 
 mod bench;
+mod block;
+mod cameras;
 mod check;
 mod checkpoint;
 mod eval;
@@ -134,9 +136,11 @@ fn main() -> ExitCode {
             };
             eval::run(&args, &mut std::io::stdout().lock())
         }
-        Command::Ir { script, function, kind } => {
-            ir_dump::run(&script, &function, kind).map(|text| print!("{text}"))
-        }
+        Command::Ir {
+            script,
+            function,
+            kind,
+        } => ir_dump::run(&script, &function, kind).map(|text| print!("{text}")),
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
     };

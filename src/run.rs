@@ -6,6 +6,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::Diagnostic;
 
+use crate::block::Block;
 use crate::failure::{at, Failure, Result};
 use crate::render::RenderPlan;
 use crate::script;
@@ -42,17 +43,13 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
     let mut plans = Vec::new();
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
-        match (settings.kind.as_str(), settings.name.as_deref()) {
-            ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(
-                &program, settings, script_dir, out_dir,
-            )?)),
-            ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(
-                &program, settings, script_dir, out_dir,
-            )?)),
-            ("train", None) => plans.push(Plan::Train(TrainPlan::new(
-                &program, settings, script_dir, out_dir,
-            )?)),
-            ("viz", None) => plans.push(Plan::Viz(VizPlan::new(&program, settings, script_dir, out_dir)?)),
+        let (kind, name) = (settings.kind.clone(), settings.name.clone());
+        let b = Block::new(&program, settings, script_dir, out_dir);
+        match (kind.as_str(), name.as_deref()) {
+            ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(b)?)),
+            ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(b)?)),
+            ("train", None) => plans.push(Plan::Train(TrainPlan::new(b)?)),
+            ("viz", None) => plans.push(Plan::Viz(VizPlan::new(b)?)),
             (kind, name) => {
                 let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
                 return Err(at(

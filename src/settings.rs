@@ -115,3 +115,9 @@ pub fn ranged(v: &Spanned, lo: f64, hi: f64) -> Result<f64, Diagnostic> {
             .with_hint(format!("expected a number from {lo} to {hi}")))
     }
 }
+
+/// Three numbers (a single number is repeated).
+pub fn triple(v: &Spanned) -> Result<[f32; 3], Diagnostic> {
+    let x = v.numbers(3)?;
+    Ok([x[0] as f32, x[1] as f32, x[2] as f32])
+}

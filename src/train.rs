@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use nerfjit_dsl::config::{Settings, Spanned, Value};
+use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
@@ -13,9 +13,10 @@ use nerfjit_runtime::{
     VolumeSettings,
 };
 
-use crate::failure::{at, Failure, Result};
+use crate::block::Block;
+use crate::failure::{Failure, Result};
 use crate::field::VolumeField;
-use crate::settings::{name_among, ranged, whole, CallArgs};
+use crate::settings::CallArgs;
 
 const KEYS: &[&str] = &[
     "data",
@@ -73,30 +74,6 @@ fn data_path(written: &str, script_dir: &Path) -> PathBuf {
     }
 }
 
-fn file_setting(v: &Spanned, out_dir: Option<&Path>) -> std::result::Result<PathBuf, Diagnostic> {
-    let written = PathBuf::from(v.string()?);
-    let path = match out_dir {
-        Some(dir) => dir.join(written.file_name().unwrap_or_default()),
-        None => written,
-    };
-    let folder = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    if !folder.is_dir() {
-        return Err(Diagnostic::new(
-            v.span,
-            format!(
-                "cannot write '{}': folder '{}' does not exist",
-                path.display(),
-                folder.display()
-            ),
-        )
-        .with_hint("create the folder first, or pass --out DIR"));
-    }
-    Ok(path)
-}
-
 fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
     let Some(v) = v else {
         return Ok(Schedule::Constant { lr });
@@ -139,84 +116,34 @@ fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagno
 
 impl TrainPlan {
     /// Reads and checks a `train` block.
-    pub fn new(
-        program: &Program,
-        mut s: Settings,
-        script_dir: &Path,
-        out_dir: Option<&Path>,
-    ) -> Result<TrainPlan> {
-        let err = |d| at(program, d);
-        let span = s.span;
-        let data_v = s.take("data").ok_or_else(|| {
-            err(Diagnostic::new(span, "the train block needs 'data'")
-                .with_hint("add data: views(\"box_cameras.json\")"))
-        })?;
-        let a = CallArgs::new(&data_v, &["file"]).map_err(err)?;
-        let data = data_path(&a.string("file").map_err(err)?, script_dir);
+    pub fn new(mut b: Block) -> Result<TrainPlan> {
+        let data_v = b.required("data", "data: views(\"box_cameras.json\")")?;
+        let data = CallArgs::new(&data_v, &["file"])
+            .and_then(|a| a.string("file"))
+            .map_err(|d| b.error(d))?;
+        let data = data_path(&data, b.script_dir());
         if !data.is_file() {
-            return Err(err(Diagnostic::new(
-                data_v.span,
-                format!("data file '{}' not found", data.display()),
-            )
-            .with_hint("paths are relative to the working folder or to the script")));
+            return Err(b.error(
+                Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))
+                    .with_hint("paths are relative to the working folder or to the script"),
+            ));
         }
-        let mut num = |key: &str, lo: f64, hi: f64, default: f64| -> Result<f64> {
-            Ok(match s.take(key) {
-                Some(v) => ranged(&v, lo, hi).map_err(|d| at(program, d))?,
-                None => default,
-            })
-        };
-        let near = num("near", 0.0, 1e6, 0.0)? as f32;
-        let far = num("far", 0.0, 1e9, 5.0)? as f32;
-        let lr = num("lr", 1e-12, 10.0, 5e-4)? as f32;
-        let mut int = |key: &str, lo: u64, hi: u64, default: u64| -> Result<u64> {
-            Ok(match s.take(key) {
-                Some(v) => whole(&v, lo, hi).map_err(|d| at(program, d))?,
-                None => default,
-            })
-        };
-        let samples = int("samples", 2, 4096, 64)? as usize;
-        let steps = int("steps", 1, 100_000_000, 1000)? as u32;
-        let batch = int("batch", 1, 1 << 20, 4096)? as usize;
-        let seed = int("seed", 0, u64::MAX >> 1, 0)?;
-        let checkpoint_every = int("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
-        let preview_every = int("preview_every", 1, u64::from(u32::MAX), 500)? as u32;
-        if far <= near {
-            return Err(err(Diagnostic::new(
-                span,
-                format!("far ({far}) must exceed near ({near})"),
-            )));
-        }
-        let background = s
-            .take("background")
-            .map(|v| crate::render::triple(&v))
-            .transpose()
-            .map_err(err)?;
-        let schedule = schedule(s.take("schedule"), lr).map_err(err)?;
-        let random_views = match s.take("views") {
-            Some(v) => name_among(&v, &["cycle", "random"]).map_err(err)? == "random",
-            None => false,
-        };
-        let jitter = match s.take("jitter") {
-            Some(v) => name_among(&v, &["true", "false"]).map_err(err)? == "true",
-            None => false,
-        };
-        let checkpoint = s
-            .take("checkpoint")
-            .map(|v| file_setting(&v, out_dir))
-            .transpose()
-            .map_err(err)?;
-        let summary = s
-            .take("summary")
-            .map(|v| file_setting(&v, out_dir))
-            .transpose()
-            .map_err(err)?;
-        let preview = s
-            .take("preview")
-            .map(|v| file_setting(&v, out_dir))
-            .transpose()
-            .map_err(err)?;
-        s.finish(KEYS).map_err(err)?;
+        let (near, far) = b.near_far(5.0)?;
+        let lr = b.number("lr", 1e-12, 10.0, 5e-4)? as f32;
+        let samples = b.whole("samples", 2, 4096, 64)? as usize;
+        let steps = b.whole("steps", 1, 100_000_000, 1000)? as u32;
+        let batch = b.whole("batch", 1, 1 << 20, 4096)? as usize;
+        let seed = b.whole("seed", 0, u64::MAX >> 1, 0)?;
+        let checkpoint_every = b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
+        let preview_every = b.whole("preview_every", 1, u64::from(u32::MAX), 500)? as u32;
+        let background = b.triple("background")?;
+        let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let random_views = b.choice("views", &["cycle", "random"], "cycle")? == "random";
+        let jitter = b.choice("jitter", &["true", "false"], "false")? == "true";
+        let checkpoint = b.output("checkpoint")?;
+        let summary = b.output("summary")?;
+        let preview = b.output("preview")?;
+        b.finish(KEYS)?;
         Ok(TrainPlan {
             data,
             near,

@@ -3,16 +3,14 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nerfjit_dsl::config::Settings;
-use nerfjit_dsl::{Diagnostic, Program};
+use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{render_volume, rgb_image, Camera, Quantize, VolumeFrame, VolumeSettings};
 
-use crate::failure::{at, Result};
+use crate::block::Block;
+use crate::failure::Result;
 use crate::field::VolumeField;
 use crate::output::write_images;
-use crate::render::{cameras_setting, output_setting, size_setting, triple};
-use crate::settings::{ranged, whole};
 
 const KEYS: &[&str] = &[
     "camera",
@@ -53,59 +51,17 @@ pub struct VolumePlan {
 
 impl VolumePlan {
     /// Reads and checks a `render volume` block.
-    pub fn new(
-        program: &Program,
-        mut s: Settings,
-        script_dir: &Path,
-        out_dir: Option<&Path>,
-    ) -> Result<VolumePlan> {
-        let err = |d| at(program, d);
-        let span = s.span;
-        let need = |key: &str| {
-            at(
-                program,
-                Diagnostic::new(span, format!("the render block needs '{key}'")),
-            )
-        };
-        let camera = s.take("camera").ok_or_else(|| need("camera"))?;
-        let cameras = cameras_setting(program, &camera, script_dir)?;
-        let size = size_setting(program, s.take("size"))?;
-        let mut num = |key: &str, lo: f64, hi: f64, default: f64| -> Result<f32> {
-            Ok(match s.take(key) {
-                Some(v) => ranged(&v, lo, hi).map_err(|d| at(program, d))? as f32,
-                None => default as f32,
-            })
-        };
-        let near = num("near", 0.0, 1e6, 0.0)?;
-        let far = num("far", 0.0, 1e9, 5.0)?;
-        if far <= near {
-            return Err(err(Diagnostic::new(
-                span,
-                format!("far ({far}) must exceed near ({near})"),
-            )));
-        }
-        let early = num("early_termination", 0.0, 1.0, 0.0)?;
-        let samples = match s.take("samples") {
-            Some(v) => whole(&v, 2, 4096).map_err(err)? as usize,
-            None => 64,
-        };
-        let background = s
-            .take("background")
-            .map(|v| triple(&v))
-            .transpose()
-            .map_err(err)?;
-        let out_v = s.take("out").ok_or_else(|| need("out"))?;
-        let out = output_setting(&out_v, out_dir).map_err(err)?;
-        let depth = s
-            .take("depth")
-            .map(|v| output_setting(&v, out_dir))
-            .transpose()
-            .map_err(err)?;
-        let frame_ms = match s.take("frame_ms") {
-            Some(v) => whole(&v, 10, 10_000).map_err(err)? as u32,
-            None => 50,
-        };
-        s.finish(KEYS).map_err(err)?;
+    pub fn new(mut b: Block) -> Result<VolumePlan> {
+        let cameras = b.cameras()?;
+        let size = b.size()?;
+        let (near, far) = b.near_far(5.0)?;
+        let samples = b.whole("samples", 2, 4096, 64)? as usize;
+        let early = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
+        let background = b.triple("background")?;
+        let out = b.required_image_output("out", "out: \"volume.gif\"")?;
+        let depth = b.image_output("depth")?;
+        let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
+        b.finish(KEYS)?;
         Ok(VolumePlan {
             cameras,
             size,

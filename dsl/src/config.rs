@@ -110,6 +110,14 @@ impl Settings {
         })
     }
 
+    /// The span of the value of setting `key`, if present.
+    pub fn span_of(&self, key: &str) -> Option<Span> {
+        self.entries
+            .iter()
+            .find(|(k, _, _)| k == key)
+            .map(|(_, _, v)| v.span)
+    }
+
     /// Removes and returns setting `key`, if present.
     pub fn take(&mut self, key: &str) -> Option<Spanned> {
         let i = self.entries.iter().position(|(k, _, _)| k == key)?;

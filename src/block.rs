@@ -1,0 +1,212 @@
+//! Typed access to the settings of one block, with errors pointing into the script. Every setting is
+//! taken once; [`Block::finish`] rejects any left over as unknown.
+
+use std::path::{Path, PathBuf};
+
+use nerfjit_dsl::config::{Settings, Spanned, Value};
+use nerfjit_dsl::{Diagnostic, Program, Span};
+use nerfjit_runtime::Camera;
+
+use crate::failure::{at, Failure, Result};
+use crate::settings::{name_among, ranged, triple, whole};
+
+/// A block's settings with what resolving them needs.
+pub struct Block<'p> {
+    program: &'p Program,
+    settings: Settings,
+    script_dir: PathBuf,
+    out_dir: Option<PathBuf>,
+}
+
+impl<'p> Block<'p> {
+    /// The settings of one block of `program`; relative input files are looked up next to the script,
+    /// outputs go to `out_dir` when given.
+    pub fn new(
+        program: &'p Program,
+        settings: Settings,
+        script_dir: &Path,
+        out_dir: Option<&Path>,
+    ) -> Block<'p> {
+        Block {
+            program,
+            settings,
+            script_dir: script_dir.to_path_buf(),
+            out_dir: out_dir.map(Path::to_path_buf),
+        }
+    }
+
+    /// The program the block belongs to.
+    pub fn program(&self) -> &'p Program {
+        self.program
+    }
+
+    /// The folder of the script.
+    pub fn script_dir(&self) -> &Path {
+        &self.script_dir
+    }
+
+    /// An error at `span` of the script.
+    pub fn error(&self, d: Diagnostic) -> Failure {
+        at(self.program, d)
+    }
+
+    /// An error about the whole block.
+    pub fn block_error(&self, message: String) -> Failure {
+        self.error(Diagnostic::new(self.settings.span, message))
+    }
+
+    /// The whole block's span.
+    pub fn span(&self) -> Span {
+        self.settings.span
+    }
+
+    /// Takes setting `key`, if given.
+    pub fn take(&mut self, key: &str) -> Option<Spanned> {
+        self.settings.take(key)
+    }
+
+    /// Takes setting `key`, which must be given (`example` shows how).
+    pub fn required(&mut self, key: &str, example: &str) -> Result<Spanned> {
+        let kind = self.settings.kind.clone();
+        self.take(key).ok_or_else(|| {
+            self.error(
+                Diagnostic::new(self.span(), format!("the {kind} block needs '{key}'"))
+                    .with_hint(format!("add e.g. {example}")),
+            )
+        })
+    }
+
+    /// Setting `key` as a number in `lo..=hi`, or `default`.
+    pub fn number(&mut self, key: &str, lo: f64, hi: f64, default: f64) -> Result<f64> {
+        match self.take(key) {
+            Some(v) => ranged(&v, lo, hi).map_err(|d| self.error(d)),
+            None => Ok(default),
+        }
+    }
+
+    /// Setting `key` as a whole number in `lo..=hi`, or `default`.
+    pub fn whole(&mut self, key: &str, lo: u64, hi: u64, default: u64) -> Result<u64> {
+        match self.take(key) {
+            Some(v) => whole(&v, lo, hi).map_err(|d| self.error(d)),
+            None => Ok(default),
+        }
+    }
+
+    /// Settings `near` and `far` (defaults 0 and `default_far`), far beyond near.
+    pub fn near_far(&mut self, default_far: f64) -> Result<(f32, f32)> {
+        let near = self.number("near", 0.0, 1e6, 0.0)? as f32;
+        let far = self.number("far", 0.0, 1e9, default_far)? as f32;
+        if far <= near {
+            return Err(self.block_error(format!("far ({far}) must exceed near ({near})")));
+        }
+        Ok((near, far))
+    }
+
+    /// Setting `key` as three numbers (one number is repeated), if given.
+    pub fn triple(&mut self, key: &str) -> Result<Option<[f32; 3]>> {
+        self.take(key)
+            .map(|v| triple(&v))
+            .transpose()
+            .map_err(|d| self.error(d))
+    }
+
+    /// Setting `key` as one of the bare names `choices`, or `default`.
+    pub fn choice(&mut self, key: &str, choices: &[&str], default: &str) -> Result<String> {
+        match self.take(key) {
+            Some(v) => name_among(&v, choices).map_err(|d| self.error(d)),
+            None => Ok(default.to_string()),
+        }
+    }
+
+    /// Setting `camera`: the cameras of a path or a file.
+    pub fn cameras(&mut self) -> Result<Vec<Camera>> {
+        let v = self.required(
+            "camera",
+            "camera: surround(radius: 3, frames: 20, up: z, focal: 1)",
+        )?;
+        self.cameras_of(&v)
+    }
+
+    /// The cameras a camera value describes.
+    pub fn cameras_of(&self, v: &Spanned) -> Result<Vec<Camera>> {
+        let made = crate::cameras::cameras(v, &self.script_dir).map_err(|d| self.error(d))?;
+        made.map_err(|e| self.error(Diagnostic::new(v.span, e)))
+    }
+
+    /// Setting `size`: `N` or `[width, height]`, 1 to 8192; 256 when absent.
+    pub fn size(&mut self) -> Result<(u32, u32)> {
+        let Some(v) = self.take("size") else {
+            return Ok((256, 256));
+        };
+        let side = |x: &Spanned| whole(x, 1, 8192).map(|n| n as u32).map_err(|d| self.error(d));
+        match &v.value {
+            Value::List(items) if items.len() == 2 => Ok((side(&items[0])?, side(&items[1])?)),
+            _ => side(&v).map(|n| (n, n)),
+        }
+    }
+
+    /// Setting `key` as an output file, if given: its folder must exist; `--out` replaces the folder.
+    pub fn output(&mut self, key: &str) -> Result<Option<PathBuf>> {
+        let Some(v) = self.take(key) else {
+            return Ok(None);
+        };
+        let written = PathBuf::from(v.string().map_err(|d| self.error(d))?);
+        let path = match &self.out_dir {
+            Some(dir) => dir.join(written.file_name().unwrap_or_default()),
+            None => written,
+        };
+        let folder = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        if !folder.is_dir() {
+            return Err(self.error(
+                Diagnostic::new(
+                    v.span,
+                    format!(
+                        "cannot write '{}': folder '{}' does not exist",
+                        path.display(),
+                        folder.display()
+                    ),
+                )
+                .with_hint("create the folder first, or pass --out DIR"),
+            ));
+        }
+        Ok(Some(path))
+    }
+
+    /// Setting `key` as an image output (`.gif` for all frames, `.png` for one or numbered frames).
+    pub fn image_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
+        let span = self.settings_span(key);
+        let path = self.output(key)?;
+        if let Some(p) = &path {
+            if !matches!(p.extension().and_then(|e| e.to_str()), Some("gif" | "png")) {
+                return Err(self.error(
+                    Diagnostic::new(
+                        span,
+                        format!("cannot write '{}': unknown image format", p.display()),
+                    )
+                    .with_hint("use a file ending in .gif or .png"),
+                ));
+            }
+        }
+        Ok(path)
+    }
+
+    /// Setting `key` as an image output, which must be given.
+    pub fn required_image_output(&mut self, key: &str, example: &str) -> Result<PathBuf> {
+        if self.settings.span_of(key).is_none() {
+            self.required(key, example)?;
+        }
+        Ok(self.image_output(key)?.expect("present"))
+    }
+
+    fn settings_span(&self, key: &str) -> Span {
+        self.settings.span_of(key).unwrap_or(self.settings.span)
+    }
+
+    /// Fails on the first setting not taken, suggesting the closest of `known`.
+    pub fn finish(self, known: &[&str]) -> Result<()> {
+        self.settings.finish(known).map_err(|d| at(self.program, d))
+    }
+}

@@ -1,0 +1,87 @@
+//! The `camera` setting of blocks: the course's orbit, a general orbit, one look-at camera, or a camera
+//! file (the course's box_cameras.json or Blender transforms).
+
+use std::path::Path;
+
+use glam::{Vec2, Vec3};
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::Diagnostic;
+use nerfjit_runtime::{load_blender_cameras, load_box_cameras, orbit, surround, Camera, Up};
+
+use crate::settings::{triple, CallArgs};
+
+fn up(args: &CallArgs) -> std::result::Result<Up, Diagnostic> {
+    Ok(if args.choice("up", &["y", "z"], "y")? == "z" {
+        Up::Z
+    } else {
+        Up::Y
+    })
+}
+
+/// The cameras a `camera` value describes; a camera file is resolved against `script_dir`. The outer error
+/// points into the script; the inner one is the runtime's (a bad file, a degenerate camera).
+pub fn cameras(
+    v: &Spanned,
+    script_dir: &Path,
+) -> std::result::Result<std::result::Result<Vec<Camera>, String>, Diagnostic> {
+    let Value::Call(name, _) = &v.value else {
+        return Err(Diagnostic::new(v.span, format!("expected a camera path, found {}", v.describe()))
+            .with_hint("write surround(radius: 3, frames: 20, up: z, focal: 1), orbit(...) or cameras(\"file.json\")"));
+    };
+    let result = match name.as_str() {
+        "surround" => {
+            let a = CallArgs::new(v, &["radius", "frames", "up", "focal"])?;
+            let frames = a.number("frames", Some(20.0))?;
+            surround(
+                a.number("radius", None)? as f32,
+                frames as usize,
+                up(&a)?,
+                a.number("focal", Some(1.0))? as f32,
+            )
+        }
+        "orbit" => {
+            let a = CallArgs::new(v, &["radius", "elevation", "frames", "up", "focal"])?;
+            orbit(
+                a.number("radius", None)? as f32,
+                a.number("elevation", Some(0.0))? as f32,
+                a.number("frames", Some(36.0))? as usize,
+                up(&a)?,
+                a.number("focal", Some(1.0))? as f32,
+            )
+        }
+        "cameras" => {
+            let a = CallArgs::new(v, &["file"])?;
+            let file = script_dir.join(a.string("file")?);
+            let text = std::fs::read_to_string(&file).unwrap_or_default();
+            let set = if text.contains("\"frames\"") {
+                load_blender_cameras(&file)
+            } else {
+                load_box_cameras(&file)
+            };
+            set.map(|s| s.cameras)
+        }
+        "look_at" => {
+            let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
+            let vec3 = |slot: &str, d: [f32; 3]| -> std::result::Result<Vec3, Diagnostic> {
+                Ok(Vec3::from_array(match a.raw(slot) {
+                    Some(s) => triple(s)?,
+                    None => d,
+                }))
+            };
+            let focal = a.number("focal", Some(1.0))? as f32;
+            Camera::look_at(
+                vec3("eye", [0.0, 0.0, -3.0])?,
+                vec3("at", [0.0; 3])?,
+                vec3("up", [0.0, 1.0, 0.0])?,
+                Vec2::splat(focal),
+                Vec2::ZERO,
+            )
+            .map(|c| vec![c])
+        }
+        other => {
+            return Err(Diagnostic::new(v.span, format!("unknown camera path '{other}'"))
+                .with_hint("use surround(...), orbit(...), look_at(...) or cameras(\"file.json\")"))
+        }
+    };
+    Ok(result.map_err(|e| e.to_string()))
+}
