@@ -226,9 +226,16 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
         .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
         .collect();
     let sums = if g.reductions.len() <= MAX_REGISTER_SUMS {
-        let vars: Vec<Variable> = (0..g.reductions.len()).map(|_| b.declare_var(types::F32X4)).collect();
+        let vars: Vec<Variable> = (0..g.reductions.len())
+            .map(|_| b.declare_var(types::F32X4))
+            .collect();
         for (k, &var) in vars.iter().enumerate() {
-            let start = b.ins().load(types::F32X4, MemFlagsData::new().with_notrap(), accum, (k * 16) as i32);
+            let start = b.ins().load(
+                types::F32X4,
+                MemFlagsData::new().with_notrap(),
+                accum,
+                (k * 16) as i32,
+            );
             b.def_var(var, start);
         }
         Sums::Registers(vars)
@@ -288,7 +295,8 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
     if let Sums::Registers(vars) = &bufs.sums {
         for (k, &var) in vars.iter().enumerate() {
             let sum = b.use_var(var);
-            b.ins().store(MemFlagsData::new().with_notrap(), sum, accum, (k * 16) as i32);
+            b.ins()
+                .store(MemFlagsData::new().with_notrap(), sum, accum, (k * 16) as i32);
         }
     }
     b.ins().return_(&[]);

@@ -184,6 +184,16 @@ impl Kernel {
         &self.code.stats
     }
 
+    /// Runs the generated code on `n` points.
+    ///
+    /// # Safety
+    /// Every column pointer must address at least `n` rounded up to a multiple of 4 floats, `params` at
+    /// least [`Kernel::n_params`] and `accum` 4 per reduction.
+    unsafe fn call(&self, ins: &[*const f32], outs: &[*mut f32], params: &[f32], accum: &mut [f32], n: usize) {
+        // SAFETY: as the caller guarantees.
+        unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), n as i64) }
+    }
+
     fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {
         assert_eq!(
             inputs.len(),
@@ -236,15 +246,7 @@ impl Kernel {
             let outs: Vec<*mut f32> = outputs.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: every column holds at least `full` points (checked above), a multiple of 4, and the
             // kernel accesses exactly points 0..full of each column and 4 lanes per reduction of `accum`.
-            unsafe {
-                (self.func)(
-                    ins.as_ptr(),
-                    outs.as_ptr(),
-                    params.as_ptr(),
-                    accum.as_mut_ptr(),
-                    full as i64,
-                )
-            };
+            unsafe { self.call(&ins, &outs, params, &mut accum, full) };
         }
         let rest = n - full;
         if rest > 0 {
@@ -261,15 +263,7 @@ impl Kernel {
             let ins: Vec<*const f32> = pad_in.iter().map(|c| c.as_ptr()).collect();
             let outs: Vec<*mut f32> = pad_out.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: each padded column holds 4 points; the kernel masks the reduction lanes ≥ rest.
-            unsafe {
-                (self.func)(
-                    ins.as_ptr(),
-                    outs.as_ptr(),
-                    params.as_ptr(),
-                    accum.as_mut_ptr(),
-                    rest as i64,
-                )
-            };
+            unsafe { self.call(&ins, &outs, params, &mut accum, rest) };
             for (col, pad) in outputs.iter_mut().zip(&pad_out) {
                 col[full..n].copy_from_slice(&pad[..rest]);
             }

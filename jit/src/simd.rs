@@ -5,7 +5,7 @@
 //! Cephes library): about 1–2 ulp for exp and log over the whole range, and for sin/cos/tan on
 //! |x| < 8192; the accuracy of each is tested against f64 in `tests`.
 
-use cranelift_codegen::ir::condcodes::FloatCC;
+use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{types, InstBuilder, MemFlagsData, Value};
 use cranelift_frontend::FunctionBuilder;
 
@@ -88,7 +88,7 @@ impl Simd<'_, '_> {
     /// Converts whole-valued lanes (|x| < 2³¹) to i32. On x86 this is one `cvttps2dq`: the saturating
     /// conversion's NaN and overflow handling costs 6 more instructions and is not needed here (a NaN lane
     /// gives a NaN result through the polynomial anyway).
-    fn to_int(&mut self, x: Value) -> Value {
+    fn truncate_to_int(&mut self, x: Value) -> Value {
         if cfg!(target_arch = "x86_64") {
             self.b.ins().x86_cvtt2dq(I, x)
         } else {
@@ -137,7 +137,7 @@ impl Simd<'_, '_> {
         let one = self.f(1.0);
         let r1 = self.b.ins().fadd(r, one);
         let p = self.fma(p, r2, r1);
-        let ki = self.to_int(k);
+        let ki = self.truncate_to_int(k);
         let (s1, s2) = self.pow2_factors(ki);
         let p = self.b.ins().fmul(p, s1);
         self.b.ins().fmul(p, s2)
@@ -219,7 +219,7 @@ impl Simd<'_, '_> {
         let r = self.fma(nk, p1, x);
         let r = self.fma(nk, p2, r);
         let r = self.fma(nk, p3, r);
-        let q = self.to_int(k);
+        let q = self.truncate_to_int(k);
         (r, q)
     }
 
@@ -238,6 +238,15 @@ impl Simd<'_, '_> {
         (s, c)
     }
 
+    /// A lane mask (as f32 lanes) of the odd quadrants q.
+    fn odd_mask(&mut self, q: Value) -> Value {
+        let one = self.i(1);
+        let odd = self.b.ins().band(q, one);
+        let zero = self.i(0);
+        let odd = self.b.ins().icmp(IntCC::NotEqual, odd, zero);
+        self.float(odd)
+    }
+
     /// sin x (`phase` = 0) or cos x (`phase` = 1).
     pub fn sin_cos(&mut self, x: Value, phase: i32) -> Value {
         let (r, q) = self.reduce_half_pi(x);
@@ -248,14 +257,7 @@ impl Simd<'_, '_> {
             let p = self.i(phase);
             self.b.ins().iadd(q, p)
         };
-        let one = self.i(1);
-        let odd = self.b.ins().band(q, one);
-        let zero = self.i(0);
-        let odd = self
-            .b
-            .ins()
-            .icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
-        let odd = self.float(odd);
+        let odd = self.odd_mask(q);
         let v = self.select(odd, c, s);
         let two = self.i(2);
         let sign = self.b.ins().band(q, two);
@@ -269,14 +271,7 @@ impl Simd<'_, '_> {
     pub fn tan(&mut self, x: Value) -> Value {
         let (r, q) = self.reduce_half_pi(x);
         let (s, c) = self.sincos_poly(r);
-        let one = self.i(1);
-        let odd = self.b.ins().band(q, one);
-        let zero = self.i(0);
-        let odd = self
-            .b
-            .ins()
-            .icmp(cranelift_codegen::ir::condcodes::IntCC::NotEqual, odd, zero);
-        let odd = self.float(odd);
+        let odd = self.odd_mask(q);
         let t_even = self.b.ins().fdiv(s, c);
         let nc = self.b.ins().fneg(c);
         let t_odd = self.b.ins().fdiv(nc, s);
