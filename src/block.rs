@@ -127,10 +127,14 @@ impl<'p> Block<'p> {
         self.cameras_of(&v)
     }
 
-    /// The cameras a camera value describes.
+    /// The cameras a camera value describes (at least one).
     pub fn cameras_of(&self, v: &Spanned) -> Result<Vec<Camera>> {
         let made = crate::cameras::cameras(v, &self.script_dir).map_err(|d| self.error(d))?;
-        made.map_err(|e| self.error(Diagnostic::new(v.span, e)))
+        let cameras = made.map_err(|e| self.error(Diagnostic::new(v.span, e)))?;
+        if cameras.is_empty() {
+            return Err(self.error(Diagnostic::new(v.span, "these settings give no camera")));
+        }
+        Ok(cameras)
     }
 
     /// Setting `size`: `N` or `[width, height]`, 1 to 8192; 256 when absent.

@@ -193,6 +193,7 @@ impl TrainPlan {
     /// Trains `params` in place (resuming from the checkpoint when asked); returns a summary line.
     pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
         let views = load_box_views(&self.data)?;
+
         let cache = KernelCache::new();
         let t = Instant::now();
         let field = VolumeField::compile(program, &cache)?;
