@@ -223,11 +223,20 @@ fn ir_prints_both_irs() {
         "{stdout}"
     );
     assert!(stdout.contains("sqrt"));
-    let out = nerfjit(&["ir", "examples/train_box.sdf", "opacity", "--kind", "vjp"], None);
+    let out = nerfjit(
+        &["ir", "examples/train_box.sdf", "opacity", "--kind", "vjp"],
+        None,
+    );
     let (stdout, stderr) = text(&out);
     assert!(out.status.success(), "{stderr}");
-    assert!(stdout.contains("reduce 5 = sum v"), "six param gradients: {stdout}");
-    let out = nerfjit(&["ir", "examples/torus.sdf", "color", "--kind", "second-order"], None);
+    assert!(
+        stdout.contains("reduce 5 = sum v"),
+        "six param gradients: {stdout}"
+    );
+    let out = nerfjit(
+        &["ir", "examples/torus.sdf", "color", "--kind", "second-order"],
+        None,
+    );
     assert!(!out.status.success());
     assert!(text(&out).1.contains("for scalar functions"));
 }
