@@ -9,6 +9,7 @@ mod eval;
 mod failure;
 mod field;
 mod ir_dump;
+mod mesh;
 mod output;
 mod render;
 mod run;
@@ -99,6 +100,29 @@ enum Command {
         #[arg(long, default_value_t = 9)]
         reps: usize,
     },
+    /// Extract the marching-cubes mesh of a script's function (its zero level set by default).
+    Mesh {
+        /// The script.
+        script: String,
+        /// The function to mesh, `fn f(p: vec3) -> f32`.
+        #[arg(long, default_value = "sdf")]
+        function: String,
+        /// Grid cells per axis.
+        #[arg(long, default_value_t = 256)]
+        res: usize,
+        /// The grid: r for [-r, r]³, or x0,y0,z0,x1,y1,z1.
+        #[arg(long, default_value = "2", allow_hyphen_values = true)]
+        bounds: String,
+        /// The level set to extract.
+        #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+        level: f32,
+        /// The mesh file, .ply or .obj.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write a turntable GIF of the mesh.
+        #[arg(long)]
+        gif: Option<PathBuf>,
+    },
     /// List the example scripts built into the binary, or print one.
     Examples {
         /// The example to print.
@@ -142,6 +166,21 @@ fn main() -> ExitCode {
             kind,
         } => ir_dump::run(&script, &function, kind).map(|text| print!("{text}")),
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
+        Command::Mesh { script, function, res, bounds, level, out, gif } => mesh::parse_bounds(&bounds)
+            .map_err(failure::Failure::Message)
+            .and_then(|bounds| {
+                let args = mesh::MeshArgs {
+                    script: &script,
+                    function: &function,
+                    resolution: res,
+                    bounds,
+                    level,
+                    out: &out,
+                    gif: gif.as_deref(),
+                };
+                mesh::run(&args)
+            })
+            .map(|text| println!("{text}")),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
     };
     match result {

@@ -240,3 +240,35 @@ fn ir_prints_both_irs() {
     assert!(!out.status.success());
     assert!(text(&out).1.contains("for scalar functions"));
 }
+
+#[test]
+fn mesh_writes_a_closed_torus() {
+    let dir = scratch("mesh");
+    let ply = dir.join("torus.ply");
+    let gif = dir.join("torus.gif");
+    let out = nerfjit(
+        &[
+            "mesh",
+            "examples/torus.sdf",
+            "--res",
+            "48",
+            "--bounds",
+            "1.5",
+            "--out",
+            ply.to_str().unwrap(),
+            "--gif",
+            gif.to_str().unwrap(),
+        ],
+        None,
+    );
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("triangles, closed"), "{stdout}");
+    assert!(std::fs::metadata(&ply).unwrap().len() > 10_000);
+    assert!(std::fs::metadata(&gif).unwrap().len() > 1_000);
+    let out = nerfjit(&["mesh", "examples/torus.sdf", "--out", "x.stl"], None);
+    assert!(!out.status.success());
+    assert!(text(&out).1.contains("use a .ply or .obj file"));
+    let out = nerfjit(&["mesh", "examples/torus.sdf", "--bounds", "1,2", "--out", "x.ply"], None);
+    assert!(text(&out).1.contains("--bounds takes"));
+}
