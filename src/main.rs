@@ -166,7 +166,15 @@ fn main() -> ExitCode {
             kind,
         } => ir_dump::run(&script, &function, kind).map(|text| print!("{text}")),
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
-        Command::Mesh { script, function, res, bounds, level, out, gif } => mesh::parse_bounds(&bounds)
+        Command::Mesh {
+            script,
+            function,
+            res,
+            bounds,
+            level,
+            out,
+            gif,
+        } => mesh::parse_bounds(&bounds)
             .map_err(failure::Failure::Message)
             .and_then(|bounds| {
                 let args = mesh::MeshArgs {

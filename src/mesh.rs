@@ -37,12 +37,18 @@ pub struct MeshArgs<'a> {
 pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), String> {
     let numbers: Vec<f32> = text
         .split(',')
-        .map(|x| x.trim().parse::<f32>().map_err(|e| format!("bad number '{x}' in --bounds: {e}")))
+        .map(|x| {
+            x.trim()
+                .parse::<f32>()
+                .map_err(|e| format!("bad number '{x}' in --bounds: {e}"))
+        })
         .collect::<std::result::Result<_, _>>()?;
     match numbers[..] {
         [r] if r > 0.0 => Ok(([-r; 3], [r; 3])),
         [x0, y0, z0, x1, y1, z1] if x0 < x1 && y0 < y1 && z0 < z1 => Ok(([x0, y0, z0], [x1, y1, z1])),
-        _ => Err("--bounds takes r > 0 (for [-r, r]³) or x0,y0,z0,x1,y1,z1 with each low below its high".into()),
+        _ => Err(
+            "--bounds takes r > 0 (for [-r, r]³) or x0,y0,z0,x1,y1,z1 with each low below its high".into(),
+        ),
     }
 }
 
@@ -50,10 +56,16 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
 pub fn run(args: &MeshArgs) -> Result<String> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
     if !matches!(ext, "ply" | "obj") {
-        return Err(Failure::Message(format!("cannot write '{}': use a .ply or .obj file", args.out.display())));
+        return Err(Failure::Message(format!(
+            "cannot write '{}': use a .ply or .obj file",
+            args.out.display()
+        )));
     }
     for path in std::iter::once(args.out).chain(args.gif) {
-        let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let folder = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
         if !folder.is_dir() {
             return Err(Failure::Message(format!(
                 "cannot write '{}': folder '{}' does not exist",
@@ -64,7 +76,11 @@ pub fn run(args: &MeshArgs) -> Result<String> {
     }
     let program = script::load(args.script)?;
     let cache = KernelCache::new();
-    let compiler = Compiler { program: &program, params: &program.param_values, cache: &cache };
+    let compiler = Compiler {
+        program: &program,
+        params: &program.param_values,
+        cache: &cache,
+    };
     let vec3 = [Type::Vec(3)];
     let t = Instant::now();
     let value = compiler.function(args.function, &vec3, &Type::F32, Kind::Value)?;
@@ -90,7 +106,15 @@ pub fn run(args: &MeshArgs) -> Result<String> {
                 let flat = radius * elevation.cos();
                 let eye = center + Vec3::new(flat * phi.cos(), radius * elevation.sin(), -flat * phi.sin());
                 let camera = Camera::look_at(eye, center, Vec3::Y, Vec2::splat(1.2), Vec2::ZERO)?;
-                render_mesh(&camera, 256, 256, &mesh, Vec3::new(-0.5, 1.0, -0.8), [0.85, 0.8, 0.7], [0.1, 0.11, 0.14])
+                render_mesh(
+                    &camera,
+                    256,
+                    256,
+                    &mesh,
+                    Vec3::new(-0.5, 1.0, -0.8),
+                    [0.85, 0.8, 0.7],
+                    [0.1, 0.11, 0.14],
+                )
             })
             .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
         save_gif(gif, &frames, 50)?;

@@ -269,6 +269,9 @@ fn mesh_writes_a_closed_torus() {
     let out = nerfjit(&["mesh", "examples/torus.sdf", "--out", "x.stl"], None);
     assert!(!out.status.success());
     assert!(text(&out).1.contains("use a .ply or .obj file"));
-    let out = nerfjit(&["mesh", "examples/torus.sdf", "--bounds", "1,2", "--out", "x.ply"], None);
+    let out = nerfjit(
+        &["mesh", "examples/torus.sdf", "--bounds", "1,2", "--out", "x.ply"],
+        None,
+    );
     assert!(text(&out).1.contains("--bounds takes"));
 }

@@ -189,9 +189,24 @@ impl Kernel {
     /// # Safety
     /// Every column pointer must address at least `n` rounded up to a multiple of 4 floats, `params` at
     /// least [`Kernel::n_params`] and `accum` 4 per reduction.
-    unsafe fn call(&self, ins: &[*const f32], outs: &[*mut f32], params: &[f32], accum: &mut [f32], n: usize) {
+    unsafe fn call(
+        &self,
+        ins: &[*const f32],
+        outs: &[*mut f32],
+        params: &[f32],
+        accum: &mut [f32],
+        n: usize,
+    ) {
         // SAFETY: as the caller guarantees.
-        unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), accum.as_mut_ptr(), n as i64) }
+        unsafe {
+            (self.func)(
+                ins.as_ptr(),
+                outs.as_ptr(),
+                params.as_ptr(),
+                accum.as_mut_ptr(),
+                n as i64,
+            )
+        }
     }
 
     fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {

@@ -1,15 +1,17 @@
 //! Times the volume renderer on the course's box volume (workload W2: 256×256, 64 samples at
 //! linspace(0, 5, 64), surround(3.0, 20, up y, focal 1.0)) with one thread and with all of
-//! them, for fields of different cost, and writes the turntable as a GIF.
+//! them, for fields of different cost, then with an occupancy grid (empty-space skipping) and
+//! early termination, and writes the turntable as a GIF.
 //!
 //! `cargo run -p nerfjit-runtime --release --example volume_timing -- [out.gif]`
 
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use nerfjit_runtime::{
-    render_volume, rgb_image, save_gif, surround, BatchFn, Camera, ClosureFn, Mode, Quantize, Up,
-    VolumeSettings,
+    render_volume, render_volume_with, rgb_image, save_gif, surround, BatchFn, Camera, ClosureFn, Mode,
+    OccupancyGrid, Quantize, Up, VolumeSettings,
 };
 
 /// The course's box: center 0, sides 1.75³, opacity from the SDF with α = 1, β = 0.05, color
@@ -47,14 +49,42 @@ impl BatchFn for Constant {
     }
 }
 
+/// A field that counts the points it evaluates.
+struct Counting<'a>(&'a dyn BatchFn, AtomicUsize);
+
+impl BatchFn for Counting<'_> {
+    fn n_inputs(&self) -> usize {
+        self.0.n_inputs()
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.0.n_outputs()
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        self.1.fetch_add(n, Ordering::Relaxed);
+        self.0.eval(n, inputs, outputs);
+    }
+}
+
 /// Median milliseconds per frame over the turntable, after one warm-up frame.
 fn time_frames(cameras: &[Camera], field: &dyn BatchFn, settings: &VolumeSettings) -> f64 {
-    render_volume(&cameras[0], 256, 256, field, settings).expect("render");
+    time_frames_with(cameras, field, settings, None)
+}
+
+/// [`time_frames`] with an occupancy grid.
+fn time_frames_with(
+    cameras: &[Camera],
+    field: &dyn BatchFn,
+    settings: &VolumeSettings,
+    grid: Option<&OccupancyGrid>,
+) -> f64 {
+    render_volume_with(&cameras[0], 256, 256, field, settings, grid).expect("render");
     let mut times: Vec<f64> = cameras
         .iter()
         .map(|camera| {
             let start = Instant::now();
-            render_volume(camera, 256, 256, field, settings).expect("render");
+            render_volume_with(camera, 256, 256, field, settings, grid).expect("render");
             start.elapsed().as_secs_f64() * 1e3
         })
         .collect();
@@ -98,6 +128,42 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let ms = time_frames(&cameras, &boxed, &early);
     println!("box ClosureFn, early termination 1e-3, {threads} thread(s): {ms:.2} ms per frame");
+
+    // Empty-space skipping with an occupancy grid over the box and its falloff, alone and
+    // with early termination: time, samples evaluated and error against the exact render.
+    let start = Instant::now();
+    let grid = OccupancyGrid::build(&boxed, ([-1.25; 3], [1.25; 3]), 64, Mode::Opacity, 1e-4)?;
+    println!(
+        "occupancy grid 64³ over [-1.25, 1.25]³, threshold 1e-4: built in {:.1} ms, {:.1}% occupied",
+        start.elapsed().as_secs_f64() * 1e3,
+        100.0 * grid.occupancy()
+    );
+    let counting = Counting(&boxed, AtomicUsize::new(0));
+    for (name, s, grid) in [
+        ("exact", &settings, None),
+        ("early termination 1e-3", &early, None),
+        ("grid", &settings, Some(&grid)),
+        ("grid + early termination 1e-3", &early, Some(&grid)),
+    ] {
+        let ms = time_frames_with(&cameras, &boxed, s, grid);
+        let (mut max, mut sum) = (0u8, 0u64);
+        counting.1.store(0, Ordering::Relaxed);
+        for camera in &cameras {
+            let exact = render_volume(camera, 256, 256, &boxed, &settings)?;
+            let frame = render_volume_with(camera, 256, 256, &counting, s, grid)?;
+            for (a, b) in exact.rgb.iter().flatten().zip(frame.rgb.iter().flatten()) {
+                let err = Quantize::Round.byte(*a).abs_diff(Quantize::Round.byte(*b));
+                (max, sum) = (max.max(err), sum + err as u64);
+            }
+        }
+        let frames = cameras.len() as f64;
+        let evaluated = counting.1.load(Ordering::Relaxed) as f64 / frames / (256.0 * 256.0 * 64.0);
+        println!(
+            "box ClosureFn, {name:>29}, {threads} thread(s): {ms:.2} ms per frame, {:.1}% of samples evaluated, max |Δ| {max}/255, mean {:.4}/255",
+            100.0 * evaluated,
+            sum as f64 / (frames * 256.0 * 256.0 * 3.0)
+        );
+    }
     let images = cameras
         .iter()
         .map(|camera| {

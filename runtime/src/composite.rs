@@ -190,6 +190,14 @@ impl Compositor {
         out
     }
 
+    /// The result of a ray without samples (or whose samples all have alpha 0): the
+    /// background (or black), depth 0, opacity 0.
+    pub(crate) fn empty_ray(&self) -> RayOutput {
+        let mut out = RayOutput::default();
+        self.add_background(&mut out, 1.0);
+        out
+    }
+
     fn add_background(&self, out: &mut RayOutput, transmittance: f32) {
         if let Some(bg) = self.background {
             for (acc, c) in out.rgb.iter_mut().zip(bg) {
@@ -326,14 +334,21 @@ impl Lanes {
     /// Adds the next `t.len()` samples of every ray: depths `t`, their δ `delta`, and
     /// sample-major values `raw` and colors `rgb`.
     pub(crate) fn add(&mut self, c: &Compositor, t: &[f32], delta: &[f32], raw: &[f32], rgb: [&[f32]; 3]) {
-        match c.mode {
-            Mode::Density => self.add_with(c.threshold(), density_alpha, t, delta, raw, rgb),
-            Mode::Opacity => self.add_with(c.threshold(), opacity_alpha, t, delta, raw, rgb),
+        // Without early termination the threshold is −∞ and every ray is live (a NaN
+        // transmittance stays NaN either way), so the per-sample test is left out.
+        let threshold = c.threshold();
+        match (c.mode, c.early_termination.is_some()) {
+            (Mode::Density, true) => self.add_with::<true>(threshold, density_alpha, t, delta, raw, rgb),
+            (Mode::Density, false) => self.add_with::<false>(threshold, density_alpha, t, delta, raw, rgb),
+            (Mode::Opacity, true) => self.add_with::<true>(threshold, opacity_alpha, t, delta, raw, rgb),
+            (Mode::Opacity, false) => self.add_with::<false>(threshold, opacity_alpha, t, delta, raw, rgb),
         }
     }
 
+    /// [`Lanes::add`] with alphas from `alpha_of(raw, δ)`; `STOP`: whether rays stop below
+    /// `threshold`. δ and t are per sample row, shared by all rays.
     #[inline(always)]
-    fn add_with(
+    fn add_with<const STOP: bool>(
         &mut self,
         threshold: f32,
         alpha_of: impl Fn(f32, f32) -> (f32, f32),
@@ -349,6 +364,9 @@ impl Lanes {
             depth,
             opacity,
         } = self;
+        // Slices of length n, so that the loop below has no bounds checks and vectorizes.
+        let (transmittance, depth, opacity) = (&mut transmittance[..n], &mut depth[..n], &mut opacity[..n]);
+        let (acc_r, acc_g, acc_b) = (&mut acc_r[..n], &mut acc_g[..n], &mut acc_b[..n]);
         for (j, (&t, &delta)) in t.iter().zip(delta).enumerate() {
             let row = j * n..(j + 1) * n;
             let (raw, r, g, b) = (&raw[row.clone()], &r[row.clone()], &g[row.clone()], &b[row]);
@@ -356,8 +374,11 @@ impl Lanes {
                 let trans = transmittance[k];
                 let (alpha, keep) = alpha_of(raw[k], delta);
                 // A stopped ray sees alpha 0: weight 0 and its transmittance unchanged.
-                let live = trans >= threshold;
-                let (alpha, keep) = if live { (alpha, keep) } else { (0.0, 1.0) };
+                let (alpha, keep) = if !STOP || trans >= threshold {
+                    (alpha, keep)
+                } else {
+                    (0.0, 1.0)
+                };
                 let w = trans * alpha;
                 acc_r[k] += w * r[k];
                 acc_g[k] += w * g[k];
@@ -367,6 +388,66 @@ impl Lanes {
                 transmittance[k] = trans * keep;
             }
         }
+    }
+
+    /// Adds samples `index` (increasing) of ray `k`, whose depths and δ are in `(t, delta)`,
+    /// with values `raw` and colors `rgb` (one per index). The samples left out have alpha
+    /// 0: the result is that of [`Lanes::add`] with zero values (and finite colors) there,
+    /// bit for bit, as such samples leave the ray unchanged.
+    pub(crate) fn add_sparse(
+        &mut self,
+        c: &Compositor,
+        k: usize,
+        index: &[u32],
+        (t, delta): (&[f32], &[f32]),
+        raw: &[f32],
+        rgb: [&[f32]; 3],
+    ) {
+        let threshold = c.threshold();
+        let (ray, samples) = ((k, index), (t, delta, raw, rgb));
+        match (c.mode, c.early_termination.is_some()) {
+            (Mode::Density, true) => self.add_sparse_with::<true>(threshold, density_alpha, ray, samples),
+            (Mode::Density, false) => self.add_sparse_with::<false>(threshold, density_alpha, ray, samples),
+            (Mode::Opacity, true) => self.add_sparse_with::<true>(threshold, opacity_alpha, ray, samples),
+            (Mode::Opacity, false) => self.add_sparse_with::<false>(threshold, opacity_alpha, ray, samples),
+        }
+    }
+
+    /// [`Lanes::add_sparse`] with alphas from `alpha_of(raw, δ)`, the same operations in the
+    /// same order as [`Lanes::add_with`].
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn add_sparse_with<const STOP: bool>(
+        &mut self,
+        threshold: f32,
+        alpha_of: impl Fn(f32, f32) -> (f32, f32),
+        (k, index): (usize, &[u32]),
+        (t, delta, raw, [r, g, b]): (&[f32], &[f32], &[f32], [&[f32]; 3]),
+    ) {
+        let mut trans = self.transmittance[k];
+        let [mut acc_r, mut acc_g, mut acc_b] = [self.rgb[0][k], self.rgb[1][k], self.rgb[2][k]];
+        let (mut depth, mut opacity) = (self.depth[k], self.opacity[k]);
+        let n = index.len();
+        let (raw, r, g, b) = (&raw[..n], &r[..n], &g[..n], &b[..n]);
+        for (i, &j) in index.iter().enumerate() {
+            let j = j as usize;
+            let (alpha, keep) = alpha_of(raw[i], delta[j]);
+            let (alpha, keep) = if !STOP || trans >= threshold {
+                (alpha, keep)
+            } else {
+                (0.0, 1.0)
+            };
+            let w = trans * alpha;
+            acc_r += w * r[i];
+            acc_g += w * g[i];
+            acc_b += w * b[i];
+            depth += w * t[j];
+            opacity += w;
+            trans *= keep;
+        }
+        self.transmittance[k] = trans;
+        [self.rgb[0][k], self.rgb[1][k], self.rgb[2][k]] = [acc_r, acc_g, acc_b];
+        (self.depth[k], self.opacity[k]) = (depth, opacity);
     }
 
     /// Composites the rays started by [`Lanes::reset`] over all their samples and back-

@@ -11,11 +11,13 @@
 //! - Volume rendering: [`transmittance`] through piecewise-constant media, [`sampler`] for
 //!   depths along rays, [`composite`] (the compositor and its backward pass) and [`volume`]
 //!   ([`render_volume`], producing [`VolumeFrame`]s).
+//! - [`occupancy`]: [`OccupancyGrid`], for empty-space skipping with [`render_volume_with`].
 //! - Training: [`BatchVjp`] (a kernel's backward pass), [`train`] ([`volume_step`]),
 //!   [`optim`] (Adam, learning-rate schedules), [`metrics`] (PSNR, SSIM) and [`dataset`]
 //!   (the course's views).
 #![warn(missing_docs)]
 
+mod bvh;
 pub mod camera;
 pub mod camera_files;
 pub mod composite;
@@ -25,10 +27,17 @@ pub mod field;
 pub mod image_out;
 mod json;
 pub mod march;
+pub mod marching;
+pub mod mesh;
+pub mod mesh_metrics;
 pub mod metrics;
 pub mod npy;
+pub mod occupancy;
 pub mod optim;
 pub mod paths;
+mod ply;
+pub mod pointcloud;
+pub mod raster;
 pub mod rays;
 pub mod rng;
 pub mod sampler;
@@ -45,14 +54,20 @@ pub use dataset::{load_box_views, read_rgb_image, Views};
 pub use error::{Error, Result};
 pub use field::{BatchFn, BatchVjp, ClosureFn, ClosureVjp};
 pub use image_out::{depth_image, normal_image, rgb_image, save_gif, save_png, Quantize};
+pub use mesh::Mesh;
+pub use mesh_metrics::{chamfer_report, point_to_mesh_distances, ChamferReport};
 pub use metrics::{mse, psnr, ssim};
 pub use npy::{read_npy_rgb, write_npy_rgb, ImageF32};
+pub use occupancy::OccupancyGrid;
 pub use optim::{Adam, Schedule};
 pub use paths::{orbit, surround, Up};
+pub use pointcloud::{bounding_box, mean_center, read_points};
+pub use raster::{render_mesh, render_points};
 pub use rays::RayBatch;
 pub use rng::Rng;
 pub use sampler::{sample_depths, sample_points, DepthRange, Spacing};
 pub use sphere_trace::{render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings};
 pub use train::{volume_step, StepResult};
 pub use transmittance::{Medium, Segment, Transmittance};
+pub use volume::render_volume_with;
 pub use volume::{render_volume, VolumeFrame, VolumeSettings};

@@ -1,4 +1,5 @@
-//! Reading and writing float32 RGB images as NumPy `.npy` files of shape (H, W, 3).
+//! NumPy `.npy` files: reading and writing float32 RGB images of shape (H, W, 3), and reading
+//! (N, 3) arrays of points, e.g. the entries of an `.npz` archive. One header parser serves both.
 
 use std::path::Path;
 
@@ -18,7 +19,7 @@ pub struct ImageF32 {
 const MAGIC: &[u8] = b"\x93NUMPY";
 
 /// A Python literal of a `.npy` header dictionary.
-#[derive(Debug, PartialEq)]
+#[derive(Debug)]
 enum Literal {
     Str(String),
     Bool(bool),
@@ -136,12 +137,71 @@ fn split_header(bytes: &[u8]) -> std::result::Result<(&[u8], &[u8]), String> {
     let end = start
         .checked_add(len)
         .filter(|&end| end <= bytes.len())
-        .ok_or("truncated header")?;
+        .ok_or("truncated .npy header")?;
     Ok((&bytes[start..end], &bytes[end..]))
 }
 
-/// Checks the header dictionary; returns (height, width).
-fn image_shape(header: &[u8]) -> std::result::Result<(u32, u32), String> {
+/// The element type of a `.npy` array: little-endian float32 (`'<f4'`) or float64 (`'<f8'`).
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Dtype {
+    /// `'<f4'`.
+    F32,
+    /// `'<f8'`.
+    F64,
+}
+
+impl Dtype {
+    /// Bytes per element.
+    fn size(self) -> usize {
+        match self {
+            Dtype::F32 => 4,
+            Dtype::F64 => 8,
+        }
+    }
+}
+
+/// A parsed `.npy` array that borrows its data from the file's bytes.
+#[derive(Debug)]
+pub(crate) struct NpyArray<'a> {
+    /// The dimensions, e.g. `[height, width, 3]`.
+    pub(crate) shape: Vec<usize>,
+    /// The element type.
+    pub(crate) dtype: Dtype,
+    /// Whether the data is in Fortran (column-major) rather than C (row-major) order.
+    pub(crate) fortran_order: bool,
+    /// The bytes after the header: at least the array's size, more if the file has extra
+    /// bytes at its end.
+    pub(crate) data: &'a [u8],
+}
+
+impl NpyArray<'_> {
+    /// The elements in stored order, float64 rounded to float32.
+    pub(crate) fn to_f32(&self) -> Vec<f32> {
+        let len: usize = self.shape.iter().product();
+        let data = &self.data[..len * self.dtype.size()];
+        match self.dtype {
+            Dtype::F32 => data
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect(),
+            Dtype::F64 => data
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes(std::array::from_fn(|k| b[k])) as f32)
+                .collect(),
+        }
+    }
+}
+
+/// `shape` as text, e.g. `(2, 3)`.
+fn shape_text(shape: &[usize]) -> String {
+    let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
+    format!("({})", dims.join(", "))
+}
+
+/// Parses the bytes of a `.npy` file: its header (a float32 or float64 dtype, the order and
+/// the shape) and its data, checked to be long enough for the shape. Errors say what is wrong.
+pub(crate) fn parse(bytes: &[u8]) -> std::result::Result<NpyArray<'_>, String> {
+    let (header, data) = split_header(bytes)?;
     let entries = Parser { text: header, pos: 0 }
         .dict()
         .map_err(|e| format!("bad header: {e}"))?;
@@ -150,67 +210,116 @@ fn image_shape(header: &[u8]) -> std::result::Result<(u32, u32), String> {
             .iter()
             .find(|(k, _)| k == key)
             .map(|(_, v)| v)
-            .ok_or(format!("header has no '{key}'"))
+            .ok_or(format!("the header has no '{key}'"))
     };
-    match get("descr")? {
-        Literal::Str(d) if d == "<f4" => {}
-        other => {
+    let dtype = match get("descr")? {
+        Literal::Str(d) if d == "<f4" => Dtype::F32,
+        Literal::Str(d) if d == "<f8" => Dtype::F64,
+        Literal::Str(d) => {
             return Err(format!(
-                "dtype is {other:?}, expected little-endian float32 '<f4'"
+                "dtype is '{d}', expected little-endian float32 '<f4' or float64 '<f8'"
             ))
         }
+        _ => return Err("the header's 'descr' is not a string".into()),
+    };
+    let Literal::Bool(fortran_order) = *get("fortran_order")? else {
+        return Err("the header's 'fortran_order' is neither True nor False".into());
+    };
+    let Literal::Tuple(dims) = get("shape")? else {
+        return Err("the header's 'shape' is not a tuple".into());
+    };
+    let shape = dims
+        .iter()
+        .map(|d| match d {
+            Literal::Int(d) => usize::try_from(*d).ok(),
+            _ => None,
+        })
+        .collect::<Option<Vec<usize>>>()
+        .ok_or("the header's 'shape' is not a tuple of sizes")?;
+    let needed = shape
+        .iter()
+        .try_fold(dtype.size(), |n, &d| n.checked_mul(d))
+        .ok_or(format!("shape {} is too large", shape_text(&shape)))?;
+    if data.len() < needed {
+        return Err(format!(
+            "data truncated: shape {} needs {needed} bytes, found {}",
+            shape_text(&shape),
+            data.len()
+        ));
     }
-    if get("fortran_order")? != &Literal::Bool(false) {
-        return Err("fortran_order must be False".into());
-    }
-    let shape = get("shape")?;
-    if let Literal::Tuple(dims) = shape {
-        if let [Literal::Int(h), Literal::Int(w), Literal::Int(3)] = dims.as_slice() {
-            if let (Ok(h), Ok(w)) = (u32::try_from(*h), u32::try_from(*w)) {
-                if h > 0 && w > 0 {
-                    return Ok((h, w));
-                }
-            }
-        }
-    }
-    Err(format!(
-        "shape is {shape:?}, expected (height, width, 3) with height, width > 0"
-    ))
+    Ok(NpyArray {
+        shape,
+        dtype,
+        fortran_order,
+        data,
+    })
 }
 
 /// Reads a float32 little-endian `.npy` image of shape (H, W, 3), C order.
 pub fn read_npy_rgb(path: &Path) -> Result<ImageF32> {
     let bytes = std::fs::read(path).map_err(|e| Error::read(path, e))?;
-    let (header, data) = split_header(&bytes).map_err(|e| Error::format(path, e))?;
-    let (height, width) = image_shape(header).map_err(|e| Error::format(path, e))?;
-    let n = width as usize * height as usize;
-    let expected = n as u64 * 12;
-    if data.len() as u64 != expected {
-        let what = if (data.len() as u64) < expected {
-            "truncated"
-        } else {
-            "too long"
-        };
-        return Err(Error::format(
-            path,
-            format!(
-                "data {what}: shape ({height}, {width}, 3) needs {expected} bytes, found {}",
-                data.len()
-            ),
-        ));
-    }
-    let pixels = data
-        .chunks_exact(12)
-        .map(|px| {
-            let c = |k: usize| f32::from_le_bytes([px[k], px[k + 1], px[k + 2], px[k + 3]]);
-            [c(0), c(4), c(8)]
-        })
+    let array = parse(&bytes).map_err(|e| Error::format(path, e))?;
+    let (height, width) = image_shape(&array).map_err(|e| Error::format(path, e))?;
+    let pixels = array
+        .to_f32()
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
         .collect();
     Ok(ImageF32 {
         width,
         height,
         pixels,
     })
+}
+
+/// Checks that `array` is a float32 C-order image without extra data; returns (height, width).
+fn image_shape(array: &NpyArray) -> std::result::Result<(u32, u32), String> {
+    match array.dtype {
+        Dtype::F32 => {}
+        Dtype::F64 => return Err("dtype is '<f8', expected little-endian float32 '<f4'".into()),
+    }
+    if array.fortran_order {
+        return Err("fortran_order must be False".into());
+    }
+    let shape = shape_text(&array.shape);
+    let bad_shape = || format!("shape is {shape}, expected (height, width, 3) with height, width > 0");
+    let [h, w, 3] = array.shape[..] else {
+        return Err(bad_shape());
+    };
+    let (Ok(height @ 1..), Ok(width @ 1..)) = (u32::try_from(h), u32::try_from(w)) else {
+        return Err(bad_shape());
+    };
+    let needed = array.shape.iter().product::<usize>() * 4;
+    if array.data.len() > needed {
+        return Err(format!(
+            "data too long: shape {shape} needs {needed} bytes, found {}",
+            array.data.len()
+        ));
+    }
+    Ok((height, width))
+}
+
+/// The points of `.npy` bytes holding an array of shape (N, 3), float32 or float64, C or
+/// Fortran order; errors say what is wrong (dtype, shape, truncated data, non-finite values).
+pub(crate) fn parse_points(bytes: &[u8]) -> std::result::Result<Vec<[f32; 3]>, String> {
+    let array = parse(bytes)?;
+    let n = match array.shape[..] {
+        [n, 3] => n,
+        _ => return Err(format!("shape is {}, expected (N, 3)", shape_text(&array.shape))),
+    };
+    let values = array.to_f32();
+    let at = |point: usize, axis: usize| {
+        if array.fortran_order {
+            values[axis * n + point]
+        } else {
+            values[point * 3 + axis]
+        }
+    };
+    let points: Vec<[f32; 3]> = (0..n).map(|k| [at(k, 0), at(k, 1), at(k, 2)]).collect();
+    if let Some(k) = points.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        return Err(format!("point {k} {:?} is not finite", points[k]));
+    }
+    Ok(points)
 }
 
 /// Writes `image` as a float32 little-endian `.npy` file (version 1.0) of shape (H, W, 3).
@@ -247,7 +356,7 @@ pub fn write_npy_rgb(path: &Path, image: &ImageF32) -> Result<()> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use std::path::PathBuf;
 
@@ -276,8 +385,8 @@ mod tests {
         assert_eq!(read_npy_rgb(&path).unwrap(), image());
     }
 
-    /// Writes a header with `dict` followed by `data_len` zero bytes.
-    fn with_header(name: &str, version: u8, dict: &str, data_len: usize) -> PathBuf {
+    /// A `.npy` file of format `version` (1 or 2) with header dictionary `dict` and `data`.
+    fn npy_bytes_of_version(version: u8, dict: &str, data: &[u8]) -> Vec<u8> {
         let mut bytes = MAGIC.to_vec();
         bytes.extend_from_slice(&[version, 0]);
         if version == 1 {
@@ -286,9 +395,29 @@ mod tests {
             bytes.extend_from_slice(&(dict.len() as u32).to_le_bytes());
         }
         bytes.extend_from_slice(dict.as_bytes());
-        bytes.resize(bytes.len() + data_len, 0);
+        bytes.extend_from_slice(data);
+        bytes
+    }
+
+    /// A version 1.0 `.npy` file with header dictionary `dict` and `data`.
+    pub(crate) fn npy_bytes(dict: &str, data: &[u8]) -> Vec<u8> {
+        npy_bytes_of_version(1, dict, data)
+    }
+
+    /// The `.npy` bytes of `points` as float32 (N, 3) in C order.
+    pub(crate) fn npy_f32(points: &[[f32; 3]]) -> Vec<u8> {
+        let dict = format!(
+            "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, 3), }}\n",
+            points.len()
+        );
+        let data: Vec<u8> = points.iter().flatten().flat_map(|c| c.to_le_bytes()).collect();
+        npy_bytes(&dict, &data)
+    }
+
+    /// Writes a header with `dict` followed by `data_len` zero bytes.
+    fn with_header(name: &str, version: u8, dict: &str, data_len: usize) -> PathBuf {
         let path = temp_path(name);
-        std::fs::write(&path, bytes).unwrap();
+        std::fs::write(&path, npy_bytes_of_version(version, dict, &vec![0; data_len])).unwrap();
         path
     }
 
@@ -367,5 +496,50 @@ mod tests {
         assert!(img.pixels.iter().flatten().all(|c| (0.0..=1.0).contains(c)));
         let mean: f32 = img.pixels.iter().flatten().sum::<f32>() / (256.0 * 256.0 * 3.0);
         assert!(mean > 0.0, "image is not all black");
+    }
+
+    #[test]
+    fn float32_float64_and_fortran_order() {
+        let points = [[1.0, 2.0, 3.0], [-4.0, 0.5, 6.0]];
+        assert_eq!(parse_points(&npy_f32(&points)).unwrap(), points);
+        // Fortran order, float64, double quotes: columns x, y, z one after the other.
+        let columns = [1.0f64, -4.0, 2.0, 0.5, 3.0, 6.0];
+        let data: Vec<u8> = columns.iter().flat_map(|c| c.to_le_bytes()).collect();
+        let dict = "{\"descr\": \"<f8\", \"fortran_order\": True, \"shape\": (2, 3)}";
+        assert_eq!(parse_points(&npy_bytes(dict, &data)).unwrap(), points);
+    }
+
+    #[test]
+    fn bad_arrays_say_what_is_wrong() {
+        let cases = [
+            (
+                "{'descr': '<i4', 'fortran_order': False, 'shape': (1, 3), }",
+                12,
+                "dtype is '<i4'",
+            ),
+            (
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (3,), }",
+                12,
+                "shape is (3), expected (N, 3)",
+            ),
+            (
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 4), }",
+                32,
+                "expected (N, 3)",
+            ),
+            (
+                "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }",
+                20,
+                "needs 24 bytes, found 20",
+            ),
+            ("{'descr': '<f4', 'shape': (2, 3), }", 24, "no 'fortran_order'"),
+        ];
+        for (dict, len, message) in cases {
+            let e = parse_points(&npy_bytes(dict, &vec![0; len])).unwrap_err();
+            assert!(e.contains(message), "{dict}: {e}");
+        }
+        let e = parse_points(&npy_f32(&[[0.0, f32::NAN, 0.0]])).unwrap_err();
+        assert!(e.contains("point 0") && e.contains("not finite"), "{e}");
+        assert!(parse_points(b"PK\x03\x04....").unwrap_err().contains("bad magic"));
     }
 }
