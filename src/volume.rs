@@ -5,9 +5,12 @@ use std::time::Instant;
 
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::{render_volume, rgb_image, Camera, Quantize, VolumeFrame, VolumeSettings};
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::Diagnostic;
+use nerfjit_runtime::{render_volume_with, rgb_image, Camera, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings};
 
 use crate::block::Block;
+use crate::settings::CallArgs;
 use crate::failure::Result;
 use crate::field::VolumeField;
 use crate::output::write_images;
@@ -20,10 +23,22 @@ const KEYS: &[&str] = &[
     "samples",
     "background",
     "early_termination",
+    "skip_empty",
     "out",
     "depth",
     "frame_ms",
 ];
+
+/// Empty-space skipping: an occupancy grid of the field, built once before rendering.
+#[derive(Clone, Copy, Debug)]
+pub struct SkipEmpty {
+    /// The grid's corners: nothing outside is rendered.
+    pub bounds: ([f32; 3], [f32; 3]),
+    /// Cells per axis.
+    pub resolution: usize,
+    /// Values at or below this count as empty.
+    pub threshold: f32,
+}
 
 /// A checked `render volume` block.
 pub struct VolumePlan {
@@ -41,6 +56,8 @@ pub struct VolumePlan {
     pub background: Option<[f32; 3]>,
     /// Transmittance below which a ray stops.
     pub early_termination: Option<f32>,
+    /// Empty-space skipping, if asked for.
+    pub skip_empty: Option<SkipEmpty>,
     /// Color frames.
     pub out: PathBuf,
     /// Depth frames.
@@ -58,6 +75,10 @@ impl VolumePlan {
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
         let early = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
         let background = b.triple("background")?;
+        let skip_empty = match b.take("skip_empty") {
+            None => None,
+            Some(v) => Some(skip_empty(&v).map_err(|d| b.error(d))?),
+        };
         let out = b.required_image_output("out", "out: \"volume.gif\"")?;
         let depth = b.image_output("depth")?;
         let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
@@ -70,6 +91,7 @@ impl VolumePlan {
             samples,
             background,
             early_termination: (early > 0.0).then_some(early),
+            skip_empty,
             out,
             depth,
             frame_ms,
@@ -98,9 +120,13 @@ impl VolumePlan {
         let settings = self.settings(&field);
         let (w, h) = self.size;
         let start = Instant::now();
+        let grid = match self.skip_empty {
+            Some(s) => Some(OccupancyGrid::build(&forward, s.bounds, s.resolution, settings.mode, s.threshold)?),
+            None => None,
+        };
         let mut frames = Vec::with_capacity(self.cameras.len());
         for (i, camera) in self.cameras.iter().enumerate() {
-            frames.push(render_volume(camera, w, h, &forward, &settings)?);
+            frames.push(render_volume_with(camera, w, h, &forward, &settings, grid.as_ref())?);
             progress(i + 1);
         }
         let seconds = start.elapsed().as_secs_f64();
@@ -146,4 +172,25 @@ fn write(
         .map(|f| rgb_image(f.width, f.height, &pixels(f), Quantize::Truncate))
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     write_images(path, images, frame_ms)
+}
+
+/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`.
+fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
+    let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
+    let bounds = match a.raw("bounds") {
+        None => return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)")),
+        Some(b) if matches!(b.value, Value::Number(_)) => {
+            let r = b.number()? as f32;
+            ([-r; 3], [r; 3])
+        }
+        Some(b) => {
+            let x = b.numbers(6)?;
+            ([x[0] as f32, x[1] as f32, x[2] as f32], [x[3] as f32, x[4] as f32, x[5] as f32])
+        }
+    };
+    let resolution = a.number("resolution", Some(64.0))?;
+    if !(1.0..=256.0).contains(&resolution) || resolution.fract() != 0.0 {
+        return Err(Diagnostic::new(v.span, "the grid's resolution is a whole number from 1 to 256"));
+    }
+    Ok(SkipEmpty { bounds, resolution: resolution as usize, threshold: a.number("threshold", Some(1e-4))? as f32 })
 }
