@@ -3,17 +3,19 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nerfjit_dsl::Program;
-use nerfjit_jit::KernelCache;
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::{render_volume_with, rgb_image, Camera, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings};
+use nerfjit_dsl::Program;
+use nerfjit_jit::KernelCache;
+use nerfjit_runtime::{
+    render_volume_with, rgb_image, Camera, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
+};
 
 use crate::block::Block;
-use crate::settings::CallArgs;
 use crate::failure::Result;
 use crate::field::VolumeField;
 use crate::output::write_images;
+use crate::settings::CallArgs;
 
 const KEYS: &[&str] = &[
     "camera",
@@ -121,12 +123,25 @@ impl VolumePlan {
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
-            Some(s) => Some(OccupancyGrid::build(&forward, s.bounds, s.resolution, settings.mode, s.threshold)?),
+            Some(s) => Some(OccupancyGrid::build(
+                &forward,
+                s.bounds,
+                s.resolution,
+                settings.mode,
+                s.threshold,
+            )?),
             None => None,
         };
         let mut frames = Vec::with_capacity(self.cameras.len());
         for (i, camera) in self.cameras.iter().enumerate() {
-            frames.push(render_volume_with(camera, w, h, &forward, &settings, grid.as_ref())?);
+            frames.push(render_volume_with(
+                camera,
+                w,
+                h,
+                &forward,
+                &settings,
+                grid.as_ref(),
+            )?);
             progress(i + 1);
         }
         let seconds = start.elapsed().as_secs_f64();
@@ -178,19 +193,31 @@ fn write(
 fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
     let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
     let bounds = match a.raw("bounds") {
-        None => return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)")),
+        None => {
+            return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)"))
+        }
         Some(b) if matches!(b.value, Value::Number(_)) => {
             let r = b.number()? as f32;
             ([-r; 3], [r; 3])
         }
         Some(b) => {
             let x = b.numbers(6)?;
-            ([x[0] as f32, x[1] as f32, x[2] as f32], [x[3] as f32, x[4] as f32, x[5] as f32])
+            (
+                [x[0] as f32, x[1] as f32, x[2] as f32],
+                [x[3] as f32, x[4] as f32, x[5] as f32],
+            )
         }
     };
     let resolution = a.number("resolution", Some(64.0))?;
     if !(1.0..=256.0).contains(&resolution) || resolution.fract() != 0.0 {
-        return Err(Diagnostic::new(v.span, "the grid's resolution is a whole number from 1 to 256"));
+        return Err(Diagnostic::new(
+            v.span,
+            "the grid's resolution is a whole number from 1 to 256",
+        ));
     }
-    Ok(SkipEmpty { bounds, resolution: resolution as usize, threshold: a.number("threshold", Some(1e-4))? as f32 })
+    Ok(SkipEmpty {
+        bounds,
+        resolution: resolution as usize,
+        threshold: a.number("threshold", Some(1e-4))? as f32,
+    })
 }
