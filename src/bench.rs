@@ -63,7 +63,7 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
         .map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect())
         .collect();
     let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
-    println!("W7 sdf_eval: {N} points, 20 primitives, median of {reps}");
+    crate::emit(&(format!("W7 sdf_eval: {N} points, 20 primitives, median of {reps}") + "\n"));
     let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     for (label, graph) in [
         ("distance", kernels::value(&f)),
@@ -76,13 +76,15 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
                 let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
                 kernel.eval_parallel(N, &ins, &mut refs, &program.param_values, &mut [], t);
             });
-            println!(
+            crate::emit(
+                &(format!(
                 "  {label:<18} {t} thread{}: {:6.2} ns/point   (JIT compile {:.1} ms, {} IR nodes, {} bytes)",
                 if t == 1 { " " } else { "s" },
                 seconds * 1e9 / N as f64,
                 kernel.stats().seconds * 1e3,
                 kernel.stats().nodes,
                 kernel.stats().code_bytes
+            ) + "\n"),
             );
             if t == max_threads {
                 break;
@@ -163,17 +165,24 @@ fn w1(reps: usize) -> Result<()> {
             .sum::<f64>();
     }
     let mean_diff = diff / (frames.len() as f64 * f64::from(w * h) * 3.0);
-    println!(
-        "W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}",
-        frames.len()
+    crate::emit(
+        &(format!(
+            "W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}",
+            frames.len()
+        ) + "\n"),
     );
-    println!(
-        "  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)",
-        per_frame * 1e3,
-        f64::from(w * h) / per_frame / 1e6,
-        compile_s * 1e3
+    crate::emit(
+        &(format!(
+            "  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)",
+            per_frame * 1e3,
+            f64::from(w * h) / per_frame / 1e6,
+            compile_s * 1e3
+        ) + "\n"),
     );
-    println!("  mean |difference| from plain f64 sphere tracing: {mean_diff:.4} of 255 per channel");
+    crate::emit(
+        &(format!("  mean |difference| from plain f64 sphere tracing: {mean_diff:.4} of 255 per channel")
+            + "\n"),
+    );
     Ok(())
 }
 
@@ -210,16 +219,20 @@ fn w2(reps: usize) -> Result<()> {
                 .expect("validated settings render");
         }
     });
-    println!(
-        "W2 volume_render_box: {} frames of {w}×{h}×{} samples, median of {reps}",
-        plan.cameras.len(),
-        plan.samples
+    crate::emit(
+        &(format!(
+            "W2 volume_render_box: {} frames of {w}×{h}×{} samples, median of {reps}",
+            plan.cameras.len(),
+            plan.samples
+        ) + "\n"),
     );
-    println!(
+    crate::emit(
+        &(format!(
         "  {:.2} ms/frame, {:.1} M samples/s (exact composite: no early termination; JIT compile {:.1} ms)",
         1e3 * seconds / plan.cameras.len() as f64,
         (plan.cameras.len() * (w * h) as usize * plan.samples) as f64 / seconds / 1e6,
         compile_s * 1e3
+    ) + "\n"),
     );
     // Empty-space skipping: an occupancy grid over the box (half-side 0.875) and its falloff.
     let t = Instant::now();
@@ -244,14 +257,14 @@ fn w2(reps: usize) -> Result<()> {
         }
     }
     let per_frame = |s: f64| 1e3 * s / plan.cameras.len() as f64;
-    println!(
+    crate::emit(&(format!(
         "W2 {w}×{h}×{}: exact: {:.2} ms/frame; with occupancy grid: {:.2} ms/frame (grid built in {grid_ms:.1} ms, {:.1}% of 64³ cells occupied), max |Δ| {max_err}/255, mean {:.4}/255",
         plan.samples,
         per_frame(seconds),
         per_frame(grid_seconds),
         100.0 * grid.occupancy(),
         sum_err as f64 / count as f64
-    );
+    ) + "\n"));
     Ok(())
 }
 
@@ -263,10 +276,14 @@ fn w3(reps: usize) -> Result<()> {
     let t = Instant::now();
     let summary = plan.run_steps(&program, &mut params, steps as u32)?;
     let seconds = t.elapsed().as_secs_f64();
-    println!("W3 train_box: {steps} steps of 4096 rays × 64 samples (forward, backward, Adam)");
-    println!(
-        "  {:.2} ms/step including JIT compile and data loading ({summary})",
-        1e3 * seconds / steps as f64
+    crate::emit(
+        &(format!("W3 train_box: {steps} steps of 4096 rays × 64 samples (forward, backward, Adam)") + "\n"),
+    );
+    crate::emit(
+        &(format!(
+            "  {:.2} ms/step including JIT compile and data loading ({summary})",
+            1e3 * seconds / steps as f64
+        ) + "\n"),
     );
     Ok(())
 }

@@ -130,6 +130,13 @@ enum Command {
     },
 }
 
+/// Writes command output to standard output; a closed pipe (`nerfjit ir ... | head`) ends the output
+/// quietly instead of panicking.
+fn emit(text: &str) {
+    use std::io::Write;
+    let _ = std::io::stdout().lock().write_all(text.as_bytes());
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
@@ -141,9 +148,9 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Run { script, out, resume } => run::run(&script, out.as_deref(), resume),
         Command::Transmittance { segments, from, to } => {
-            transmittance::run(&segments, from.zip(to)).map(|text| print!("{text}"))
+            transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
         }
-        Command::Check { script } => check::run(&script).map(|text| print!("{text}")),
+        Command::Check { script } => check::run(&script).map(|text| emit(&text)),
         Command::Eval {
             script,
             function,
@@ -164,7 +171,7 @@ fn main() -> ExitCode {
             script,
             function,
             kind,
-        } => ir_dump::run(&script, &function, kind).map(|text| print!("{text}")),
+        } => ir_dump::run(&script, &function, kind).map(|text| emit(&text)),
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Mesh {
             script,
@@ -188,8 +195,8 @@ fn main() -> ExitCode {
                 };
                 mesh::run(&args)
             })
-            .map(|text| println!("{text}")),
-        Command::Examples { name } => script::examples(name.as_deref()).map(|text| print!("{text}")),
+            .map(|text| emit(&format!("{text}\n"))),
+        Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

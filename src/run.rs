@@ -85,7 +85,7 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
             Plan::Train(p) => p.run(&program, &mut params, resume)?,
             Plan::Viz(p) => p.run()?,
         };
-        println!("{summary}");
+        crate::emit(&format!("{summary}\n"));
     }
     Ok(())
 }
