@@ -155,6 +155,11 @@ impl<'p> Block<'p> {
             return Ok(None);
         };
         let written = PathBuf::from(v.string().map_err(|d| self.error(d))?);
+        self.resolve_output(&v, written).map(Some)
+    }
+
+    /// Where output `written` (from setting `v`) goes: into `--out` when given; its folder must exist.
+    pub fn resolve_output(&self, v: &Spanned, written: PathBuf) -> Result<PathBuf> {
         let path = match &self.out_dir {
             Some(dir) => dir.join(written.file_name().unwrap_or_default()),
             None => written,
@@ -176,7 +181,7 @@ impl<'p> Block<'p> {
                 .with_hint("create the folder first, or pass --out DIR"),
             ));
         }
-        Ok(Some(path))
+        Ok(path)
     }
 
     /// Setting `key` as an image output (`.gif` for all frames, `.png` for one or numbered frames).

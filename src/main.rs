@@ -16,6 +16,7 @@ mod run;
 mod script;
 mod settings;
 mod train;
+mod train_sdf;
 mod transmittance;
 mod viz;
 mod volume;
@@ -185,7 +186,6 @@ fn main() -> ExitCode {
             .map_err(failure::Failure::Message)
             .and_then(|bounds| {
                 let args = mesh::MeshArgs {
-                    script: &script,
                     function: &function,
                     resolution: res,
                     bounds,
@@ -193,7 +193,7 @@ fn main() -> ExitCode {
                     out: &out,
                     gif: gif.as_deref(),
                 };
-                mesh::run(&args)
+                mesh::run(&script, &args)
             })
             .map(|text| emit(&format!("{text}\n"))),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),

@@ -1,24 +1,24 @@
 //! `nerfjit mesh`: the marching-cubes mesh of a script's scalar function, as PLY or OBJ, with an optional
 //! turntable GIF of the mesh.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::{Vec2, Vec3};
-use nerfjit_dsl::Type;
+use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::marching::extract;
 use nerfjit_runtime::raster::render_mesh;
-use nerfjit_runtime::{save_gif, Camera};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, save_gif, Camera, Mesh};
 
+use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::field::{Compiler, Kind};
 use crate::script;
+use crate::settings::CallArgs;
 
 /// What to extract and where to write it.
 pub struct MeshArgs<'a> {
-    /// The script.
-    pub script: &'a str,
     /// The function whose level set is meshed (`fn f(p: vec3) -> f32`).
     pub function: &'a str,
     /// Grid cells per axis.
@@ -52,8 +52,15 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
     }
 }
 
-/// Extracts and writes the mesh; returns a summary line.
-pub fn run(args: &MeshArgs) -> Result<String> {
+/// `nerfjit mesh`: loads the script and meshes `args.function` with the params' initial values.
+pub fn run(script: &str, args: &MeshArgs) -> Result<String> {
+    let program = script::load(script)?;
+    let (_, summary) = extract_and_write(&program, &program.param_values, args)?;
+    Ok(summary)
+}
+
+/// Extracts the mesh with `params`, writes it (and the GIF); returns it and a summary line.
+pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> Result<(Mesh, String)> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
     if !matches!(ext, "ply" | "obj") {
         return Err(Failure::Message(format!(
@@ -74,11 +81,10 @@ pub fn run(args: &MeshArgs) -> Result<String> {
             )));
         }
     }
-    let program = script::load(args.script)?;
     let cache = KernelCache::new();
     let compiler = Compiler {
-        program: &program,
-        params: &program.param_values,
+        program,
+        params,
         cache: &cache,
     };
     let vec3 = [Type::Vec(3)];
@@ -97,7 +103,7 @@ pub fn run(args: &MeshArgs) -> Result<String> {
     if let Some(gif) = args.gif {
         let (lo, hi) = args.bounds;
         let center = Vec3::from_array(lo).lerp(Vec3::from_array(hi), 0.5);
-        let radius = 1.6 * (Vec3::from_array(hi) - Vec3::from_array(lo)).length();
+        let radius = 0.8 * (Vec3::from_array(hi) - Vec3::from_array(lo)).length();
         // A turntable around the grid's center, 25° above it.
         let elevation = 25f32.to_radians();
         let frames = (0..36)
@@ -119,7 +125,7 @@ pub fn run(args: &MeshArgs) -> Result<String> {
             .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
         save_gif(gif, &frames, 50)?;
     }
-    Ok(format!(
+    let summary = format!(
         "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s): {} vertices, {} triangles, {} → {}",
         args.function,
         args.level,
@@ -128,5 +134,98 @@ pub fn run(args: &MeshArgs) -> Result<String> {
         mesh.triangles.len(),
         if mesh.is_closed() { "closed" } else { "open (the surface leaves the grid or is not closed)" },
         args.out.display()
-    ))
+    );
+    Ok((mesh, summary))
+}
+
+const KEYS: &[&str] = &[
+    "function",
+    "resolution",
+    "bounds",
+    "level",
+    "out",
+    "gif",
+    "compare",
+];
+
+/// A checked `mesh { ... }` block: meshes a function with the params as they are at that point of the
+/// script (after training), and optionally compares the mesh with a point cloud.
+pub struct MeshPlan {
+    function: String,
+    resolution: usize,
+    bounds: ([f32; 3], [f32; 3]),
+    level: f32,
+    out: PathBuf,
+    gif: Option<PathBuf>,
+    compare: Option<(PathBuf, Option<String>)>,
+}
+
+impl MeshPlan {
+    /// Reads and checks a `mesh` block.
+    pub fn new(mut b: Block) -> Result<MeshPlan> {
+        let function = match b.take("function") {
+            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
+            None => "sdf".to_string(),
+        };
+        let resolution = b.whole("resolution", 2, 1024, 128)? as usize;
+        let bound = b.number("bounds", 1e-3, 1e6, 2.0)? as f32;
+        let level = b.number("level", -1e9, 1e9, 0.0)? as f32;
+        let out_v = b.required("out", "out: \"mesh.ply\"")?;
+        let out = PathBuf::from(out_v.string().map_err(|d| b.error(d))?);
+        let out = b.resolve_output(&out_v, out)?;
+        let gif = b.image_output("gif")?;
+        let compare = match b.take("compare") {
+            None => None,
+            Some(v) => {
+                let a = CallArgs::new(&v, &["file", "key"]).map_err(|d| b.error(d))?;
+                let file = a.string("file").map_err(|d| b.error(d))?;
+                let key = a
+                    .raw("key")
+                    .map(|k| k.string().map(str::to_string))
+                    .transpose()
+                    .map_err(|d| b.error(d))?;
+                Some((crate::train::data_path(&file, b.script_dir()), key))
+            }
+        };
+        b.finish(KEYS)?;
+        Ok(MeshPlan {
+            function,
+            resolution,
+            bounds: ([-bound; 3], [bound; 3]),
+            level,
+            out,
+            gif,
+            compare,
+        })
+    }
+
+    /// Meshes, writes and (when asked) compares; returns a summary.
+    pub fn run(&self, program: &Program, params: &[f32]) -> Result<String> {
+        let args = MeshArgs {
+            function: &self.function,
+            resolution: self.resolution,
+            bounds: self.bounds,
+            level: self.level,
+            out: &self.out,
+            gif: self.gif.as_deref(),
+        };
+        let (mesh, mut summary) = extract_and_write(program, params, &args)?;
+        if let Some((file, key)) = &self.compare {
+            // The points as the fit saw them: mean-centered.
+            let (points, _) = mean_center(&read_points(file, key.as_deref())?);
+            let r = chamfer_report(&points, &mesh)?;
+            summary += &format!(
+                "\ndistance from the {} points to the mesh: mean {:.5} ({:.3}% of the {:.3} bounding-box diagonal), max {:.5}; \
+                 from the mesh to the points: mean {:.5} ({:.3}%)",
+                points.len(),
+                r.mean_points_to_mesh,
+                100.0 * r.mean_points_to_mesh / r.bbox_diagonal,
+                r.bbox_diagonal,
+                r.max_points_to_mesh,
+                r.mean_mesh_to_points,
+                100.0 * r.mean_mesh_to_points / r.bbox_diagonal
+            );
+        }
+        Ok(summary)
+    }
 }

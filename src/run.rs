@@ -8,9 +8,11 @@ use nerfjit_dsl::Diagnostic;
 
 use crate::block::Block;
 use crate::failure::{at, Failure, Result};
+use crate::mesh::MeshPlan;
 use crate::render::RenderPlan;
 use crate::script;
 use crate::train::TrainPlan;
+use crate::train_sdf::SdfTrainPlan;
 use crate::viz::VizPlan;
 use crate::volume::VolumePlan;
 
@@ -20,6 +22,8 @@ enum Plan {
     Volume(VolumePlan),
     Train(TrainPlan),
     Viz(VizPlan),
+    FitSdf(SdfTrainPlan),
+    Mesh(MeshPlan),
 }
 
 fn bar(len: usize, what: &str) -> ProgressBar {
@@ -50,6 +54,8 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
             ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(b)?)),
             ("train", None) => plans.push(Plan::Train(TrainPlan::new(b)?)),
             ("viz", None) => plans.push(Plan::Viz(VizPlan::new(b)?)),
+            ("train", Some("sdf")) => plans.push(Plan::FitSdf(SdfTrainPlan::new(b)?)),
+            ("mesh", None) => plans.push(Plan::Mesh(MeshPlan::new(b)?)),
             (kind, name) => {
                 let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
                 return Err(at(
@@ -84,6 +90,8 @@ pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
             }
             Plan::Train(p) => p.run(&program, &mut params, resume)?,
             Plan::Viz(p) => p.run()?,
+            Plan::FitSdf(p) => p.run(&program, &mut params, resume)?,
+            Plan::Mesh(p) => p.run(&program, &params)?,
         };
         crate::emit(&format!("{summary}\n"));
     }

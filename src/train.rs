@@ -60,7 +60,7 @@ pub struct TrainPlan {
 
 /// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
 /// script's folder.
-fn data_path(written: &str, script_dir: &Path) -> PathBuf {
+pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
     let direct = PathBuf::from(written);
     if direct.exists() || direct.is_absolute() {
         direct
@@ -345,7 +345,8 @@ pub fn describe_params(program: &Program, params: &[f32]) -> String {
         .join("\n")
 }
 
-fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
+/// The params of `program` by name, as JSON.
+pub fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
     let map: serde_json::Map<String, serde_json::Value> = program
         .params
         .iter()

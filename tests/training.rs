@@ -118,3 +118,57 @@ fn missing_data_is_reported_before_training() {
     assert!(err.contains("data file 'nowhere.json' not found"), "{err}");
     assert!(err.contains("t.sdf:5:"), "{err}");
 }
+
+#[test]
+fn fits_an_sdf_to_points_with_the_eikonal_term() {
+    // Points on a sphere of radius 0.8 around (0.3, -0.2, 0.1); the SDF has a learnable radius and scale.
+    // Only the eikonal term (trained through the second-order kernel) fixes the scale at 1.
+    let dir = scratch("sdf");
+    let mut xyz = String::new();
+    for i in 0..400 {
+        let (u, v) = ((i as f64 * 0.618034).fract(), (i as f64 * 0.414214).fract());
+        let (theta, z) = (std::f64::consts::TAU * u, 2.0 * v - 1.0);
+        let r = (1.0 - z * z).sqrt();
+        xyz += &format!(
+            "{} {} {}\n",
+            0.3 + 0.8 * r * theta.cos(),
+            -0.2 + 0.8 * r * theta.sin(),
+            0.1 + 0.8 * z
+        );
+    }
+    std::fs::write(dir.join("sphere.xyz"), xyz).unwrap();
+    let src = "param r: f32 = 0.4\nparam s: f32 = 2.0\n\
+               fn sdf(p: vec3) -> f32 = s * (length(p) - r)\n\
+               train sdf { data: points(\"sphere.xyz\"), steps: 600, batch: 256, random: 256, bounds: 2.0, lr: 0.01, \
+               eikonal_weight: 0.5, summary: \"fit.json\" }\n\
+               mesh { resolution: 32, bounds: 1.2, out: \"fit.ply\", compare: points(\"sphere.xyz\") }\n";
+    std::fs::write(dir.join("fit.sdf"), src).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "fit.sdf"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("fitted 'sdf' to 400 points in 600 steps"), "{out}");
+    // The mesh of the fitted SDF lies on the points (they were mean-centered, like the fit's).
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("distance from the 400 points"))
+        .expect("a comparison");
+    let mean: f64 = line
+        .split("mean ")
+        .nth(1)
+        .unwrap()
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(mean < 0.01, "{line}");
+    assert!(out.contains("triangles, closed"), "{out}");
+    let ck: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("fit.json")).unwrap()).unwrap();
+    assert!(ck["surface_loss"].as_f64().unwrap() < 0.01, "{ck}");
+    let (r, s) = (
+        ck["params"]["r"][0].as_f64().unwrap(),
+        ck["params"]["s"][0].as_f64().unwrap(),
+    );
+    assert!((r - 0.8).abs() < 0.01, "radius {r}");
+    assert!((s - 1.0).abs() < 0.05, "scale {s}: the eikonal term sets it to 1");
+}

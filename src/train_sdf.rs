@@ -1,0 +1,383 @@
+//! `train sdf { ... }`: fits a script's (neural) SDF to a point cloud: zero on the points, no surface
+//! near random points, and an eikonal term (|∇ₓd| − 1)² whose param gradient comes from the JIT's
+//! second-order kernel. An optional pre-training pulls the SDF toward a sphere first.
+//!
+//! Per step, with cloud points xᵢ (N) and uniform points yⱼ (M) in [−b, b]³:
+//! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)².
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
+use nerfjit_jit::{Kernel, Options};
+use nerfjit_runtime::{mean_center, read_points, Adam, Rng};
+
+use crate::block::Block;
+use crate::failure::{Failure, Result};
+use crate::settings::CallArgs;
+
+const KEYS: &[&str] = &[
+    "data",
+    "function",
+    "steps",
+    "batch",
+    "random",
+    "bounds",
+    "lr",
+    "near_weight",
+    "near_sharpness",
+    "eikonal_weight",
+    "pretrain_steps",
+    "pretrain_radius",
+    "seed",
+    "checkpoint",
+    "checkpoint_every",
+    "summary",
+];
+
+/// A checked `train sdf` block.
+pub struct SdfTrainPlan {
+    data: PathBuf,
+    key: Option<String>,
+    function: String,
+    steps: u32,
+    batch: usize,
+    random: usize,
+    bound: f32,
+    lr: f32,
+    near_weight: f32,
+    near_sharpness: f32,
+    eikonal_weight: f32,
+    pretrain_steps: u32,
+    pretrain_radius: f32,
+    seed: u64,
+    checkpoint: Option<PathBuf>,
+    checkpoint_every: u32,
+    summary: Option<PathBuf>,
+}
+
+/// The four kernels of one SDF.
+struct Kernels {
+    value: Arc<Kernel>,
+    value_vjp: Kernel,
+    gradient: Kernel,
+    second_order: Kernel,
+}
+
+impl SdfTrainPlan {
+    /// Reads and checks a `train sdf` block.
+    pub fn new(mut b: Block) -> Result<SdfTrainPlan> {
+        let data_v = b.required("data", "data: points(\"bunny_pointcloud.npz\", key: \"verts\")")?;
+        let (file, key) = CallArgs::new(&data_v, &["file", "key"])
+            .and_then(|a| {
+                Ok((
+                    a.string("file")?,
+                    a.raw("key").map(|k| k.string().map(str::to_string)).transpose()?,
+                ))
+            })
+            .map_err(|d| b.error(d))?;
+        let data = crate::train::data_path(&file, b.script_dir());
+        if !data.is_file() {
+            return Err(b.error(
+                Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))
+                    .with_hint("paths are relative to the working folder or to the script"),
+            ));
+        }
+        let function = match b.take("function") {
+            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
+            None => "sdf".to_string(),
+        };
+        let plan = SdfTrainPlan {
+            data,
+            key,
+            function,
+            steps: b.whole("steps", 1, 100_000_000, 1000)? as u32,
+            batch: b.whole("batch", 1, 1 << 20, 4096)? as usize,
+            random: b.whole("random", 1, 1 << 20, 4096)? as usize,
+            bound: b.number("bounds", 1e-3, 1e6, 4.0)? as f32,
+            lr: b.number("lr", 1e-12, 10.0, 1e-4)? as f32,
+            near_weight: b.number("near_weight", 0.0, 1e6, 0.1)? as f32,
+            near_sharpness: b.number("near_sharpness", 0.0, 1e6, 100.0)? as f32,
+            eikonal_weight: b.number("eikonal_weight", 0.0, 1e6, 0.02)? as f32,
+            pretrain_steps: b.whole("pretrain_steps", 0, 1_000_000, 0)? as u32,
+            pretrain_radius: b.number("pretrain_radius", 1e-3, 1e6, 1.0)? as f32,
+            seed: b.whole("seed", 0, u64::MAX >> 1, 0)?,
+            checkpoint: b.output("checkpoint")?,
+            checkpoint_every: b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32,
+            summary: b.output("summary")?,
+        };
+        b.finish(KEYS)?;
+        Ok(plan)
+    }
+
+    fn compile(&self, program: &Program) -> Result<Kernels> {
+        let lowered = program.lower(&self.function)?;
+        let sig = &lowered.signature;
+        if sig.inputs.len() != 1 || sig.inputs[0].1 != Type::Vec(3) || !sig.output.coerces_to(&Type::F32) {
+            return Err(Failure::Message(format!(
+                "'{}' must be fn {}(p: vec3) -> f32 to be fitted to points, but the script has {sig}",
+                self.function, self.function
+            )));
+        }
+        let n = program.n_params();
+        let opts = Options::default();
+        Ok(Kernels {
+            value: Arc::new(Kernel::compile(&kernels::value(&lowered), opts)?),
+            value_vjp: Kernel::compile(&kernels::param_vjp(&lowered, n), opts)?,
+            gradient: Kernel::compile(&kernels::with_gradient(&lowered), opts)?,
+            second_order: Kernel::compile(&kernels::second_order(&lowered, n), opts)?,
+        })
+    }
+
+    /// Trains `params` in place; returns a summary.
+    pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
+        let (cloud, mean) = mean_center(&read_points(&self.data, self.key.as_deref())?);
+        if cloud.is_empty() {
+            return Err(Failure::Message(format!(
+                "{} holds no points",
+                self.data.display()
+            )));
+        }
+        let t = Instant::now();
+        let k = self.compile(program)?;
+        let compile_s = t.elapsed().as_secs_f64();
+        let n = params.len();
+        let mut adam = Adam::new(n, self.lr);
+        let mut first = 0;
+        if resume {
+            if let Some(path) = self.checkpoint.as_ref().filter(|p| p.exists()) {
+                let ck = crate::checkpoint::read(path, n)?;
+                *params = ck.params;
+                adam = Adam::from_state(n, self.lr, &ck.adam)?;
+                first = ck.step;
+                eprintln!("resuming from {} at step {first}", path.display());
+            }
+        }
+        let threads = rayon::current_num_threads();
+        let mut rng = Rng::new(self.seed ^ 0xB0_77);
+        let total = self.pretrain_steps + self.steps;
+        let bar = ProgressBar::new(u64::from(total)).with_style(
+            ProgressStyle::with_template("{spinner} fitting [{bar:30}] {pos}/{len} {msg} {elapsed}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_position(u64::from(first));
+        let start = Instant::now();
+        let mut terms = [f32::NAN; 3];
+        for step in first..total {
+            let mut grads = vec![0.0f32; n];
+            if step < self.pretrain_steps {
+                terms = [
+                    self.sphere_step(&k, params, &mut grads, &mut rng, threads),
+                    0.0,
+                    0.0,
+                ];
+            } else {
+                terms = self.fit_step(&k, params, &mut grads, &cloud, &mut rng, threads);
+            }
+            let loss: f32 = terms.iter().sum();
+            if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
+                bar.abandon();
+                let kept = match &self.checkpoint {
+                    Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
+                    _ => "no checkpoint was written".to_string(),
+                };
+                return Err(Failure::Message(format!(
+                    "training diverged at step {step}: the loss or a gradient is not finite (loss {loss}); {kept}"
+                )));
+            }
+            adam.step(params, &grads)?;
+            let done = step + 1;
+            if done % 10 == 0 || done == total {
+                bar.set_message(format!(
+                    "surface {:.5} near {:.5} eikonal {:.5}{}",
+                    terms[0],
+                    terms[1],
+                    terms[2],
+                    if done <= self.pretrain_steps {
+                        " (pre-training)"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+            bar.set_position(u64::from(done));
+            if let Some(path) = &self.checkpoint {
+                if done % self.checkpoint_every == 0 || done == total {
+                    crate::checkpoint::write(path, done, params, &adam.state())?;
+                }
+            }
+        }
+        bar.finish_and_clear();
+        let seconds = start.elapsed().as_secs_f64();
+        let trained = total - first;
+        let ms = if trained > 0 {
+            1e3 * seconds / f64::from(trained)
+        } else {
+            0.0
+        };
+        if let Some(path) = &self.summary {
+            let json = serde_json::json!({
+                "data": self.data.display().to_string(),
+                "points": cloud.len(),
+                "mean_centered_by": mean,
+                "steps": total,
+                "resumed_from": first,
+                "surface_loss": terms[0],
+                "near_loss": terms[1],
+                "eikonal_loss": terms[2],
+                "seconds": seconds,
+                "ms_per_step": ms,
+                "compile_seconds": compile_s,
+                "params": crate::train::params_json(program, params),
+            });
+            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        Ok(format!(
+            "fitted '{}' to {} points in {trained} steps, {seconds:.1} s ({ms:.2} ms/step, JIT compile {compile_s:.2} s): \
+             mean |d| on the points {:.5}, near-surface term {:.5}, eikonal term {:.5}\n{}",
+            self.function,
+            cloud.len(),
+            terms[0],
+            terms[1],
+            terms[2],
+            crate::train::describe_params(program, params)
+        ))
+    }
+
+    fn uniform_points(&self, rng: &mut Rng, m: usize) -> [Vec<f32>; 3] {
+        let mut cols = [
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+        ];
+        for _ in 0..m {
+            for c in &mut cols {
+                c.push((rng.next_f32() * 2.0 - 1.0) * self.bound);
+            }
+        }
+        cols
+    }
+
+    /// Pre-training toward the sphere of `pretrain_radius`: mean (d(y) − (|y| − r))².
+    fn sphere_step(
+        &self,
+        k: &Kernels,
+        params: &[f32],
+        grads: &mut [f32],
+        rng: &mut Rng,
+        threads: usize,
+    ) -> f32 {
+        let m = self.random;
+        let ys = self.uniform_points(rng, m);
+        let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
+        let mut d = vec![0.0f32; m];
+        k.value
+            .eval_parallel(m, &ins, &mut [&mut d], params, &mut [], threads);
+        let mut cot = vec![0.0f32; m];
+        let mut loss = 0.0f64;
+        for j in 0..m {
+            let target = (ys[0][j] * ys[0][j] + ys[1][j] * ys[1][j] + ys[2][j] * ys[2][j]).sqrt()
+                - self.pretrain_radius;
+            let e = d[j] - target;
+            loss += f64::from(e * e);
+            cot[j] = 2.0 * e / m as f32;
+        }
+        let with_cot: Vec<&[f32]> = ins
+            .iter()
+            .copied()
+            .chain(std::iter::once(cot.as_slice()))
+            .collect();
+        k.value_vjp
+            .eval_parallel(m, &with_cot, &mut [], params, grads, threads);
+        (loss / m as f64) as f32
+    }
+
+    /// One step of the fit; returns the three loss terms (already weighted).
+    fn fit_step(
+        &self,
+        k: &Kernels,
+        params: &[f32],
+        grads: &mut [f32],
+        cloud: &[[f32; 3]],
+        rng: &mut Rng,
+        threads: usize,
+    ) -> [f32; 3] {
+        // Points on the surface: mean |d|.
+        let nb = self.batch;
+        let mut xs = [
+            Vec::with_capacity(nb),
+            Vec::with_capacity(nb),
+            Vec::with_capacity(nb),
+        ];
+        for _ in 0..nb {
+            let p = cloud[rng.below(cloud.len() as u64) as usize];
+            for (c, v) in xs.iter_mut().zip(p) {
+                c.push(v);
+            }
+        }
+        let ins: Vec<&[f32]> = xs.iter().map(Vec::as_slice).collect();
+        let mut d = vec![0.0f32; nb];
+        k.value
+            .eval_parallel(nb, &ins, &mut [&mut d], params, &mut [], threads);
+        let surface = d.iter().map(|v| f64::from(v.abs())).sum::<f64>() / nb as f64;
+        let cot: Vec<f32> = d
+            .iter()
+            .map(|v| if *v == 0.0 { 0.0 } else { v.signum() / nb as f32 })
+            .collect();
+        let with_cot: Vec<&[f32]> = ins
+            .iter()
+            .copied()
+            .chain(std::iter::once(cot.as_slice()))
+            .collect();
+        k.value_vjp
+            .eval_parallel(nb, &with_cot, &mut [], params, grads, threads);
+
+        // Random points: the near-surface penalty on d and the eikonal term on ∇d.
+        let m = self.random;
+        let ys = self.uniform_points(rng, m);
+        let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
+        let mut out = vec![vec![0.0f32; m]; 4];
+        {
+            let mut refs: Vec<&mut [f32]> = out.iter_mut().map(Vec::as_mut_slice).collect();
+            k.gradient
+                .eval_parallel(m, &ins, &mut refs, params, &mut [], threads);
+        }
+        let (alpha, w_near, w_eik) = (self.near_sharpness, self.near_weight, self.eikonal_weight);
+        let mut cots = vec![vec![0.0f32; m]; 4];
+        let (mut near, mut eik) = (0.0f64, 0.0f64);
+        for j in 0..m {
+            let dj = out[0][j];
+            let e = (-alpha * dj.abs()).exp();
+            near += f64::from(e);
+            cots[0][j] = if dj == 0.0 {
+                0.0
+            } else {
+                -w_near * alpha * dj.signum() * e / m as f32
+            };
+            let g = [out[1][j], out[2][j], out[3][j]];
+            let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+            eik += f64::from((norm - 1.0) * (norm - 1.0));
+            if norm > 0.0 {
+                for c in 0..3 {
+                    cots[1 + c][j] = w_eik * 2.0 * (norm - 1.0) * g[c] / norm / m as f32;
+                }
+            }
+        }
+        let with_cots: Vec<&[f32]> = ins
+            .iter()
+            .copied()
+            .chain(cots.iter().map(Vec::as_slice))
+            .collect();
+        let mut scratch = vec![vec![0.0f32; m]; 4];
+        let mut refs: Vec<&mut [f32]> = scratch.iter_mut().map(Vec::as_mut_slice).collect();
+        k.second_order
+            .eval_parallel(m, &with_cots, &mut refs, params, grads, threads);
+        [
+            surface as f32,
+            w_near * (near / m as f64) as f32,
+            w_eik * (eik / m as f64) as f32,
+        ]
+    }
+}
