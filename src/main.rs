@@ -49,6 +49,9 @@ enum Command {
         /// Continue training from the train block's checkpoint, if it exists.
         #[arg(long)]
         resume: bool,
+        /// Override a const (`beta=0.1`) or a block setting (`train.steps=100`, `render.size=64`); repeatable.
+        #[arg(long = "set", value_name = "NAME=VALUE")]
+        set: Vec<String>,
     },
     /// Transmittance through a piecewise-constant medium along a ray.
     Transmittance {
@@ -147,7 +150,12 @@ fn main() -> ExitCode {
             .build_global();
     }
     let result = match cli.command {
-        Command::Run { script, out, resume } => run::run(&script, out.as_deref(), resume),
+        Command::Run {
+            script,
+            out,
+            resume,
+            set,
+        } => run::run(&script, &set, out.as_deref(), resume),
         Command::Transmittance { segments, from, to } => {
             transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
         }

@@ -37,8 +37,8 @@ fn bar(len: usize, what: &str) -> ProgressBar {
 
 /// Runs every block of the script in order; all blocks are checked before the first one runs. Training
 /// updates the params that later blocks render with.
-pub fn run(path: &str, out_dir: Option<&Path>, resume: bool) -> Result<()> {
-    let program = script::load(path)?;
+pub fn run(path: &str, overrides: &[String], out_dir: Option<&Path>, resume: bool) -> Result<()> {
+    let program = script::load_with(path, overrides)?;
     if let Some(dir) = out_dir {
         std::fs::create_dir_all(dir)
             .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", dir.display())))?;

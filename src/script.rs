@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use nerfjit_dsl::{compile, Program};
+use nerfjit_dsl::{compile_with, Program};
 
 use crate::failure::{Failure, Result};
 
@@ -11,8 +11,13 @@ include!(concat!(env!("OUT_DIR"), "/examples.rs"));
 /// Reads and checks the script at `path`. A path that does not exist but names an embedded example
 /// (`torus`, `torus.sdf` or `examples/torus.sdf`) loads that example.
 pub fn load(path: &str) -> Result<Program> {
+    load_with(path, &[])
+}
+
+/// [`load`] with `--set` overrides (`name=value` for a const, `kind.key=value` for a block setting).
+pub fn load_with(path: &str, overrides: &[String]) -> Result<Program> {
     let (name, source) = read(path)?;
-    compile(&name, &source).map_err(Failure::Script)
+    compile_with(&name, &source, overrides).map_err(Failure::Script)
 }
 
 fn read(path: &str) -> Result<(String, String)> {

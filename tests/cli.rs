@@ -275,3 +275,38 @@ fn mesh_writes_a_closed_torus() {
     );
     assert!(text(&out).1.contains("--bounds takes"));
 }
+
+#[test]
+fn set_overrides_consts_and_block_settings() {
+    let dir = scratch("set");
+    let out = nerfjit(
+        &[
+            "run",
+            "examples/box.sdf",
+            "--out",
+            dir.to_str().unwrap(),
+            "--set",
+            "render.size=[40, 24]",
+            "--set",
+            "sides=[1.0, 0.5, 1.5]",
+            "--set",
+            "render.camera=surround(radius: 3.0, frames: 2, up: y, focal: 1.0)",
+        ],
+        None,
+    );
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stdout.contains("volume-rendered 2 frames of 40×24×64 samples"),
+        "{stdout}"
+    );
+    let out = nerfjit(&["run", "examples/box.sdf", "--set", "sidez=1"], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("--> --set:1:1") && stderr.contains("did you mean 'sides'?"),
+        "{stderr}"
+    );
+    let out = nerfjit(&["run", "examples/box.sdf", "--set", "render.size"], None);
+    assert!(text(&out).1.contains("is not name=value"));
+}

@@ -24,13 +24,14 @@ pub mod interp;
 pub mod ir;
 pub mod kernels;
 pub mod lexer;
+pub mod overrides;
 pub mod parser;
 pub mod program;
 pub mod types;
 pub mod value;
 
 pub use diag::{Diagnostic, Report, Span};
-pub use program::{compile, Lowered, Program, Signature, PRELUDE};
+pub use program::{compile, compile_with, Lowered, Program, Signature, PRELUDE};
 pub use types::Type;
 
 impl Program {

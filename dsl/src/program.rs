@@ -73,6 +73,13 @@ pub struct Program {
 
 /// Parses and checks `source` (named `file` in diagnostics).
 pub fn compile(file: &str, source: &str) -> Result<Program, Report> {
+    compile_with(file, source, &[])
+}
+
+/// Parses and checks `source` after applying `overrides`, each `name=value` (a `const`) or
+/// `kind.key=value` (a setting of the first block of that kind, e.g. `train.steps=100` or
+/// `render.size=64`); the values are expressions of the language. Errors in an override point at it.
+pub fn compile_with(file: &str, source: &str, overrides: &[String]) -> Result<Program, Report> {
     let mut sources = SourceMap::default();
     sources.add("<prelude>", PRELUDE);
     let base = sources.add(file, source);
@@ -81,7 +88,11 @@ pub fn compile(file: &str, source: &str) -> Result<Program, Report> {
         diagnostics,
     };
     let prelude = parse(PRELUDE, 0).map_err(|d| fail(&sources, vec![d]))?;
-    let script = parse(source, base).map_err(|d| fail(&sources, vec![d]))?;
+    let mut script = parse(source, base).map_err(|d| fail(&sources, vec![d]))?;
+    for text in overrides {
+        let at = sources.add("--set", text);
+        crate::overrides::apply(&mut script, text, at).map_err(|d| fail(&sources, vec![d]))?;
+    }
     let mut program = Program {
         sources,
         prelude,
