@@ -33,6 +33,22 @@ pub struct MeshArgs<'a> {
     pub gif: Option<&'a Path>,
 }
 
+/// 36 cameras circling the box `bounds` 25° above its center, framing it.
+pub fn turntable(bounds: ([f32; 3], [f32; 3])) -> nerfjit_runtime::Result<Vec<Camera>> {
+    let (lo, hi) = (Vec3::from_array(bounds.0), Vec3::from_array(bounds.1));
+    let center = lo.lerp(hi, 0.5);
+    let radius = 0.8 * (hi - lo).length();
+    let elevation = 25f32.to_radians();
+    (0..36)
+        .map(|i| {
+            let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
+            let flat = radius * elevation.cos();
+            let eye = center + Vec3::new(flat * phi.cos(), radius * elevation.sin(), -flat * phi.sin());
+            Camera::look_at(eye, center, Vec3::Y, Vec2::splat(1.2), Vec2::ZERO)
+        })
+        .collect()
+}
+
 /// Parses `--bounds`: `r` for [−r, r]³, or six numbers `x0,y0,z0,x1,y1,z1`.
 pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), String> {
     let numbers: Vec<f32> = text
@@ -101,23 +117,16 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         mesh.write_obj(args.out)?;
     }
     if let Some(gif) = args.gif {
-        let (lo, hi) = args.bounds;
-        let center = Vec3::from_array(lo).lerp(Vec3::from_array(hi), 0.5);
-        let radius = 0.8 * (Vec3::from_array(hi) - Vec3::from_array(lo)).length();
-        // A turntable around the grid's center, 25° above it.
-        let elevation = 25f32.to_radians();
-        let frames = (0..36)
-            .map(|i| {
-                let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
-                let flat = radius * elevation.cos();
-                let eye = center + Vec3::new(flat * phi.cos(), radius * elevation.sin(), -flat * phi.sin());
-                let camera = Camera::look_at(eye, center, Vec3::Y, Vec2::splat(1.2), Vec2::ZERO)?;
+        let frames = turntable(args.bounds)?
+            .iter()
+            .map(|camera| {
+                let light = Vec3::new(-0.5, 1.0, -0.8);
                 render_mesh(
-                    &camera,
+                    camera,
                     256,
                     256,
                     &mesh,
-                    Vec3::new(-0.5, 1.0, -0.8),
+                    light,
                     [0.85, 0.8, 0.7],
                     [0.1, 0.11, 0.14],
                 )

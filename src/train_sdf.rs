@@ -12,7 +12,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, Options};
-use nerfjit_runtime::{mean_center, read_points, Adam, Rng};
+use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Adam, Rng};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -56,6 +56,7 @@ pub struct SdfTrainPlan {
     checkpoint: Option<PathBuf>,
     checkpoint_every: u32,
     summary: Option<PathBuf>,
+    points_gif: Option<PathBuf>,
 }
 
 /// The four kernels of one SDF.
@@ -107,6 +108,7 @@ impl SdfTrainPlan {
             checkpoint: b.output("checkpoint")?,
             checkpoint_every: b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32,
             summary: b.output("summary")?,
+            points_gif: b.image_output("points_gif")?,
         };
         b.finish(KEYS)?;
         Ok(plan)
@@ -139,6 +141,9 @@ impl SdfTrainPlan {
                 "{} holds no points",
                 self.data.display()
             )));
+        }
+        if let Some(path) = &self.points_gif {
+            write_points_gif(path, &cloud)?;
         }
         let t = Instant::now();
         let k = self.compile(program)?;
@@ -380,4 +385,16 @@ impl SdfTrainPlan {
             w_eik * (eik / m as f64) as f32,
         ]
     }
+}
+
+/// A turntable GIF of a point cloud, framing its bounding box.
+fn write_points_gif(path: &std::path::Path, points: &[[f32; 3]]) -> Result<()> {
+    let Some(bounds) = bounding_box(points) else {
+        return Ok(());
+    };
+    let frames = crate::mesh::turntable(bounds)?
+        .iter()
+        .map(|camera| render_points(camera, 256, 256, points, 1.5, [0.9, 0.8, 0.6], [0.1, 0.11, 0.14]))
+        .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
+    crate::output::write_images(path, frames, 50)
 }
