@@ -18,6 +18,7 @@ mod settings;
 mod train;
 mod train_sdf;
 mod transmittance;
+mod views;
 mod viz;
 mod volume;
 
@@ -127,6 +128,28 @@ enum Command {
         #[arg(long)]
         gif: Option<PathBuf>,
     },
+    /// Render a script's volume field (or a training checkpoint's) from every camera of a Blender-format
+    /// camera file.
+    Render {
+        /// A script, or a checkpoint written by a train block (it holds its script).
+        source: String,
+        #[command(flatten)]
+        view: ViewOptions,
+        /// The output folder (view_000.png, ...).
+        #[arg(long)]
+        out: PathBuf,
+        /// Write one GIF of all views (views.gif) instead of PNGs.
+        #[arg(long)]
+        gif: bool,
+    },
+    /// Score a script's volume field (or a checkpoint's) on the views of a Blender-format camera file:
+    /// PSNR and SSIM per view and their means.
+    EvalViews {
+        /// A script, or a checkpoint written by a train block.
+        source: String,
+        #[command(flatten)]
+        view: ViewOptions,
+    },
     /// List the example scripts built into the binary, or print one.
     Examples {
         /// The example to print.
@@ -139,6 +162,44 @@ enum Command {
 fn emit(text: &str) {
     use std::io::Write;
     let _ = std::io::stdout().lock().write_all(text.as_bytes());
+}
+
+/// How `render` and `eval-views` render views.
+#[derive(clap::Args)]
+struct ViewOptions {
+    /// The camera file (Blender `transforms_*.json`).
+    #[arg(long)]
+    cameras: PathBuf,
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 128)]
+    size: u32,
+    /// Start of the sampled interval along each ray.
+    #[arg(long, default_value_t = 2.0)]
+    near: f32,
+    /// End of the sampled interval.
+    #[arg(long, default_value_t = 6.0)]
+    far: f32,
+    /// Samples per ray.
+    #[arg(long, default_value_t = 128)]
+    samples: usize,
+    /// Background: black or white (the images' alpha is composited on it too).
+    #[arg(long, default_value = "black", value_parser = ["black", "white"])]
+    background: String,
+}
+
+impl ViewOptions {
+    fn args<'a>(&'a self, source: &'a str) -> views::ViewArgs<'a> {
+        let bg = if self.background == "white" { 1.0 } else { 0.0 };
+        views::ViewArgs {
+            source,
+            cameras: &self.cameras,
+            size: self.size,
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            background: [bg; 3],
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -204,6 +265,10 @@ fn main() -> ExitCode {
                 mesh::run(&script, &args)
             })
             .map(|text| emit(&format!("{text}\n"))),
+        Command::Render { source, view, out, gif } => {
+            views::render(&view.args(&source), &out, gif).map(|text| emit(&format!("{text}\n")))
+        }
+        Command::EvalViews { source, view } => views::eval(&view.args(&source)).map(|text| emit(&text)),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
     };
     match result {

@@ -9,7 +9,7 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng, Schedule, Views,
+    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng, Schedule, Views,
     VolumeSettings,
 };
 
@@ -41,6 +41,8 @@ const KEYS: &[&str] = &[
 /// A checked `train` block.
 pub struct TrainPlan {
     data: PathBuf,
+    /// For a Blender data set: image size, background and how many views (the first n).
+    blender: Option<(u32, [f32; 3], Option<usize>)>,
     near: f32,
     far: f32,
     samples: usize,
@@ -56,6 +58,33 @@ pub struct TrainPlan {
     summary: Option<PathBuf>,
     preview: Option<PathBuf>,
     preview_every: u32,
+}
+
+/// The `data` setting: `views("box_cameras.json")` (the course's cameras with .npy/PNG images) or
+/// `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)` (NeRF-synthetic data,
+/// area-downscaled, alpha composited on the background, optionally only the first `views` frames).
+fn data_source(v: &Spanned) -> std::result::Result<(String, Option<(u32, [f32; 3], Option<usize>)>), Diagnostic> {
+    let Value::Call(kind, _) = &v.value else {
+        return Err(Diagnostic::new(v.span, format!("expected views(...) or blender(...), found {}", v.describe())));
+    };
+    match kind.as_str() {
+        "views" => Ok((CallArgs::new(v, &["file"])?.string("file")?, None)),
+        "blender" => {
+            let a = CallArgs::new(v, &["file", "size", "background", "views"])?;
+            let size = a.number("size", Some(128.0))?;
+            if !(1.0..=4096.0).contains(&size) || size.fract() != 0.0 {
+                return Err(Diagnostic::new(v.span, "'size' is a whole number from 1 to 4096"));
+            }
+            let background = a.raw("background").map(crate::settings::triple).transpose()?.unwrap_or([0.0; 3]);
+            let views = match a.raw("views") {
+                Some(n) => Some(crate::settings::whole(n, 1, 100_000)? as usize),
+                None => None,
+            };
+            Ok((a.string("file")?, Some((size as u32, background, views))))
+        }
+        other => Err(Diagnostic::new(v.span, format!("unknown data source '{other}'"))
+            .with_hint("use views(\"box_cameras.json\") or blender(\"transforms_train.json\", size: 128)")),
+    }
 }
 
 /// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
@@ -118,10 +147,8 @@ impl TrainPlan {
     /// Reads and checks a `train` block.
     pub fn new(mut b: Block) -> Result<TrainPlan> {
         let data_v = b.required("data", "data: views(\"box_cameras.json\")")?;
-        let data = CallArgs::new(&data_v, &["file"])
-            .and_then(|a| a.string("file"))
-            .map_err(|d| b.error(d))?;
-        let data = data_path(&data, b.script_dir());
+        let (file, blender) = data_source(&data_v).map_err(|d| b.error(d))?;
+        let data = data_path(&file, b.script_dir());
         if !data.is_file() {
             return Err(b.error(
                 Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))
@@ -146,6 +173,7 @@ impl TrainPlan {
         b.finish(KEYS)?;
         Ok(TrainPlan {
             data,
+            blender,
             near,
             far,
             samples,
@@ -184,6 +212,7 @@ impl TrainPlan {
             summary: None,
             preview: None,
             data: self.data.clone(),
+            blender: self.blender,
             ..*self
         };
         let line = quiet.run(program, params, false)?;
@@ -192,7 +221,10 @@ impl TrainPlan {
 
     /// Trains `params` in place (resuming from the checkpoint when asked); returns a summary line.
     pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
-        let views = load_box_views(&self.data)?;
+        let views = match self.blender {
+            None => load_box_views(&self.data)?,
+            Some((size, background, limit)) => load_blender_views(&self.data, Some(size), background, limit)?,
+        };
 
         let cache = KernelCache::new();
         let t = Instant::now();
@@ -262,7 +294,7 @@ impl TrainPlan {
             bar.set_position(u64::from(done));
             if let Some(path) = &self.checkpoint {
                 if done % self.checkpoint_every == 0 || done == self.steps {
-                    crate::checkpoint::write(path, done, params, &adam.state())?;
+                    crate::checkpoint::write(path, program, done, params, &adam.state())?;
                 }
             }
             if let Some(path) = &self.preview {

@@ -210,7 +210,7 @@ impl SdfTrainPlan {
             bar.set_position(u64::from(done));
             if let Some(path) = &self.checkpoint {
                 if done % self.checkpoint_every == 0 || done == total {
-                    crate::checkpoint::write(path, done, params, &adam.state())?;
+                    crate::checkpoint::write(path, program, done, params, &adam.state())?;
                 }
             }
         }

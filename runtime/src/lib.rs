@@ -17,6 +17,7 @@
 //!   (the course's views).
 #![warn(missing_docs)]
 
+pub mod blender;
 mod bvh;
 pub mod camera;
 pub mod camera_files;
@@ -47,6 +48,7 @@ pub mod transmittance;
 pub mod viz;
 pub mod volume;
 
+pub use blender::load_blender_views;
 pub use camera::{Camera, NdcScale};
 pub use camera_files::{load_blender_cameras, load_box_cameras, CameraSet};
 pub use composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
