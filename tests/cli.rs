@@ -310,3 +310,44 @@ fn set_overrides_consts_and_block_settings() {
     let out = nerfjit(&["run", "examples/box.sdf", "--set", "render.size"], None);
     assert!(text(&out).1.contains("is not name=value"));
 }
+
+#[test]
+fn render_and_eval_views_agree_on_a_blender_camera_file() {
+    // Two cameras in the Blender convention (camera-to-world, looking down −Z), 4 units from the origin.
+    let dir = scratch("views");
+    let transforms = r#"{"camera_angle_x": 0.69, "frames": [
+        {"file_path": "./view_000", "transform_matrix": [[1, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0], [0, 0, 0, 1]]},
+        {"file_path": "./view_001", "transform_matrix": [[0, 0, 1, 4], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]}]}"#;
+    std::fs::write(dir.join("transforms.json"), transforms).unwrap();
+    let script = write(
+        &dir,
+        "box.sdf",
+        "fn density(p: vec3) -> f32 = volsdf_density(box(p, [1.2, 0.8, 1.0]), alpha: 20.0, beta: 0.05)\n\
+         fn color(p: vec3) -> vec3 = clamp(abs(p) + 0.2, 0.0, 1.0)\n",
+    );
+    let cams = dir.join("transforms.json");
+    let common = ["--cameras", cams.to_str().unwrap(), "--size", "24", "--samples", "64"];
+    let mut args = vec!["render", script.as_str()];
+    args.extend(common);
+    args.extend(["--out", dir.to_str().unwrap()]);
+    let out = nerfjit(&args, None);
+    assert!(out.status.success(), "{}", text(&out).1);
+    assert!(text(&out).0.contains("rendered 2 views of 24×24"));
+    // The renders are the ground truth of the same field: only 8-bit rounding separates them.
+    let mut args = vec!["eval-views", script.as_str()];
+    args.extend(common);
+    let out = nerfjit(&args, None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    let mean = stdout.lines().find(|l| l.starts_with("mean")).expect("a mean line");
+    let psnr: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(psnr > 40.0, "{stdout}");
+    // A different field scores clearly worse.
+    let other = write(&dir, "other.sdf", "fn density(p: vec3) -> f32 = 0.0\nfn color(p: vec3) -> vec3 = [1, 1, 1]\n");
+    let mut args = vec!["eval-views", other.as_str()];
+    args.extend(common);
+    let (stdout, _) = text(&nerfjit(&args, None));
+    let mean = stdout.lines().find(|l| l.starts_with("mean")).expect("a mean line");
+    let worse: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(worse < 25.0, "{stdout}");
+}
