@@ -28,7 +28,12 @@ pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render` and `eval-views` can use
 /// the checkpoint alone).
 pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &[f32]) -> Result<()> {
-    let script = program.sources.files.last().map(|f| (f.name.clone(), f.text.clone())).unwrap_or_default();
+    let script = program
+        .sources
+        .files
+        .last()
+        .map(|f| (f.name.clone(), f.text.clone()))
+        .unwrap_or_default();
     let json = serde_json::json!({
         "format": "nerfjit-checkpoint-1",
         "script": { "name": script.0, "source": script.1 },
@@ -44,8 +49,10 @@ pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &[
 pub fn load_trained(path: &Path) -> Result<(Program, Vec<f32>)> {
     let bad = |why: &str| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
     let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
-    let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(&format!("invalid JSON ({e})")))?;
-    let (Some(name), Some(source)) = (json["script"]["name"].as_str(), json["script"]["source"].as_str()) else {
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| bad(&format!("invalid JSON ({e})")))?;
+    let (Some(name), Some(source)) = (json["script"]["name"].as_str(), json["script"]["source"].as_str())
+    else {
         return Err(bad("it holds no script"));
     };
     let program = nerfjit_dsl::compile(name, source).map_err(Failure::Script)?;

@@ -96,6 +96,9 @@ enum Command {
         /// Which kernel.
         #[arg(long, value_enum, default_value = "value")]
         kind: ir_dump::KernelKind,
+        /// Short for `--kind grad`.
+        #[arg(long, conflicts_with = "kind")]
+        grad: bool,
     },
     /// Run a benchmark workload and print its figures (medians).
     Bench {
@@ -241,7 +244,11 @@ fn main() -> ExitCode {
             script,
             function,
             kind,
-        } => ir_dump::run(&script, &function, kind).map(|text| emit(&text)),
+            grad,
+        } => {
+            let kind = if grad { ir_dump::KernelKind::Grad } else { kind };
+            ir_dump::run(&script, &function, kind).map(|text| emit(&text))
+        }
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Mesh {
             script,
@@ -265,9 +272,12 @@ fn main() -> ExitCode {
                 mesh::run(&script, &args)
             })
             .map(|text| emit(&format!("{text}\n"))),
-        Command::Render { source, view, out, gif } => {
-            views::render(&view.args(&source), &out, gif).map(|text| emit(&format!("{text}\n")))
-        }
+        Command::Render {
+            source,
+            view,
+            out,
+            gif,
+        } => views::render(&view.args(&source), &out, gif).map(|text| emit(&format!("{text}\n"))),
         Command::EvalViews { source, view } => views::eval(&view.args(&source)).map(|text| emit(&text)),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
     };

@@ -9,8 +9,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng, Schedule, Views,
-    VolumeSettings,
+    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng,
+    Schedule, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -63,9 +63,14 @@ pub struct TrainPlan {
 /// The `data` setting: `views("box_cameras.json")` (the course's cameras with .npy/PNG images) or
 /// `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)` (NeRF-synthetic data,
 /// area-downscaled, alpha composited on the background, optionally only the first `views` frames).
-fn data_source(v: &Spanned) -> std::result::Result<(String, Option<(u32, [f32; 3], Option<usize>)>), Diagnostic> {
+fn data_source(
+    v: &Spanned,
+) -> std::result::Result<(String, Option<(u32, [f32; 3], Option<usize>)>), Diagnostic> {
     let Value::Call(kind, _) = &v.value else {
-        return Err(Diagnostic::new(v.span, format!("expected views(...) or blender(...), found {}", v.describe())));
+        return Err(Diagnostic::new(
+            v.span,
+            format!("expected views(...) or blender(...), found {}", v.describe()),
+        ));
     };
     match kind.as_str() {
         "views" => Ok((CallArgs::new(v, &["file"])?.string("file")?, None)),
@@ -75,7 +80,11 @@ fn data_source(v: &Spanned) -> std::result::Result<(String, Option<(u32, [f32; 3
             if !(1.0..=4096.0).contains(&size) || size.fract() != 0.0 {
                 return Err(Diagnostic::new(v.span, "'size' is a whole number from 1 to 4096"));
             }
-            let background = a.raw("background").map(crate::settings::triple).transpose()?.unwrap_or([0.0; 3]);
+            let background = a
+                .raw("background")
+                .map(crate::settings::triple)
+                .transpose()?
+                .unwrap_or([0.0; 3]);
             let views = match a.raw("views") {
                 Some(n) => Some(crate::settings::whole(n, 1, 100_000)? as usize),
                 None => None,

@@ -9,7 +9,8 @@ use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_cameras, load_blender_views, psnr, render_volume, rgb_image, ssim, ImageF32, Quantize, VolumeSettings,
+    load_blender_cameras, load_blender_views, psnr, render_volume, rgb_image, ssim, ImageF32, Quantize,
+    VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
@@ -80,12 +81,22 @@ pub fn render(args: &ViewArgs, out: &Path, gif: bool) -> Result<String> {
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     let seconds = start.elapsed().as_secs_f64();
     let n = images.len();
-    let target: PathBuf = if gif { out.join("views.gif") } else { out.join("view.png") };
+    let target: PathBuf = if gif {
+        out.join("views.gif")
+    } else {
+        out.join("view.png")
+    };
     write_images(&target, images, 100)?;
     let size = args.size;
     let per_view = seconds / n.max(1) as f64;
-    let written = if gif { target.display().to_string() } else { out.display().to_string() };
-    Ok(format!("rendered {n} views of {size}×{size} in {seconds:.2} s ({per_view:.2} s/view) → {written}"))
+    let written = if gif {
+        target.display().to_string()
+    } else {
+        out.display().to_string()
+    };
+    Ok(format!(
+        "rendered {n} views of {size}×{size} in {seconds:.2} s ({per_view:.2} s/view) → {written}"
+    ))
 }
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means.
@@ -100,7 +111,11 @@ pub fn eval(args: &ViewArgs) -> Result<String> {
     let (mut sum_psnr, mut sum_ssim) = (0.0f64, 0.0f64);
     for (i, (camera, target)) in views.cameras.iter().zip(&views.images).enumerate() {
         let f = render_volume(camera, views.width, views.height, &forward, &settings)?;
-        let rendered = ImageF32 { width: f.width, height: f.height, pixels: f.rgb };
+        let rendered = ImageF32 {
+            width: f.width,
+            height: f.height,
+            pixels: f.rgb,
+        };
         let mse = nerfjit_runtime::mse(&rendered, target)?;
         let (p, s) = (psnr(mse), ssim(&rendered, target)?);
         sum_psnr += f64::from(p);

@@ -326,7 +326,14 @@ fn render_and_eval_views_agree_on_a_blender_camera_file() {
          fn color(p: vec3) -> vec3 = clamp(abs(p) + 0.2, 0.0, 1.0)\n",
     );
     let cams = dir.join("transforms.json");
-    let common = ["--cameras", cams.to_str().unwrap(), "--size", "24", "--samples", "64"];
+    let common = [
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--size",
+        "24",
+        "--samples",
+        "64",
+    ];
     let mut args = vec!["render", script.as_str()];
     args.extend(common);
     args.extend(["--out", dir.to_str().unwrap()]);
@@ -339,15 +346,25 @@ fn render_and_eval_views_agree_on_a_blender_camera_file() {
     let out = nerfjit(&args, None);
     let (stdout, stderr) = text(&out);
     assert!(out.status.success(), "{stderr}");
-    let mean = stdout.lines().find(|l| l.starts_with("mean")).expect("a mean line");
+    let mean = stdout
+        .lines()
+        .find(|l| l.starts_with("mean"))
+        .expect("a mean line");
     let psnr: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
     assert!(psnr > 40.0, "{stdout}");
     // A different field scores clearly worse.
-    let other = write(&dir, "other.sdf", "fn density(p: vec3) -> f32 = 0.0\nfn color(p: vec3) -> vec3 = [1, 1, 1]\n");
+    let other = write(
+        &dir,
+        "other.sdf",
+        "fn density(p: vec3) -> f32 = 0.0\nfn color(p: vec3) -> vec3 = [1, 1, 1]\n",
+    );
     let mut args = vec!["eval-views", other.as_str()];
     args.extend(common);
     let (stdout, _) = text(&nerfjit(&args, None));
-    let mean = stdout.lines().find(|l| l.starts_with("mean")).expect("a mean line");
+    let mean = stdout
+        .lines()
+        .find(|l| l.starts_with("mean"))
+        .expect("a mean line");
     let worse: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
     assert!(worse < 25.0, "{stdout}");
 }
