@@ -157,7 +157,11 @@ impl RenderPlan {
         let shading = match (&self.shading, &color) {
             (ShadingChoice::Color, Some(c)) => Shading::Color {
                 color: c,
-                gradient: Some(&gradient),
+                // Normals cost a gradient evaluation per hit: only when a normal map is asked for.
+                gradient: self
+                    .normals
+                    .as_ref()
+                    .map(|_| &gradient as &dyn nerfjit_runtime::BatchFn),
             },
             (ShadingChoice::Lambert { light, albedo }, _) => Shading::Lambert {
                 gradient: &gradient,
