@@ -76,17 +76,8 @@ pub struct Compiler<'a> {
 impl Compiler<'_> {
     /// Compiles function `name` after checking its signature against `inputs` → `output`.
     pub fn function(&self, name: &str, inputs: &[Type], output: &Type, kind: Kind) -> Result<JitFn> {
-        let (program, cache) = (self.program, self.cache);
-        let lowered = program.lower(name)?;
-        let sig = &lowered.signature;
-        let got: Vec<&Type> = sig.inputs.iter().map(|(_, t)| t).collect();
-        if got != inputs.iter().collect::<Vec<_>>() || !sig.output.coerces_to(output) {
-            let want: Vec<String> = inputs.iter().map(Type::to_string).collect();
-            return Err(Failure::Message(format!(
-                "'{name}' must have the signature fn {name}({}) -> {output}, but the script has {sig}",
-                want.join(", ")
-            )));
-        }
+        check_signature(self.program, name, &[inputs], output)?;
+        let lowered = self.program.lower(name)?;
         let graph = match kind {
             Kind::Value | Kind::Sdf => kernels::value(&lowered),
             Kind::Gradient => kernels::with_gradient(&lowered),
@@ -96,7 +87,7 @@ impl Compiler<'_> {
             _ => None,
         };
         Ok(JitFn {
-            kernel: cache.get(&graph, Options::default())?,
+            kernel: self.cache.get(&graph, Options::default())?,
             marcher,
             params: self.params.into(),
         })
@@ -219,9 +210,13 @@ impl VolumeField {
 }
 
 /// Checks that function `name` takes one of `inputs` and returns `output`.
-fn check_signature(program: &Program, name: &str, inputs: &[&[Type]], output: &Type) -> Result<()> {
+pub fn check_signature(program: &Program, name: &str, inputs: &[&[Type]], output: &Type) -> Result<()> {
     let Some(sig) = program.signature(name) else {
-        return Err(Failure::Message(format!("the script needs a function '{name}'")));
+        // Lowering a missing function gives the diagnostic with its hint (a close name, or the list).
+        return Err(program.lower(name).err().map_or_else(
+            || Failure::Message(format!("the script needs a function '{name}'")),
+            Failure::Script,
+        ));
     };
     let got: Vec<Type> = sig.inputs.iter().map(|(_, t)| t.clone()).collect();
     if inputs.contains(&got.as_slice()) && sig.output.coerces_to(output) {

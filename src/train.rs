@@ -41,8 +41,8 @@ const KEYS: &[&str] = &[
 /// A checked `train` block.
 pub struct TrainPlan {
     data: PathBuf,
-    /// For a Blender data set: image size, background and how many views (the first n).
-    blender: Option<(u32, [f32; 3], Option<usize>)>,
+    /// For a Blender data set: how to load it.
+    blender: Option<BlenderData>,
     near: f32,
     far: f32,
     samples: usize,
@@ -60,12 +60,18 @@ pub struct TrainPlan {
     preview_every: u32,
 }
 
+/// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
+#[derive(Clone, Copy, Debug)]
+struct BlenderData {
+    size: u32,
+    background: [f32; 3],
+    views: Option<usize>,
+}
+
 /// The `data` setting: `views("box_cameras.json")` (the course's cameras with .npy/PNG images) or
 /// `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)` (NeRF-synthetic data,
 /// area-downscaled, alpha composited on the background, optionally only the first `views` frames).
-fn data_source(
-    v: &Spanned,
-) -> std::result::Result<(String, Option<(u32, [f32; 3], Option<usize>)>), Diagnostic> {
+fn data_source(v: &Spanned) -> std::result::Result<(String, Option<BlenderData>), Diagnostic> {
     let Value::Call(kind, _) = &v.value else {
         return Err(Diagnostic::new(
             v.span,
@@ -89,7 +95,12 @@ fn data_source(
                 Some(n) => Some(crate::settings::whole(n, 1, 100_000)? as usize),
                 None => None,
             };
-            Ok((a.string("file")?, Some((size as u32, background, views))))
+            let data = BlenderData {
+                size: size as u32,
+                background,
+                views,
+            };
+            Ok((a.string("file")?, Some(data)))
         }
         other => Err(Diagnostic::new(v.span, format!("unknown data source '{other}'"))
             .with_hint("use views(\"box_cameras.json\") or blender(\"transforms_train.json\", size: 128)")),
@@ -232,7 +243,7 @@ impl TrainPlan {
     pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
         let views = match self.blender {
             None => load_box_views(&self.data)?,
-            Some((size, background, limit)) => load_blender_views(&self.data, Some(size), background, limit)?,
+            Some(b) => load_blender_views(&self.data, Some(b.size), b.background, b.views)?,
         };
 
         let cache = KernelCache::new();

@@ -115,14 +115,8 @@ impl SdfTrainPlan {
     }
 
     fn compile(&self, program: &Program) -> Result<Kernels> {
+        crate::field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(&self.function)?;
-        let sig = &lowered.signature;
-        if sig.inputs.len() != 1 || sig.inputs[0].1 != Type::Vec(3) || !sig.output.coerces_to(&Type::F32) {
-            return Err(Failure::Message(format!(
-                "'{}' must be fn {}(p: vec3) -> f32 to be fitted to points, but the script has {sig}",
-                self.function, self.function
-            )));
-        }
         let n = program.n_params();
         let opts = Options::default();
         Ok(Kernels {

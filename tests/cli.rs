@@ -192,7 +192,7 @@ fn run_rejects_bad_scripts_before_any_work() {
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 0 }", "0 is out of range"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 100000 }", "100000 is out of range"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { out: \"a.gif\" }", "the render block needs 'camera'"),
-        ("fn sdf(p: vec2) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "must have the signature fn sdf(vec3) -> f32"),
+        ("fn sdf(p: vec2) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "'sdf' must be fn sdf(vec3) -> f32"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\n", "nothing to run"),
     ];
     for (i, (src, expected)) in cases.iter().enumerate() {
