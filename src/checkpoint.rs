@@ -28,15 +28,16 @@ pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render` and `eval-views` can use
 /// the checkpoint alone).
 pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &[f32]) -> Result<()> {
-    let script = program
-        .sources
-        .files
-        .last()
-        .map(|f| (f.name.clone(), f.text.clone()))
+    // The source map holds the prelude, the script, then each `--set` override.
+    let files = &program.sources.files;
+    let (name, source) = files
+        .get(1)
+        .map(|f| (f.name.as_str(), f.text.as_str()))
         .unwrap_or_default();
+    let overrides: Vec<&str> = files.iter().skip(2).map(|f| f.text.as_str()).collect();
     let json = serde_json::json!({
         "format": "nerfjit-checkpoint-1",
-        "script": { "name": script.0, "source": script.1 },
+        "script": { "name": name, "source": source, "overrides": overrides },
         "step": step,
         "params": params,
         "adam": adam,
@@ -55,7 +56,11 @@ pub fn load_trained(path: &Path) -> Result<(Program, Vec<f32>)> {
     else {
         return Err(bad("it holds no script"));
     };
-    let program = nerfjit_dsl::compile(name, source).map_err(Failure::Script)?;
+    let overrides: Vec<String> = json["script"]["overrides"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|v| v.as_str().map(str::to_string)).collect())
+        .unwrap_or_default();
+    let program = nerfjit_dsl::compile_with(name, source, &overrides).map_err(Failure::Script)?;
     let n = program.n_params();
     let ck = read(path, n)?;
     Ok((program, ck.params))

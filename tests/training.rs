@@ -172,3 +172,48 @@ fn fits_an_sdf_to_points_with_the_eikonal_term() {
     assert!((r - 0.8).abs() < 0.01, "radius {r}");
     assert!((s - 1.0).abs() < 0.05, "scale {s}: the eikonal term sets it to 1");
 }
+
+#[test]
+fn checkpoints_hold_their_script_and_overrides() {
+    let dir = scratch("ckpt");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
+    let (ok, _, err) = run(
+        &dir,
+        &[
+            "run",
+            "train.sdf",
+            "--set",
+            "train.steps=3",
+            "--set",
+            "train.checkpoint_every=1",
+        ],
+    );
+    assert!(ok, "{err}");
+    // Render from the checkpoint alone, with a Blender-convention camera file.
+    let transforms = r#"{"camera_angle_x": 0.69, "frames": [
+        {"file_path": "./b_000", "transform_matrix": [[1, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0], [0, 0, 0, 1]]}]}"#;
+    std::fs::write(dir.join("transforms.json"), transforms).unwrap();
+    let (ok, out, err) = run(
+        &dir,
+        &[
+            "render",
+            "box.ckpt.json",
+            "--cameras",
+            "transforms.json",
+            "--size",
+            "16",
+            "--near",
+            "1",
+            "--out",
+            ".",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(out.contains("rendered 1 views of 16×16"), "{out}");
+    let text = std::fs::read_to_string(dir.join("box.ckpt.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(json["step"], 3);
+    assert_eq!(json["script"]["name"], "train.sdf");
+    assert_eq!(json["script"]["overrides"][0], "train.steps=3");
+}
