@@ -10,6 +10,9 @@ use nerfjit_runtime::Camera;
 use crate::failure::{at, Failure, Result};
 use crate::settings::{name_among, ranged, triple, whole};
 
+/// The most pixels a render block may produce (all frames).
+const MAX_PIXELS: u64 = 1 << 27;
+
 /// A block's settings with what resolving them needs.
 pub struct Block<'p> {
     program: &'p Program,
@@ -135,6 +138,18 @@ impl<'p> Block<'p> {
             return Err(self.error(Diagnostic::new(v.span, "these settings give no camera")));
         }
         Ok(cameras)
+    }
+
+    /// Checks that `frames` images of `size` fit in memory (all frames are kept for the GIF).
+    pub fn check_pixels(&self, frames: usize, size: (u32, u32)) -> Result<()> {
+        let pixels = frames as u64 * u64::from(size.0) * u64::from(size.1);
+        if pixels > MAX_PIXELS {
+            return Err(self.block_error(format!(
+                "{frames} frames of {}×{} are {pixels} pixels, more than the {MAX_PIXELS} kept in memory at once",
+                size.0, size.1
+            )));
+        }
+        Ok(())
     }
 
     /// Setting `size`: `N` or `[width, height]`, 1 to 8192; 256 when absent.

@@ -31,10 +31,10 @@ pub fn cameras(
     let result = match name.as_str() {
         "surround" => {
             let a = CallArgs::new(v, &["radius", "frames", "up", "focal"])?;
-            let frames = a.number("frames", Some(20.0))?;
+            let frames = frame_count(&a, 20.0)?;
             surround(
                 a.number("radius", None)? as f32,
-                frames as usize,
+                frames,
                 up(&a)?,
                 a.number("focal", Some(1.0))? as f32,
             )
@@ -44,7 +44,7 @@ pub fn cameras(
             orbit(
                 a.number("radius", None)? as f32,
                 a.number("elevation", Some(0.0))? as f32,
-                a.number("frames", Some(36.0))? as usize,
+                frame_count(&a, 36.0)?,
                 up(&a)?,
                 a.number("focal", Some(1.0))? as f32,
             )
@@ -84,4 +84,18 @@ pub fn cameras(
         }
     };
     Ok(result.map_err(|e| e.to_string()))
+}
+
+/// The most frames a camera path may have.
+pub const MAX_FRAMES: usize = 10_000;
+
+/// The `frames` argument of a path: a whole number from 1 to [`MAX_FRAMES`].
+fn frame_count(a: &CallArgs, default: f64) -> Result<usize, Diagnostic> {
+    let n = a.number("frames", Some(default))?;
+    if n.fract() == 0.0 && (1.0..=MAX_FRAMES as f64).contains(&n) {
+        Ok(n as usize)
+    } else {
+        Err(Diagnostic::new(a.span(), format!("{n} frames is out of range"))
+            .with_hint(format!("a camera path has 1 to {MAX_FRAMES} frames")))
+    }
 }

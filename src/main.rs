@@ -173,8 +173,8 @@ struct ViewOptions {
     /// The camera file (Blender `transforms_*.json`).
     #[arg(long)]
     cameras: PathBuf,
-    /// Image side in pixels.
-    #[arg(long, default_value_t = 128)]
+    /// Image side in pixels (1 to 4096).
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(1..=4096))]
     size: u32,
     /// Start of the sampled interval along each ray.
     #[arg(long, default_value_t = 2.0)]

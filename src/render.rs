@@ -74,6 +74,7 @@ impl RenderPlan {
     pub fn new(mut b: Block) -> Result<RenderPlan> {
         let cameras = b.cameras()?;
         let size = b.size()?;
+        b.check_pixels(cameras.len(), size)?;
         let (near, far) = b.near_far(10.0)?;
         let eps = b.number("eps", 1e-12, 1.0, 1e-5)? as f32;
         let max_steps = b.whole("max_steps", 1, 1_000_000, 64)? as u32;

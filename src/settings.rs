@@ -45,6 +45,11 @@ impl CallArgs {
         })
     }
 
+    /// The span of the whole call.
+    pub fn span(&self) -> Span {
+        self.span
+    }
+
     /// The value of argument `slot`, if given.
     pub fn raw(&self, slot: &str) -> Option<&Spanned> {
         let i = self.slots.iter().position(|s| *s == slot).expect("known slot");

@@ -38,6 +38,10 @@ const KEYS: &[&str] = &[
     "preview_every",
 ];
 
+/// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
+/// memory.
+const MAX_SAMPLES_PER_STEP: usize = 1 << 26;
+
 /// A checked `train` block.
 pub struct TrainPlan {
     data: PathBuf,
@@ -180,6 +184,11 @@ impl TrainPlan {
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
         let steps = b.whole("steps", 1, 100_000_000, 1000)? as u32;
         let batch = b.whole("batch", 1, 1 << 20, 4096)? as usize;
+        if batch * samples > MAX_SAMPLES_PER_STEP {
+            return Err(b.block_error(format!(
+                "{batch} rays × {samples} samples is too many for one step (the limit is {MAX_SAMPLES_PER_STEP} samples)"
+            )));
+        }
         let seed = b.whole("seed", 0, u64::MAX >> 1, 0)?;
         let checkpoint_every = b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
         let preview_every = b.whole("preview_every", 1, u64::from(u32::MAX), 500)? as u32;

@@ -73,6 +73,7 @@ impl VolumePlan {
     pub fn new(mut b: Block) -> Result<VolumePlan> {
         let cameras = b.cameras()?;
         let size = b.size()?;
+        b.check_pixels(cameras.len(), size)?;
         let (near, far) = b.near_far(5.0)?;
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
         let early = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
