@@ -194,6 +194,14 @@ fn run_rejects_bad_scripts_before_any_work() {
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { out: \"a.gif\" }", "the render block needs 'camera'"),
         ("fn sdf(p: vec2) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "'sdf' must be fn sdf(vec3) -> f32"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\n", "nothing to run"),
+        (
+            "fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3, frames: 1e9), out: \"a.gif\" }",
+            "1000000000 frames is out of range",
+        ),
+        (
+            "fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3, frames: 5000), size: 8192, out: \"a.gif\" }",
+            "more than the 134217728 kept in memory",
+        ),
     ];
     for (i, (src, expected)) in cases.iter().enumerate() {
         let path = write(&dir, &format!("bad{i}.sdf"), src);
