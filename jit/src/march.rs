@@ -149,7 +149,7 @@ impl Marcher {
 /// Rays marched together by one loop: independent groups of 4 whose dependency chains (each step waits for
 /// the previous one's square roots) overlap in the CPU.
 pub const RAYS_PER_ITERATION: usize = 4 * GROUPS;
-const GROUPS: usize = 2;
+const GROUPS: usize = 4;
 
 /// Emits the marcher: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a multiple of
 /// [`RAYS_PER_ITERATION`].
