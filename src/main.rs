@@ -11,6 +11,7 @@ mod field;
 mod ir_dump;
 mod mesh;
 mod output;
+mod regularizers;
 mod render;
 mod run;
 mod script;

@@ -16,6 +16,7 @@ use nerfjit_runtime::{
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::field::VolumeField;
+use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
 const KEYS: &[&str] = &[
@@ -36,6 +37,10 @@ const KEYS: &[&str] = &[
     "summary",
     "preview",
     "preview_every",
+    "sdf",
+    "eikonal_weight",
+    "eikonal_points",
+    "eikonal_bounds",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -62,6 +67,8 @@ pub struct TrainPlan {
     summary: Option<PathBuf>,
     preview: Option<PathBuf>,
     preview_every: u32,
+    /// VolSDF-style training: the eikonal term on the script's SDF (its name) at random points.
+    eikonal: Option<(String, Regularizers)>,
 }
 
 /// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
@@ -192,6 +199,23 @@ impl TrainPlan {
         let seed = b.whole("seed", 0, u64::MAX >> 1, 0)?;
         let checkpoint_every = b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
         let preview_every = b.whole("preview_every", 1, u64::from(u32::MAX), 500)? as u32;
+        let eikonal_weight = b.number("eikonal_weight", 0.0, 1e6, 0.0)? as f32;
+        let eikonal_points = b.whole("eikonal_points", 1, 1 << 20, 1024)? as usize;
+        let eikonal_bounds = b.number("eikonal_bounds", 1e-3, 1e6, 4.0)? as f32;
+        let sdf = match b.take("sdf") {
+            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
+            None => "sdf".to_string(),
+        };
+        let eikonal = (eikonal_weight > 0.0).then(|| {
+            let regularizers = Regularizers {
+                points: eikonal_points,
+                bound: eikonal_bounds,
+                near_weight: 0.0,
+                near_sharpness: 0.0,
+                eikonal_weight,
+            };
+            (sdf, regularizers)
+        });
         let background = b.triple("background")?;
         let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
         let random_views = b.choice("views", &["cycle", "random"], "cycle")? == "random";
@@ -218,6 +242,7 @@ impl TrainPlan {
             summary,
             preview,
             preview_every,
+            eikonal,
         })
     }
 
@@ -242,6 +267,7 @@ impl TrainPlan {
             preview: None,
             data: self.data.clone(),
             blender: self.blender,
+            eikonal: self.eikonal.clone(),
             ..*self
         };
         let line = quiet.run(program, params, false)?;
@@ -258,7 +284,13 @@ impl TrainPlan {
         let cache = KernelCache::new();
         let t = Instant::now();
         let field = VolumeField::compile(program, &cache)?;
+        let regularizer_kernels = match &self.eikonal {
+            Some((sdf, _)) => Some(RegularizerKernels::compile(program, sdf)?),
+            None => None,
+        };
         let compile_s = t.elapsed().as_secs_f64();
+        let threads = rayon::current_num_threads();
+        let mut eikonal_loss = 0.0f32;
         let settings = self.settings(&field);
         let n = params.len();
         let mut adam = Adam::new(n, self.schedule.lr(0));
@@ -290,7 +322,11 @@ impl TrainPlan {
                 views.random_rays(view, self.batch, self.seed.wrapping_add(u64::from(step)))?;
             let (forward, backward) = field.bind(params);
             let jitter = if self.jitter { Some(&mut rng) } else { None };
-            let result = volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?;
+            let mut result = volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?;
+            if let (Some((_, reg)), Some(k)) = (&self.eikonal, &regularizer_kernels) {
+                let [_, eikonal] = reg.add(k, params, &mut result.param_grads, &mut rng, threads);
+                eikonal_loss = eikonal;
+            }
             if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {
                 bar.abandon();
                 let kept = match &self.checkpoint {
@@ -316,7 +352,12 @@ impl TrainPlan {
             if done % 10 == 0 || done == self.steps {
                 let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
                 bar.set_message(format!(
-                    "loss {loss:.5} PSNR {psnr:.2} dB {:.0}k rays/s",
+                    "loss {loss:.5} PSNR {psnr:.2} dB{} {:.0}k rays/s",
+                    if self.eikonal.is_some() {
+                        format!(" eikonal {eikonal_loss:.5}")
+                    } else {
+                        String::new()
+                    },
                     rays_per_s / 1e3
                 ));
             }

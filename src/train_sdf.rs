@@ -6,7 +6,6 @@
 //! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)².
 
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
@@ -16,6 +15,7 @@ use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Ada
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
+use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
 const KEYS: &[&str] = &[
@@ -59,12 +59,11 @@ pub struct SdfTrainPlan {
     points_gif: Option<PathBuf>,
 }
 
-/// The four kernels of one SDF.
+/// The kernels of one SDF.
 struct Kernels {
-    value: Arc<Kernel>,
+    value: Kernel,
     value_vjp: Kernel,
-    gradient: Kernel,
-    second_order: Kernel,
+    regularizers: RegularizerKernels,
 }
 
 impl SdfTrainPlan {
@@ -120,10 +119,9 @@ impl SdfTrainPlan {
         let n = program.n_params();
         let opts = Options::default();
         Ok(Kernels {
-            value: Arc::new(Kernel::compile(&kernels::value(&lowered), opts)?),
+            value: Kernel::compile(&kernels::value(&lowered), opts)?,
             value_vjp: Kernel::compile(&kernels::param_vjp(&lowered, n), opts)?,
-            gradient: Kernel::compile(&kernels::with_gradient(&lowered), opts)?,
-            second_order: Kernel::compile(&kernels::second_order(&lowered, n), opts)?,
+            regularizers: RegularizerKernels::compile(program, &self.function)?,
         })
     }
 
@@ -245,20 +243,6 @@ impl SdfTrainPlan {
         ))
     }
 
-    fn uniform_points(&self, rng: &mut Rng, m: usize) -> [Vec<f32>; 3] {
-        let mut cols = [
-            Vec::with_capacity(m),
-            Vec::with_capacity(m),
-            Vec::with_capacity(m),
-        ];
-        for _ in 0..m {
-            for c in &mut cols {
-                c.push((rng.next_f32() * 2.0 - 1.0) * self.bound);
-            }
-        }
-        cols
-    }
-
     /// Pre-training toward the sphere of `pretrain_radius`: mean (d(y) − (|y| − r))².
     fn sphere_step(
         &self,
@@ -269,7 +253,7 @@ impl SdfTrainPlan {
         threads: usize,
     ) -> f32 {
         let m = self.random;
-        let ys = self.uniform_points(rng, m);
+        let ys = uniform_points(rng, m, self.bound);
         let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
         let mut d = vec![0.0f32; m];
         k.value
@@ -334,50 +318,20 @@ impl SdfTrainPlan {
             .eval_parallel(nb, &with_cot, &mut [], params, grads, threads);
 
         // Random points: the near-surface penalty on d and the eikonal term on ∇d.
-        let m = self.random;
-        let ys = self.uniform_points(rng, m);
-        let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
-        let mut out = vec![vec![0.0f32; m]; 4];
-        {
-            let mut refs: Vec<&mut [f32]> = out.iter_mut().map(Vec::as_mut_slice).collect();
-            k.gradient
-                .eval_parallel(m, &ins, &mut refs, params, &mut [], threads);
+        let [near, eikonal] = self
+            .regularizers()
+            .add(&k.regularizers, params, grads, rng, threads);
+        [surface as f32, near, eikonal]
+    }
+
+    fn regularizers(&self) -> Regularizers {
+        Regularizers {
+            points: self.random,
+            bound: self.bound,
+            near_weight: self.near_weight,
+            near_sharpness: self.near_sharpness,
+            eikonal_weight: self.eikonal_weight,
         }
-        let (alpha, w_near, w_eik) = (self.near_sharpness, self.near_weight, self.eikonal_weight);
-        let mut cots = vec![vec![0.0f32; m]; 4];
-        let (mut near, mut eik) = (0.0f64, 0.0f64);
-        for j in 0..m {
-            let dj = out[0][j];
-            let e = (-alpha * dj.abs()).exp();
-            near += f64::from(e);
-            cots[0][j] = if dj == 0.0 {
-                0.0
-            } else {
-                -w_near * alpha * dj.signum() * e / m as f32
-            };
-            let g = [out[1][j], out[2][j], out[3][j]];
-            let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-            eik += f64::from((norm - 1.0) * (norm - 1.0));
-            if norm > 0.0 {
-                for c in 0..3 {
-                    cots[1 + c][j] = w_eik * 2.0 * (norm - 1.0) * g[c] / norm / m as f32;
-                }
-            }
-        }
-        let with_cots: Vec<&[f32]> = ins
-            .iter()
-            .copied()
-            .chain(cots.iter().map(Vec::as_slice))
-            .collect();
-        let mut scratch = vec![vec![0.0f32; m]; 4];
-        let mut refs: Vec<&mut [f32]> = scratch.iter_mut().map(Vec::as_mut_slice).collect();
-        k.second_order
-            .eval_parallel(m, &with_cots, &mut refs, params, grads, threads);
-        [
-            surface as f32,
-            w_near * (near / m as f64) as f32,
-            w_eik * (eik / m as f64) as f32,
-        ]
     }
 }
 
