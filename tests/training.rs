@@ -217,3 +217,28 @@ fn checkpoints_hold_their_script_and_overrides() {
     assert_eq!(json["script"]["name"], "train.sdf");
     assert_eq!(json["script"]["overrides"][0], "train.steps=3");
 }
+
+#[test]
+fn volume_training_with_the_eikonal_term_moves_a_scaled_sdf_to_unit_gradient() {
+    let dir = scratch("volsdf");
+    make_views(&dir);
+    let src =
+        "param center: vec3 = [0.2, -0.1, 0.1]\nparam sides: vec3 = [1.2, 0.8, 1.0]\nparam s: f32 = 2.0\n\
+               fn sdf(p: vec3) -> f32 = s * box(p - center, sides)\n\
+               fn density(p: vec3) -> f32 = volsdf_density(box(p - center, sides), alpha: 10.0, beta: 0.05)\n\
+               fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)\n\
+               train { data: views(\"cams.json\"), samples: 32, steps: 400, batch: 256, lr: 0.01, \
+               eikonal_weight: 1.0, eikonal_points: 256, eikonal_bounds: 2.0, summary: \"s.json\" }\n";
+    std::fs::write(dir.join("v.sdf"), src).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "v.sdf"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("trained 400 steps"), "{out}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("s.json")).unwrap()).unwrap();
+    let s = json["params"]["s"][0].as_f64().unwrap();
+    // Only the eikonal term sees the scale s (the density does not use it): it must bring s from 2 to 1.
+    assert!(
+        (s - 1.0).abs() < 0.05,
+        "the eikonal term should bring the scale from 2 to 1, got {s}"
+    );
+}
