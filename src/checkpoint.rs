@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use nerfjit_dsl::Program;
+use nerfjit_runtime::Adam;
 
 use crate::failure::{Failure, Result};
 
@@ -97,4 +98,37 @@ pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
         params,
         adam: floats("adam")?,
     })
+}
+
+/// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists,
+/// else fresh Adam at `lr` from step 0 (params untouched).
+pub fn resume_or_start(
+    checkpoint: Option<&Path>,
+    resume: bool,
+    params: &mut Vec<f32>,
+    lr: impl Fn(u32) -> f32,
+) -> Result<(Adam, u32)> {
+    let n = params.len();
+    match checkpoint.filter(|p| resume && p.exists()) {
+        Some(path) => {
+            let ck = read(path, n)?;
+            *params = ck.params;
+            let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
+            eprintln!("resuming from {} at step {}", path.display(), ck.step);
+            Ok((adam, ck.step))
+        }
+        None => Ok((Adam::new(n, lr(0)), 0)),
+    }
+}
+
+/// The error of a training run that produced a non-finite loss or gradient at `step`, saying whether a
+/// good checkpoint was kept.
+pub fn diverged(step: u32, loss: f32, checkpoint: Option<&Path>) -> Failure {
+    let kept = match checkpoint {
+        Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
+        _ => "no checkpoint was written".to_string(),
+    };
+    Failure::Message(format!(
+        "training diverged at step {step}: the loss or a gradient is not finite (loss {loss}); {kept}"
+    ))
 }

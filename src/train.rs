@@ -9,7 +9,7 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Adam, Quantize, Rng,
+    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Quantize, Rng,
     Schedule, Views, VolumeSettings,
 };
 
@@ -292,18 +292,10 @@ impl TrainPlan {
         let threads = rayon::current_num_threads();
         let mut eikonal_loss = 0.0f32;
         let settings = self.settings(&field);
-        let n = params.len();
-        let mut adam = Adam::new(n, self.schedule.lr(0));
-        let mut first = 0u32;
-        if resume {
-            if let Some(path) = self.checkpoint.as_ref().filter(|p| p.exists()) {
-                let ck = crate::checkpoint::read(path, n)?;
-                *params = ck.params;
-                adam = Adam::from_state(n, self.schedule.lr(ck.step), &ck.adam)?;
-                first = ck.step;
-                eprintln!("resuming from {} at step {first}", path.display());
-            }
-        }
+        let (mut adam, first) =
+            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
+                self.schedule.lr(k)
+            })?;
         let bar = ProgressBar::new(u64::from(self.steps)).with_style(
             ProgressStyle::with_template("{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}")
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -329,14 +321,11 @@ impl TrainPlan {
             }
             if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {
                 bar.abandon();
-                let kept = match &self.checkpoint {
-                    Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
-                    _ => "no checkpoint was written".to_string(),
-                };
-                return Err(Failure::Message(format!(
-                    "training diverged at step {step}: the loss or a gradient is not finite (loss {}); {kept}",
-                    result.loss
-                )));
+                return Err(crate::checkpoint::diverged(
+                    step,
+                    result.loss,
+                    self.checkpoint.as_deref(),
+                ));
             }
             adam.lr = self.schedule.lr(step);
             let before = params.clone();

@@ -11,7 +11,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, Options};
-use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Adam, Rng};
+use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -140,18 +140,8 @@ impl SdfTrainPlan {
         let t = Instant::now();
         let k = self.compile(program)?;
         let compile_s = t.elapsed().as_secs_f64();
-        let n = params.len();
-        let mut adam = Adam::new(n, self.lr);
-        let mut first = 0;
-        if resume {
-            if let Some(path) = self.checkpoint.as_ref().filter(|p| p.exists()) {
-                let ck = crate::checkpoint::read(path, n)?;
-                *params = ck.params;
-                adam = Adam::from_state(n, self.lr, &ck.adam)?;
-                first = ck.step;
-                eprintln!("resuming from {} at step {first}", path.display());
-            }
-        }
+        let (mut adam, first) =
+            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |_| self.lr)?;
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;
@@ -163,7 +153,7 @@ impl SdfTrainPlan {
         let start = Instant::now();
         let mut terms = [f32::NAN; 3];
         for step in first..total {
-            let mut grads = vec![0.0f32; n];
+            let mut grads = vec![0.0f32; params.len()];
             if step < self.pretrain_steps {
                 terms = [
                     self.sphere_step(&k, params, &mut grads, &mut rng, threads),
@@ -176,13 +166,11 @@ impl SdfTrainPlan {
             let loss: f32 = terms.iter().sum();
             if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
                 bar.abandon();
-                let kept = match &self.checkpoint {
-                    Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
-                    _ => "no checkpoint was written".to_string(),
-                };
-                return Err(Failure::Message(format!(
-                    "training diverged at step {step}: the loss or a gradient is not finite (loss {loss}); {kept}"
-                )));
+                return Err(crate::checkpoint::diverged(
+                    step,
+                    loss,
+                    self.checkpoint.as_deref(),
+                ));
             }
             adam.step(params, &grads)?;
             let done = step + 1;
