@@ -8,37 +8,108 @@
 //! One convention departs from the textbook: the derivative of `sqrt` at 0 is 0 rather than +∞, so that
 //! the gradient of `length(v)` at v = 0 is 0 (a subgradient) and not NaN.
 
-use crate::ir::{Graph, Op, V};
+use std::collections::HashMap;
+
+use crate::ir::{Dense, Graph, Op, Outer, V};
 
 /// Appends to `g` the nodes computing, for each `w` in `wrt`, Σₖ cotₖ · ∂outₖ/∂w, where `seeds` pairs each
 /// output value `outₖ` with its cotangent value `cotₖ`. Values of `wrt` that no output depends on get 0.
+/// The matrices of dense nodes are not differentiated (see [`vjp_with_dense_params`]).
 pub fn vjp(g: &mut Graph, seeds: &[(V, V)], wrt: &[V]) -> Vec<V> {
+    vjp_with_dense_params(g, seeds, wrt, false).0
+}
+
+/// As [`vjp`]; when `dense_params` is set, also returns the gradients of the matrices of the dense nodes,
+/// as outer products whose `target` is the matrix's first param index.
+///
+/// A dense node y = W·x passes x̄ = Wᵀ·ȳ to its input (a transposed dense node) and adds ȳ ⊗ x to W's
+/// gradient; y = Wᵀ·x passes x̄ = W·ȳ and adds x ⊗ ȳ. Both are again dense nodes and outer products, so
+/// second-order kernels keep every product a matrix product.
+pub fn vjp_with_dense_params(
+    g: &mut Graph,
+    seeds: &[(V, V)],
+    wrt: &[V],
+    dense_params: bool,
+) -> (Vec<V>, Vec<Outer>) {
     let n = g.len();
     let mut depends = vec![false; n];
     for w in wrt {
         depends[w.0 as usize] = true;
     }
     for i in 0..n {
-        if !depends[i] && g.ops()[i].args().iter().any(|a| depends[a.0 as usize]) {
+        let op = g.ops()[i];
+        let from_params = dense_params && matches!(op, Op::Dense(_));
+        if !depends[i] && (from_params || g.args(&op).iter().any(|a| depends[a.0 as usize])) {
             depends[i] = true;
         }
     }
     let mut adjoint: Vec<Option<V>> = vec![None; n];
+    let mut dense_adjoint: HashMap<V, Vec<Option<V>>> = HashMap::new();
+    let mut outer = Vec::new();
     for &(out, cot) in seeds {
         accumulate(g, &mut adjoint, &depends, out, cot);
     }
     for i in (0..n).rev() {
-        let (Some(gy), true) = (adjoint[i], depends[i]) else {
-            continue;
-        };
         let y = V(i as u32);
-        for (arg, contrib) in local_adjoints(g, y, gy) {
-            accumulate(g, &mut adjoint, &depends, arg, contrib);
+        match g.op(y) {
+            Op::Dense(d) if depends[i] => {
+                let Some(ybar) = dense_adjoint.remove(&y) else {
+                    continue;
+                };
+                let zero = g.constant(0.0);
+                let ybar: Vec<V> = ybar.into_iter().map(|a| a.unwrap_or(zero)).collect();
+                let x = g.list(d.x).to_vec();
+                if x.iter().any(|a| depends[a.0 as usize]) {
+                    let xbar = g.dense(d.w, d.rows, d.cols, !d.transposed, &ybar);
+                    for (&a, contrib) in x.iter().zip(xbar) {
+                        accumulate(g, &mut adjoint, &depends, a, contrib);
+                    }
+                }
+                if dense_params {
+                    outer.push(matrix_gradient(d, x, ybar));
+                }
+            }
+            Op::Pick(d, k) => {
+                let (Some(gy), true) = (adjoint[i], depends[i]) else {
+                    continue;
+                };
+                let Op::Dense(dense) = g.op(d) else {
+                    unreachable!("pick of a non-dense node")
+                };
+                let slots = dense_adjoint
+                    .entry(d)
+                    .or_insert_with(|| vec![None; dense.n_out()]);
+                let slot = &mut slots[k as usize];
+                *slot = Some(match *slot {
+                    Some(prev) => g.push(Op::Add(prev, gy)),
+                    None => gy,
+                });
+            }
+            _ => {
+                let (Some(gy), true) = (adjoint[i], depends[i]) else {
+                    continue;
+                };
+                for (arg, contrib) in local_adjoints(g, y, gy) {
+                    accumulate(g, &mut adjoint, &depends, arg, contrib);
+                }
+            }
         }
     }
-    wrt.iter()
+    let values = wrt
+        .iter()
         .map(|w| adjoint[w.0 as usize].unwrap_or_else(|| g.constant(0.0)))
-        .collect()
+        .collect();
+    (values, outer)
+}
+
+/// The gradient of W for a dense node with input `x` and output adjoint `ybar`.
+fn matrix_gradient(d: Dense, x: Vec<V>, ybar: Vec<V>) -> Outer {
+    let (left, right) = if d.transposed { (x, ybar) } else { (ybar, x) };
+    Outer {
+        target: d.w,
+        left,
+        right,
+    }
 }
 
 fn accumulate(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool], at: V, contrib: V) {
@@ -59,6 +130,7 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
     let one = g.constant(1.0);
     match g.op(y) {
         Const(_) | Input(_) | Param(_) | Sign(_) | Floor(_) | Lt(..) | Le(..) | Eq(..) => vec![],
+        Dense(_) | Pick(..) => unreachable!("dense nodes are differentiated in vjp_with_dense_params"),
         Neg(a) => vec![(a, g.push(Neg(gy)))],
         Abs(a) => {
             let s = g.push(Sign(a));

@@ -404,15 +404,14 @@ fn dense(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResult<V
         None
     };
     let g = &mut *el.g;
-    let mut out = Vec::with_capacity(rows);
-    for r in 0..rows {
-        let mut acc = bias.as_ref().map_or_else(|| g.constant(0.0), |b| b[r]);
-        for (c, &xc) in x.iter().enumerate() {
-            let w = g.param(offset + (r * cols + c) as u32);
-            let p = g.push(Op::Mul(w, xc));
-            acc = g.push(Op::Add(acc, p));
-        }
-        out.push(acc);
-    }
+    let product = g.dense(offset, rows as u32, cols as u32, false, &x);
+    let out = match bias {
+        Some(b) => product
+            .iter()
+            .zip(b)
+            .map(|(&p, b)| g.push(Op::Add(p, b)))
+            .collect(),
+        None => product,
+    };
     Ok(Val::Vector(out))
 }

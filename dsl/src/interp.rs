@@ -1,7 +1,9 @@
 //! The reference interpreter: evaluates any [`Graph`] in f64, point by point. It is the oracle against
 //! which the JIT and the derivatives are tested, so it is written for clarity, not speed.
 
-use crate::ir::{Graph, Op};
+use std::collections::HashMap;
+
+use crate::ir::{Dense, Graph, Op};
 
 /// What one evaluation produced.
 #[derive(Clone, Debug, PartialEq)]
@@ -18,7 +20,7 @@ pub fn apply(op: Op, a: &[f64]) -> f64 {
     let bool01 = |b: bool| if b { 1.0 } else { 0.0 };
     match op {
         Const(bits) => f64::from_bits(bits),
-        Input(_) | Param(_) => f64::NAN,
+        Input(_) | Param(_) | Dense(_) | Pick(..) => f64::NAN,
         Neg(_) => -a[0],
         Abs(_) => a[0].abs(),
         Sign(_) => {
@@ -71,14 +73,39 @@ pub fn apply(op: Op, a: &[f64]) -> f64 {
     }
 }
 
-/// Evaluates `g` at one point.
+/// `W·x` or `Wᵀ·x` of a dense node (NaN for params out of range).
+fn dense(d: &Dense, x: &[f64], params: &[f64]) -> Vec<f64> {
+    let w = |i: usize, j: usize| {
+        params
+            .get(d.w as usize + i * d.cols as usize + j)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    (0..d.n_out())
+        .map(|o| {
+            x.iter()
+                .enumerate()
+                .map(|(k, xk)| if d.transposed { w(k, o) } else { w(o, k) } * xk)
+                .sum()
+        })
+        .collect()
+}
+
+/// Evaluates `g` at one point. The outer products of `g` add to the reductions they target.
 pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
     let mut vals = vec![0.0; g.len()];
     let mut args = Vec::with_capacity(3);
+    let mut products: HashMap<usize, Vec<f64>> = HashMap::new();
     for (i, op) in g.ops().iter().enumerate() {
         vals[i] = match *op {
             Op::Input(k) => inputs.get(k as usize).copied().unwrap_or(f64::NAN),
             Op::Param(k) => params.get(k as usize).copied().unwrap_or(f64::NAN),
+            Op::Dense(d) => {
+                let x: Vec<f64> = g.list(d.x).iter().map(|a| vals[a.0 as usize]).collect();
+                products.insert(i, dense(&d, &x, params));
+                0.0
+            }
+            Op::Pick(d, k) => products[&(d.0 as usize)][k as usize],
             _ => {
                 args.clear();
                 args.extend(op.args().iter().map(|a| vals[a.0 as usize]));
@@ -86,9 +113,20 @@ pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
             }
         };
     }
+    let mut reductions: Vec<f64> = g.reductions.iter().map(|v| vals[v.0 as usize]).collect();
+    for o in &g.outer {
+        let cols = o.right.len();
+        for (i, l) in o.left.iter().enumerate() {
+            for (j, r) in o.right.iter().enumerate() {
+                if let Some(slot) = reductions.get_mut(o.target as usize + i * cols + j) {
+                    *slot += vals[l.0 as usize] * vals[r.0 as usize];
+                }
+            }
+        }
+    }
     Eval {
         outputs: g.outputs.iter().map(|v| vals[v.0 as usize]).collect(),
-        reductions: g.reductions.iter().map(|v| vals[v.0 as usize]).collect(),
+        reductions,
     }
 }
 

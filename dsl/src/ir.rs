@@ -28,6 +28,59 @@ use std::fmt;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct V(pub u32);
 
+/// A list of values interned in a [`Graph`] (the vector operand of a [`Dense`] node).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ListId(pub u32);
+
+/// A matrix–vector product with a matrix of params: the multi-valued node of dense layers.
+///
+/// W is the `rows × cols` row-major block of params starting at param `w`. The node computes `W·x`
+/// (`cols` inputs, `rows` outputs) or, when `transposed`, `Wᵀ·x` (`rows` inputs, `cols` outputs; the
+/// backward pass of a layer). Its outputs are read through [`Op::Pick`]. Kernels run these nodes as
+/// matrix products over tiles of points instead of one scalar op per weight.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Dense {
+    /// The first param of W.
+    pub w: u32,
+    /// Rows of W.
+    pub rows: u32,
+    /// Columns of W.
+    pub cols: u32,
+    /// Whether the node computes Wᵀ·x instead of W·x.
+    pub transposed: bool,
+    /// The input vector.
+    pub x: ListId,
+}
+
+impl Dense {
+    /// The length of the input vector.
+    pub fn n_in(&self) -> usize {
+        (if self.transposed { self.rows } else { self.cols }) as usize
+    }
+
+    /// The number of outputs.
+    pub fn n_out(&self) -> usize {
+        (if self.transposed { self.cols } else { self.rows }) as usize
+    }
+
+    /// One past the last param of W.
+    pub fn params_end(&self) -> usize {
+        self.w as usize + (self.rows * self.cols) as usize
+    }
+}
+
+/// A param gradient of outer-product form: `reductions[target + i·cols + j] += Σ_points left[i]·right[j]`
+/// for i < rows, j < cols (the gradient of a [`Dense`] node's matrix, summed over a batch).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Outer {
+    /// The first reduction written.
+    pub target: u32,
+    /// The left vector (length rows).
+    pub left: Vec<V>,
+    /// The right vector (length cols).
+    pub right: Vec<V>,
+}
+
 /// One scalar operation. Comparisons give 1.0 or 0.0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Op {
@@ -83,14 +136,20 @@ pub enum Op {
     Eq(V, V),
     /// `c != 0 ? a : b`.
     Select(V, V, V),
+    /// A matrix–vector product (multi-valued; see [`Dense`]). Its list operand is read with
+    /// [`Graph::args`]; [`Op::args`] does not see it.
+    Dense(Dense),
+    /// Output `k` of the [`Op::Dense`] node `d`.
+    Pick(V, u32),
 }
 
 impl Op {
-    /// The values this op reads.
+    /// The values this op reads, but for the list operand of [`Op::Dense`] (use [`Graph::args`]).
     pub fn args(&self) -> Vec<V> {
         use Op::*;
         match *self {
-            Const(_) | Input(_) | Param(_) => vec![],
+            Const(_) | Input(_) | Param(_) | Dense(_) => vec![],
+            Pick(d, _) => vec![d],
             Neg(a) | Abs(a) | Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Sin(a) | Cos(a) | Tan(a)
             | Tanh(a) | Sigmoid(a) | Softplus(a) => vec![a],
             Add(a, b)
@@ -106,11 +165,13 @@ impl Op {
         }
     }
 
-    /// The same op reading `f(arg)` for each argument.
+    /// The same op reading `f(arg)` for each argument, but for the list operand of [`Op::Dense`], which
+    /// is left as it is (lists belong to a graph: see [`Graph::compact`]).
     pub fn map_args(&self, mut f: impl FnMut(V) -> V) -> Op {
         use Op::*;
         match *self {
-            Const(_) | Input(_) | Param(_) => *self,
+            Const(_) | Input(_) | Param(_) | Dense(_) => *self,
+            Pick(d, k) => Pick(f(d), k),
             Neg(a) => Neg(f(a)),
             Abs(a) => Abs(f(a)),
             Sign(a) => Sign(f(a)),
@@ -167,6 +228,9 @@ impl Op {
             Le(..) => "le",
             Eq(..) => "eq",
             Select(..) => "select",
+            Dense(d) if d.transposed => "dense_t",
+            Dense(_) => "dense",
+            Pick(..) => "pick",
         }
     }
 }
@@ -176,10 +240,14 @@ impl Op {
 pub struct Graph {
     ops: Vec<Op>,
     memo: HashMap<Op, V>,
+    lists: Vec<Vec<V>>,
+    list_memo: HashMap<Vec<V>, ListId>,
     /// Values written per point, in order.
     pub outputs: Vec<V>,
     /// Values summed over all points of a batch, in order.
     pub reductions: Vec<V>,
+    /// Outer-product sums added to the reductions (the gradients of dense layers' matrices).
+    pub outer: Vec<Outer>,
     /// The number of per-point inputs a kernel of this graph takes (at least 1 + the largest input index).
     pub n_inputs: u32,
 }
@@ -208,6 +276,57 @@ impl Graph {
     /// Whether the graph has no nodes.
     pub fn is_empty(&self) -> bool {
         self.ops.is_empty()
+    }
+
+    /// The interned lists (the operands of dense nodes).
+    pub fn lists(&self) -> &[Vec<V>] {
+        &self.lists
+    }
+
+    /// The values of list `l`.
+    pub fn list(&self, l: ListId) -> &[V] {
+        &self.lists[l.0 as usize]
+    }
+
+    /// The values `op` reads, including the list operand of [`Op::Dense`].
+    pub fn args(&self, op: &Op) -> Vec<V> {
+        match op {
+            Op::Dense(d) => self.list(d.x).to_vec(),
+            _ => op.args(),
+        }
+    }
+
+    /// Whether the graph has dense nodes (and needs the tiled executor).
+    pub fn has_dense(&self) -> bool {
+        self.ops.iter().any(|op| matches!(op, Op::Dense(_)))
+    }
+
+    fn intern_list(&mut self, xs: &[V]) -> ListId {
+        if let Some(&l) = self.list_memo.get(xs) {
+            return l;
+        }
+        let l = ListId(u32::try_from(self.lists.len()).expect("more than 2^32 lists"));
+        self.lists.push(xs.to_vec());
+        self.list_memo.insert(xs.to_vec(), l);
+        l
+    }
+
+    /// The outputs of `W·x` (or `Wᵀ·x` when `transposed`) for the `rows × cols` param block at `w`.
+    /// Panics if `x` has the wrong length.
+    pub fn dense(&mut self, w: u32, rows: u32, cols: u32, transposed: bool, x: &[V]) -> Vec<V> {
+        let list = self.intern_list(x);
+        let d = Dense {
+            w,
+            rows,
+            cols,
+            transposed,
+            x: list,
+        };
+        assert_eq!(x.len(), d.n_in(), "dense input of the wrong length");
+        let node = self.insert(Op::Dense(d));
+        (0..d.n_out() as u32)
+            .map(|k| self.insert(Op::Pick(node, k)))
+            .collect()
     }
 
     /// The constant `c`.
@@ -298,12 +417,30 @@ impl Graph {
         let mut out = Graph::new();
         let mut map = vec![V(0); self.ops.len()];
         for (i, op) in self.ops.iter().enumerate() {
-            if live[i] {
-                map[i] = out.push(op.map_args(|a| map[a.0 as usize]));
+            if !live[i] {
+                continue;
             }
+            map[i] = match *op {
+                Op::Dense(d) => {
+                    let xs: Vec<V> = self.list(d.x).iter().map(|a| map[a.0 as usize]).collect();
+                    let list = out.intern_list(&xs);
+                    out.insert(Op::Dense(Dense { x: list, ..d }))
+                }
+                _ => out.push(op.map_args(|a| map[a.0 as usize])),
+            };
         }
-        out.outputs = self.outputs.iter().map(|v| map[v.0 as usize]).collect();
-        out.reductions = self.reductions.iter().map(|v| map[v.0 as usize]).collect();
+        let remap = |vs: &[V]| -> Vec<V> { vs.iter().map(|v| map[v.0 as usize]).collect() };
+        out.outputs = remap(&self.outputs);
+        out.reductions = remap(&self.reductions);
+        out.outer = self
+            .outer
+            .iter()
+            .map(|o| Outer {
+                target: o.target,
+                left: remap(&o.left),
+                right: remap(&o.right),
+            })
+            .collect();
         out.n_inputs = self.n_inputs;
         out
     }
@@ -311,12 +448,13 @@ impl Graph {
     /// Which nodes the outputs and reductions depend on.
     pub fn live(&self) -> Vec<bool> {
         let mut live = vec![false; self.ops.len()];
-        for v in self.outputs.iter().chain(&self.reductions) {
+        let outer = self.outer.iter().flat_map(|o| o.left.iter().chain(&o.right));
+        for v in self.outputs.iter().chain(&self.reductions).chain(outer) {
             live[v.0 as usize] = true;
         }
         for i in (0..self.ops.len()).rev() {
             if live[i] {
-                for a in self.ops[i].args() {
+                for a in self.args(&self.ops[i]) {
                     live[a.0 as usize] = true;
                 }
             }
@@ -352,6 +490,11 @@ impl fmt::Display for Graph {
             match *op {
                 Op::Const(bits) => write!(f, " {}", f64::from_bits(bits))?,
                 Op::Input(k) | Op::Param(k) => write!(f, " {k}")?,
+                Op::Pick(d, k) => write!(f, " v{}[{k}]", d.0)?,
+                Op::Dense(d) => {
+                    let args: Vec<String> = self.list(d.x).iter().map(|a| format!("v{}", a.0)).collect();
+                    write!(f, " p{}:{}x{} [{}]", d.w, d.rows, d.cols, args.join(", "))?;
+                }
                 _ => {
                     let args: Vec<String> = op.args().iter().map(|a| format!("v{}", a.0)).collect();
                     write!(f, " {}", args.join(", "))?;
@@ -364,6 +507,23 @@ impl fmt::Display for Graph {
         }
         for (k, v) in self.reductions.iter().enumerate() {
             writeln!(f, "reduce {k} = sum v{}", v.0)?;
+        }
+        for o in &self.outer {
+            let names = |vs: &[V]| {
+                vs.iter()
+                    .map(|v| format!("v{}", v.0))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            writeln!(
+                f,
+                "reduce {}..+{}x{} += outer [{}] [{}]",
+                o.target,
+                o.left.len(),
+                o.right.len(),
+                names(&o.left),
+                names(&o.right)
+            )?;
         }
         Ok(())
     }

@@ -9,6 +9,9 @@
 //! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
+//!
+//! In the kinds with param gradients, the gradients of dense layers' matrices are the graph's outer
+//! products ([`crate::ir::Outer`]), added to the reductions of the same params.
 
 use crate::autodiff;
 use crate::ir::{Graph, V};
@@ -54,9 +57,10 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
         .collect();
     let mut wrt = xs.clone();
     wrt.extend(params(&mut g, n_params));
-    let grads = autodiff::vjp(&mut g, &seeds, &wrt);
+    let (grads, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &wrt, true);
     g.outputs.extend(&grads[..xs.len()]);
     g.reductions = grads[xs.len()..].to_vec();
+    g.outer = outer;
     g.compact()
 }
 
@@ -86,7 +90,9 @@ pub fn second_order(f: &Lowered, n_params: usize) -> Graph {
         seeds.push((gk, g.input(n_in + 1 + k as u32)));
     }
     let ps = params(&mut g, n_params);
-    g.reductions = autodiff::vjp(&mut g, &seeds, &ps);
+    let (reductions, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &ps, true);
+    g.reductions = reductions;
+    g.outer = outer;
     g.outputs = std::iter::once(out).chain(grad_x).collect();
     g.compact()
 }

@@ -18,7 +18,12 @@ pub struct KernelCache {
 }
 
 fn same(a: &Graph, b: &Graph) -> bool {
-    a.ops() == b.ops() && a.outputs == b.outputs && a.reductions == b.reductions && a.n_inputs == b.n_inputs
+    a.ops() == b.ops()
+        && a.lists() == b.lists()
+        && a.outputs == b.outputs
+        && a.reductions == b.reductions
+        && a.outer == b.outer
+        && a.n_inputs == b.n_inputs
 }
 
 fn fingerprint(g: &Graph) -> u64 {
@@ -26,6 +31,8 @@ fn fingerprint(g: &Graph) -> u64 {
     g.ops().hash(&mut h);
     g.outputs.hash(&mut h);
     g.reductions.hash(&mut h);
+    g.lists().hash(&mut h);
+    g.outer.hash(&mut h);
     g.n_inputs.hash(&mut h);
     h.finish()
 }

@@ -198,6 +198,9 @@ impl<'g> GraphEmitter<'g> {
                     };
                     s.select(m, v(a), v(d))
                 }
+                Op::Dense(_) | Op::Pick(..) => {
+                    unreachable!("graphs with dense nodes are compiled by the tiled executor")
+                }
             };
             vals[idx] = Some(value);
         }

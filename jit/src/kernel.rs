@@ -9,6 +9,7 @@ use cranelift_module::{default_libcall_names, Linkage, Module};
 use nerfjit_dsl::ir::{Graph, Op};
 
 use crate::codegen;
+use crate::tiled::Tiled;
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 
@@ -119,16 +120,27 @@ pub(crate) fn params_read(graph: &Graph) -> usize {
         .iter()
         .filter_map(|op| match op {
             Op::Param(k) => Some(*k as usize + 1),
+            Op::Dense(d) => Some(d.params_end()),
             _ => None,
         })
         .max()
         .unwrap_or(0)
 }
 
+/// How a kernel runs.
+enum Body {
+    /// One native function over the whole batch.
+    Plain { code: CompiledCode, func: KernelFn },
+    /// Elementwise native functions and matrix products over tiles of points (graphs with dense nodes).
+    Tiled(Box<Tiled>),
+}
+
 /// A native kernel for one graph: evaluates its outputs per point and sums its reductions over a batch.
+///
+/// Graphs with dense nodes run over tiles of points: their elementwise parts as native functions, their
+/// dense nodes as AVX-512 matrix products (see the `tiled` module).
 pub struct Kernel {
-    code: CompiledCode,
-    func: KernelFn,
+    body: Body,
     /// Per-point inputs.
     pub n_inputs: usize,
     /// Per-point outputs.
@@ -159,6 +171,15 @@ impl Kernel {
     pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
         let start = Instant::now();
         let graph = graph.compact();
+        if graph.has_dense() {
+            return Ok(Kernel {
+                body: Body::Tiled(Box::new(Tiled::compile(&graph, options)?)),
+                n_inputs: graph.n_inputs as usize,
+                n_outputs: graph.outputs.len(),
+                n_reductions: graph.reductions.len(),
+                n_params: params_read(&graph),
+            });
+        }
         let module = host_module()?;
         let mut ctx = module.make_context();
         codegen::signature(&mut ctx.func.signature, module.target_config().pointer_type());
@@ -170,8 +191,7 @@ impl Kernel {
         // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
         let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
         Ok(Kernel {
-            code,
-            func,
+            body: Body::Plain { code, func },
             n_inputs: graph.n_inputs as usize,
             n_outputs: graph.outputs.len(),
             n_reductions: graph.reductions.len(),
@@ -181,15 +201,19 @@ impl Kernel {
 
     /// What the compilation did.
     pub fn stats(&self) -> &CompileStats {
-        &self.code.stats
+        match &self.body {
+            Body::Plain { code, .. } => &code.stats,
+            Body::Tiled(t) => &t.stats,
+        }
     }
 
-    /// Runs the generated code on `n` points.
+    /// Runs the generated code of a kernel without dense nodes on `n` points.
     ///
     /// # Safety
     /// Every column pointer must address at least `n` rounded up to a multiple of 4 floats, `params` at
-    /// least [`Kernel::n_params`] and `accum` 4 per reduction.
-    unsafe fn call(
+    /// least [`Kernel::n_params`] and `accum` 4 per reduction; there must be [`Kernel::n_inputs`] input and
+    /// [`Kernel::n_outputs`] output pointers.
+    pub(crate) unsafe fn call_raw(
         &self,
         ins: &[*const f32],
         outs: &[*mut f32],
@@ -197,9 +221,14 @@ impl Kernel {
         accum: &mut [f32],
         n: usize,
     ) {
+        let Body::Plain { func, .. } = &self.body else {
+            panic!("call_raw on a tiled kernel");
+        };
+        debug_assert!(ins.len() == self.n_inputs && outs.len() == self.n_outputs);
+        debug_assert!(params.len() >= self.n_params && accum.len() >= 4 * self.n_reductions);
         // SAFETY: as the caller guarantees.
         unsafe {
-            (self.func)(
+            func(
                 ins.as_ptr(),
                 outs.as_ptr(),
                 params.as_ptr(),
@@ -254,6 +283,9 @@ impl Kernel {
         reductions: &mut [f32],
     ) {
         self.check(n, inputs, outputs, params, reductions);
+        if let Body::Tiled(t) = &self.body {
+            return t.eval(n, inputs, outputs, params, reductions);
+        }
         let mut accum = vec![0.0f32; 4 * self.n_reductions];
         let full = n / 4 * 4;
         if full > 0 {
@@ -261,7 +293,7 @@ impl Kernel {
             let outs: Vec<*mut f32> = outputs.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: every column holds at least `full` points (checked above), a multiple of 4, and the
             // kernel accesses exactly points 0..full of each column and 4 lanes per reduction of `accum`.
-            unsafe { self.call(&ins, &outs, params, &mut accum, full) };
+            unsafe { self.call_raw(&ins, &outs, params, &mut accum, full) };
         }
         let rest = n - full;
         if rest > 0 {
@@ -278,7 +310,7 @@ impl Kernel {
             let ins: Vec<*const f32> = pad_in.iter().map(|c| c.as_ptr()).collect();
             let outs: Vec<*mut f32> = pad_out.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: each padded column holds 4 points; the kernel masks the reduction lanes ≥ rest.
-            unsafe { self.call(&ins, &outs, params, &mut accum, rest) };
+            unsafe { self.call_raw(&ins, &outs, params, &mut accum, rest) };
             for (col, pad) in outputs.iter_mut().zip(&pad_out) {
                 col[full..n].copy_from_slice(&pad[..rest]);
             }

@@ -19,9 +19,11 @@
 
 mod cache;
 mod codegen;
+pub mod gemm;
 mod kernel;
 mod march;
 mod simd;
+mod tiled;
 
 pub use cache::KernelCache;
 pub use kernel::{CompileStats, JitError, Kernel, Options};

@@ -54,6 +54,11 @@ impl Marcher {
     pub fn compile(sdf: &Graph) -> Result<Marcher, JitError> {
         let start = Instant::now();
         let sdf = sdf.compact();
+        if sdf.has_dense() {
+            return Err(JitError(
+                "the fused sphere tracer takes elementwise SDFs; dense layers run tiled".into(),
+            ));
+        }
         if sdf.n_inputs != 3 || sdf.outputs.len() != 1 {
             return Err(JitError(format!(
                 "a sphere tracer needs an SDF of 3 inputs and 1 output, not {} and {}",

@@ -1,0 +1,318 @@
+//! The matrix products of dense layers on tiles of points, with AVX-512 micro-kernels.
+//!
+//! Activations are stored feature-major: one column of [`TILE`] floats per feature (the layout of the
+//! JIT kernels' buffers), so a layer's input is a list of column pointers and needs no packing.
+//! - [`matmul`]: `out_i = Σ_k A[i][k] · x_k` for a row-major matrix A (the forward product, and with Wᵀ
+//!   the backward product of a layer). The micro-kernel keeps a block of 4 rows × 64 points in 16
+//!   registers and streams the input columns: per input feature, 4 loads, 4 broadcasts and 16 FMAs.
+//! - [`outer`]: `G[i][j] += Σ_t l_i[t] · r_j[t]` over the valid points of a tile (the gradient of a matrix).
+//!   The right operand is transposed to point-major rows first, so that the micro-kernel again
+//!   broadcasts one operand and streams the other into 4 × 64 accumulators.
+//!
+//! Both run 512-bit code when the CPU has AVX-512F (checked once at run time) and portable loops
+//! otherwise.
+
+use std::sync::OnceLock;
+
+/// The points of one tile (a multiple of 64, the width of the micro-kernels' point blocks).
+pub const TILE: usize = 128;
+
+fn has_avx512() -> bool {
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("avx512f")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    })
+}
+
+/// The width to which [`outer`] pads the right operand (and the rows of its accumulator).
+pub fn padded(n: usize) -> usize {
+    n.div_ceil(16) * 16
+}
+
+/// `out[i][t] = Σ_k a[i·k_len + k] · x[k][t]` for i < `out.len()`, t < [`TILE`], where k_len = `x.len()`.
+///
+/// # Safety
+/// Every pointer of `x` must address [`TILE`] readable floats and every pointer of `out` [`TILE`]
+/// writable floats that no pointer of `x` overlaps; `a` must hold `out.len() · x.len()` floats.
+pub unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+    assert!(a.len() >= out.len() * x.len(), "matrix smaller than its product");
+    #[cfg(target_arch = "x86_64")]
+    if has_avx512() {
+        // SAFETY: the CPU has AVX-512F; the buffers are as the caller guarantees.
+        return unsafe { avx512::matmul(a, x, out) };
+    }
+    let k_len = x.len();
+    for (i, &o) in out.iter().enumerate() {
+        // SAFETY: `o` addresses TILE floats that no input overlaps (caller).
+        let o = unsafe { std::slice::from_raw_parts_mut(o, TILE) };
+        o.fill(0.0);
+        for (k, &xk) in x.iter().enumerate() {
+            let w = a[i * k_len + k];
+            // SAFETY: `xk` addresses TILE floats (caller).
+            let xk = unsafe { std::slice::from_raw_parts(xk, TILE) };
+            for (ot, xt) in o.iter_mut().zip(xk) {
+                *ot += w * xt;
+            }
+        }
+    }
+}
+
+/// `g[i·stride + j] += Σ_{t < count} l[i][t] · r[j][t]` for i < `l.len()`, j < `r.len()`, with
+/// stride = [`padded`]`(r.len())`. `scratch` is reused between calls (the transposed right operand).
+///
+/// # Safety
+/// Every pointer of `l` and `r` must address `count` readable floats.
+pub unsafe fn outer(l: &[*const f32], r: &[*const f32], count: usize, g: &mut [f32], scratch: &mut Vec<f32>) {
+    let stride = padded(r.len());
+    assert!(count <= TILE, "more points than a tile");
+    assert!(g.len() >= l.len() * stride, "gradient buffer too small");
+    scratch.clear();
+    scratch.resize(count * stride, 0.0);
+    for (j, &rj) in r.iter().enumerate() {
+        // SAFETY: `rj` addresses `count` floats (caller).
+        let rj = unsafe { std::slice::from_raw_parts(rj, count) };
+        for (t, &v) in rj.iter().enumerate() {
+            scratch[t * stride + j] = v;
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    if has_avx512() {
+        // SAFETY: the CPU has AVX-512F; sizes were checked above and by the caller.
+        return unsafe { avx512::outer(l, scratch, stride, count, g) };
+    }
+    for (i, &li) in l.iter().enumerate() {
+        // SAFETY: `li` addresses `count` floats (caller).
+        let li = unsafe { std::slice::from_raw_parts(li, count) };
+        let row = &mut g[i * stride..(i + 1) * stride];
+        for (t, &lv) in li.iter().enumerate() {
+            for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
+                *gj += lv * rv;
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    use super::TILE;
+
+    /// Rows of A (or of G) per register block.
+    const MR: usize = 4;
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+        let k = x.len();
+        let mut i = 0;
+        // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
+        unsafe {
+            while i + MR <= out.len() {
+                matmul_block::<4>(a.as_ptr().add(i * k), x, &out[i..i + 4]);
+                i += MR;
+            }
+            match out.len() - i {
+                3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..]),
+                2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..]),
+                1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..]),
+                _ => {}
+            }
+        }
+    }
+
+    /// R rows of the product, for all TILE points, 64 at a time.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32]) {
+        let k = x.len();
+        for t0 in (0..TILE).step_by(64) {
+            let mut acc = [[_mm512_setzero_ps(); 4]; R];
+            for (kk, &xk) in x.iter().enumerate() {
+                // SAFETY: xk addresses TILE floats and t0 + 64 ≤ TILE; row r of A has k floats.
+                unsafe {
+                    let p = xk.add(t0);
+                    let b = [
+                        _mm512_loadu_ps(p),
+                        _mm512_loadu_ps(p.add(16)),
+                        _mm512_loadu_ps(p.add(32)),
+                        _mm512_loadu_ps(p.add(48)),
+                    ];
+                    for (r, acc_r) in acc.iter_mut().enumerate() {
+                        let w = _mm512_set1_ps(*a.add(r * k + kk));
+                        for q in 0..4 {
+                            acc_r[q] = _mm512_fmadd_ps(w, b[q], acc_r[q]);
+                        }
+                    }
+                }
+            }
+            for (r, acc_r) in acc.iter().enumerate() {
+                for (q, v) in acc_r.iter().enumerate() {
+                    // SAFETY: out[r] addresses TILE writable floats.
+                    unsafe { _mm512_storeu_ps(out[r].add(t0 + 16 * q), *v) };
+                }
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn outer(l: &[*const f32], rt: &[f32], stride: usize, count: usize, g: &mut [f32]) {
+        let mut i = 0;
+        while i < l.len() {
+            let rows = (l.len() - i).min(MR);
+            let mut j = 0;
+            while j < stride {
+                let vecs = ((stride - j) / 16).min(4);
+                // SAFETY: rows i..i+rows of G and columns j..j+16·vecs ≤ stride exist; l pointers hold
+                // `count` floats and rt holds count rows of `stride` floats (checked by the caller).
+                unsafe {
+                    let blk = Block {
+                        l: &l[i..i + rows],
+                        rt: rt.as_ptr().add(j),
+                        stride,
+                        count,
+                        g: g.as_mut_ptr().add(i * stride + j),
+                    };
+                    match (rows, vecs) {
+                        (4, 4) => blk.run::<4, 4>(),
+                        (4, 3) => blk.run::<4, 3>(),
+                        (4, 2) => blk.run::<4, 2>(),
+                        (4, 1) => blk.run::<4, 1>(),
+                        (3, 4) => blk.run::<3, 4>(),
+                        (3, 3) => blk.run::<3, 3>(),
+                        (3, 2) => blk.run::<3, 2>(),
+                        (3, 1) => blk.run::<3, 1>(),
+                        (2, 4) => blk.run::<2, 4>(),
+                        (2, 3) => blk.run::<2, 3>(),
+                        (2, 2) => blk.run::<2, 2>(),
+                        (2, 1) => blk.run::<2, 1>(),
+                        (1, 4) => blk.run::<1, 4>(),
+                        (1, 3) => blk.run::<1, 3>(),
+                        (1, 2) => blk.run::<1, 2>(),
+                        _ => blk.run::<1, 1>(),
+                    }
+                }
+                j += 16 * vecs;
+            }
+            i += rows;
+        }
+    }
+
+    /// One register block of the outer product: R rows of G × 16·N columns.
+    struct Block<'a> {
+        l: &'a [*const f32],
+        rt: *const f32,
+        stride: usize,
+        count: usize,
+        g: *mut f32,
+    }
+
+    impl Block<'_> {
+        #[target_feature(enable = "avx512f")]
+        #[inline]
+        unsafe fn run<const R: usize, const N: usize>(&self) {
+            let mut acc = [[_mm512_setzero_ps(); N]; R];
+            for t in 0..self.count {
+                // SAFETY: row t of rt has 16·N floats from this block's start; l[r] has `count` floats.
+                unsafe {
+                    let row = self.rt.add(t * self.stride);
+                    let mut b = [_mm512_setzero_ps(); N];
+                    for (q, bq) in b.iter_mut().enumerate() {
+                        *bq = _mm512_loadu_ps(row.add(16 * q));
+                    }
+                    for (r, acc_r) in acc.iter_mut().enumerate() {
+                        let lv = _mm512_set1_ps(*self.l[r].add(t));
+                        for q in 0..N {
+                            acc_r[q] = _mm512_fmadd_ps(lv, b[q], acc_r[q]);
+                        }
+                    }
+                }
+            }
+            for (r, acc_r) in acc.iter().enumerate() {
+                for (q, v) in acc_r.iter().enumerate() {
+                    // SAFETY: row r of G has 16·N floats from this block's start.
+                    unsafe {
+                        let p = self.g.add(r * self.stride + 16 * q);
+                        _mm512_storeu_ps(p, _mm512_add_ps(_mm512_loadu_ps(p), *v));
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn column(seed: u32, len: usize) -> Vec<f32> {
+        (0..len)
+            .map(|t| ((t as u32 * 2654435761u32 ^ seed.wrapping_mul(40503)) % 1000) as f32 / 500.0 - 1.0)
+            .collect()
+    }
+
+    #[test]
+    fn matmul_matches_a_plain_product() {
+        for (m, k) in [(1, 1), (3, 5), (4, 39), (7, 16), (128, 128), (9, 143)] {
+            let a = column(7, m * k);
+            let xs: Vec<Vec<f32>> = (0..k).map(|c| column(c as u32, TILE)).collect();
+            let mut outs = vec![vec![f32::NAN; TILE]; m];
+            let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
+            let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
+            // SAFETY: every column has TILE floats; outputs are separate buffers.
+            unsafe { matmul(&a, &xp, &op) };
+            for i in 0..m {
+                for t in 0..TILE {
+                    let want: f64 = (0..k)
+                        .map(|c| f64::from(a[i * k + c]) * f64::from(xs[c][t]))
+                        .sum();
+                    assert!(
+                        (f64::from(outs[i][t]) - want).abs() < 1e-4,
+                        "{m}x{k} at ({i}, {t})"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn outer_accumulates_over_the_valid_points() {
+        for (m, n, count) in [
+            (1, 1, 1),
+            (3, 5, 7),
+            (4, 64, 128),
+            (6, 39, 100),
+            (128, 143, 128),
+            (5, 3, 0),
+        ] {
+            let ls: Vec<Vec<f32>> = (0..m).map(|c| column(c as u32 + 100, TILE)).collect();
+            let rs: Vec<Vec<f32>> = (0..n).map(|c| column(c as u32 + 300, TILE)).collect();
+            let stride = padded(n);
+            let mut g = vec![1.0f32; m * stride];
+            let lp: Vec<*const f32> = ls.iter().map(|c| c.as_ptr()).collect();
+            let rp: Vec<*const f32> = rs.iter().map(|c| c.as_ptr()).collect();
+            let mut scratch = Vec::new();
+            // SAFETY: every column has TILE ≥ count floats.
+            unsafe { outer(&lp, &rp, count, &mut g, &mut scratch) };
+            for i in 0..m {
+                for j in 0..n {
+                    let want: f64 = 1.0
+                        + (0..count)
+                            .map(|t| f64::from(ls[i][t]) * f64::from(rs[j][t]))
+                            .sum::<f64>();
+                    let got = f64::from(g[i * stride + j]);
+                    assert!(
+                        (got - want).abs() < 1e-4,
+                        "{m}x{n}x{count} at ({i}, {j}): {got} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+}
