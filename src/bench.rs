@@ -24,6 +24,9 @@ pub enum Workload {
     W2,
     /// W3: training steps of the box recovery (needs ../shared/data/assignment3).
     W3,
+    /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
+    /// tiles of points, on one thread and on all threads.
+    Dense,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -51,6 +54,7 @@ pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()
         Workload::W1 => w1(reps),
         Workload::W2 => w2(reps),
         Workload::W3 => w3(reps),
+        Workload::Dense => dense(reps, threads),
     }
 }
 
@@ -285,5 +289,94 @@ fn w3(reps: usize) -> Result<()> {
             1e3 * seconds / steps as f64
         ) + "\n"),
     );
+    Ok(())
+}
+
+/// GFLOP/s of a product of `flops`: `make` builds one thread's operands and returns the product, which
+/// runs `per_thread` times on each of `threads` threads.
+fn gflops(
+    reps: usize,
+    threads: usize,
+    per_thread: usize,
+    flops: f64,
+    make: &(dyn Fn() -> Box<dyn FnMut()> + Sync),
+) -> f64 {
+    let seconds = time_reps(reps, || {
+        std::thread::scope(|s| {
+            for _ in 0..threads {
+                s.spawn(|| {
+                    let mut f = make();
+                    (0..per_thread).for_each(|_| f());
+                });
+            }
+        });
+    });
+    flops * (threads * per_thread) as f64 / seconds / 1e9
+}
+
+fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
+    use nerfjit_jit::gemm::{self, TILE};
+    const WIDTH: usize = 128;
+    const PER_THREAD: usize = 4000;
+    let all = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    // Columns of one 64-byte aligned block, as the tiled kernels' arena lays them out.
+    let columns = |n: usize| -> (Vec<f32>, usize) {
+        let v: Vec<f32> = (0..n * TILE + 16).map(|i| 0.01 * (i / TILE) as f32).collect();
+        let skip = v.as_ptr().align_offset(64);
+        (v, skip)
+    };
+    let pointers = |(v, skip): &mut (Vec<f32>, usize), n: usize| -> Vec<*mut f32> {
+        // SAFETY: column c lies inside the buffer (n·TILE + 16 floats, skip < 16).
+        (0..n)
+            .map(|c| unsafe { v.as_mut_ptr().add(*skip + c * TILE) })
+            .collect()
+    };
+    let product = move || -> Box<dyn FnMut()> {
+        let w: Vec<f32> = (0..WIDTH * WIDTH)
+            .map(|i| ((i * 7919) % 201) as f32 / 100.0 - 1.0)
+            .collect();
+        let mut x = columns(WIDTH);
+        let mut y = columns(WIDTH);
+        let xp: Vec<*const f32> = pointers(&mut x, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let yp = pointers(&mut y, WIDTH);
+        Box::new(move || {
+            // SAFETY: every column holds TILE floats; x and y are separate buffers.
+            unsafe { gemm::matmul(&w, &xp, &yp) };
+            std::hint::black_box(&mut y);
+        })
+    };
+    let grad = move || -> Box<dyn FnMut()> {
+        let mut l = columns(WIDTH);
+        let mut r = columns(WIDTH);
+        let lp: Vec<*const f32> = pointers(&mut l, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let rp: Vec<*const f32> = pointers(&mut r, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let mut g = vec![0.0f32; WIDTH * gemm::padded(WIDTH)];
+        let mut scratch = Vec::new();
+        Box::new(move || {
+            // SAFETY: every column holds TILE floats.
+            unsafe { gemm::outer(&lp, &rp, TILE, &mut g, &mut scratch) };
+            std::hint::black_box((&l, &r, &g));
+        })
+    };
+    let flops = (2 * WIDTH * WIDTH * TILE) as f64;
+    let run = |name: &str, make: &(dyn Fn() -> Box<dyn FnMut()> + Sync)| {
+        let one = gflops(reps, 1, PER_THREAD, flops, make);
+        let many = gflops(reps, all, PER_THREAD, flops, make);
+        crate::emit(
+            &(format!("dense {name} {WIDTH}×{WIDTH} × {TILE} points: {one:.1} GFLOP/s on 1 thread, {many:.1} GFLOP/s on {all}")
+                + "\n"),
+        );
+    };
+    run("forward product (W·x)", &product);
+    run("weight gradient (Σ ȳ ⊗ x)", &grad);
     Ok(())
 }

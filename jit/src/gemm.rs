@@ -105,58 +105,62 @@ mod avx512 {
 
     use super::TILE;
 
-    /// Rows of A (or of G) per register block.
+    /// Rows of A per register block of the product.
     const MR: usize = 4;
+    /// Rows of G per register block of the outer product.
+    const GR: usize = 4;
+
+    /// Vectors of 16 points per register block of the product.
+    const QV: usize = 4;
 
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
         let k = x.len();
-        let mut i = 0;
-        // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
-        unsafe {
-            while i + MR <= out.len() {
-                matmul_block::<4>(a.as_ptr().add(i * k), x, &out[i..i + 4]);
-                i += MR;
-            }
-            match out.len() - i {
-                3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..]),
-                2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..]),
-                1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..]),
-                _ => {}
+        // Point blocks outermost: a block's inputs (k × 16·QV floats) stay in L1 for every row block.
+        for t0 in (0..TILE).step_by(16 * QV) {
+            let mut i = 0;
+            // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
+            unsafe {
+                while i + MR <= out.len() {
+                    matmul_block::<MR>(a.as_ptr().add(i * k), x, &out[i..i + MR], t0);
+                    i += MR;
+                }
+                match out.len() - i {
+                    3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    _ => {}
+                }
             }
         }
     }
 
-    /// R rows of the product, for all TILE points, 64 at a time.
+    /// R rows of the product for the 16·QV points from `t0`.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32]) {
+    unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32], t0: usize) {
         let k = x.len();
-        for t0 in (0..TILE).step_by(64) {
-            let mut acc = [[_mm512_setzero_ps(); 4]; R];
-            for (kk, &xk) in x.iter().enumerate() {
-                // SAFETY: xk addresses TILE floats and t0 + 64 ≤ TILE; row r of A has k floats.
-                unsafe {
-                    let p = xk.add(t0);
-                    let b = [
-                        _mm512_loadu_ps(p),
-                        _mm512_loadu_ps(p.add(16)),
-                        _mm512_loadu_ps(p.add(32)),
-                        _mm512_loadu_ps(p.add(48)),
-                    ];
-                    for (r, acc_r) in acc.iter_mut().enumerate() {
-                        let w = _mm512_set1_ps(*a.add(r * k + kk));
-                        for q in 0..4 {
-                            acc_r[q] = _mm512_fmadd_ps(w, b[q], acc_r[q]);
-                        }
+        let mut acc = [[_mm512_setzero_ps(); QV]; R];
+        for (kk, &xk) in x.iter().enumerate() {
+            // SAFETY: xk addresses TILE floats and t0 + 16·QV ≤ TILE; row r of A has k floats.
+            unsafe {
+                let p = xk.add(t0);
+                let mut b = [_mm512_setzero_ps(); QV];
+                for (q, bq) in b.iter_mut().enumerate() {
+                    *bq = _mm512_loadu_ps(p.add(16 * q));
+                }
+                for (r, acc_r) in acc.iter_mut().enumerate() {
+                    let w = _mm512_set1_ps(*a.add(r * k + kk));
+                    for q in 0..QV {
+                        acc_r[q] = _mm512_fmadd_ps(w, b[q], acc_r[q]);
                     }
                 }
             }
-            for (r, acc_r) in acc.iter().enumerate() {
-                for (q, v) in acc_r.iter().enumerate() {
-                    // SAFETY: out[r] addresses TILE writable floats.
-                    unsafe { _mm512_storeu_ps(out[r].add(t0 + 16 * q), *v) };
-                }
+        }
+        for (r, acc_r) in acc.iter().enumerate() {
+            for (q, v) in acc_r.iter().enumerate() {
+                // SAFETY: out[r] addresses TILE writable floats.
+                unsafe { _mm512_storeu_ps(out[r].add(t0 + 16 * q), *v) };
             }
         }
     }
@@ -165,7 +169,7 @@ mod avx512 {
     pub(super) unsafe fn outer(l: &[*const f32], rt: &[f32], stride: usize, count: usize, g: &mut [f32]) {
         let mut i = 0;
         while i < l.len() {
-            let rows = (l.len() - i).min(MR);
+            let rows = (l.len() - i).min(GR);
             let mut j = 0;
             while j < stride {
                 let vecs = ((stride - j) / 16).min(4);
