@@ -331,7 +331,13 @@ impl Kernel {
         threads: usize,
     ) {
         self.check(n, inputs, outputs, params, reductions);
-        let threads = threads.clamp(1, n.div_ceil(4096).max(1));
+        // Below a few thousand points per thread, threads cost more than they save; a tiled kernel does
+        // ~100× more work per point, so a few tiles per thread are worth it.
+        let per_thread = match self.body {
+            Body::Plain { .. } => 4096,
+            Body::Tiled(_) => 2 * crate::gemm::TILE,
+        };
+        let threads = threads.clamp(1, n.div_ceil(per_thread).max(1));
         if threads == 1 {
             return self.eval(n, inputs, outputs, params, reductions);
         }
