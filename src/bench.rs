@@ -24,6 +24,12 @@ pub enum Workload {
     W2,
     /// W3: training steps of the box recovery (needs ../shared/data/assignment3).
     W3,
+    /// W4: training steps of the course's NeRF on lego (needs ../shared/data/lego), and one 128×128 view.
+    W4,
+    /// W5: training steps of the course's neural SDF on the bunny (needs ../shared/data/assignment3).
+    W5,
+    /// W6: training steps of the course's VolSDF on lego (needs ../shared/data/lego).
+    W6,
     /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
     /// tiles of points, on one thread and on all threads.
     Dense,
@@ -54,6 +60,9 @@ pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()
         Workload::W1 => w1(reps),
         Workload::W2 => w2(reps),
         Workload::W3 => w3(reps),
+        Workload::W4 => w4(reps),
+        Workload::W5 => w5(reps),
+        Workload::W6 => w6(reps),
         Workload::Dense => dense(reps, threads),
     }
 }
@@ -378,5 +387,66 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
     };
     run("forward product (W·x)", &product);
     run("weight gradient (Σ ȳ ⊗ x)", &grad);
+    Ok(())
+}
+
+/// Runs `steps` steps of the first `train` block of `script`; returns the summary line.
+fn volume_training(script: &str, steps: u32) -> Result<String> {
+    let program = script::load(script)?;
+    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
+    let mut params = program.param_values.clone();
+    plan.run_steps(&program, &mut params, steps)
+}
+
+fn w4(reps: usize) -> Result<()> {
+    let steps = 10 * reps.max(1) as u32;
+    let summary = volume_training("examples/nerf_lego.sdf", steps)?;
+    crate::emit(&format!(
+        "W4 nerf_lego: {steps} steps of 1024 rays × 128 samples: {summary}\n"
+    ));
+    let program = script::load("examples/nerf_lego.sdf")?;
+    let cache = nerfjit_jit::KernelCache::new();
+    let field = crate::field::VolumeField::compile(&program, &cache)?;
+    let (forward, _) = field.bind(&program.param_values);
+    let settings = nerfjit_runtime::VolumeSettings {
+        near: 2.0,
+        far: 6.0,
+        samples: 128,
+        mode: field.mode,
+        background: Some([0.0; 3]),
+        early_termination: None,
+    };
+    let set = nerfjit_runtime::load_blender_cameras(std::path::Path::new(
+        "../shared/data/lego/transforms_val.json",
+    ))?;
+    let camera = set.cameras[0];
+    let seconds = time_reps(reps, || {
+        let frame = nerfjit_runtime::render_volume(&camera, 128, 128, &forward, &settings);
+        std::hint::black_box(frame.is_ok());
+    });
+    crate::emit(&format!(
+        "W4 render: one 128×128 view, 128 samples per ray: {seconds:.2} s/view\n"
+    ));
+    Ok(())
+}
+
+fn w5(reps: usize) -> Result<()> {
+    let program = script::load("examples/neural_sdf_bunny.sdf")?;
+    let plan = crate::train_sdf::SdfTrainPlan::new(first_block(&program, "train", "examples")?)?;
+    let steps = 20 * reps.max(1) as u32;
+    let mut params = program.param_values.clone();
+    let summary = plan.run_steps(&program, &mut params, steps)?;
+    crate::emit(&format!(
+        "W5 neural_sdf_bunny: {steps} steps of 4096 + 4096 points: {summary}\n"
+    ));
+    Ok(())
+}
+
+fn w6(reps: usize) -> Result<()> {
+    let steps = 10 * reps.max(1) as u32;
+    let summary = volume_training("examples/volsdf_lego.sdf", steps)?;
+    crate::emit(&format!(
+        "W6 volsdf_lego: {steps} steps of 1024 rays × 128 samples + eikonal: {summary}\n"
+    ));
     Ok(())
 }

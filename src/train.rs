@@ -41,6 +41,9 @@ const KEYS: &[&str] = &[
     "eikonal_weight",
     "eikonal_points",
     "eikonal_bounds",
+    "val",
+    "val_every",
+    "val_views",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -69,6 +72,17 @@ pub struct TrainPlan {
     preview_every: u32,
     /// VolSDF-style training: the eikonal term on the script's SDF (its name) at random points.
     eikonal: Option<(String, Regularizers)>,
+    /// Held-out views scored during training (Blender data only).
+    validation: Option<Validation>,
+}
+
+/// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps and
+/// at the end (the first `views` of them, all if None).
+#[derive(Clone, Debug)]
+struct Validation {
+    file: PathBuf,
+    every: u32,
+    views: Option<usize>,
 }
 
 /// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
@@ -223,6 +237,30 @@ impl TrainPlan {
         let checkpoint = b.output("checkpoint")?;
         let summary = b.output("summary")?;
         let preview = b.output("preview")?;
+        let validation = match b.take("val") {
+            Some(v) => {
+                let file = data_path(v.string().map_err(|d| b.error(d))?, b.script_dir());
+                if blender.is_none() {
+                    return Err(b.error(Diagnostic::new(
+                        v.span,
+                        "'val' scores held-out Blender views: it needs data: blender(...)",
+                    )));
+                }
+                if !file.is_file() {
+                    return Err(b.error(Diagnostic::new(
+                        v.span,
+                        format!("validation file '{}' not found", file.display()),
+                    )));
+                }
+                let every = b.whole("val_every", 1, u64::from(u32::MAX), 500)? as u32;
+                let views = match b.take("val_views") {
+                    Some(n) => Some(crate::settings::whole(&n, 1, 100_000).map_err(|d| b.error(d))? as usize),
+                    None => None,
+                };
+                Some(Validation { file, every, views })
+            }
+            None => None,
+        };
         b.finish(KEYS)?;
         Ok(TrainPlan {
             data,
@@ -243,6 +281,7 @@ impl TrainPlan {
             preview,
             preview_every,
             eikonal,
+            validation,
         })
     }
 
@@ -268,6 +307,7 @@ impl TrainPlan {
             data: self.data.clone(),
             blender: self.blender,
             eikonal: self.eikonal.clone(),
+            validation: None,
             ..*self
         };
         let line = quiet.run(program, params, false)?;
@@ -280,6 +320,13 @@ impl TrainPlan {
             None => load_box_views(&self.data)?,
             Some(b) => load_blender_views(&self.data, Some(b.size), b.background, b.views)?,
         };
+        let val_views = match (&self.validation, self.blender) {
+            (Some(v), Some(b)) => Some(load_blender_views(&v.file, Some(b.size), b.background, v.views)?),
+            _ => None,
+        };
+        let mut history: Vec<serde_json::Value> = Vec::new();
+        let mut val_message = String::new();
+        let mut train_seconds = 0.0f64;
 
         let cache = KernelCache::new();
         let t = Instant::now();
@@ -305,6 +352,7 @@ impl TrainPlan {
         let start = Instant::now();
         let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
         for step in first..self.steps {
+            let step_start = Instant::now();
             let view = if self.random_views {
                 rng.below(views.len() as u64) as usize
             } else {
@@ -337,11 +385,26 @@ impl TrainPlan {
                 )));
             }
             (loss, psnr) = (result.loss, result.psnr);
+            train_seconds += step_start.elapsed().as_secs_f64();
             let done = step + 1;
+            if let (Some(v), Some(val)) = (&self.validation, &val_views) {
+                if done % v.every == 0 || done == self.steps {
+                    let (forward, _) = field.bind(params);
+                    let (p, s) = crate::views::means(&crate::views::score(val, &forward, &settings)?);
+                    val_message = format!(" val {p:.2} dB");
+                    bar.println(format!(
+                        "step {done}: val PSNR {p:.2} dB, SSIM {s:.4} ({} views) after {train_seconds:.0} s of training",
+                        val.cameras.len()
+                    ));
+                    history.push(serde_json::json!({
+                        "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
+                    }));
+                }
+            }
             if done % 10 == 0 || done == self.steps {
                 let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
                 bar.set_message(format!(
-                    "loss {loss:.5} PSNR {psnr:.2} dB{} {:.0}k rays/s",
+                    "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",
                     if self.eikonal.is_some() {
                         format!(" eikonal {eikonal_loss:.5}")
                     } else {
@@ -381,6 +444,8 @@ impl TrainPlan {
                 "seconds": seconds,
                 "ms_per_step": ms_per_step,
                 "compile_seconds": compile_s,
+                "train_seconds": train_seconds,
+                "validation": history,
                 "params": params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;

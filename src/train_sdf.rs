@@ -125,6 +125,21 @@ impl SdfTrainPlan {
         })
     }
 
+    /// Runs only `steps` fitting steps (no pre-training, checkpoints, summary or GIF), for benchmarks;
+    /// returns the summary line, with the ms per step of the training loop alone.
+    pub fn run_steps(self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
+        let quiet = SdfTrainPlan {
+            steps,
+            pretrain_steps: 0,
+            checkpoint: None,
+            summary: None,
+            points_gif: None,
+            ..self
+        };
+        let line = quiet.run(program, params, false)?;
+        Ok(line.lines().next().unwrap_or_default().to_string())
+    }
+
     /// Trains `params` in place; returns a summary.
     pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
         let (cloud, mean) = mean_center(&read_points(&self.data, self.key.as_deref())?);

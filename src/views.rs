@@ -9,8 +9,8 @@ use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_cameras, load_blender_views, psnr, render_volume, rgb_image, ssim, ImageF32, Quantize,
-    VolumeSettings,
+    load_blender_cameras, load_blender_views, psnr, render_volume, rgb_image, ssim, BatchFn, ImageF32,
+    Quantize, Views, VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
@@ -99,6 +99,32 @@ pub fn render(args: &ViewArgs, out: &Path, gif: bool) -> Result<String> {
     ))
 }
 
+/// PSNR and SSIM of `field` rendered from every camera of `views` against its image.
+pub fn score(views: &Views, field: &dyn BatchFn, settings: &VolumeSettings) -> Result<Vec<(f32, f32)>> {
+    views
+        .cameras
+        .iter()
+        .zip(&views.images)
+        .map(|(camera, target)| {
+            let f = render_volume(camera, views.width, views.height, field, settings)?;
+            let rendered = ImageF32 {
+                width: f.width,
+                height: f.height,
+                pixels: f.rgb,
+            };
+            let mse = nerfjit_runtime::mse(&rendered, target)?;
+            Ok((psnr(mse), ssim(&rendered, target)?))
+        })
+        .collect()
+}
+
+/// The mean PSNR and SSIM of scores.
+pub fn means(scores: &[(f32, f32)]) -> (f64, f64) {
+    let n = scores.len().max(1) as f64;
+    let sum = |f: fn(&(f32, f32)) -> f32| scores.iter().map(|x| f64::from(f(x))).sum::<f64>() / n;
+    (sum(|x| x.0), sum(|x| x.1))
+}
+
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means.
 pub fn eval(args: &ViewArgs) -> Result<String> {
     let (program, params) = load(args.source)?;
@@ -106,23 +132,12 @@ pub fn eval(args: &ViewArgs) -> Result<String> {
     let cache = KernelCache::new();
     let field = VolumeField::compile(&program, &cache)?;
     let (forward, _) = field.bind(&params);
-    let settings = settings(args, field.mode);
+    let scores = score(&views, &forward, &settings(args, field.mode))?;
     let mut lines = String::from("view  PSNR (dB)  SSIM\n");
-    let (mut sum_psnr, mut sum_ssim) = (0.0f64, 0.0f64);
-    for (i, (camera, target)) in views.cameras.iter().zip(&views.images).enumerate() {
-        let f = render_volume(camera, views.width, views.height, &forward, &settings)?;
-        let rendered = ImageF32 {
-            width: f.width,
-            height: f.height,
-            pixels: f.rgb,
-        };
-        let mse = nerfjit_runtime::mse(&rendered, target)?;
-        let (p, s) = (psnr(mse), ssim(&rendered, target)?);
-        sum_psnr += f64::from(p);
-        sum_ssim += f64::from(s);
+    for (i, (p, s)) in scores.iter().enumerate() {
         lines += &format!("{i:>4}  {p:>9.2}  {s:.4}\n");
     }
-    let n = views.cameras.len().max(1) as f64;
-    lines += &format!("mean  {:>9.2}  {:.4}\n", sum_psnr / n, sum_ssim / n);
+    let (p, s) = means(&scores);
+    lines += &format!("mean  {p:>9.2}  {s:.4}\n");
     Ok(lines)
 }
