@@ -161,7 +161,7 @@ impl Compositor {
 
     /// (alpha, 1 − alpha) of sample value `raw` over `delta`.
     #[inline]
-    fn alpha(&self, raw: f32, delta: f32) -> (f32, f32) {
+    pub(crate) fn alpha(&self, raw: f32, delta: f32) -> (f32, f32) {
         match self.mode {
             Mode::Density => density_alpha(raw, delta),
             Mode::Opacity => opacity_alpha(raw, delta),

@@ -28,6 +28,7 @@ pub mod field;
 pub mod image_out;
 mod json;
 pub mod march;
+pub mod importance;
 pub mod marching;
 pub mod mesh;
 pub mod mesh_metrics;
