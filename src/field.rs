@@ -82,8 +82,10 @@ impl Compiler<'_> {
             Kind::Value | Kind::Sdf => kernels::value(&lowered),
             Kind::Gradient => kernels::with_gradient(&lowered),
         };
+        // The fused sphere tracer takes elementwise SDFs; one with dense layers is traced through its
+        // tiled kernel, a batch of ray positions per step.
         let marcher = match kind {
-            Kind::Sdf => Some(Marcher::compile(&graph)?),
+            Kind::Sdf if !graph.has_dense() => Some(Marcher::compile(&graph)?),
             _ => None,
         };
         Ok(JitFn {
@@ -154,32 +156,38 @@ pub struct VolumeField {
 impl VolumeField {
     /// Finds and compiles the field functions of `program`.
     pub fn compile(program: &Program, cache: &KernelCache) -> Result<VolumeField> {
-        let has = |name: &str| program.signature(name).is_some();
+        Self::compile_prefixed(program, cache, "")
+    }
+
+    /// Finds and compiles the field functions named with `prefix` (`coarse_density`, `coarse_color`
+    /// for the coarse field of hierarchical sampling).
+    pub fn compile_prefixed(program: &Program, cache: &KernelCache, prefix: &str) -> Result<VolumeField> {
+        let has = |name: &str| program.signature(&format!("{prefix}{name}")).is_some();
         let (first, mode) = match (has("density"), has("opacity")) {
-            (true, false) => ("density", Mode::Density),
-            (false, true) => ("opacity", Mode::Opacity),
+            (true, false) => (format!("{prefix}density"), Mode::Density),
+            (false, true) => (format!("{prefix}opacity"), Mode::Opacity),
             (true, true) => {
-                return Err(Failure::Message(
-                    "the script defines both 'density' and 'opacity': a volume has one of them".into(),
-                ))
+                return Err(Failure::Message(format!(
+                "the script defines both '{prefix}density' and '{prefix}opacity': a volume has one of them"
+            )))
             }
             (false, false) => {
-                return Err(Failure::Message(
-                    "volume rendering needs 'fn density(p: vec3) -> f32' (or the course's per-sample \
-                     'fn opacity(p: vec3) -> f32') and 'fn color(p: vec3) -> vec3'"
-                        .into(),
-                ))
+                return Err(Failure::Message(format!(
+                    "volume rendering needs 'fn {prefix}density(p: vec3) -> f32' (or the course's per-sample \
+                     'fn {prefix}opacity(p: vec3) -> f32') and 'fn {prefix}color(p: vec3) -> vec3'"
+                )))
             }
         };
+        let color = format!("{prefix}color");
         let vec3 = Type::Vec(3);
-        check_signature(program, first, &[std::slice::from_ref(&vec3)], &Type::F32)?;
+        check_signature(program, &first, &[std::slice::from_ref(&vec3)], &Type::F32)?;
         check_signature(
             program,
-            "color",
+            &color,
             &[std::slice::from_ref(&vec3), &[vec3.clone(), vec3.clone()]],
             &Type::Vec(3),
         )?;
-        let lowered = program.lower_many(&[first, "color"])?;
+        let lowered = program.lower_many(&[first.as_str(), color.as_str()])?;
         let forward = cache.get(&kernels::value(&lowered), Options::default())?;
         let backward = cache.get(
             &kernels::param_vjp(&lowered, program.n_params()),
@@ -233,4 +241,63 @@ pub fn check_signature(program: &Program, name: &str, inputs: &[&[Type]], output
         "'{name}' must be {}, but the script has {sig}",
         forms.join(" or ")
     )))
+}
+
+/// The volume of a script as rendered and trained: one field, or with hierarchical sampling a coarse
+/// field (`coarse_density`/`coarse_color`) and the fine one (`density`/`color`) with `importance` more
+/// samples per ray drawn from the coarse weights.
+pub struct VolumeFields {
+    /// The field (the fine one with hierarchical sampling).
+    pub fine: VolumeField,
+    /// The coarse field and the importance samples per ray, with hierarchical sampling.
+    pub coarse: Option<(VolumeField, usize)>,
+}
+
+impl VolumeFields {
+    /// Compiles the fields of `program`; hierarchical when `importance` > 0.
+    pub fn compile(program: &Program, cache: &KernelCache, importance: usize) -> Result<VolumeFields> {
+        let fine = VolumeField::compile(program, cache)?;
+        let coarse = match importance {
+            0 => None,
+            n => {
+                let coarse = VolumeField::compile_prefixed(program, cache, "coarse_").map_err(|e| {
+                    Failure::Message(format!("importance sampling needs a coarse field: {e}"))
+                })?;
+                if coarse.mode != fine.mode {
+                    return Err(Failure::Message(
+                        "the coarse and fine fields must both be densities or both opacities".into(),
+                    ));
+                }
+                Some((coarse, n))
+            }
+        };
+        Ok(VolumeFields { fine, coarse })
+    }
+
+    /// Renders one view (`settings.samples` coarse samples, plus the importance samples).
+    pub fn render(
+        &self,
+        camera: &nerfjit_runtime::Camera,
+        width: u32,
+        height: u32,
+        params: &[f32],
+        settings: &nerfjit_runtime::VolumeSettings,
+    ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
+        let (fine, _) = self.fine.bind(params);
+        Ok(match &self.coarse {
+            None => nerfjit_runtime::render_volume(camera, width, height, &fine, settings)?,
+            Some((coarse, importance)) => {
+                let (coarse, _) = coarse.bind(params);
+                nerfjit_runtime::hierarchical::render_hierarchical(
+                    camera,
+                    width,
+                    height,
+                    &coarse,
+                    &fine,
+                    settings,
+                    *importance,
+                )?
+            }
+        })
+    }
 }

@@ -189,6 +189,10 @@ struct ViewOptions {
     /// Background: black or white (the images' alpha is composited on it too).
     #[arg(long, default_value = "black", value_parser = ["black", "white"])]
     background: String,
+    /// Importance samples per ray drawn from a coarse pass (hierarchical sampling: the script needs
+    /// coarse_density and coarse_color; `--samples` is then the coarse count). 0: none.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=4096))]
+    importance: u32,
 }
 
 impl ViewOptions {
@@ -202,6 +206,7 @@ impl ViewOptions {
             far: self.far,
             samples: self.samples,
             background: [bg; 3],
+            importance: self.importance as usize,
         }
     }
 }

@@ -9,13 +9,13 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, load_box_views, render_volume, rgb_image, save_png, volume_step, Quantize, Rng,
-    Schedule, Views, VolumeSettings,
+    hierarchical_step, load_blender_views, load_box_views, rgb_image, save_png, volume_step, FinePass,
+    Quantize, Rng, Schedule, Views, VolumeSettings,
 };
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::field::VolumeField;
+use crate::field::{VolumeField, VolumeFields};
 use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
@@ -44,6 +44,7 @@ const KEYS: &[&str] = &[
     "val",
     "val_every",
     "val_views",
+    "importance",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -74,6 +75,8 @@ pub struct TrainPlan {
     eikonal: Option<(String, Regularizers)>,
     /// Held-out views scored during training (Blender data only).
     validation: Option<Validation>,
+    /// Importance samples per ray for hierarchical sampling (0: one field, no fine pass).
+    importance: usize,
 }
 
 /// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps and
@@ -261,6 +264,7 @@ impl TrainPlan {
             }
             None => None,
         };
+        let importance = b.whole("importance", 0, 4096, 0)? as usize;
         b.finish(KEYS)?;
         Ok(TrainPlan {
             data,
@@ -282,6 +286,7 @@ impl TrainPlan {
             preview_every,
             eikonal,
             validation,
+            importance,
         })
     }
 
@@ -330,7 +335,8 @@ impl TrainPlan {
 
         let cache = KernelCache::new();
         let t = Instant::now();
-        let field = VolumeField::compile(program, &cache)?;
+        let fields = VolumeFields::compile(program, &cache, self.importance)?;
+        let field = &fields.fine;
         let regularizer_kernels = match &self.eikonal {
             Some((sdf, _)) => Some(RegularizerKernels::compile(program, sdf)?),
             None => None,
@@ -338,7 +344,7 @@ impl TrainPlan {
         let compile_s = t.elapsed().as_secs_f64();
         let threads = rayon::current_num_threads();
         let mut eikonal_loss = 0.0f32;
-        let settings = self.settings(&field);
+        let settings = self.settings(field);
         let (mut adam, first) =
             crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
                 self.schedule.lr(k)
@@ -362,7 +368,26 @@ impl TrainPlan {
                 views.random_rays(view, self.batch, self.seed.wrapping_add(u64::from(step)))?;
             let (forward, backward) = field.bind(params);
             let jitter = if self.jitter { Some(&mut rng) } else { None };
-            let mut result = volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?;
+            let mut result = match &fields.coarse {
+                None => volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?,
+                Some((coarse, importance)) => {
+                    let (coarse_forward, coarse_backward) = coarse.bind(params);
+                    let fine = FinePass {
+                        field: &forward,
+                        vjp: &backward,
+                        importance: *importance,
+                    };
+                    hierarchical_step(
+                        &rays,
+                        &targets,
+                        &coarse_forward,
+                        &coarse_backward,
+                        &settings,
+                        Some(&fine),
+                        jitter,
+                    )?
+                }
+            };
             if let (Some((_, reg)), Some(k)) = (&self.eikonal, &regularizer_kernels) {
                 let [_, eikonal] = reg.add(k, params, &mut result.param_grads, &mut rng, threads);
                 eikonal_loss = eikonal;
@@ -389,13 +414,17 @@ impl TrainPlan {
             let done = step + 1;
             if let (Some(v), Some(val)) = (&self.validation, &val_views) {
                 if done % v.every == 0 || done == self.steps {
-                    let (forward, _) = field.bind(params);
-                    let (p, s) = crate::views::means(&crate::views::score(val, &forward, &settings)?);
+                    let (p, s) = crate::views::means(&crate::views::score(val, &fields, params, &settings)?);
                     val_message = format!(" val {p:.2} dB");
-                    bar.println(format!(
+                    let line = format!(
                         "step {done}: val PSNR {p:.2} dB, SSIM {s:.4} ({} views) after {train_seconds:.0} s of training",
                         val.cameras.len()
-                    ));
+                    );
+                    if bar.is_hidden() {
+                        eprintln!("{line}");
+                    } else {
+                        bar.println(line);
+                    }
                     history.push(serde_json::json!({
                         "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
                     }));
@@ -421,15 +450,16 @@ impl TrainPlan {
             }
             if let Some(path) = &self.preview {
                 if done % self.preview_every == 0 || done == self.steps {
-                    self.write_preview(path, &views, &field, params, &settings)?;
+                    self.write_preview(path, &views, &fields, params, &settings)?;
                 }
             }
         }
         bar.finish_and_clear();
         let seconds = start.elapsed().as_secs_f64();
         let trained = self.steps - first;
+        // Validation and previews are not training: the rate counts the steps alone.
         let ms_per_step = if trained > 0 {
-            1e3 * seconds / f64::from(trained)
+            1e3 * train_seconds / f64::from(trained)
         } else {
             0.0
         };
@@ -459,12 +489,11 @@ impl TrainPlan {
         &self,
         path: &Path,
         views: &Views,
-        field: &VolumeField,
+        fields: &VolumeFields,
         params: &[f32],
         settings: &VolumeSettings,
     ) -> Result<()> {
-        let (forward, _) = field.bind(params);
-        let frame = render_volume(&views.cameras[0], views.width, views.height, &forward, settings)?;
+        let frame = fields.render(&views.cameras[0], views.width, views.height, params, settings)?;
         // The preview shows the render next to the target view.
         let target = &views.images[0];
         let (w, h) = (views.width as usize, views.height as usize);

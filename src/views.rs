@@ -9,12 +9,12 @@ use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_cameras, load_blender_views, psnr, render_volume, rgb_image, ssim, BatchFn, ImageF32,
-    Quantize, Views, VolumeSettings,
+    load_blender_cameras, load_blender_views, psnr, rgb_image, ssim, ImageF32, Quantize, Views,
+    VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
-use crate::field::VolumeField;
+use crate::field::VolumeFields;
 use crate::output::write_images;
 
 /// Where the field comes from and how to render it.
@@ -33,6 +33,8 @@ pub struct ViewArgs<'a> {
     pub samples: usize,
     /// Background color (the data's alpha is composited on it too).
     pub background: [f32; 3],
+    /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
+    pub importance: usize,
 }
 
 /// The program and params: a checkpoint's, or a script's initial ones.
@@ -67,18 +69,17 @@ pub fn render(args: &ViewArgs, out: &Path, gif: bool) -> Result<String> {
     let (program, params) = load(args.source)?;
     let set = load_blender_cameras(args.cameras)?;
     let cache = KernelCache::new();
-    let field = VolumeField::compile(&program, &cache)?;
-    let (forward, _) = field.bind(&params);
-    let settings = settings(args, field.mode);
+    let fields = VolumeFields::compile(&program, &cache, args.importance)?;
+    let settings = settings(args, fields.fine.mode);
     let start = Instant::now();
     let images = set
         .cameras
         .iter()
         .map(|camera| {
-            let f = render_volume(camera, args.size, args.size, &forward, &settings)?;
-            rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)
+            let f = fields.render(camera, args.size, args.size, &params, &settings)?;
+            Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
         })
-        .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
+        .collect::<Result<Vec<_>>>()?;
     let seconds = start.elapsed().as_secs_f64();
     let n = images.len();
     let target: PathBuf = if gif {
@@ -99,14 +100,19 @@ pub fn render(args: &ViewArgs, out: &Path, gif: bool) -> Result<String> {
     ))
 }
 
-/// PSNR and SSIM of `field` rendered from every camera of `views` against its image.
-pub fn score(views: &Views, field: &dyn BatchFn, settings: &VolumeSettings) -> Result<Vec<(f32, f32)>> {
+/// PSNR and SSIM of `fields` rendered from every camera of `views` against its image.
+pub fn score(
+    views: &Views,
+    fields: &VolumeFields,
+    params: &[f32],
+    settings: &VolumeSettings,
+) -> Result<Vec<(f32, f32)>> {
     views
         .cameras
         .iter()
         .zip(&views.images)
         .map(|(camera, target)| {
-            let f = render_volume(camera, views.width, views.height, field, settings)?;
+            let f = fields.render(camera, views.width, views.height, params, settings)?;
             let rendered = ImageF32 {
                 width: f.width,
                 height: f.height,
@@ -130,9 +136,8 @@ pub fn eval(args: &ViewArgs) -> Result<String> {
     let (program, params) = load(args.source)?;
     let views = load_blender_views(args.cameras, Some(args.size), args.background, None)?;
     let cache = KernelCache::new();
-    let field = VolumeField::compile(&program, &cache)?;
-    let (forward, _) = field.bind(&params);
-    let scores = score(&views, &forward, &settings(args, field.mode))?;
+    let fields = VolumeFields::compile(&program, &cache, args.importance)?;
+    let scores = score(&views, &fields, &params, &settings(args, fields.fine.mode))?;
     let mut lines = String::from("view  PSNR (dB)  SSIM\n");
     for (i, (p, s)) in scores.iter().enumerate() {
         lines += &format!("{i:>4}  {p:>9.2}  {s:.4}\n");

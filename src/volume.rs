@@ -13,7 +13,7 @@ use nerfjit_runtime::{
 
 use crate::block::Block;
 use crate::failure::Result;
-use crate::field::VolumeField;
+use crate::field::{VolumeField, VolumeFields};
 use crate::output::write_images;
 use crate::settings::CallArgs;
 
@@ -26,6 +26,7 @@ const KEYS: &[&str] = &[
     "background",
     "early_termination",
     "skip_empty",
+    "importance",
     "out",
     "depth",
     "frame_ms",
@@ -60,6 +61,8 @@ pub struct VolumePlan {
     pub early_termination: Option<f32>,
     /// Empty-space skipping, if asked for.
     pub skip_empty: Option<SkipEmpty>,
+    /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
+    pub importance: usize,
     /// Color frames.
     pub out: PathBuf,
     /// Depth frames.
@@ -85,6 +88,12 @@ impl VolumePlan {
         let out = b.required_image_output("out", "out: \"volume.gif\"")?;
         let depth = b.image_output("depth")?;
         let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
+        let importance = b.whole("importance", 0, 4096, 0)? as usize;
+        if importance > 0 && skip_empty.is_some() {
+            return Err(
+                b.block_error("'importance' and 'skip_empty' do not combine yet: choose one".to_string())
+            );
+        }
         b.finish(KEYS)?;
         Ok(VolumePlan {
             cameras,
@@ -95,6 +104,7 @@ impl VolumePlan {
             background,
             early_termination: (early > 0.0).then_some(early),
             skip_empty,
+            importance,
             out,
             depth,
             frame_ms,
@@ -117,10 +127,11 @@ impl VolumePlan {
     pub fn run(&self, program: &Program, params: &[f32], progress: &dyn Fn(usize)) -> Result<String> {
         let cache = KernelCache::new();
         let t = Instant::now();
-        let field = VolumeField::compile(program, &cache)?;
+        let fields = VolumeFields::compile(program, &cache, self.importance)?;
+        let field = &fields.fine;
         let compile_s = t.elapsed().as_secs_f64();
         let (forward, _) = field.bind(params);
-        let settings = self.settings(&field);
+        let settings = self.settings(field);
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
@@ -135,14 +146,10 @@ impl VolumePlan {
         };
         let mut frames = Vec::with_capacity(self.cameras.len());
         for (i, camera) in self.cameras.iter().enumerate() {
-            frames.push(render_volume_with(
-                camera,
-                w,
-                h,
-                &forward,
-                &settings,
-                grid.as_ref(),
-            )?);
+            frames.push(match &grid {
+                Some(grid) => render_volume_with(camera, w, h, &forward, &settings, Some(grid))?,
+                None => fields.render(camera, w, h, params, &settings)?,
+            });
             progress(i + 1);
         }
         let seconds = start.elapsed().as_secs_f64();

@@ -257,7 +257,7 @@ mod tests {
 
     fn column(seed: u32, len: usize) -> Vec<f32> {
         (0..len)
-            .map(|t| ((t as u32 * 2654435761u32 ^ seed.wrapping_mul(40503)) % 1000) as f32 / 500.0 - 1.0)
+            .map(|t| (((t as u32 * 2654435761u32) ^ seed.wrapping_mul(40503)) % 1000) as f32 / 500.0 - 1.0)
             .collect()
     }
 

@@ -130,7 +130,7 @@ pub(crate) fn params_read(graph: &Graph) -> usize {
 /// How a kernel runs.
 enum Body {
     /// One native function over the whole batch.
-    Plain { code: CompiledCode, func: KernelFn },
+    Plain { code: Box<CompiledCode>, func: KernelFn },
     /// Elementwise native functions and matrix products over tiles of points (graphs with dense nodes).
     Tiled(Box<Tiled>),
 }
@@ -191,7 +191,10 @@ impl Kernel {
         // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
         let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
         Ok(Kernel {
-            body: Body::Plain { code, func },
+            body: Body::Plain {
+                code: Box::new(code),
+                func,
+            },
             n_inputs: graph.n_inputs as usize,
             n_outputs: graph.outputs.len(),
             n_reductions: graph.reductions.len(),

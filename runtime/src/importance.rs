@@ -12,7 +12,9 @@ const WEIGHT_FLOOR: f32 = 1e-5;
 pub fn ray_weights(compositor: &Compositor, t: &[f32], raw: &[f32], weights: &mut [f32]) {
     let mut transmittance = 1.0f32;
     for j in 0..t.len() {
-        let delta = t.get(j + 1).map_or(crate::composite::LAST_DELTA, |next| next - t[j]);
+        let delta = t
+            .get(j + 1)
+            .map_or(crate::composite::LAST_DELTA, |next| next - t[j]);
         let (alpha, keep) = compositor.alpha(raw[j], delta);
         weights[j] = transmittance * alpha;
         transmittance *= keep;
@@ -33,7 +35,10 @@ pub fn inverse_cdf(near: f32, far: f32, t: &[f32], weights: &[f32], u: &[f32], o
             0.5 * (t[j - 1] + t[j])
         }
     };
-    let total: f64 = weights.iter().map(|&w| f64::from(w.max(0.0) + WEIGHT_FLOOR)).sum();
+    let total: f64 = weights
+        .iter()
+        .map(|&w| f64::from(w.max(0.0) + WEIGHT_FLOOR))
+        .sum();
     let mut j = 0;
     let mut below = 0.0f64;
     let mass = |j: usize| f64::from(weights[j].max(0.0) + WEIGHT_FLOOR) / total;

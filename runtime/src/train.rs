@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use crate::composite::RayOutput;
 use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
+use crate::importance;
 use crate::metrics::psnr;
 use crate::rays::RayBatch;
 use crate::rng::Rng;
@@ -30,8 +31,21 @@ pub struct StepResult {
     pub loss: f32,
     /// PSNR of that error for colors in [0, 1].
     pub psnr: f32,
+    /// With hierarchical sampling: the coarse pass's error (`loss` is the fine pass's).
+    pub coarse_loss: Option<f32>,
     /// ∂loss/∂θ for the parameters θ of the field (length `vjp.n_params()`).
     pub param_grads: Vec<f32>,
+}
+
+/// The fine pass of hierarchical sampling: a second field evaluated at the coarse depths plus
+/// `importance` depths drawn from the coarse weights (see [`crate::importance`]).
+pub struct FinePass<'a> {
+    /// The fine field.
+    pub field: &'a dyn BatchFn,
+    /// Its backward pass.
+    pub vjp: &'a dyn BatchVjp,
+    /// Depths drawn per ray from the coarse weights.
+    pub importance: usize,
 }
 
 /// What every tile of a step needs to know.
@@ -41,28 +55,23 @@ struct Job<'a> {
     field: &'a dyn BatchFn,
     vjp: &'a dyn BatchVjp,
     settings: &'a VolumeSettings,
+    /// The fine pass and its settings (samples = coarse + importance), if sampling is hierarchical.
+    fine: Option<(&'a FinePass<'a>, VolumeSettings)>,
     /// `Some(linspace(near, far, samples))` when the depths are not jittered.
     linspace: Option<Vec<f32>>,
-    view_dependent: bool,
     /// ∂loss/∂color = scale·(color − target).
     scale: f32,
 }
 
 /// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
-/// summed squared error. Jitter, if any, comes from a generator seeded with `seed`.
-fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, grads: &mut [f32]) -> f64 {
+/// summed squared error (of the coarse pass, then of the fine pass if there is one). Jitter, if
+/// any, comes from a generator seeded with `seed`.
+fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, grads: &mut [f32]) -> [f64; 2] {
     let samples = job.settings.samples;
     let len = n * samples;
     s.reserve(len, n);
-    let Scratch {
-        inputs: [x, y, z, vx, vy, vz],
-        outputs: [raw, r, g, b],
-        cotangents: [g_raw, g_r, g_g, g_b],
-        depths,
-        lanes,
-        ..
-    } = s;
-    let depths = &mut depths[..len];
+    let mut rng = Rng::new(seed);
+    let depths = &mut s.depths[..len];
     match &job.linspace {
         Some(linspace) => {
             for (row, &t) in depths.chunks_exact_mut(n).zip(linspace) {
@@ -72,7 +81,6 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
         None => {
             let VolumeSettings { near, far, .. } = *job.settings;
             let bin = (far - near) / samples as f32;
-            let mut rng = Rng::new(seed);
             for k in 0..n {
                 for j in 0..samples {
                     depths[j * n + k] = jittered_depth(near, bin, j, rng.next_f32());
@@ -80,6 +88,76 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
             }
         }
     }
+    let coarse = run_pass(job, job.field, job.vjp, job.settings, s, first, n, grads);
+    let Some((fine, fine_settings)) = &job.fine else {
+        return [coarse, 0.0];
+    };
+    let jitter = job.linspace.is_none().then_some(&mut rng);
+    let fine_depths = importance_depths(job.settings, fine.importance, s, n, jitter);
+    s.reserve(fine_depths.len(), n);
+    s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
+    let fine_error = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
+    [coarse, fine_error]
+}
+
+/// The fine depths of the tile's `n` rays (sample-major): the coarse depths in `s.depths` merged with
+/// `importance` depths drawn from the coarse weights (stratified with `jitter`, else at bin centers).
+fn importance_depths(
+    coarse: &VolumeSettings,
+    importance: usize,
+    s: &Scratch,
+    n: usize,
+    mut jitter: Option<&mut Rng>,
+) -> Vec<f32> {
+    let m = coarse.samples;
+    let compositor = coarse.compositor();
+    let total = m + importance;
+    let mut fine = vec![0.0; n * total];
+    let (mut t, mut raw, mut w) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
+    let (mut u, mut drawn, mut merged) = (Vec::new(), vec![0.0; importance], vec![0.0; total]);
+    for k in 0..n {
+        for j in 0..m {
+            t[j] = s.depths[j * n + k];
+            raw[j] = s.outputs[0][j * n + k];
+        }
+        importance::ray_weights(&compositor, &t, &raw, &mut w);
+        match jitter.as_deref_mut() {
+            Some(rng) => importance::quantiles(importance, Some(&mut || rng.next_f32()), &mut u),
+            None => importance::quantiles(importance, None, &mut u),
+        }
+        importance::inverse_cdf(coarse.near, coarse.far, &t, &w, &u, &mut drawn);
+        importance::merge_sorted(&t, &drawn, &mut merged);
+        for (j, &d) in merged.iter().enumerate() {
+            fine[j * n + k] = d;
+        }
+    }
+    fine
+}
+
+/// Evaluates `field` at the depths in `s.depths` of rays `first..first + n`, composites, and adds
+/// the gradient of the MSE through `vjp` to `grads`; returns the summed squared error.
+#[allow(clippy::too_many_arguments)]
+fn run_pass(
+    job: &Job,
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    s: &mut Scratch,
+    first: usize,
+    n: usize,
+    grads: &mut [f32],
+) -> f64 {
+    let len = n * settings.samples;
+    let view_dependent = field.n_inputs() == 6;
+    let Scratch {
+        inputs: [x, y, z, vx, vy, vz],
+        outputs: [raw, r, g, b],
+        cotangents: [g_raw, g_r, g_g, g_b],
+        depths,
+        lanes,
+        ..
+    } = s;
+    let depths = &depths[..len];
     let rays = first..first + n;
     let rb = job.rays;
     let (ox, oy, oz) = (&rb.ox[rays.clone()], &rb.oy[rays.clone()], &rb.oz[rays.clone()]);
@@ -92,7 +170,7 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
             y[k] = oy[k] + dy[k] * t[k];
             z[k] = oz[k] + dz[k] * t[k];
         }
-        if job.view_dependent {
+        if view_dependent {
             vx[row.clone()].copy_from_slice(dx);
             vy[row.clone()].copy_from_slice(dy);
             vz[row].copy_from_slice(dz);
@@ -106,8 +184,8 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
         &vy[..len],
         &vz[..len],
     ];
-    let inputs = &inputs[..if job.view_dependent { 6 } else { 3 }];
-    job.field.eval(
+    let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
+    field.eval(
         len,
         inputs,
         &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
@@ -115,7 +193,7 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
     let mut squared_error = 0.0f64;
     lanes.reset(n);
     lanes.forward_backward(
-        &job.settings.compositor(),
+        &settings.compositor(),
         depths,
         &raw[..len],
         [&r[..len], &g[..len], &b[..len]],
@@ -136,7 +214,7 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
         },
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
-    job.vjp.vjp(len, inputs, &cotangents, grads);
+    vjp.vjp(len, inputs, &cotangents, grads);
     squared_error
 }
 
@@ -153,6 +231,22 @@ pub fn volume_step(
     settings: &VolumeSettings,
     jitter: Option<&mut Rng>,
 ) -> Result<StepResult> {
+    hierarchical_step(rays, targets, field, vjp, settings, None, jitter)
+}
+
+/// [`volume_step`] with hierarchical sampling: `field` is the coarse field, sampled as in
+/// [`volume_step`]; `fine`, when given, is evaluated at those depths and `fine.importance` more per
+/// ray drawn from the coarse compositing weights (stratified when jittering). The loss is the sum
+/// of both passes' MSE (both fields are trained); the reported loss and PSNR are the fine pass's.
+pub fn hierarchical_step(
+    rays: &RayBatch,
+    targets: &[[f32; 3]],
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    fine: Option<&FinePass>,
+    jitter: Option<&mut Rng>,
+) -> Result<StepResult> {
     if rays.is_empty() || targets.len() != rays.len() {
         return Err(Error::Invalid(format!(
             "a training step needs at least one ray and one target color per ray, got {} rays and {} targets",
@@ -162,8 +256,24 @@ pub fn volume_step(
     }
     rays.check()?;
     settings.check()?;
-    let view_dependent = check_field(field)?;
+    check_field(field)?;
     check_vjp_arity(vjp, field.n_inputs(), field.n_outputs())?;
+    if let Some(f) = fine {
+        check_field(f.field)?;
+        check_vjp_arity(f.vjp, f.field.n_inputs(), f.field.n_outputs())?;
+        if f.importance == 0 {
+            return Err(Error::Invalid(
+                "hierarchical sampling needs at least one importance sample".into(),
+            ));
+        }
+    }
+    let fine = fine.map(|f| {
+        let fine_settings = VolumeSettings {
+            samples: settings.samples + f.importance,
+            ..*settings
+        };
+        (f, fine_settings)
+    });
     let tile = settings.rays_per_tile();
     let n_tiles = rays.len().div_ceil(tile);
     // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
@@ -181,40 +291,48 @@ pub fn volume_step(
         field,
         vjp,
         settings,
+        fine,
         linspace,
-        view_dependent,
         scale: 2.0 / (3.0 * rays.len() as f32),
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
     let n_params = vjp.n_params();
-    let chunks: Vec<(f64, Vec<f32>)> = seeds
+    let chunks: Vec<([f64; 2], Vec<f32>)> = seeds
         .par_chunks(tiles_per_chunk)
         .enumerate()
         .map(|(c, seeds)| {
             let mut grads = vec![0.0; n_params];
-            let mut squared_error = 0.0;
+            let mut squared_error = [0.0; 2];
             with_scratch(|s| {
                 for (j, &seed) in seeds.iter().enumerate() {
                     let first = (c * tiles_per_chunk + j) * tile;
                     let n = tile.min(rays.len() - first);
-                    squared_error += train_tile(&job, s, first, n, seed, &mut grads);
+                    let [coarse, fine] = train_tile(&job, s, first, n, seed, &mut grads);
+                    squared_error[0] += coarse;
+                    squared_error[1] += fine;
                 }
             });
             (squared_error, grads)
         })
         .collect();
     let mut param_grads = vec![0.0; n_params];
-    let mut squared_error = 0.0;
+    let mut squared_error = [0.0; 2];
     for (e, grads) in chunks {
-        squared_error += e;
+        squared_error[0] += e[0];
+        squared_error[1] += e[1];
         for (total, g) in param_grads.iter_mut().zip(grads) {
             *total += g;
         }
     }
-    let loss = (squared_error / (3.0 * rays.len() as f64)) as f32;
+    let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
+    let (loss, coarse_loss) = match job.fine {
+        Some(_) => (mse(squared_error[1]), Some(mse(squared_error[0]))),
+        None => (mse(squared_error[0]), None),
+    };
     Ok(StepResult {
         loss,
         psnr: psnr(loss),
+        coarse_loss,
         param_grads,
     })
 }
