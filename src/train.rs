@@ -9,8 +9,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    hierarchical_step, load_blender_views, load_box_views, rgb_image, save_png, volume_step, FinePass,
-    Quantize, Rng, Schedule, Views, VolumeSettings,
+    load_blender_views, load_box_views, rgb_image, save_png, volume_step_with, FinePass, OccupancyGrid,
+    Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -45,6 +45,9 @@ const KEYS: &[&str] = &[
     "val_every",
     "val_views",
     "importance",
+    "skip_empty",
+    "grid_every",
+    "grid_warmup",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -77,6 +80,17 @@ pub struct TrainPlan {
     validation: Option<Validation>,
     /// Importance samples per ray for hierarchical sampling (0: one field, no fine pass).
     importance: usize,
+    /// Empty-space skipping during training: an occupancy grid of the (fine) field, rebuilt every
+    /// `every` steps from step `warmup` on.
+    grid: Option<TrainingGrid>,
+}
+
+/// The `skip_empty`, `grid_every` and `grid_warmup` settings.
+#[derive(Clone, Copy, Debug)]
+struct TrainingGrid {
+    grid: crate::volume::SkipEmpty,
+    every: u32,
+    warmup: u32,
 }
 
 /// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps and
@@ -265,6 +279,14 @@ impl TrainPlan {
             None => None,
         };
         let importance = b.whole("importance", 0, 4096, 0)? as usize;
+        let grid = match b.take("skip_empty") {
+            None => None,
+            Some(v) => Some(TrainingGrid {
+                grid: crate::volume::skip_empty(&v).map_err(|d| b.error(d))?,
+                every: b.whole("grid_every", 1, u64::from(u32::MAX), 500)? as u32,
+                warmup: b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32,
+            }),
+        };
         b.finish(KEYS)?;
         Ok(TrainPlan {
             data,
@@ -287,6 +309,7 @@ impl TrainPlan {
             eikonal,
             validation,
             importance,
+            grid,
         })
     }
 
@@ -356,6 +379,7 @@ impl TrainPlan {
         bar.set_position(u64::from(first));
         let mut rng = Rng::new(self.seed ^ 0x5eed);
         let start = Instant::now();
+        let mut grid: Option<OccupancyGrid> = None;
         let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
         for step in first..self.steps {
             let step_start = Instant::now();
@@ -367,9 +391,39 @@ impl TrainPlan {
             let (rays, targets) =
                 views.random_rays(view, self.batch, self.seed.wrapping_add(u64::from(step)))?;
             let (forward, backward) = field.bind(params);
+            if let Some(g) = &self.grid {
+                // Rebuilt on schedule, and at once when a resumed run starts past the warm-up.
+                if step >= g.warmup && (grid.is_none() || (step - g.warmup) % g.every == 0) {
+                    let t = Instant::now();
+                    let built = OccupancyGrid::build(
+                        &forward,
+                        g.grid.bounds,
+                        g.grid.resolution,
+                        settings.mode,
+                        g.grid.threshold,
+                    )?;
+                    let line = format!(
+                        "step {step}: occupancy grid rebuilt in {:.1} s, {:.1}% of the cells occupied",
+                        t.elapsed().as_secs_f64(),
+                        100.0 * built.occupancy()
+                    );
+                    if bar.is_hidden() {
+                        eprintln!("{line}");
+                    } else {
+                        bar.println(line);
+                    }
+                    grid = Some(built);
+                }
+            }
             let jitter = if self.jitter { Some(&mut rng) } else { None };
             let mut result = match &fields.coarse {
-                None => volume_step(&rays, &targets, &forward, &backward, &settings, jitter)?,
+                None => {
+                    let options = StepOptions {
+                        fine: None,
+                        grid: grid.as_ref(),
+                    };
+                    volume_step_with(&rays, &targets, &forward, &backward, &settings, options, jitter)?
+                }
                 Some((coarse, importance)) => {
                     let (coarse_forward, coarse_backward) = coarse.bind(params);
                     let fine = FinePass {
@@ -377,13 +431,17 @@ impl TrainPlan {
                         vjp: &backward,
                         importance: *importance,
                     };
-                    hierarchical_step(
+                    let options = StepOptions {
+                        fine: Some(&fine),
+                        grid: grid.as_ref(),
+                    };
+                    volume_step_with(
                         &rays,
                         &targets,
                         &coarse_forward,
                         &coarse_backward,
                         &settings,
-                        Some(&fine),
+                        options,
                         jitter,
                     )?
                 }

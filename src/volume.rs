@@ -198,7 +198,7 @@ fn write(
 }
 
 /// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`.
-fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
+pub fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
     let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
     let bounds = match a.raw("bounds") {
         None => {

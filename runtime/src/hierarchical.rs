@@ -1,7 +1,7 @@
 //! Volume rendering with hierarchical sampling: a coarse field at `linspace(near, far, samples)`,
 //! then a fine field at those depths and `importance` more per ray drawn from the coarse weights
 //! (at the centers of equal-probability bins: a deterministic render). The counterpart of
-//! [`crate::train::hierarchical_step`]. Samples are laid out ray-major here (ray k's samples at
+//! [`crate::train::volume_step_with`]. Samples are laid out ray-major here (ray k's samples at
 //! `k·samples..`), so that each ray composites from contiguous slices.
 
 use rayon::prelude::*;

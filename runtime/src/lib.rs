@@ -71,7 +71,7 @@ pub use rays::RayBatch;
 pub use rng::Rng;
 pub use sampler::{sample_depths, sample_points, DepthRange, Spacing};
 pub use sphere_trace::{render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings};
-pub use train::{hierarchical_step, volume_step, FinePass, StepResult};
+pub use train::{volume_step, volume_step_with, FinePass, StepOptions, StepResult};
 pub use transmittance::{Medium, Segment, Transmittance};
 pub use volume::render_volume_with;
 pub use volume::{render_volume, VolumeFrame, VolumeSettings};

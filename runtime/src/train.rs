@@ -16,6 +16,7 @@ use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
 use crate::importance;
 use crate::metrics::psnr;
+use crate::occupancy::OccupancyGrid;
 use crate::rays::RayBatch;
 use crate::rng::Rng;
 use crate::sampler::{jittered_depth, linspace};
@@ -48,6 +49,16 @@ pub struct FinePass<'a> {
     pub importance: usize,
 }
 
+/// What a training step may add to plain volume rendering.
+#[derive(Clone, Copy, Default)]
+pub struct StepOptions<'a> {
+    /// Hierarchical sampling: the fine pass.
+    pub fine: Option<&'a FinePass<'a>>,
+    /// Empty-space skipping: samples in the grid's empty cells (or outside it) are neither
+    /// evaluated nor back-propagated; they composite as empty space.
+    pub grid: Option<&'a OccupancyGrid>,
+}
+
 /// What every tile of a step needs to know.
 struct Job<'a> {
     rays: &'a RayBatch,
@@ -57,6 +68,7 @@ struct Job<'a> {
     settings: &'a VolumeSettings,
     /// The fine pass and its settings (samples = coarse + importance), if sampling is hierarchical.
     fine: Option<(&'a FinePass<'a>, VolumeSettings)>,
+    grid: Option<&'a OccupancyGrid>,
     /// `Some(linspace(near, far, samples))` when the depths are not jittered.
     linspace: Option<Vec<f32>>,
     /// ∂loss/∂color = scale·(color − target).
@@ -185,11 +197,18 @@ fn run_pass(
         &vz[..len],
     ];
     let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
-    field.eval(
-        len,
-        inputs,
-        &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
-    );
+    let packed = job.grid.map(|grid| Packed::new(grid, inputs, len));
+    match &packed {
+        None => field.eval(
+            len,
+            inputs,
+            &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
+        ),
+        Some(p) => p.eval(
+            field,
+            [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
+        ),
+    }
     let mut squared_error = 0.0f64;
     lanes.reset(n);
     lanes.forward_backward(
@@ -214,8 +233,57 @@ fn run_pass(
         },
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
-    vjp.vjp(len, inputs, &cotangents, grads);
+    match &packed {
+        None => vjp.vjp(len, inputs, &cotangents, grads),
+        Some(p) => p.vjp(vjp, &cotangents, grads),
+    }
     squared_error
+}
+
+/// The samples of a tile inside occupied cells, gathered into dense columns.
+struct Packed {
+    index: Vec<usize>,
+    inputs: Vec<Vec<f32>>,
+}
+
+impl Packed {
+    fn new(grid: &OccupancyGrid, inputs: &[&[f32]], len: usize) -> Packed {
+        let index: Vec<usize> = (0..len)
+            .filter(|&i| grid.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]))
+            .collect();
+        let inputs = inputs
+            .iter()
+            .map(|c| index.iter().map(|&i| c[i]).collect())
+            .collect();
+        Packed { index, inputs }
+    }
+
+    fn gather(&self, column: &[f32]) -> Vec<f32> {
+        self.index.iter().map(|&i| column[i]).collect()
+    }
+
+    /// Evaluates the occupied samples; the others get zeros (empty space).
+    fn eval(&self, field: &dyn BatchFn, outputs: [&mut [f32]; 4]) {
+        let m = self.index.len();
+        let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
+        let ins: Vec<&[f32]> = self.inputs.iter().map(Vec::as_slice).collect();
+        let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
+        field.eval(m, &ins, &mut refs);
+        for (out, values) in outputs.into_iter().zip(&packed) {
+            out.fill(0.0);
+            for (&i, &v) in self.index.iter().zip(values) {
+                out[i] = v;
+            }
+        }
+    }
+
+    /// The backward pass of the occupied samples.
+    fn vjp(&self, vjp: &dyn BatchVjp, cotangents: &[&[f32]; 4], grads: &mut [f32]) {
+        let ins: Vec<&[f32]> = self.inputs.iter().map(Vec::as_slice).collect();
+        let cots: Vec<Vec<f32>> = cotangents.iter().map(|c| self.gather(c)).collect();
+        let cot_refs: Vec<&[f32]> = cots.iter().map(Vec::as_slice).collect();
+        vjp.vjp(self.index.len(), &ins, &cot_refs, grads);
+    }
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
@@ -231,22 +299,32 @@ pub fn volume_step(
     settings: &VolumeSettings,
     jitter: Option<&mut Rng>,
 ) -> Result<StepResult> {
-    hierarchical_step(rays, targets, field, vjp, settings, None, jitter)
+    volume_step_with(
+        rays,
+        targets,
+        field,
+        vjp,
+        settings,
+        StepOptions::default(),
+        jitter,
+    )
 }
 
-/// [`volume_step`] with hierarchical sampling: `field` is the coarse field, sampled as in
-/// [`volume_step`]; `fine`, when given, is evaluated at those depths and `fine.importance` more per
-/// ray drawn from the coarse compositing weights (stratified when jittering). The loss is the sum
-/// of both passes' MSE (both fields are trained); the reported loss and PSNR are the fine pass's.
-pub fn hierarchical_step(
+/// [`volume_step`] with options. With hierarchical sampling, `field` is the coarse field, sampled
+/// as in [`volume_step`]; `options.fine` is evaluated at those depths and `fine.importance` more
+/// per ray drawn from the coarse compositing weights (stratified when jittering); the loss is the
+/// sum of both passes' MSE (both fields are trained) and the reported loss and PSNR are the fine
+/// pass's. With a grid, both passes skip the samples in its empty cells.
+pub fn volume_step_with(
     rays: &RayBatch,
     targets: &[[f32; 3]],
     field: &dyn BatchFn,
     vjp: &dyn BatchVjp,
     settings: &VolumeSettings,
-    fine: Option<&FinePass>,
+    options: StepOptions,
     jitter: Option<&mut Rng>,
 ) -> Result<StepResult> {
+    let fine = options.fine;
     if rays.is_empty() || targets.len() != rays.len() {
         return Err(Error::Invalid(format!(
             "a training step needs at least one ray and one target color per ray, got {} rays and {} targets",
@@ -292,6 +370,7 @@ pub fn hierarchical_step(
         vjp,
         settings,
         fine,
+        grid: options.grid,
         linspace,
         scale: 2.0 / (3.0 * rays.len() as f32),
     };
@@ -425,6 +504,53 @@ mod tests {
                     "{mode:?} θ{i}: {got} vs {fd}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn grid_skipping_is_exact_where_the_field_is_empty_and_evaluates_less() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        // The blob cut to a ball of radius 0.7 around its center: zero outside.
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let inside = move |p: &[f32]| {
+            let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+            q[0] * q[0] + q[1] * q[1] + q[2] * q[2] < 0.49
+        };
+        let evaluated = AtomicUsize::new(0);
+        let field = ClosureFn::new(6, 4, |p, out| {
+            evaluated.fetch_add(1, Ordering::Relaxed);
+            let v = blob_value(&theta, p);
+            out.copy_from_slice(&if inside(p) { v } else { [0.0; 4] });
+        });
+        let vjp = ClosureVjp::new(6, 4, 7, |p, c, g| {
+            if inside(p) {
+                blob_vjp(&theta, p, c, g)
+            }
+        });
+        let settings = VolumeSettings {
+            near: 1.0,
+            far: 5.0,
+            samples: 96,
+            mode: Mode::Density,
+            background: Some([0.3, 0.9, 0.1]),
+            early_termination: None,
+        };
+        let rays = rays();
+        let targets = targets(rays.len());
+        let exact = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let all = evaluated.swap(0, Ordering::Relaxed);
+        let grid = OccupancyGrid::build(&field, ([-1.5; 3], [1.5; 3]), 32, Mode::Density, 0.0).unwrap();
+        evaluated.store(0, Ordering::Relaxed);
+        let options = StepOptions {
+            fine: None,
+            grid: Some(&grid),
+        };
+        let skipped = volume_step_with(&rays, &targets, &field, &vjp, &settings, options, None).unwrap();
+        let some = evaluated.load(Ordering::Relaxed);
+        assert!(some * 3 < all, "{some} of {all} samples evaluated");
+        assert!((skipped.loss - exact.loss).abs() <= 1e-6 * exact.loss.max(1.0));
+        for (a, b) in skipped.param_grads.iter().zip(&exact.param_grads) {
+            assert!((a - b).abs() <= 1e-5 * b.abs().max(1e-3), "{a} vs {b}");
         }
     }
 
