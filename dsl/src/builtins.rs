@@ -41,6 +41,7 @@ const SIGNATURES: &[(&str, &str)] = &[
     ("concat", "concat(a, b, ...) -> vec<total>"),
     ("harmonic", "harmonic(x: vec<k>, n) -> vec<k + 2kn>"),
     ("dense", "dense(w: mat<R, C>, b: vec<R>, x: vec<C>) -> vec<R>"),
+    ("mlp", "mlp(net: mlp<I, W, D>, x: vec<I>) -> vec<W>"),
     ("vec2", "vec2(x, y) or vec2(s) -> vec2"),
     ("vec3", "vec3(x, y, z) or vec3(s) -> vec3"),
     ("vec4", "vec4(x, y, z, w) or vec4(s) -> vec4"),
@@ -81,6 +82,7 @@ pub const NAMES: &[&str] = &[
     "concat",
     "harmonic",
     "dense",
+    "mlp",
     "vec2",
     "vec3",
     "vec4",
@@ -326,6 +328,7 @@ pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Spa
         }
         "harmonic" => harmonic(el, name, args),
         "dense" => dense(el, name, args),
+        "mlp" => mlp(el, name, args),
         _ => unreachable!("unhandled builtin {nm}"),
     }
 }
@@ -363,6 +366,56 @@ fn harmonic(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResul
     out.extend(scaled.iter().map(|&s| g.push(Op::Sin(s))));
     out.extend(scaled.iter().map(|&s| g.push(Op::Cos(s))));
     Ok(Val::Vector(out))
+}
+
+/// `mlp(net, x)`: the ReLU layers of an `mlp<I, W, D>` param applied to x (each layer relu(W·h + b); the
+/// skip layer reads its predecessor's output joined with x).
+fn mlp(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResult<Val> {
+    if args.len() != 2 {
+        return Err(arity_error(name, "2", args.len()));
+    }
+    let Val::Mlp { offset, ref shape } = args[0].0 else {
+        return Err(Diagnostic::new(
+            args[0].1,
+            format!("'mlp' needs an mlp param first, found {}", args[0].0.ty()),
+        )
+        .with_hint("declare one with 'param net: mlp<39, 128, 6, skip: 3> = linear_init(seed: 1)'"));
+    };
+    let x = el.vector(&args[1].0, args[1].1)?;
+    if x.len() != shape.input {
+        return Err(Diagnostic::new(
+            args[1].1,
+            format!(
+                "'mlp' with a {} needs vec<{}>, found {}",
+                args[0].0.ty(),
+                shape.input,
+                args[1].0.ty()
+            ),
+        ));
+    }
+    let g = &mut *el.g;
+    let mut h = x.clone();
+    let mut at = offset;
+    for (l, (rows, cols)) in shape.layers().into_iter().enumerate() {
+        let input: Vec<V> = if shape.skip == Some(l) {
+            h.iter().chain(&x).copied().collect()
+        } else {
+            h
+        };
+        let product = g.dense(at, rows as u32, cols as u32, false, &input);
+        let bias = at + (rows * cols) as u32;
+        h = product
+            .iter()
+            .enumerate()
+            .map(|(r, &p)| {
+                let b = g.param(bias + r as u32);
+                let z = g.push(Op::Add(p, b));
+                unary(g, "relu", z)
+            })
+            .collect();
+        at = bias + rows as u32;
+    }
+    Ok(Val::Vector(h))
 }
 
 /// `dense(w, b, x)` = w·x + b and `dense(w, x)` = w·x, for a matrix param w.

@@ -70,7 +70,7 @@ impl<'a, 'g> Elaborator<'a, 'g> {
         let mut next_input = 0u32;
         let mut scope = HashMap::new();
         for p in &f.params {
-            if let Type::Mat(..) = p.ty.ty {
+            if let Type::Mat(..) | Type::Mlp(_) = p.ty.ty {
                 return Err(Diagnostic::new(
                     p.ty.span,
                     format!(
@@ -267,6 +267,10 @@ impl<'a, 'g> Elaborator<'a, 'g> {
             let offset = p.offset;
             return Ok(match p.ty {
                 Type::Mat(rows, cols) => Val::Matrix { offset, rows, cols },
+                Type::Mlp(ref shape) => Val::Mlp {
+                    offset,
+                    shape: shape.clone(),
+                },
                 Type::Vec(n) => Val::Vector((0..n as u32).map(|i| self.g.param(offset + i)).collect()),
                 _ => Val::Scalar(self.g.param(offset)),
             });

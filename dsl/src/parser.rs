@@ -224,6 +224,52 @@ impl Parser {
         }
     }
 
+    /// `<input, width, depth>` or `<input, width, depth, skip: k>` after `mlp`.
+    fn mlp_shape(&mut self) -> PResult<Type> {
+        let start = self.span();
+        self.expect("<")?;
+        let input = self.dim()?;
+        self.expect(",")?;
+        let width = self.dim()?;
+        self.expect(",")?;
+        let depth = self.dim()?;
+        let mut skip = None;
+        if self.eat(",") {
+            let key = self.ident("'skip'")?;
+            if key.name != "skip" {
+                return Err(
+                    Diagnostic::new(key.span, format!("unknown mlp option '{}'", key.name))
+                        .with_hint("write mlp<39, 128, 6, skip: 3>"),
+                );
+            }
+            self.expect(":")?;
+            let at = self.span();
+            let k = self.dim()?;
+            if k >= depth {
+                return Err(Diagnostic::new(
+                    at,
+                    format!("the skip layer must be one of the layers 1..{depth}"),
+                )
+                .with_hint("layers count from 0; layer 0 already reads the input"));
+            }
+            skip = Some(k);
+        }
+        self.expect(">")?;
+        let shape = crate::types::MlpShape {
+            input,
+            width,
+            depth,
+            skip,
+        };
+        if Type::Mlp(shape.clone()).scalars() > MAX_DIM * MAX_DIM {
+            return Err(Diagnostic::new(
+                start.to(self.prev_span()),
+                "this network has too many weights",
+            ));
+        }
+        Ok(Type::Mlp(shape))
+    }
+
     fn type_expr(&mut self) -> PResult<TypeExpr> {
         let start = self.span();
         if self.eat("(") {
@@ -260,15 +306,16 @@ impl Parser {
                 self.expect(">")?;
                 Type::Mat(r, c)
             }
+            "mlp" => self.mlp_shape()?,
             other => {
                 let mut d = Diagnostic::new(name.span, format!("unknown type '{other}'"));
-                let names = ["f32", "vec2", "vec3", "vec4", "vec", "mat"];
+                let names = ["f32", "vec2", "vec3", "vec4", "vec", "mat", "mlp"];
                 if matches!(other, "float" | "double" | "f64" | "real" | "scalar") {
                     d = d.with_hint("did you mean 'f32'?");
                 } else if let Some(c) = crate::diag::closest(other, names) {
                     d = d.with_hint(format!("did you mean '{c}'?"));
                 } else {
-                    d = d.with_hint("types are f32, vec2, vec3, vec4, vec<N> and mat<R, C>");
+                    d = d.with_hint("types are f32, vec2, vec3, vec4, vec<N>, mat<R, C> and mlp<I, W, D>");
                 }
                 return Err(d);
             }

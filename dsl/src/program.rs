@@ -259,7 +259,9 @@ impl Program {
         let values = self.constant(&decl.init)?;
         match values.len() {
             1 => Ok(vec![values[0] as f32; count]),
-            n if n == count && !matches!(ty, Type::Mat(..)) => Ok(values.iter().map(|&x| x as f32).collect()),
+            n if n == count && !matches!(ty, Type::Mat(..) | Type::Mlp(_)) => {
+                Ok(values.iter().map(|&x| x as f32).collect())
+            }
             n => Err(Diagnostic::new(
                 decl.init.span,
                 format!("param '{}' of type {ty} cannot start from a value of {n} components", decl.name.name),
@@ -301,60 +303,17 @@ impl Program {
             );
         }
         let seed = named.get("seed").map_or(index as u64 + 1, |s| s.0 as u64);
+        if let Type::Mlp(shape) = ty {
+            if let Some((_, span)) = named.get("fan_in") {
+                return Err(Diagnostic::new(*span, "an mlp knows each layer's fan_in"));
+            }
+            return mlp_init(shape, name, &positional, seed);
+        }
         let (fan_out, fan_in) = match ty {
             Type::Mat(r, c) => (Some(*r as f64), named.get("fan_in").map_or(*c as f64, |f| f.0)),
             _ => (None, named.get("fan_in").map_or(f64::NAN, |f| f.0)),
         };
-        let expect = |n: usize| -> Result<(), Diagnostic> {
-            if positional.len() == n {
-                Ok(())
-            } else {
-                Err(Diagnostic::new(
-                    name.span,
-                    format!(
-                        "wrong number of arguments: '{}' takes {n} besides seed, got {}",
-                        name.name,
-                        positional.len()
-                    ),
-                ))
-            }
-        };
-        let needs_fan_in = || {
-            Diagnostic::new(name.span, format!("'{}' needs fan_in for a {ty}", name.name))
-                .with_hint(format!("write {}(fan_in: 64, seed: 1)", name.name))
-        };
-        let init = match name.name.as_str() {
-            "uniform" => {
-                expect(2)?;
-                Initializer::Uniform(positional[0], positional[1])
-            }
-            "normal" => {
-                expect(2)?;
-                Initializer::Normal(positional[0], positional[1])
-            }
-            "xavier" => {
-                expect(0)?;
-                let Some(fan_out) = fan_out else {
-                    return Err(Diagnostic::new(name.span, "'xavier' initializes a matrix")
-                        .with_hint("for a bias use linear_init(fan_in: N) or a constant"));
-                };
-                let bound = (6.0 / (fan_in + fan_out)).sqrt();
-                Initializer::Uniform(-bound, bound)
-            }
-            _ => {
-                expect(0)?;
-                if fan_in.is_nan() {
-                    return Err(needs_fan_in());
-                }
-                // kaiming: He uniform for ReLU; linear_init: PyTorch's default for nn.Linear.
-                let bound = if name.name == "kaiming" {
-                    (6.0 / fan_in).sqrt()
-                } else {
-                    1.0 / fan_in.sqrt()
-                };
-                Initializer::Uniform(-bound, bound)
-            }
-        };
+        let init = initializer(name, &positional, fan_in, fan_out, ty)?;
         Ok(init.sample(ty.scalars(), seed))
     }
 
@@ -487,10 +446,102 @@ fn signature(f: &FnDef) -> Signature {
 impl Elaborator<'_, '_> {
     /// Type-checks `f`, lowering it with fresh inputs (matrix params are bound to a placeholder matrix).
     pub fn check_fn(&mut self, f: &FnDef) -> Result<Val, Diagnostic> {
-        if f.params.iter().any(|p| matches!(p.ty.ty, Type::Mat(..))) {
+        if f.params
+            .iter()
+            .any(|p| matches!(p.ty.ty, Type::Mat(..) | Type::Mlp(_)))
+        {
             // Functions taking a matrix are checked where they are called with a real matrix param.
             return Ok(Val::Tuple(vec![]));
         }
         self.lower_entry(f)
     }
+}
+
+/// The distribution of initializer `name` (with its positional arguments) for a block of `fan_in` inputs
+/// and `fan_out` outputs (None for a vector) of type `ty`.
+fn initializer(
+    name: &Ident,
+    positional: &[f64],
+    fan_in: f64,
+    fan_out: Option<f64>,
+    ty: &Type,
+) -> Result<Initializer, Diagnostic> {
+    let expect = |n: usize| -> Result<(), Diagnostic> {
+        if positional.len() == n {
+            Ok(())
+        } else {
+            Err(Diagnostic::new(
+                name.span,
+                format!(
+                    "wrong number of arguments: '{}' takes {n} besides seed, got {}",
+                    name.name,
+                    positional.len()
+                ),
+            ))
+        }
+    };
+    let needs_fan_in = || {
+        Diagnostic::new(name.span, format!("'{}' needs fan_in for a {ty}", name.name))
+            .with_hint(format!("write {}(fan_in: 64, seed: 1)", name.name))
+    };
+    Ok(match name.name.as_str() {
+        "uniform" => {
+            expect(2)?;
+            Initializer::Uniform(positional[0], positional[1])
+        }
+        "normal" => {
+            expect(2)?;
+            Initializer::Normal(positional[0], positional[1])
+        }
+        "xavier" => {
+            expect(0)?;
+            let Some(fan_out) = fan_out else {
+                return Err(Diagnostic::new(name.span, "'xavier' initializes a matrix")
+                    .with_hint("for a bias use linear_init(fan_in: N) or a constant"));
+            };
+            let bound = (6.0 / (fan_in + fan_out)).sqrt();
+            Initializer::Uniform(-bound, bound)
+        }
+        _ => {
+            expect(0)?;
+            if fan_in.is_nan() {
+                return Err(needs_fan_in());
+            }
+            // kaiming: He uniform for ReLU; linear_init: PyTorch's default for nn.Linear.
+            let bound = if name.name == "kaiming" {
+                (6.0 / fan_in).sqrt()
+            } else {
+                1.0 / fan_in.sqrt()
+            };
+            Initializer::Uniform(-bound, bound)
+        }
+    })
+}
+
+/// Each layer of an mlp param: its matrix from the initializer with the layer's fan-in and fan-out;
+/// its bias as PyTorch's `nn.Linear` does for `linear_init` (uniform ±1/√fan_in), zero for `xavier` and
+/// `kaiming`, and from the distribution for `uniform` and `normal`. Layer l draws from seed·1000 + 2l
+/// (matrix) and + 2l + 1 (bias).
+fn mlp_init(
+    shape: &crate::types::MlpShape,
+    name: &Ident,
+    positional: &[f64],
+    seed: u64,
+) -> Result<Vec<f32>, Diagnostic> {
+    let ty = Type::Mlp(shape.clone());
+    let mut values = Vec::with_capacity(ty.scalars());
+    for (l, (rows, cols)) in shape.layers().into_iter().enumerate() {
+        let layer_seed = seed.wrapping_mul(1000).wrapping_add(2 * l as u64);
+        let weights = initializer(name, positional, cols as f64, Some(rows as f64), &ty)?;
+        values.extend(weights.sample(rows * cols, layer_seed));
+        match name.name.as_str() {
+            "xavier" | "kaiming" => values.extend(std::iter::repeat_n(0.0, rows)),
+            "linear_init" => {
+                let bound = 1.0 / (cols as f64).sqrt();
+                values.extend(Initializer::Uniform(-bound, bound).sample(rows, layer_seed + 1));
+            }
+            _ => values.extend(weights.sample(rows, layer_seed + 1)),
+        }
+    }
+    Ok(values)
 }

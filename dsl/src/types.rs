@@ -11,8 +11,39 @@ pub enum Type {
     Vec(usize),
     /// A matrix of rows × columns (params only), used by `dense`.
     Mat(usize, usize),
+    /// The weights and biases of a ReLU network (params only), used by `mlp`.
+    Mlp(MlpShape),
     /// Several results of a function.
     Tuple(Vec<Type>),
+}
+
+/// The shape of an `mlp<input, width, depth, skip: k>` param: `depth` layers of `width` outputs; layer 0
+/// reads the `input`-wide vector, the others the previous layer's output, and layer k (if any) that
+/// output joined with the input again (a skip connection).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct MlpShape {
+    /// Width of the network's input.
+    pub input: usize,
+    /// Outputs of every layer.
+    pub width: usize,
+    /// Layers.
+    pub depth: usize,
+    /// The layer whose input is joined with the network's input.
+    pub skip: Option<usize>,
+}
+
+impl MlpShape {
+    /// (rows, columns) of each layer's weight matrix, in order. In the param block, each layer's
+    /// row-major matrix is followed by its bias.
+    pub fn layers(&self) -> Vec<(usize, usize)> {
+        (0..self.depth)
+            .map(|l| {
+                let previous = if l == 0 { self.input } else { self.width };
+                let joined = if self.skip == Some(l) { self.input } else { 0 };
+                (self.width, previous + joined)
+            })
+            .collect()
+    }
 }
 
 impl Type {
@@ -22,6 +53,7 @@ impl Type {
             Type::F32 => 1,
             Type::Vec(n) => *n,
             Type::Mat(r, c) => r * c,
+            Type::Mlp(shape) => shape.layers().iter().map(|(r, c)| r * c + r).sum(),
             Type::Tuple(ts) => ts.iter().map(Type::scalars).sum(),
         }
     }
@@ -49,6 +81,10 @@ impl fmt::Display for Type {
             Type::Vec(n @ 2..=4) => write!(f, "vec{n}"),
             Type::Vec(n) => write!(f, "vec<{n}>"),
             Type::Mat(r, c) => write!(f, "mat<{r}, {c}>"),
+            Type::Mlp(s) => match s.skip {
+                Some(k) => write!(f, "mlp<{}, {}, {}, skip: {k}>", s.input, s.width, s.depth),
+                None => write!(f, "mlp<{}, {}, {}>", s.input, s.width, s.depth),
+            },
             Type::Tuple(ts) => {
                 write!(f, "(")?;
                 for (i, t) in ts.iter().enumerate() {

@@ -19,6 +19,13 @@ pub enum Val {
         /// Columns.
         cols: usize,
     },
+    /// An `mlp` param (layers' matrices and biases in order, starting at param index `offset`).
+    Mlp {
+        /// Index of the first element in the param vector.
+        offset: u32,
+        /// The layers.
+        shape: crate::types::MlpShape,
+    },
     /// Several values.
     Tuple(Vec<Val>),
 }
@@ -30,6 +37,7 @@ impl Val {
             Val::Scalar(_) => Type::F32,
             Val::Vector(v) => Type::Vec(v.len()),
             Val::Matrix { rows, cols, .. } => Type::Mat(*rows, *cols),
+            Val::Mlp { shape, .. } => Type::Mlp(shape.clone()),
             Val::Tuple(vs) => Type::Tuple(vs.iter().map(Val::ty).collect()),
         }
     }
@@ -53,7 +61,7 @@ impl Val {
                 }
                 Some(out)
             }
-            Val::Matrix { .. } => None,
+            Val::Matrix { .. } | Val::Mlp { .. } => None,
             _ => self.components(),
         }
     }
@@ -76,7 +84,7 @@ impl Val {
             Type::F32 => Val::Scalar(scalars.next().expect("enough scalars")),
             Type::Vec(n) => Val::Vector(scalars.take(*n).collect()),
             Type::Tuple(ts) => Val::Tuple(ts.iter().map(|t| Val::unflatten(t, scalars)).collect()),
-            Type::Mat(..) => unreachable!("matrices are never function inputs"),
+            Type::Mat(..) | Type::Mlp(_) => unreachable!("matrices are never function inputs"),
         }
     }
 }
