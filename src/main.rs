@@ -5,6 +5,7 @@ mod block;
 mod cameras;
 mod check;
 mod checkpoint;
+mod compare;
 mod eval;
 mod failure;
 mod field;
@@ -154,6 +155,24 @@ enum Command {
         #[command(flatten)]
         view: ViewOptions,
     },
+    /// Render several trained fields (checkpoints or scripts) from one view of a Blender-format camera file
+    /// as a labeled grid beside the target image, with each render's PSNR (the fewer-views comparison).
+    Compare {
+        #[command(flatten)]
+        view: ViewOptions,
+        /// Which view of the camera file.
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// Column labels, comma-separated (e.g. "100 views,20 views,10 views,5 views").
+        #[arg(long, value_delimiter = ',', required = true)]
+        columns: Vec<String>,
+        /// A row: LABEL=first.ckpt.json,second.ckpt.json,... (one entry per column); repeatable.
+        #[arg(long = "row", required = true, value_parser = compare::parse_row)]
+        rows: Vec<compare::Row>,
+        /// The PNG to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// List the example scripts built into the binary, or print one.
     Examples {
         /// The example to print.
@@ -285,6 +304,14 @@ fn main() -> ExitCode {
             gif,
         } => views::render(&view.args(&source), &out, gif).map(|text| emit(&format!("{text}\n"))),
         Command::EvalViews { source, view } => views::eval(&view.args(&source)).map(|text| emit(&text)),
+        Command::Compare {
+            view,
+            index,
+            columns,
+            rows,
+            out,
+        } => compare::compare(&view.args(""), index, &columns, &rows, &out)
+            .map(|text| emit(&format!("{text}\n"))),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
     };
     match result {

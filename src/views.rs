@@ -38,7 +38,7 @@ pub struct ViewArgs<'a> {
 }
 
 /// The program and params: a checkpoint's, or a script's initial ones.
-fn load(source: &str) -> Result<(Program, Vec<f32>)> {
+pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     let is_checkpoint = source.ends_with(".json");
     if is_checkpoint {
         crate::checkpoint::load_trained(Path::new(source))

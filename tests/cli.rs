@@ -375,4 +375,64 @@ fn render_and_eval_views_agree_on_a_blender_camera_file() {
         .expect("a mean line");
     let worse: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
     assert!(worse < 25.0, "{stdout}");
+
+    // Hierarchical sampling with the same field as its coarse field renders nearly the same images.
+    let two_pass = write(
+        &dir,
+        "two_pass.sdf",
+        "fn density(p: vec3) -> f32 = volsdf_density(box(p, [1.2, 0.8, 1.0]), alpha: 20.0, beta: 0.05)\n\
+         fn color(p: vec3) -> vec3 = clamp(abs(p) + 0.2, 0.0, 1.0)\n\
+         fn coarse_density(p: vec3) -> f32 = density(p)\n\
+         fn coarse_color(p: vec3) -> vec3 = color(p)\n",
+    );
+    let mut args = vec!["eval-views", two_pass.as_str(), "--importance", "64"];
+    args.extend(common);
+    let (stdout, stderr) = text(&nerfjit(&args, None));
+    let mean = stdout
+        .lines()
+        .find(|l| l.starts_with("mean"))
+        .unwrap_or_else(|| panic!("{stderr}"));
+    let hierarchical: f64 = mean.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(hierarchical > 30.0, "{stdout}");
+    // Without coarse functions, --importance is a clear error.
+    let mut args = vec!["eval-views", script.as_str(), "--importance", "64"];
+    args.extend(common);
+    let out = nerfjit(&args, None);
+    assert!(!out.status.success());
+    assert!(text(&out).1.contains("coarse_density"), "{}", text(&out).1);
+
+    // The comparison grid: one row, both fields, their PSNR printed and a PNG written.
+    let grid = dir.join("grid.png");
+    let row = format!("fields={script},{other}");
+    let mut args = vec![
+        "compare",
+        "--columns",
+        "box,empty",
+        "--row",
+        row.as_str(),
+        "--out",
+        grid.to_str().unwrap(),
+    ];
+    args.extend(common);
+    let out = nerfjit(&args, None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    let scores: Vec<f64> = stdout
+        .lines()
+        .next()
+        .unwrap()
+        .split(": ")
+        .filter_map(|part| part.split(' ').next()?.parse().ok())
+        .collect();
+    assert!(
+        scores.len() == 2 && scores[0] > 40.0 && scores[1] < 25.0,
+        "{stdout}"
+    );
+    let png = image::open(&grid).expect("a PNG").to_rgb8();
+    assert!(
+        png.width() > 3 * 24 && png.height() > 24,
+        "{}×{}",
+        png.width(),
+        png.height()
+    );
 }

@@ -29,6 +29,7 @@ pub mod hierarchical;
 pub mod image_out;
 pub mod importance;
 mod json;
+pub mod label;
 pub mod march;
 pub mod marching;
 pub mod mesh;
