@@ -2,6 +2,7 @@
 //! `train`: a near-surface penalty w_near · mean exp(−α|d|) and the eikonal term
 //! w_eik · mean (|∇ₓd| − 1)², whose param gradient comes from the JIT's second-order kernel.
 
+use nerfjit_dsl::ir::{Op, V};
 use nerfjit_dsl::{kernels, Program, Type};
 use nerfjit_jit::{Kernel, Options};
 use nerfjit_runtime::Rng;
@@ -23,21 +24,42 @@ pub struct Regularizers {
     pub eikonal_weight: f32,
 }
 
-/// The compiled kernels of an SDF for the regularizers: d and ∇d, and the second-order param gradient.
+/// The compiled loss kernel of an SDF for the regularizers: the weighted near-surface and eikonal terms
+/// per point and their param gradient (second order for the eikonal term), in one pass.
 pub struct RegularizerKernels {
-    gradient: Kernel,
-    second_order: Kernel,
+    loss: Kernel,
 }
 
 impl RegularizerKernels {
-    /// Compiles the kernels of `fn name(p: vec3) -> f32`.
-    pub fn compile(program: &Program, name: &str) -> Result<RegularizerKernels> {
+    /// Compiles the kernel of `fn name(p: vec3) -> f32` for the weights and point count of `reg`.
+    pub fn compile(program: &Program, name: &str, reg: &Regularizers) -> Result<RegularizerKernels> {
         crate::field::check_signature(program, name, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(name)?;
-        let n = program.n_params();
+        let m = reg.points as f64;
+        let graph = kernels::loss_gradient(&lowered, program.n_params(), |g, d, grad| {
+            let sharpness = g.constant(-f64::from(reg.near_sharpness));
+            let near_weight = g.constant(f64::from(reg.near_weight) / m);
+            let eikonal_weight = g.constant(f64::from(reg.eikonal_weight) / m);
+            let one = g.constant(1.0);
+            // w_near/m · exp(−α|d|)
+            let abs = g.push(Op::Abs(d));
+            let scaled = g.push(Op::Mul(sharpness, abs));
+            let e = g.push(Op::Exp(scaled));
+            let near = g.push(Op::Mul(near_weight, e));
+            // w_eik/m · (|∇d| − 1)²
+            let squares: Vec<V> = grad.iter().map(|&c| g.push(Op::Mul(c, c))).collect();
+            let sum = squares
+                .into_iter()
+                .reduce(|a, b| g.push(Op::Add(a, b)))
+                .expect("3 components");
+            let norm = g.push(Op::Sqrt(sum));
+            let off = g.push(Op::Sub(norm, one));
+            let off2 = g.push(Op::Mul(off, off));
+            let eikonal = g.push(Op::Mul(eikonal_weight, off2));
+            vec![near, eikonal]
+        });
         Ok(RegularizerKernels {
-            gradient: Kernel::compile(&kernels::with_gradient(&lowered), Options::default())?,
-            second_order: Kernel::compile(&kernels::second_order(&lowered, n), Options::default())?,
+            loss: Kernel::compile(&graph, Options::default())?,
         })
     }
 }
@@ -58,7 +80,8 @@ pub fn uniform_points(rng: &mut Rng, points: usize, bound: f32) -> [Vec<f32>; 3]
 }
 
 impl Regularizers {
-    /// Adds the regularizers' param gradient to `grads`; returns the (weighted) near and eikonal terms.
+    /// Adds the regularizers' param gradient to `grads` (the kernels were compiled for these settings);
+    /// returns the (weighted) near and eikonal terms.
     pub fn add(
         &self,
         k: &RegularizerKernels,
@@ -70,42 +93,10 @@ impl Regularizers {
         let m = self.points;
         let ys = uniform_points(rng, m, self.bound);
         let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
-        let mut out = vec![vec![0.0f32; m]; 4];
-        {
-            let mut refs: Vec<&mut [f32]> = out.iter_mut().map(Vec::as_mut_slice).collect();
-            k.gradient
-                .eval_parallel(m, &ins, &mut refs, params, &mut [], threads);
-        }
-        let (alpha, w_near, w_eik) = (self.near_sharpness, self.near_weight, self.eikonal_weight);
-        let mut cots = vec![vec![0.0f32; m]; 4];
-        let (mut near, mut eik) = (0.0f64, 0.0f64);
-        for j in 0..m {
-            let dj = out[0][j];
-            let e = (-alpha * dj.abs()).exp();
-            near += f64::from(e);
-            cots[0][j] = if dj == 0.0 {
-                0.0
-            } else {
-                -w_near * alpha * dj.signum() * e / m as f32
-            };
-            let g = [out[1][j], out[2][j], out[3][j]];
-            let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-            eik += f64::from((norm - 1.0) * (norm - 1.0));
-            if norm > 0.0 {
-                for c in 0..3 {
-                    cots[1 + c][j] = w_eik * 2.0 * (norm - 1.0) * g[c] / norm / m as f32;
-                }
-            }
-        }
-        let with_cots: Vec<&[f32]> = ins
-            .iter()
-            .copied()
-            .chain(cots.iter().map(Vec::as_slice))
-            .collect();
-        let mut scratch = vec![vec![0.0f32; m]; 4];
-        let mut refs: Vec<&mut [f32]> = scratch.iter_mut().map(Vec::as_mut_slice).collect();
-        k.second_order
-            .eval_parallel(m, &with_cots, &mut refs, params, grads, threads);
-        [w_near * (near / m as f64) as f32, w_eik * (eik / m as f64) as f32]
+        let mut terms = vec![vec![0.0f32; m]; 2];
+        let mut refs: Vec<&mut [f32]> = terms.iter_mut().map(Vec::as_mut_slice).collect();
+        k.loss.eval_parallel(m, &ins, &mut refs, params, grads, threads);
+        let sum = |c: &[f32]| c.iter().map(|&x| f64::from(x)).sum::<f64>() as f32;
+        [sum(&terms[0]), sum(&terms[1])]
     }
 }

@@ -361,7 +361,7 @@ impl TrainPlan {
         let fields = VolumeFields::compile(program, &cache, self.importance)?;
         let field = &fields.fine;
         let regularizer_kernels = match &self.eikonal {
-            Some((sdf, _)) => Some(RegularizerKernels::compile(program, sdf)?),
+            Some((sdf, reg)) => Some(RegularizerKernels::compile(program, sdf, reg)?),
             None => None,
         };
         let compile_s = t.elapsed().as_secs_f64();

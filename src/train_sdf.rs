@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
+use nerfjit_dsl::ir::{Op, V};
 use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, Options};
 use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng};
@@ -59,10 +60,12 @@ pub struct SdfTrainPlan {
     points_gif: Option<PathBuf>,
 }
 
-/// The kernels of one SDF.
+/// The loss kernels of one SDF: each gives its per-point loss terms and their param gradient in one pass.
 struct Kernels {
-    value: Kernel,
-    value_vjp: Kernel,
+    /// (d(y) − (|y| − r))² / m on random points: pre-training toward a sphere.
+    sphere: Kernel,
+    /// |d(x)| / n on cloud points.
+    surface: Kernel,
     regularizers: RegularizerKernels,
 }
 
@@ -118,10 +121,35 @@ impl SdfTrainPlan {
         let lowered = program.lower(&self.function)?;
         let n = program.n_params();
         let opts = Options::default();
+        let (m, nb, r) = (
+            self.random as f64,
+            self.batch as f64,
+            f64::from(self.pretrain_radius),
+        );
+        let sphere = kernels::loss_gradient(&lowered, n, |g, d, _| {
+            let p: Vec<V> = (0..3).map(|i| g.input(i)).collect();
+            let squares: Vec<V> = p.iter().map(|&c| g.push(Op::Mul(c, c))).collect();
+            let sum = squares
+                .into_iter()
+                .reduce(|a, b| g.push(Op::Add(a, b)))
+                .expect("3 components");
+            let length = g.push(Op::Sqrt(sum));
+            let radius = g.constant(r);
+            let target = g.push(Op::Sub(length, radius));
+            let error = g.push(Op::Sub(d, target));
+            let squared = g.push(Op::Mul(error, error));
+            let scale = g.constant(1.0 / m);
+            vec![g.push(Op::Mul(scale, squared))]
+        });
+        let surface = kernels::loss_gradient(&lowered, n, |g, d, _| {
+            let abs = g.push(Op::Abs(d));
+            let scale = g.constant(1.0 / nb);
+            vec![g.push(Op::Mul(scale, abs))]
+        });
         Ok(Kernels {
-            value: Kernel::compile(&kernels::value(&lowered), opts)?,
-            value_vjp: Kernel::compile(&kernels::param_vjp(&lowered, n), opts)?,
-            regularizers: RegularizerKernels::compile(program, &self.function)?,
+            sphere: Kernel::compile(&sphere, opts)?,
+            surface: Kernel::compile(&surface, opts)?,
+            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers())?,
         })
     }
 
@@ -258,26 +286,10 @@ impl SdfTrainPlan {
         let m = self.random;
         let ys = uniform_points(rng, m, self.bound);
         let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
-        let mut d = vec![0.0f32; m];
-        k.value
-            .eval_parallel(m, &ins, &mut [&mut d], params, &mut [], threads);
-        let mut cot = vec![0.0f32; m];
-        let mut loss = 0.0f64;
-        for j in 0..m {
-            let target = (ys[0][j] * ys[0][j] + ys[1][j] * ys[1][j] + ys[2][j] * ys[2][j]).sqrt()
-                - self.pretrain_radius;
-            let e = d[j] - target;
-            loss += f64::from(e * e);
-            cot[j] = 2.0 * e / m as f32;
-        }
-        let with_cot: Vec<&[f32]> = ins
-            .iter()
-            .copied()
-            .chain(std::iter::once(cot.as_slice()))
-            .collect();
-        k.value_vjp
-            .eval_parallel(m, &with_cot, &mut [], params, grads, threads);
-        (loss / m as f64) as f32
+        let mut loss = vec![0.0f32; m];
+        k.sphere
+            .eval_parallel(m, &ins, &mut [&mut loss], params, grads, threads);
+        loss.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
     }
 
     /// One step of the fit; returns the three loss terms (already weighted).
@@ -304,21 +316,10 @@ impl SdfTrainPlan {
             }
         }
         let ins: Vec<&[f32]> = xs.iter().map(Vec::as_slice).collect();
-        let mut d = vec![0.0f32; nb];
-        k.value
-            .eval_parallel(nb, &ins, &mut [&mut d], params, &mut [], threads);
-        let surface = d.iter().map(|v| f64::from(v.abs())).sum::<f64>() / nb as f64;
-        let cot: Vec<f32> = d
-            .iter()
-            .map(|v| if *v == 0.0 { 0.0 } else { v.signum() / nb as f32 })
-            .collect();
-        let with_cot: Vec<&[f32]> = ins
-            .iter()
-            .copied()
-            .chain(std::iter::once(cot.as_slice()))
-            .collect();
-        k.value_vjp
-            .eval_parallel(nb, &with_cot, &mut [], params, grads, threads);
+        let mut terms = vec![0.0f32; nb];
+        k.surface
+            .eval_parallel(nb, &ins, &mut [&mut terms], params, grads, threads);
+        let surface = terms.iter().map(|&x| f64::from(x)).sum::<f64>();
 
         // Random points: the near-surface penalty on d and the eikonal term on ∇d.
         let [near, eikonal] = self

@@ -10,6 +10,10 @@
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
 //!
+//! - [`loss_gradient`]: for a scalar function f, a per-point loss built from f and ∇ₓf in the IR itself;
+//!   outputs the loss terms; reductions their param gradient. One kernel instead of a forward pass, a
+//!   loss on the host and a backward pass (the eikonal and surface losses of neural SDFs).
+//!
 //! In the kinds with param gradients, the gradients of dense layers' matrices are the graph's outer
 //! products ([`crate::ir::Outer`]), added to the reductions of the same params.
 
@@ -69,6 +73,31 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
 pub fn param_vjp(f: &Lowered, n_params: usize) -> Graph {
     let mut g = vjp(f, n_params);
     g.outputs.clear();
+    g.compact()
+}
+
+/// The loss kernel of a scalar function f (see the module docs): `terms(g, f, ∇ₓf)` builds the per-point
+/// loss terms; the kernel outputs them and reduces ∂(Σ terms)/∂θ for every param. ∇ₓf is only built (and
+/// differentiated, second order) when `terms` reads it.
+pub fn loss_gradient(
+    f: &Lowered,
+    n_params: usize,
+    terms: impl FnOnce(&mut Graph, V, &[V]) -> Vec<V>,
+) -> Graph {
+    assert_eq!(f.graph.outputs.len(), 1, "loss kernels are for scalar functions");
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let out = g.outputs[0];
+    let one = g.constant(1.0);
+    let grad_x = autodiff::vjp(&mut g, &[(out, one)], &xs);
+    let terms = terms(&mut g, out, &grad_x);
+    let seeds: Vec<(V, V)> = terms.iter().map(|&t| (t, one)).collect();
+    let ps = params(&mut g, n_params);
+    let (reductions, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &ps, true);
+    g.reductions = reductions;
+    g.outer = outer;
+    g.outputs = terms;
     g.compact()
 }
 

@@ -170,3 +170,59 @@ fn second_order_kernel_gives_the_eikonal_gradient() {
         e.reductions
     );
 }
+
+#[test]
+fn loss_kernel_gradient_matches_finite_differences_of_its_loss() {
+    // ℓ = |d| + (|∇ₓd| − 1)² for a small network d: the loss kernel's reductions vs central differences
+    // of ℓ, evaluated through the value-and-gradient kernel.
+    use nerfjit_dsl::ir::Op;
+    let p = compile(
+        "loss.sdf",
+        "param net: mlp<3, 6, 2> = linear_init(seed: 2)\nparam w: mat<1, 6> = linear_init(seed: 3)\n\
+         fn d(p: vec3) -> f32 = dense(w, mlp(net, p))[0] + 0.3 * length(p) - 0.5\n",
+    )
+    .unwrap();
+    let f = p.lower("d").unwrap();
+    let loss = kernels::loss_gradient(&f, p.n_params(), |g, d, grad| {
+        let abs = g.push(Op::Abs(d));
+        let squares: Vec<_> = grad.iter().map(|&c| g.push(Op::Mul(c, c))).collect();
+        let sum = squares.into_iter().reduce(|a, b| g.push(Op::Add(a, b))).unwrap();
+        let norm = g.push(Op::Sqrt(sum));
+        let one = g.constant(1.0);
+        let off = g.push(Op::Sub(norm, one));
+        vec![abs, g.push(Op::Mul(off, off))]
+    });
+    let value_and_gradient = kernels::with_gradient(&f);
+    let x = [0.4, -0.7, 0.2];
+    let params = p.param_values_f64();
+    let analytic = eval_point(&loss, &x, &params).reductions;
+    let at = |q: &[f64]| {
+        let o = eval_point(&value_and_gradient, &x, q).outputs;
+        let norm = (o[1] * o[1] + o[2] * o[2] + o[3] * o[3]).sqrt();
+        o[0].abs() + (norm - 1.0).powi(2)
+    };
+    let mut compared = 0;
+    for k in 0..params.len() {
+        let diff = |h: f64| {
+            let (mut hi, mut lo) = (params.clone(), params.clone());
+            hi[k] += h;
+            lo[k] -= h;
+            (at(&hi) - at(&lo)) / (2.0 * h)
+        };
+        let (a, b) = (diff(1e-6), diff(5e-7));
+        if (a - b).abs() > 1e-6 * (1.0 + a.abs()) {
+            continue; // a ReLU kink within the step
+        }
+        compared += 1;
+        assert!(
+            (a - analytic[k]).abs() < 1e-6 * (1.0 + a.abs()),
+            "param {k}: {} vs {a}",
+            analytic[k]
+        );
+    }
+    assert!(
+        compared * 10 >= params.len() * 9,
+        "only {compared} of {} compared",
+        params.len()
+    );
+}
