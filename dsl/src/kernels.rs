@@ -76,6 +76,17 @@ pub fn param_vjp(f: &Lowered, n_params: usize) -> Graph {
     g.compact()
 }
 
+/// The graph of scalar function `f` extended with ∇ₓf: the graph, f's value and the gradient's values.
+fn with_input_gradient(f: &Lowered) -> (Graph, V, Vec<V>) {
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let out = g.outputs[0];
+    let one = g.constant(1.0);
+    let grad_x = autodiff::vjp(&mut g, &[(out, one)], &xs);
+    (g, out, grad_x)
+}
+
 /// The loss kernel of a scalar function f (see the module docs): `terms(g, f, ∇ₓf)` builds the per-point
 /// loss terms; the kernel outputs them and reduces ∂(Σ terms)/∂θ for every param. ∇ₓf is only built (and
 /// differentiated, second order) when `terms` reads it.
@@ -85,12 +96,8 @@ pub fn loss_gradient(
     terms: impl FnOnce(&mut Graph, V, &[V]) -> Vec<V>,
 ) -> Graph {
     assert_eq!(f.graph.outputs.len(), 1, "loss kernels are for scalar functions");
-    let mut g = f.graph.clone();
-    let n_in = g.n_inputs;
-    let xs = inputs(&mut g, n_in);
-    let out = g.outputs[0];
+    let (mut g, out, grad_x) = with_input_gradient(f);
     let one = g.constant(1.0);
-    let grad_x = autodiff::vjp(&mut g, &[(out, one)], &xs);
     let terms = terms(&mut g, out, &grad_x);
     let seeds: Vec<(V, V)> = terms.iter().map(|&t| (t, one)).collect();
     let ps = params(&mut g, n_params);
@@ -108,12 +115,8 @@ pub fn second_order(f: &Lowered, n_params: usize) -> Graph {
         1,
         "second-order kernels are for scalar functions"
     );
-    let mut g = f.graph.clone();
+    let (mut g, out, grad_x) = with_input_gradient(f);
     let n_in = g.n_inputs;
-    let xs = inputs(&mut g, n_in);
-    let out = g.outputs[0];
-    let one = g.constant(1.0);
-    let grad_x = autodiff::vjp(&mut g, &[(out, one)], &xs);
     let mut seeds = vec![(out, g.input(n_in))];
     for (k, &gk) in grad_x.iter().enumerate() {
         seeds.push((gk, g.input(n_in + 1 + k as u32)));
