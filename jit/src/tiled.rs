@@ -219,7 +219,7 @@ impl Tiled {
             }
         }
         stats.seconds = start.elapsed().as_secs_f64();
-        Ok(Tiled {
+        let mut plan = Tiled {
             segments,
             products,
             outer,
@@ -229,7 +229,99 @@ impl Tiled {
             n_slots: slots.count,
             n_reductions: g.reductions.len(),
             stats,
-        })
+        };
+        plan.share_slots();
+        Ok(plan)
+    }
+
+    /// Lets values whose lifetimes do not overlap share a column of the arena, so that a tile's arena
+    /// holds what is live at once rather than every value that crosses a boundary (a network's forward
+    /// pass then fits in the L2 cache). Time runs over the stages: inputs are loaded at 0, stage s runs its
+    /// products at 2s + 1 and its segment at 2s + 2, outer products and outputs read at the end. A column
+    /// is reused only by a value written strictly after the column's last read.
+    fn share_slots(&mut self) {
+        const UNSET: usize = usize::MAX;
+        let end = 2 * self.segments.len() + 1;
+        let n = self.n_slots;
+        let (mut first, mut last) = (vec![UNSET; n], vec![0usize; n]);
+        let mut touch = |slot: usize, t: usize| {
+            first[slot] = first[slot].min(t);
+            last[slot] = last[slot].max(t);
+        };
+        for &(slot, _) in &self.fills {
+            touch(slot, 0);
+            touch(slot, end);
+        }
+        for slot in self.input_slots.iter().flatten() {
+            touch(*slot, 0);
+        }
+        for (s, products) in self.products.iter().enumerate() {
+            for p in products {
+                for &slot in p.x.iter().chain(&p.out) {
+                    touch(slot, 2 * s + 1);
+                }
+            }
+        }
+        for (s, segment) in self.segments.iter().enumerate() {
+            if let Some(seg) = segment {
+                for &slot in seg.reads.iter().chain(&seg.writes) {
+                    touch(slot, 2 * s + 2);
+                }
+            }
+        }
+        for o in &self.outer {
+            for &slot in o.left.iter().chain(&o.right) {
+                touch(slot, end);
+            }
+        }
+        for &slot in &self.output_slots {
+            touch(slot, end);
+        }
+        // Interval colouring: in order of first use, take a column freed strictly before.
+        let mut order: Vec<usize> = (0..n).filter(|&s| first[s] != UNSET).collect();
+        order.sort_by_key(|&s| first[s]);
+        let mut busy: std::collections::BinaryHeap<std::cmp::Reverse<(usize, usize)>> = Default::default();
+        let mut free: Vec<usize> = Vec::new();
+        let mut column = vec![0usize; n];
+        let mut columns = 0;
+        for s in order {
+            while let Some(&std::cmp::Reverse((until, c))) = busy.peek() {
+                if until >= first[s] {
+                    break;
+                }
+                busy.pop();
+                free.push(c);
+            }
+            let c = free.pop().unwrap_or_else(|| {
+                columns += 1;
+                columns - 1
+            });
+            column[s] = c;
+            busy.push(std::cmp::Reverse((last[s], c)));
+        }
+        let map = |v: &mut Vec<usize>| v.iter_mut().for_each(|s| *s = column[*s]);
+        for products in &mut self.products {
+            for p in products {
+                map(&mut p.x);
+                map(&mut p.out);
+            }
+        }
+        for seg in self.segments.iter_mut().flatten() {
+            map(&mut seg.reads);
+            map(&mut seg.writes);
+        }
+        for o in &mut self.outer {
+            map(&mut o.left);
+            map(&mut o.right);
+        }
+        map(&mut self.output_slots);
+        for (slot, _) in &mut self.fills {
+            *slot = column[*slot];
+        }
+        for slot in self.input_slots.iter_mut().flatten() {
+            *slot = column[*slot];
+        }
+        self.n_slots = columns;
     }
 
     /// Evaluates points `0..n` on this thread (see [`Kernel::eval`]; sizes were checked by the caller).
