@@ -6,8 +6,8 @@
 //!   the backward product of a layer). The micro-kernel keeps a block of 4 rows × 64 points in 16
 //!   registers and streams the input columns: per input feature, 4 loads, 4 broadcasts and 16 FMAs.
 //! - [`outer`]: `G[i][j] += Σ_t l_i[t] · r_j[t]` over the valid points of a tile (the gradient of a matrix).
-//!   The right operand is transposed to point-major rows first, so that the micro-kernel again
-//!   broadcasts one operand and streams the other into 4 × 64 accumulators.
+//!   The right operand is transposed to point-major rows first (16 × 16 blocks in registers), so that the
+//!   micro-kernel again broadcasts one operand and streams the other into 4 × 64 accumulators.
 //!
 //! Both run 512-bit code when the CPU has AVX-512F (checked once at run time) and portable loops
 //! otherwise.
@@ -75,18 +75,15 @@ pub unsafe fn outer(l: &[*const f32], r: &[*const f32], count: usize, g: &mut [f
     assert!(g.len() >= l.len() * stride, "gradient buffer too small");
     scratch.clear();
     scratch.resize(count * stride, 0.0);
-    for (j, &rj) in r.iter().enumerate() {
-        // SAFETY: `rj` addresses `count` floats (caller).
-        let rj = unsafe { std::slice::from_raw_parts(rj, count) };
-        for (t, &v) in rj.iter().enumerate() {
-            scratch[t * stride + j] = v;
-        }
-    }
     #[cfg(target_arch = "x86_64")]
     if has_avx512() {
         // SAFETY: the CPU has AVX-512F; sizes were checked above and by the caller.
-        return unsafe { avx512::outer(l, scratch, stride, count, g) };
+        unsafe {
+            avx512::transpose(r, count, scratch, stride);
+            return avx512::outer(l, scratch, stride, count, g);
+        }
     }
+    transpose_plain(r, 0, 0, count, scratch, stride);
     for (i, &li) in l.iter().enumerate() {
         // SAFETY: `li` addresses `count` floats (caller).
         let li = unsafe { std::slice::from_raw_parts(li, count) };
@@ -95,6 +92,17 @@ pub unsafe fn outer(l: &[*const f32], r: &[*const f32], count: usize, g: &mut [f
             for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
                 *gj += lv * rv;
             }
+        }
+    }
+}
+
+/// `rt[t·stride + j] = r[j][t]` for j ≥ `j0` and `t0 ≤ t < count`.
+fn transpose_plain(r: &[*const f32], j0: usize, t0: usize, count: usize, rt: &mut [f32], stride: usize) {
+    for (j, &rj) in r.iter().enumerate().skip(j0) {
+        // SAFETY: `rj` addresses `count` floats (the callers' contract).
+        let rj = unsafe { std::slice::from_raw_parts(rj, count) };
+        for (t, &v) in rj.iter().enumerate().skip(t0) {
+            rt[t * stride + j] = v;
         }
     }
 }
@@ -206,6 +214,72 @@ mod avx512 {
             }
             i += rows;
         }
+    }
+
+    /// `rt[t·stride + j] = r[j][t]` for t < count: 16 × 16 blocks in registers (unpacks and lane
+    /// shuffles), the edges in plain code.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn transpose(r: &[*const f32], count: usize, rt: &mut [f32], stride: usize) {
+        let (full_j, full_t) = (r.len() / 16 * 16, count / 16 * 16);
+        for j0 in (0..full_j).step_by(16) {
+            for t0 in (0..full_t).step_by(16) {
+                // SAFETY: rows j0..j0+16 hold `count` ≥ t0 + 16 floats; rt holds count rows of stride ≥
+                // j0 + 16 floats.
+                unsafe {
+                    let rows: [__m512; 16] = std::array::from_fn(|q| _mm512_loadu_ps(r[j0 + q].add(t0)));
+                    let cols = transpose16(rows);
+                    for (p, v) in cols.iter().enumerate() {
+                        _mm512_storeu_ps(rt.as_mut_ptr().add((t0 + p) * stride + j0), *v);
+                    }
+                }
+            }
+        }
+        // The columns past the last whole block of rows, and the points past the last whole block.
+        super::transpose_plain(r, full_j, 0, count, rt, stride);
+        super::transpose_plain(&r[..full_j], 0, full_t, count, rt, stride);
+    }
+
+    /// The transpose of a 16 × 16 block held as 16 rows.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn transpose16(r: [__m512; 16]) -> [__m512; 16] {
+        // Interleave pairs of rows, then pairs of pairs (4 × 4 blocks inside each 128-bit lane), then
+        // exchange 128-bit lanes twice.
+        let t: [__m512; 16] = std::array::from_fn(|i| {
+            let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+            if i % 2 == 0 {
+                _mm512_unpacklo_ps(a, b)
+            } else {
+                _mm512_unpackhi_ps(a, b)
+            }
+        });
+        let pd = |x: __m512| _mm512_castps_pd(x);
+        let u: [__m512; 16] = std::array::from_fn(|i| {
+            let group = i / 4 * 4;
+            let (a, b) = (t[group + (i % 4) / 2], t[group + 2 + (i % 4) / 2]);
+            if i % 2 == 0 {
+                _mm512_castpd_ps(_mm512_unpacklo_pd(pd(a), pd(b)))
+            } else {
+                _mm512_castpd_ps(_mm512_unpackhi_pd(pd(a), pd(b)))
+            }
+        });
+        let v: [__m512; 16] = std::array::from_fn(|i| {
+            let base = i / 8 * 8;
+            let (a, b) = (u[base + i % 4], u[base + 4 + i % 4]);
+            if i % 8 < 4 {
+                _mm512_shuffle_f32x4::<0x88>(a, b)
+            } else {
+                _mm512_shuffle_f32x4::<0xdd>(a, b)
+            }
+        });
+        std::array::from_fn(|i| {
+            let (a, b) = (v[i % 8], v[8 + i % 8]);
+            if i < 8 {
+                _mm512_shuffle_f32x4::<0x88>(a, b)
+            } else {
+                _mm512_shuffle_f32x4::<0xdd>(a, b)
+            }
+        })
     }
 
     /// One register block of the outer product: R rows of G × 16·N columns.
