@@ -71,14 +71,7 @@ pub fn compare(
         for source in &row.sources {
             let (program, params) = crate::views::load(source)?;
             let fields = VolumeFields::compile(&program, &cache, args.importance)?;
-            let settings = nerfjit_runtime::VolumeSettings {
-                near: args.near,
-                far: args.far,
-                samples: args.samples,
-                mode: fields.fine.mode,
-                background: Some(args.background),
-                early_termination: None,
-            };
+            let settings = crate::views::settings(args, fields.fine.mode);
             let f = fields.render(camera, views.width, views.height, &params, &settings)?;
             let image = ImageF32 {
                 width: f.width,

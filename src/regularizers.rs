@@ -2,7 +2,7 @@
 //! `train`: a near-surface penalty w_near · mean exp(−α|d|) and the eikonal term
 //! w_eik · mean (|∇ₓd| − 1)², whose param gradient comes from the JIT's second-order kernel.
 
-use nerfjit_dsl::ir::{Op, V};
+use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::{kernels, Program, Type};
 use nerfjit_jit::{Kernel, Options};
 use nerfjit_runtime::Rng;
@@ -47,12 +47,7 @@ impl RegularizerKernels {
             let e = g.push(Op::Exp(scaled));
             let near = g.push(Op::Mul(near_weight, e));
             // w_eik/m · (|∇d| − 1)²
-            let squares: Vec<V> = grad.iter().map(|&c| g.push(Op::Mul(c, c))).collect();
-            let sum = squares
-                .into_iter()
-                .reduce(|a, b| g.push(Op::Add(a, b)))
-                .expect("3 components");
-            let norm = g.push(Op::Sqrt(sum));
+            let norm = g.length(grad);
             let off = g.push(Op::Sub(norm, one));
             let off2 = g.push(Op::Mul(off, off));
             let eikonal = g.push(Op::Mul(eikonal_weight, off2));

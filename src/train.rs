@@ -407,11 +407,7 @@ impl TrainPlan {
                         t.elapsed().as_secs_f64(),
                         100.0 * built.occupancy()
                     );
-                    if bar.is_hidden() {
-                        eprintln!("{line}");
-                    } else {
-                        bar.println(line);
-                    }
+                    report(&bar, line);
                     grid = Some(built);
                 }
             }
@@ -478,11 +474,7 @@ impl TrainPlan {
                         "step {done}: val PSNR {p:.2} dB, SSIM {s:.4} ({} views) after {train_seconds:.0} s of training",
                         val.cameras.len()
                     );
-                    if bar.is_hidden() {
-                        eprintln!("{line}");
-                    } else {
-                        bar.println(line);
-                    }
+                    report(&bar, line);
                     history.push(serde_json::json!({
                         "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
                     }));
@@ -567,6 +559,15 @@ impl TrainPlan {
             rgb_image(2 * views.width, views.height, &side, Quantize::Truncate)?,
         )?;
         Ok(())
+    }
+}
+
+/// Prints a line above the progress bar, or to standard error when the bar is hidden (not a terminal).
+fn report(bar: &ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
     }
 }
 

@@ -128,12 +128,7 @@ impl SdfTrainPlan {
         );
         let sphere = kernels::loss_gradient(&lowered, n, |g, d, _| {
             let p: Vec<V> = (0..3).map(|i| g.input(i)).collect();
-            let squares: Vec<V> = p.iter().map(|&c| g.push(Op::Mul(c, c))).collect();
-            let sum = squares
-                .into_iter()
-                .reduce(|a, b| g.push(Op::Add(a, b)))
-                .expect("3 components");
-            let length = g.push(Op::Sqrt(sum));
+            let length = g.length(&p);
             let radius = g.constant(r);
             let target = g.push(Op::Sub(length, radius));
             let error = g.push(Op::Sub(d, target));

@@ -49,7 +49,8 @@ pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     }
 }
 
-fn settings(args: &ViewArgs, mode: Mode) -> VolumeSettings {
+/// The renderer settings of `args` for a field of `mode`.
+pub(crate) fn settings(args: &ViewArgs, mode: Mode) -> VolumeSettings {
     VolumeSettings {
         near: args.near,
         far: args.far,

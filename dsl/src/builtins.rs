@@ -218,15 +218,6 @@ fn nary(g: &mut Graph, name: &str, a: &[V]) -> V {
     }
 }
 
-fn dot(g: &mut Graph, a: &[V], b: &[V]) -> V {
-    let mut acc = g.constant(0.0);
-    for (&x, &y) in a.iter().zip(b) {
-        let p = g.push(Op::Mul(x, y));
-        acc = g.push(Op::Add(acc, p));
-    }
-    acc
-}
-
 /// Lowers a call of builtin `name` on already lowered arguments.
 pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Span) -> EResult<Val> {
     let n = args.len();
@@ -267,13 +258,9 @@ pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Spa
                     }
                     Val::Scalar(acc)
                 }
-                "length" => {
-                    let d = dot(g, &comps, &comps);
-                    Val::Scalar(g.push(Op::Sqrt(d)))
-                }
+                "length" => Val::Scalar(g.length(&comps)),
                 _ => {
-                    let d = dot(g, &comps, &comps);
-                    let len = g.push(Op::Sqrt(d));
+                    let len = g.length(&comps);
                     Val::Vector(comps.iter().map(|&c| g.push(Op::Div(c, len))).collect())
                 }
             })
@@ -296,7 +283,7 @@ pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Spa
             }
             let g = &mut *el.g;
             if nm == "dot" {
-                return Ok(Val::Scalar(dot(g, &a, &b)));
+                return Ok(Val::Scalar(g.dot(&a, &b)));
             }
             let mut term = |i: usize, j: usize| {
                 let p = g.push(Op::Mul(a[i], b[j]));

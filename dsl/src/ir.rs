@@ -329,6 +329,22 @@ impl Graph {
             .collect()
     }
 
+    /// Σ aᵢ·bᵢ.
+    pub fn dot(&mut self, a: &[V], b: &[V]) -> V {
+        let mut acc = self.constant(0.0);
+        for (&x, &y) in a.iter().zip(b) {
+            let p = self.push(Op::Mul(x, y));
+            acc = self.push(Op::Add(acc, p));
+        }
+        acc
+    }
+
+    /// The Euclidean length √(Σ vᵢ²).
+    pub fn length(&mut self, v: &[V]) -> V {
+        let d = self.dot(v, v);
+        self.push(Op::Sqrt(d))
+    }
+
     /// The constant `c`.
     pub fn constant(&mut self, c: f64) -> V {
         // -0.0 and 0.0 are one constant: they behave alike in every op but division by zero.

@@ -127,6 +127,11 @@ pub(crate) fn params_read(graph: &Graph) -> usize {
         .unwrap_or(0)
 }
 
+/// The sum of a reduction's 4 accumulator lanes (added in f64).
+pub(crate) fn lane_sum(lanes: &[f32]) -> f32 {
+    lanes.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
+}
+
 /// How a kernel runs.
 enum Body {
     /// One native function over the whole batch.
@@ -319,7 +324,7 @@ impl Kernel {
             }
         }
         for (r, lanes) in reductions.iter_mut().zip(accum.chunks_exact(4)) {
-            *r += lanes.iter().map(|&x| f64::from(x)).sum::<f64>() as f32;
+            *r += lane_sum(lanes);
         }
     }
 

@@ -15,7 +15,7 @@ use std::time::Instant;
 use nerfjit_dsl::ir::{Graph, Op, V};
 
 use crate::gemm::{self, TILE};
-use crate::kernel::{CompileStats, JitError, Kernel, Options};
+use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
 
 /// One elementwise segment: a JIT kernel reading and writing slots.
 struct Segment {
@@ -409,7 +409,7 @@ impl Tiled {
         for (seg, acc) in self.segments.iter().zip(&accums) {
             if let Some(seg) = seg {
                 for (&r, lanes) in seg.reductions.iter().zip(acc.chunks_exact(4)) {
-                    reductions[r] += lanes.iter().map(|&x| f64::from(x)).sum::<f64>() as f32;
+                    reductions[r] += lane_sum(lanes);
                 }
             }
         }

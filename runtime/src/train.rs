@@ -188,14 +188,7 @@ fn run_pass(
             vz[row].copy_from_slice(dz);
         }
     }
-    let inputs: [&[f32]; 6] = [
-        &x[..len],
-        &y[..len],
-        &z[..len],
-        &vx[..len],
-        &vy[..len],
-        &vz[..len],
-    ];
+    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
     let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
     let packed = job.grid.map(|grid| Packed::new(grid, inputs, len));
     match &packed {

@@ -355,14 +355,7 @@ fn eval_dense(job: &Job, s: &mut Scratch, depths: &[f32], n: usize, n_inputs: us
             vz[row].copy_from_slice(&dz[..n]);
         }
     }
-    let inputs: [&[f32]; 6] = [
-        &x[..len],
-        &y[..len],
-        &z[..len],
-        &vx[..len],
-        &vy[..len],
-        &vz[..len],
-    ];
+    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
     let [raw, r, g, b] = &mut s.outputs;
     job.field.eval(
         len,
@@ -451,14 +444,7 @@ fn march_packed(
     if packed == 0 {
         return;
     }
-    let inputs: [&[f32]; 6] = [
-        &x[..packed],
-        &y[..packed],
-        &z[..packed],
-        &vx[..packed],
-        &vy[..packed],
-        &vz[..packed],
-    ];
+    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..packed]);
     let [raw, r, g, b] = &mut s.outputs;
     job.field.eval(
         packed,
