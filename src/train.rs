@@ -44,10 +44,13 @@ const KEYS: &[&str] = &[
     "val",
     "val_every",
     "val_views",
+    "val_minutes",
     "importance",
     "skip_empty",
     "grid_every",
     "grid_warmup",
+    "minutes",
+    "early_termination",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -64,6 +67,8 @@ pub struct TrainPlan {
     samples: usize,
     background: Option<[f32; 3]>,
     steps: u32,
+    /// Stop once the steps alone have taken this many seconds (validation and previews excluded).
+    time_limit: Option<f64>,
     batch: usize,
     schedule: Schedule,
     random_views: bool,
@@ -83,6 +88,9 @@ pub struct TrainPlan {
     /// Empty-space skipping during training: an occupancy grid of the (fine) field, rebuilt every
     /// `every` steps from step `warmup` on.
     grid: Option<TrainingGrid>,
+    /// Training rays stop once their transmittance is below this (later samples are neither evaluated
+    /// nor back-propagated); validation and previews stay exact.
+    early_termination: Option<f32>,
 }
 
 /// The `skip_empty`, `grid_every` and `grid_warmup` settings.
@@ -93,12 +101,13 @@ struct TrainingGrid {
     warmup: u32,
 }
 
-/// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps and
-/// at the end (the first `views` of them, all if None).
+/// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps, once
+/// the training time passes each of `at_seconds`, and at the end (the first `views` of them, all if None).
 #[derive(Clone, Debug)]
 struct Validation {
     file: PathBuf,
     every: u32,
+    at_seconds: Vec<f64>,
     views: Option<usize>,
 }
 
@@ -108,6 +117,20 @@ struct BlenderData {
     size: u32,
     background: [f32; 3],
     views: Option<usize>,
+}
+
+/// The `val_minutes` setting: one number or a list of them, in minutes of training, as seconds in order.
+fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
+    let items = match &v.value {
+        Value::List(items) => items
+            .iter()
+            .map(|x| crate::settings::ranged(x, 0.0, 1e6))
+            .collect(),
+        _ => crate::settings::ranged(v, 0.0, 1e6).map(|x| vec![x]),
+    };
+    let mut seconds: Vec<f64> = items?.into_iter().map(|m| 60.0 * m).collect();
+    seconds.sort_by(f64::total_cmp);
+    Ok(seconds)
 }
 
 /// The `data` setting: `views("box_cameras.json")` (the course's cameras with .npy/PNG images) or
@@ -221,6 +244,8 @@ impl TrainPlan {
         let lr = b.number("lr", 1e-12, 10.0, 5e-4)? as f32;
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
         let steps = b.whole("steps", 1, 100_000_000, 1000)? as u32;
+        let minutes = b.number("minutes", 0.0, 1e6, 0.0)?;
+        let time_limit = (minutes > 0.0).then_some(60.0 * minutes);
         let batch = b.whole("batch", 1, 1 << 20, 4096)? as usize;
         if batch * samples > MAX_SAMPLES_PER_STEP {
             return Err(b.block_error(format!(
@@ -274,7 +299,16 @@ impl TrainPlan {
                     Some(n) => Some(crate::settings::whole(&n, 1, 100_000).map_err(|d| b.error(d))? as usize),
                     None => None,
                 };
-                Some(Validation { file, every, views })
+                let at_seconds = match b.take("val_minutes") {
+                    Some(v) => minutes_list(&v).map_err(|d| b.error(d))?,
+                    None => Vec::new(),
+                };
+                Some(Validation {
+                    file,
+                    every,
+                    at_seconds,
+                    views,
+                })
             }
             None => None,
         };
@@ -287,8 +321,10 @@ impl TrainPlan {
                 warmup: b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32,
             }),
         };
+        let early_termination = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
         b.finish(KEYS)?;
         Ok(TrainPlan {
+            early_termination: (early_termination > 0.0).then_some(early_termination),
             data,
             blender,
             near,
@@ -296,6 +332,7 @@ impl TrainPlan {
             samples,
             background,
             steps,
+            time_limit,
             batch,
             schedule,
             random_views,
@@ -368,6 +405,10 @@ impl TrainPlan {
         let threads = rayon::current_num_threads();
         let mut eikonal_loss = 0.0f32;
         let settings = self.settings(field);
+        let step_settings = VolumeSettings {
+            early_termination: self.early_termination,
+            ..settings
+        };
         let (mut adam, first) =
             crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
                 self.schedule.lr(k)
@@ -381,6 +422,8 @@ impl TrainPlan {
         let start = Instant::now();
         let mut grid: Option<OccupancyGrid> = None;
         let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
+        let mut done = first;
+        let mut next_val_time = 0;
         for step in first..self.steps {
             let step_start = Instant::now();
             let view = if self.random_views {
@@ -418,7 +461,15 @@ impl TrainPlan {
                         fine: None,
                         grid: grid.as_ref(),
                     };
-                    volume_step_with(&rays, &targets, &forward, &backward, &settings, options, jitter)?
+                    volume_step_with(
+                        &rays,
+                        &targets,
+                        &forward,
+                        &backward,
+                        &step_settings,
+                        options,
+                        jitter,
+                    )?
                 }
                 Some((coarse, importance)) => {
                     let (coarse_forward, coarse_backward) = coarse.bind(params);
@@ -436,7 +487,7 @@ impl TrainPlan {
                         &targets,
                         &coarse_forward,
                         &coarse_backward,
-                        &settings,
+                        &step_settings,
                         options,
                         jitter,
                     )?
@@ -465,9 +516,22 @@ impl TrainPlan {
             }
             (loss, psnr) = (result.loss, result.psnr);
             train_seconds += step_start.elapsed().as_secs_f64();
-            let done = step + 1;
+            done = step + 1;
+            let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);
+            let last = done == self.steps || out_of_time;
             if let (Some(v), Some(val)) = (&self.validation, &val_views) {
-                if done % v.every == 0 || done == self.steps {
+                let time_mark = v
+                    .at_seconds
+                    .get(next_val_time)
+                    .is_some_and(|&t| train_seconds >= t);
+                while v
+                    .at_seconds
+                    .get(next_val_time)
+                    .is_some_and(|&t| train_seconds >= t)
+                {
+                    next_val_time += 1;
+                }
+                if done % v.every == 0 || time_mark || last {
                     let (p, s) = crate::views::means(&crate::views::score(val, &fields, params, &settings)?);
                     val_message = format!(" val {p:.2} dB");
                     let line = format!(
@@ -480,7 +544,7 @@ impl TrainPlan {
                     }));
                 }
             }
-            if done % 10 == 0 || done == self.steps {
+            if done % 10 == 0 || last {
                 let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
                 bar.set_message(format!(
                     "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",
@@ -494,19 +558,29 @@ impl TrainPlan {
             }
             bar.set_position(u64::from(done));
             if let Some(path) = &self.checkpoint {
-                if done % self.checkpoint_every == 0 || done == self.steps {
+                if done % self.checkpoint_every == 0 || last {
                     crate::checkpoint::write(path, program, done, params, &adam.state())?;
                 }
             }
             if let Some(path) = &self.preview {
-                if done % self.preview_every == 0 || done == self.steps {
+                if done % self.preview_every == 0 || last {
                     self.write_preview(path, &views, &fields, params, &settings)?;
                 }
+            }
+            if out_of_time {
+                report(
+                    &bar,
+                    format!(
+                        "stopped at step {done}: the time limit of {:.1} minutes is reached",
+                        train_seconds / 60.0
+                    ),
+                );
+                break;
             }
         }
         bar.finish_and_clear();
         let seconds = start.elapsed().as_secs_f64();
-        let trained = self.steps - first;
+        let trained = done - first;
         // Validation and previews are not training: the rate counts the steps alone.
         let ms_per_step = if trained > 0 {
             1e3 * train_seconds / f64::from(trained)
@@ -517,7 +591,7 @@ impl TrainPlan {
         if let Some(path) = &self.summary {
             let json = serde_json::json!({
                 "data": self.data.display().to_string(),
-                "steps": self.steps,
+                "steps": done,
                 "resumed_from": first,
                 "final_loss": loss,
                 "final_psnr": psnr,

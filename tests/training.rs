@@ -93,6 +93,28 @@ fn recovers_a_box_from_its_own_renders_and_resumes() {
 }
 
 #[test]
+fn early_termination_still_recovers_the_box_and_a_time_limit_stops_training() {
+    let dir = scratch("early");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--set", "train.early_termination=0.001"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("trained 500 steps"), "{out}");
+    let (center, sides, _) = learned(&dir);
+    for (got, want) in center.iter().chain(&sides).zip([0.2, -0.1, 0.1, 1.2, 0.8, 1.0]) {
+        assert!((got - want).abs() < 0.02, "learned {center:?} {sides:?}");
+    }
+    // A limit far below one step's time: one step, then the checkpoint and summary as at the end.
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--set", "train.minutes=1e-9"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("trained 1 steps"), "{out}");
+    assert!(err.contains("stopped at step 1: the time limit"), "{err}");
+    let text = std::fs::read_to_string(dir.join("summary.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(json["steps"].as_u64(), Some(1));
+}
+
+#[test]
 fn diverging_training_stops_with_a_message() {
     let dir = scratch("nan");
     make_views(&dir);

@@ -11,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use crate::composite::RayOutput;
+use crate::composite::{Compositor, RayOutput, LAST_DELTA};
 use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
 use crate::importance;
@@ -20,7 +20,7 @@ use crate::occupancy::OccupancyGrid;
 use crate::rays::RayBatch;
 use crate::rng::Rng;
 use crate::sampler::{jittered_depth, linspace};
-use crate::volume::{check_field, with_scratch, Scratch, VolumeSettings};
+use crate::volume::{check_field, with_scratch, Scratch, VolumeSettings, CHUNK_SAMPLES};
 
 /// Sample points per chunk of tiles sharing one gradient accumulator.
 pub const CHUNK_POINTS: usize = 32768;
@@ -190,22 +190,20 @@ fn run_pass(
     }
     let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
     let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
-    let packed = job.grid.map(|grid| Packed::new(grid, inputs, len));
-    match &packed {
-        None => field.eval(
-            len,
-            inputs,
-            &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
-        ),
-        Some(p) => p.eval(
-            field,
-            [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
-        ),
-    }
+    let compositor = settings.compositor();
+    let evaluated = evaluate(
+        field,
+        &compositor,
+        job.grid,
+        inputs,
+        depths,
+        n,
+        [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
+    );
     let mut squared_error = 0.0f64;
     lanes.reset(n);
     lanes.forward_backward(
-        &settings.compositor(),
+        &compositor,
         depths,
         &raw[..len],
         [&r[..len], &g[..len], &b[..len]],
@@ -226,57 +224,119 @@ fn run_pass(
         },
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
-    match &packed {
+    let backward = match (compositor.early_termination, evaluated) {
+        (None, None) => None,
+        (None, Some(index)) => Some(index),
+        // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
+        (Some(_), index) => {
+            let nonzero = |&i: &usize| cotangents.iter().any(|c| c[i] != 0.0);
+            Some(match index {
+                Some(index) => index.into_iter().filter(nonzero).collect(),
+                None => (0..len).filter(nonzero).collect(),
+            })
+        }
+    };
+    match backward {
         None => vjp.vjp(len, inputs, &cotangents, grads),
-        Some(p) => p.vjp(vjp, &cotangents, grads),
+        Some(index) => vjp_at(vjp, inputs, &index, &cotangents, grads),
     }
     squared_error
 }
 
-/// The samples of a tile inside occupied cells, gathered into dense columns.
-struct Packed {
-    index: Vec<usize>,
-    inputs: Vec<Vec<f32>>,
-}
-
-impl Packed {
-    fn new(grid: &OccupancyGrid, inputs: &[&[f32]], len: usize) -> Packed {
-        let index: Vec<usize> = (0..len)
-            .filter(|&i| grid.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]))
-            .collect();
-        let inputs = inputs
-            .iter()
-            .map(|c| index.iter().map(|&i| c[i]).collect())
-            .collect();
-        Packed { index, inputs }
-    }
-
-    fn gather(&self, column: &[f32]) -> Vec<f32> {
-        self.index.iter().map(|&i| column[i]).collect()
-    }
-
-    /// Evaluates the occupied samples; the others get zeros (empty space).
-    fn eval(&self, field: &dyn BatchFn, outputs: [&mut [f32]; 4]) {
-        let m = self.index.len();
-        let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
-        let ins: Vec<&[f32]> = self.inputs.iter().map(Vec::as_slice).collect();
-        let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
-        field.eval(m, &ins, &mut refs);
-        for (out, values) in outputs.into_iter().zip(&packed) {
-            out.fill(0.0);
-            for (&i, &v) in self.index.iter().zip(values) {
-                out[i] = v;
+/// Evaluates `field` at the tile's samples (sample-major, `n` rays) that can contribute, writing zeros
+/// (empty space) for the others; returns the indices evaluated, or `None` if all were. With a grid,
+/// samples in its empty cells are skipped. With early termination, the depths go in groups of
+/// [`CHUNK_SAMPLES`] and a group evaluates only the rays whose transmittance before it is still at the
+/// threshold: every sample the compositor counts is evaluated.
+fn evaluate(
+    field: &dyn BatchFn,
+    compositor: &Compositor,
+    grid: Option<&OccupancyGrid>,
+    inputs: &[&[f32]],
+    depths: &[f32],
+    n: usize,
+    mut outputs: [&mut [f32]; 4],
+) -> Option<Vec<usize>> {
+    let len = depths.len();
+    let occupied = |i: usize| grid.is_none_or(|g| g.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]));
+    let Some(threshold) = compositor.early_termination else {
+        if grid.is_none() {
+            let [raw, r, g, b] = outputs;
+            field.eval(len, inputs, &mut [raw, r, g, b]);
+            return None;
+        }
+        let index: Vec<usize> = (0..len).filter(|&i| occupied(i)).collect();
+        eval_at(field, inputs, &index, outputs);
+        return Some(index);
+    };
+    let rows = len / n;
+    let mut transmittance = vec![1.0f32; n];
+    let mut index = Vec::with_capacity(len);
+    for group in (0..rows).step_by(CHUNK_SAMPLES) {
+        let group = group..(group + CHUNK_SAMPLES).min(rows);
+        let start = index.len();
+        for j in group.clone() {
+            let live = (0..n).filter(|&k| transmittance[k] >= threshold);
+            index.extend(live.map(|k| j * n + k).filter(|&i| occupied(i)));
+        }
+        let span = group.start * n..group.end * n;
+        let part = outputs.each_mut().map(|o| &mut o[span.clone()]);
+        let local: Vec<usize> = index[start..].iter().map(|&i| i - span.start).collect();
+        let inputs_here: Vec<&[f32]> = inputs.iter().map(|c| &c[span.clone()]).collect();
+        eval_at(field, &inputs_here, &local, part);
+        for j in group {
+            for (k, trans) in transmittance.iter_mut().enumerate() {
+                let i = j * n + k;
+                let delta = if j + 1 < rows {
+                    depths[i + n] - depths[i]
+                } else {
+                    LAST_DELTA
+                };
+                *trans *= compositor.alpha(outputs[0][i], delta).1;
             }
         }
     }
+    Some(index)
+}
 
-    /// The backward pass of the occupied samples.
-    fn vjp(&self, vjp: &dyn BatchVjp, cotangents: &[&[f32]; 4], grads: &mut [f32]) {
-        let ins: Vec<&[f32]> = self.inputs.iter().map(Vec::as_slice).collect();
-        let cots: Vec<Vec<f32>> = cotangents.iter().map(|c| self.gather(c)).collect();
-        let cot_refs: Vec<&[f32]> = cots.iter().map(Vec::as_slice).collect();
-        vjp.vjp(self.index.len(), &ins, &cot_refs, grads);
+/// Evaluates `field` at the samples `index` of the columns `inputs` (gathered into one dense call) and
+/// scatters the results into `outputs`, which are zero elsewhere.
+fn eval_at(field: &dyn BatchFn, inputs: &[&[f32]], index: &[usize], outputs: [&mut [f32]; 4]) {
+    let m = index.len();
+    let gathered = gather(inputs, index);
+    let ins: Vec<&[f32]> = gathered.iter().map(Vec::as_slice).collect();
+    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
+    let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
+    field.eval(m, &ins, &mut refs);
+    for (out, values) in outputs.into_iter().zip(&packed) {
+        out.fill(0.0);
+        for (&i, &v) in index.iter().zip(values) {
+            out[i] = v;
+        }
     }
+}
+
+/// The backward pass of the samples `index` only.
+fn vjp_at(
+    vjp: &dyn BatchVjp,
+    inputs: &[&[f32]],
+    index: &[usize],
+    cotangents: &[&[f32]; 4],
+    grads: &mut [f32],
+) {
+    let ins = gather(inputs, index);
+    let cots = gather(cotangents, index);
+    let ins: Vec<&[f32]> = ins.iter().map(Vec::as_slice).collect();
+    let cots: Vec<&[f32]> = cots.iter().map(Vec::as_slice).collect();
+    vjp.vjp(index.len(), &ins, &cots, grads);
+}
+
+/// The entries `index` of each column.
+fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
+    columns
+        .iter()
+        .map(|c| index.iter().map(|&i| c[i]).collect())
+        .collect()
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
@@ -544,6 +604,90 @@ mod tests {
         assert!((skipped.loss - exact.loss).abs() <= 1e-6 * exact.loss.max(1.0));
         for (a, b) in skipped.param_grads.iter().zip(&exact.param_grads) {
             assert!((a - b).abs() <= 1e-5 * b.abs().max(1e-3), "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn early_termination_evaluates_less_and_matches_every_sample_composited_one_by_one() {
+        use crate::composite::{SampleGrads, Samples};
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        // A dense blob: rays through it end inside, so their later samples do not count.
+        let theta = [60.0f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let (evaluated, back_propagated) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let field = ClosureFn::new(6, 4, |p, out| {
+            evaluated.fetch_add(1, Ordering::Relaxed);
+            out.copy_from_slice(&blob_value(&theta, p));
+        });
+        let vjp = ClosureVjp::new(6, 4, 7, |p, c, g| {
+            back_propagated.fetch_add(1, Ordering::Relaxed);
+            blob_vjp(&theta, p, c, g)
+        });
+        let settings = VolumeSettings {
+            near: 1.0,
+            far: 5.0,
+            samples: 96,
+            mode: Mode::Density,
+            background: Some([0.3, 0.9, 0.1]),
+            early_termination: Some(1e-3),
+        };
+        let rays = rays();
+        let targets = targets(rays.len());
+        let result = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let all = rays.len() * settings.samples;
+        let (some, fewer) = (
+            evaluated.load(Ordering::Relaxed),
+            back_propagated.load(Ordering::Relaxed),
+        );
+        assert!(some * 5 < all * 4, "{some} of {all} samples evaluated");
+        assert!(
+            fewer < some,
+            "{fewer} of {some} evaluated samples back-propagated"
+        );
+
+        // The reference: every sample evaluated, composited ray by ray, every sample back-propagated.
+        let compositor = settings.compositor();
+        let mut t = vec![0.0; settings.samples];
+        linspace(settings.near, settings.far, &mut t);
+        let (mut squared_error, mut grads) = (0.0f64, vec![0.0f32; 7]);
+        for (k, target) in targets.iter().enumerate() {
+            let (o, d) = rays.ray(k).unwrap();
+            let inputs: Vec<[f32; 6]> = t
+                .iter()
+                .map(|&t| {
+                    let p = o + t * d;
+                    [p.x, p.y, p.z, d.x, d.y, d.z]
+                })
+                .collect();
+            let values: Vec<[f32; 4]> = inputs.iter().map(|p| blob_value(&theta, p)).collect();
+            let column = |c: usize| values.iter().map(|v| v[c]).collect::<Vec<f32>>();
+            let (raw, r, g, b) = (column(0), column(1), column(2), column(3));
+            let samples = Samples::new(&t, &raw, [&r, &g, &b]).unwrap();
+            let mut sample_grads: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; t.len()]);
+            let [g_raw, g_r, g_g, g_b] = &mut sample_grads;
+            let mut out_grads = SampleGrads::new(g_raw, [g_r, g_g, g_b]).unwrap();
+            compositor
+                .forward_backward(&samples, &mut out_grads, |out| {
+                    let error = [0, 1, 2].map(|c| out.rgb[c] - target[c]);
+                    squared_error += error.iter().map(|e| f64::from(e * e)).sum::<f64>();
+                    RayOutput {
+                        rgb: error.map(|e| 2.0 / (3.0 * rays.len() as f32) * e),
+                        ..RayOutput::default()
+                    }
+                })
+                .unwrap();
+            for (j, p) in inputs.iter().enumerate() {
+                let cot = sample_grads.each_ref().map(|c| c[j]);
+                blob_vjp(&theta, p, &cot, &mut grads);
+            }
+        }
+        let loss = (squared_error / (3.0 * rays.len() as f64)) as f32;
+        assert!(
+            (result.loss - loss).abs() <= 1e-5 * loss,
+            "{} vs {loss}",
+            result.loss
+        );
+        for (a, b) in result.param_grads.iter().zip(&grads) {
+            assert!((a - b).abs() <= 1e-4 * b.abs().max(1e-3), "{a} vs {b}");
         }
     }
 
