@@ -117,10 +117,11 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         mesh.write_obj(args.out)?;
     }
     if let Some(gif) = args.gif {
-        let frames = turntable(args.bounds)?
+        // Frame the mesh itself (the grid may be much larger), lit from above the camera's left shoulder.
+        let frames = turntable(mesh.bounds().unwrap_or(args.bounds))?
             .iter()
             .map(|camera| {
-                let light = Vec3::new(-0.5, 1.0, -0.8);
+                let light = camera.rotation() * Vec3::new(0.4, 0.6, -1.0);
                 render_mesh(
                     camera,
                     256,

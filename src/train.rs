@@ -188,7 +188,7 @@ pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
     }
 }
 
-fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
+pub(crate) fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
     let Some(v) = v else {
         return Ok(Schedule::Constant { lr });
     };

@@ -12,7 +12,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::ir::{Op, V};
 use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, Options};
-use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng};
+use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng, Schedule};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -27,6 +27,7 @@ const KEYS: &[&str] = &[
     "random",
     "bounds",
     "lr",
+    "schedule",
     "near_weight",
     "near_sharpness",
     "eikonal_weight",
@@ -47,7 +48,8 @@ pub struct SdfTrainPlan {
     batch: usize,
     random: usize,
     bound: f32,
-    lr: f32,
+    /// Adam's learning rate over the steps (pre-training included).
+    schedule: Schedule,
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
@@ -92,6 +94,8 @@ impl SdfTrainPlan {
             Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
             None => "sdf".to_string(),
         };
+        let lr = b.number("lr", 1e-12, 10.0, 1e-4)? as f32;
+        let schedule = crate::train::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
         let plan = SdfTrainPlan {
             data,
             key,
@@ -100,7 +104,7 @@ impl SdfTrainPlan {
             batch: b.whole("batch", 1, 1 << 20, 4096)? as usize,
             random: b.whole("random", 1, 1 << 20, 4096)? as usize,
             bound: b.number("bounds", 1e-3, 1e6, 4.0)? as f32,
-            lr: b.number("lr", 1e-12, 10.0, 1e-4)? as f32,
+            schedule,
             near_weight: b.number("near_weight", 0.0, 1e6, 0.1)? as f32,
             near_sharpness: b.number("near_sharpness", 0.0, 1e6, 100.0)? as f32,
             eikonal_weight: b.number("eikonal_weight", 0.0, 1e6, 0.02)? as f32,
@@ -179,7 +183,9 @@ impl SdfTrainPlan {
         let k = self.compile(program)?;
         let compile_s = t.elapsed().as_secs_f64();
         let (mut adam, first) =
-            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |_| self.lr)?;
+            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
+                self.schedule.lr(k)
+            })?;
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;
@@ -210,6 +216,7 @@ impl SdfTrainPlan {
                     self.checkpoint.as_deref(),
                 ));
             }
+            adam.lr = self.schedule.lr(step);
             adam.step(params, &grads)?;
             let done = step + 1;
             if done % 10 == 0 || done == total {

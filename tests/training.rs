@@ -97,7 +97,10 @@ fn early_termination_still_recovers_the_box_and_a_time_limit_stops_training() {
     let dir = scratch("early");
     make_views(&dir);
     std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
-    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--set", "train.early_termination=0.001"]);
+    let (ok, out, err) = run(
+        &dir,
+        &["run", "train.sdf", "--set", "train.early_termination=0.001"],
+    );
     assert!(ok, "{err}");
     assert!(out.contains("trained 500 steps"), "{out}");
     let (center, sides, _) = learned(&dir);
