@@ -516,6 +516,18 @@ mod tests {
             .collect()
     }
 
+    /// 96 samples in [1, 5] of a density on a colored background.
+    fn blob_settings(early_termination: Option<f32>) -> VolumeSettings {
+        VolumeSettings {
+            near: 1.0,
+            far: 5.0,
+            samples: 96,
+            mode: Mode::Density,
+            background: Some([0.3, 0.9, 0.1]),
+            early_termination,
+        }
+    }
+
     fn step(theta: &[f32], settings: &VolumeSettings, jitter: Option<&mut Rng>) -> StepResult {
         let theta2 = theta.to_vec();
         let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&theta2, p)));
@@ -580,14 +592,7 @@ mod tests {
                 blob_vjp(&theta, p, c, g)
             }
         });
-        let settings = VolumeSettings {
-            near: 1.0,
-            far: 5.0,
-            samples: 96,
-            mode: Mode::Density,
-            background: Some([0.3, 0.9, 0.1]),
-            early_termination: None,
-        };
+        let settings = blob_settings(None);
         let rays = rays();
         let targets = targets(rays.len());
         let exact = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
@@ -622,14 +627,7 @@ mod tests {
             back_propagated.fetch_add(1, Ordering::Relaxed);
             blob_vjp(&theta, p, c, g)
         });
-        let settings = VolumeSettings {
-            near: 1.0,
-            far: 5.0,
-            samples: 96,
-            mode: Mode::Density,
-            background: Some([0.3, 0.9, 0.1]),
-            early_termination: Some(1e-3),
-        };
+        let settings = blob_settings(Some(1e-3));
         let rays = rays();
         let targets = targets(rays.len());
         let result = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
