@@ -313,14 +313,13 @@ impl TrainPlan {
             None => None,
         };
         let importance = b.whole("importance", 0, 4096, 0)? as usize;
-        let grid = match b.take("skip_empty") {
+        let skip_empty = match b.take("skip_empty") {
             None => None,
-            Some(v) => Some(TrainingGrid {
-                grid: crate::volume::skip_empty(&v).map_err(|d| b.error(d))?,
-                every: b.whole("grid_every", 1, u64::from(u32::MAX), 500)? as u32,
-                warmup: b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32,
-            }),
+            Some(v) => crate::volume::skip_empty(&v).map_err(|d| b.error(d))?,
         };
+        let every = b.whole("grid_every", 1, u64::from(u32::MAX), 500)? as u32;
+        let warmup = b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32;
+        let grid = skip_empty.map(|grid| TrainingGrid { grid, every, warmup });
         let early_termination = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
         b.finish(KEYS)?;
         Ok(TrainPlan {

@@ -83,7 +83,7 @@ impl VolumePlan {
         let background = b.triple("background")?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
-            Some(v) => Some(skip_empty(&v).map_err(|d| b.error(d))?),
+            Some(v) => skip_empty(&v).map_err(|d| b.error(d))?,
         };
         let out = b.required_image_output("out", "out: \"volume.gif\"")?;
         let depth = b.image_output("depth")?;
@@ -197,8 +197,12 @@ fn write(
     write_images(path, images, frame_ms)
 }
 
-/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`.
-pub fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
+/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`, or `none`
+/// (exact: for `--set` to switch a script's grid off).
+pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
+    if matches!(&v.value, Value::Name(n) if n == "none") {
+        return Ok(None);
+    }
     let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
     let bounds = match a.raw("bounds") {
         None => {
@@ -223,9 +227,9 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<SkipEmpty, Diagnostic> {
             "the grid's resolution is a whole number from 1 to 256",
         ));
     }
-    Ok(SkipEmpty {
+    Ok(Some(SkipEmpty {
         bounds,
         resolution: resolution as usize,
         threshold: a.number("threshold", Some(1e-4))? as f32,
-    })
+    }))
 }

@@ -107,8 +107,17 @@ fn early_termination_still_recovers_the_box_and_a_time_limit_stops_training() {
     for (got, want) in center.iter().chain(&sides).zip([0.2, -0.1, 0.1, 1.2, 0.8, 1.0]) {
         assert!((got - want).abs() < 0.02, "learned {center:?} {sides:?}");
     }
-    // A limit far below one step's time: one step, then the checkpoint and summary as at the end.
-    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--set", "train.minutes=1e-9"]);
+    // A limit far below one step's time: one step, then the checkpoint and summary as at the end
+    // (`skip_empty: none` is the exact default, for switching a script's grid off).
+    let args = [
+        "run",
+        "train.sdf",
+        "--set",
+        "train.minutes=1e-9",
+        "--set",
+        "train.skip_empty=none",
+    ];
+    let (ok, out, err) = run(&dir, &args);
     assert!(ok, "{err}");
     assert!(out.contains("trained 1 steps"), "{out}");
     assert!(err.contains("stopped at step 1: the time limit"), "{err}");
