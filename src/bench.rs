@@ -390,10 +390,11 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
     Ok(())
 }
 
-/// Runs `steps` steps of the first `train` block of `script`; returns the summary line.
+/// Runs `steps` steps of the first `train` block of `script`, every sample evaluated; returns the summary
+/// line.
 fn volume_training(script: &str, steps: u32) -> Result<String> {
     let program = script::load(script)?;
-    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
+    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?.exact();
     let mut params = program.param_values.clone();
     plan.run_steps(&program, &mut params, steps)
 }

@@ -360,6 +360,16 @@ impl TrainPlan {
         }
     }
 
+    /// The same plan with every sample evaluated: no occupancy grid, no early termination (the
+    /// benchmark workloads' setting).
+    pub fn exact(self) -> TrainPlan {
+        TrainPlan {
+            grid: None,
+            early_termination: None,
+            ..self
+        }
+    }
+
     /// Runs only the first `steps` steps (no checkpoints, previews or summary file), for benchmarks;
     /// returns the ms per step of the training loop alone.
     pub fn run_steps(&self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
