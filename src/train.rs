@@ -529,10 +529,7 @@ impl TrainPlan {
             let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);
             let last = done == self.steps || out_of_time;
             if let (Some(v), Some(val)) = (&self.validation, &val_views) {
-                let time_mark = v
-                    .at_seconds
-                    .get(next_val_time)
-                    .is_some_and(|&t| train_seconds >= t);
+                let marks_before = next_val_time;
                 while v
                     .at_seconds
                     .get(next_val_time)
@@ -540,6 +537,7 @@ impl TrainPlan {
                 {
                     next_val_time += 1;
                 }
+                let time_mark = next_val_time > marks_before;
                 if done % v.every == 0 || time_mark || last {
                     let (p, s) = crate::views::means(&crate::views::score(val, &fields, params, &settings)?);
                     val_message = format!(" val {p:.2} dB");

@@ -225,16 +225,12 @@ fn run_pass(
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
     let backward = match (compositor.early_termination, evaluated) {
-        (None, None) => None,
-        (None, Some(index)) => Some(index),
         // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
-        (Some(_), index) => {
+        (Some(_), Some(index)) => {
             let nonzero = |&i: &usize| cotangents.iter().any(|c| c[i] != 0.0);
-            Some(match index {
-                Some(index) => index.into_iter().filter(nonzero).collect(),
-                None => (0..len).filter(nonzero).collect(),
-            })
+            Some(index.into_iter().filter(nonzero).collect())
         }
+        (_, index) => index,
     };
     match backward {
         None => vjp.vjp(len, inputs, &cotangents, grads),
