@@ -85,7 +85,7 @@ impl Compiler<'_> {
         // The fused sphere tracer takes elementwise SDFs; one with dense layers is traced through its
         // tiled kernel, a batch of ray positions per step.
         let marcher = match kind {
-            Kind::Sdf if !graph.has_dense() => Some(Marcher::compile(&graph)?),
+            Kind::Sdf if !graph.needs_tiles() => Some(Marcher::compile(&graph)?),
             _ => None,
         };
         Ok(JitFn {

@@ -10,7 +10,25 @@
 
 use std::collections::HashMap;
 
-use crate::ir::{Dense, Graph, Op, Outer, V};
+use crate::ir::{Dense, Graph, GridRead, Op, Outer, Scatter, V};
+
+/// The gradients of the params that multi-valued nodes read as blocks: dense layers' matrices (outer
+/// products) and grid encodings' tables (scatters). They add to the reductions of those params.
+#[derive(Clone, Debug, Default)]
+pub struct BlockGradients {
+    /// The matrices' gradients.
+    pub outer: Vec<Outer>,
+    /// The tables' gradients.
+    pub scatter: Vec<Scatter>,
+}
+
+impl BlockGradients {
+    /// Makes these the gradients `g` adds to its reductions.
+    pub fn install(self, g: &mut Graph) {
+        g.outer = self.outer;
+        g.scatter = self.scatter;
+    }
+}
 
 /// Appends to `g` the nodes computing, for each `w` in `wrt`, Σₖ cotₖ · ∂outₖ/∂w, where `seeds` pairs each
 /// output value `outₖ` with its cotangent value `cotₖ`. Values of `wrt` that no output depends on get 0.
@@ -19,18 +37,20 @@ pub fn vjp(g: &mut Graph, seeds: &[(V, V)], wrt: &[V]) -> Vec<V> {
     vjp_with_dense_params(g, seeds, wrt, false).0
 }
 
-/// As [`vjp`]; when `dense_params` is set, also returns the gradients of the matrices of the dense nodes,
-/// as outer products whose `target` is the matrix's first param index.
+/// As [`vjp`]; when `dense_params` is set, also returns the gradients of the matrices of the dense nodes
+/// and of the tables of the grid reads (see [`BlockGradients`]).
 ///
 /// A dense node y = W·x passes x̄ = Wᵀ·ȳ to its input (a transposed dense node) and adds ȳ ⊗ x to W's
 /// gradient; y = Wᵀ·x passes x̄ = W·ȳ and adds x ⊗ ȳ. Both are again dense nodes and outer products, so
-/// second-order kernels keep every product a matrix product.
+/// second-order kernels keep every product a matrix product. A grid read y = G(θ, p) passes
+/// p̄ₐ = ȳ · ∂G/∂pₐ to its point (a read differentiated along axis a) and scatters ȳ into θ; the derivative
+/// reads are again grid reads, so second order closes the same way.
 pub fn vjp_with_dense_params(
     g: &mut Graph,
     seeds: &[(V, V)],
     wrt: &[V],
     dense_params: bool,
-) -> (Vec<V>, Vec<Outer>) {
+) -> (Vec<V>, BlockGradients) {
     let n = g.len();
     let mut depends = vec![false; n];
     for w in wrt {
@@ -38,14 +58,14 @@ pub fn vjp_with_dense_params(
     }
     for i in 0..n {
         let op = g.ops()[i];
-        let from_params = dense_params && matches!(op, Op::Dense(_));
+        let from_params = dense_params && matches!(op, Op::Dense(_) | Op::Grid(_));
         if !depends[i] && (from_params || g.args(&op).iter().any(|a| depends[a.0 as usize])) {
             depends[i] = true;
         }
     }
     let mut adjoint: Vec<Option<V>> = vec![None; n];
     let mut dense_adjoint: HashMap<V, Vec<Option<V>>> = HashMap::new();
-    let mut outer = Vec::new();
+    let mut blocks = BlockGradients::default();
     for &(out, cot) in seeds {
         accumulate(g, &mut adjoint, &depends, out, cot);
     }
@@ -66,19 +86,33 @@ pub fn vjp_with_dense_params(
                     }
                 }
                 if dense_params {
-                    outer.push(matrix_gradient(d, x, ybar));
+                    blocks.outer.push(matrix_gradient(d, x, ybar));
+                }
+            }
+            Op::Grid(r) if depends[i] => {
+                let Some(ybar) = dense_adjoint.remove(&y) else {
+                    continue;
+                };
+                let zero = g.constant(0.0);
+                let ybar: Vec<V> = ybar.into_iter().map(|a| a.unwrap_or(zero)).collect();
+                grid_point_adjoints(g, &mut adjoint, &depends, r, &ybar);
+                if dense_params {
+                    blocks.scatter.push(Scatter {
+                        read: r,
+                        cotangent: ybar,
+                    });
                 }
             }
             Op::Pick(d, k) => {
                 let (Some(gy), true) = (adjoint[i], depends[i]) else {
                     continue;
                 };
-                let Op::Dense(dense) = g.op(d) else {
-                    unreachable!("pick of a non-dense node")
+                let n_out = match g.op(d) {
+                    Op::Dense(dense) => dense.n_out(),
+                    Op::Grid(r) => r.spec.n_outputs(),
+                    _ => unreachable!("pick of a single-valued node"),
                 };
-                let slots = dense_adjoint
-                    .entry(d)
-                    .or_insert_with(|| vec![None; dense.n_out()]);
+                let slots = dense_adjoint.entry(d).or_insert_with(|| vec![None; n_out]);
                 let slot = &mut slots[k as usize];
                 *slot = Some(match *slot {
                     Some(prev) => g.push(Op::Add(prev, gy)),
@@ -99,7 +133,21 @@ pub fn vjp_with_dense_params(
         .iter()
         .map(|w| adjoint[w.0 as usize].unwrap_or_else(|| g.constant(0.0)))
         .collect();
-    (values, outer)
+    (values, blocks)
+}
+
+/// Adds ȳ · ∂G/∂pₐ to the adjoint of each coordinate pₐ of a grid read's point. Along an axis the read is
+/// already differentiated the second derivative is 0 (trilinear interpolation is linear per axis).
+fn grid_point_adjoints(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool], r: GridRead, ybar: &[V]) {
+    for a in 0..3 {
+        let bit = 1u8 << a;
+        if r.deriv & bit != 0 || !depends[r.p[a].0 as usize] {
+            continue;
+        }
+        let d = g.grid(r.spec, r.p, r.deriv | bit);
+        let contrib = g.dot(ybar, &d);
+        accumulate(g, adjoint, depends, r.p[a], contrib);
+    }
 }
 
 /// The gradient of W for a dense node with input `x` and output adjoint `ybar`.
@@ -130,7 +178,9 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
     let one = g.constant(1.0);
     match g.op(y) {
         Const(_) | Input(_) | Param(_) | Sign(_) | Floor(_) | Lt(..) | Le(..) | Eq(..) => vec![],
-        Dense(_) | Pick(..) => unreachable!("dense nodes are differentiated in vjp_with_dense_params"),
+        Dense(_) | Grid(_) | Pick(..) => {
+            unreachable!("multi-valued nodes are differentiated in vjp_with_dense_params")
+        }
         Neg(a) => vec![(a, g.push(Neg(gy)))],
         Abs(a) => {
             let s = g.push(Sign(a));

@@ -42,6 +42,12 @@ const SIGNATURES: &[(&str, &str)] = &[
     ("harmonic", "harmonic(x: vec<k>, n) -> vec<k + 2kn>"),
     ("dense", "dense(w: mat<R, C>, b: vec<R>, x: vec<C>) -> vec<R>"),
     ("mlp", "mlp(net: mlp<I, W, D>, x: vec<I>) -> vec<W>"),
+    (
+        "hashgrid",
+        "hashgrid(g: hashgrid<3, ...>, p: vec3) -> vec<levels·features>",
+    ),
+    ("grid", "grid(v: grid<3, ...>, p: vec3) -> vec<features>"),
+    ("sh", "sh(d: vec3, degree: 1..4) -> vec<degree²>"),
     ("vec2", "vec2(x, y) or vec2(s) -> vec2"),
     ("vec3", "vec3(x, y, z) or vec3(s) -> vec3"),
     ("vec4", "vec4(x, y, z, w) or vec4(s) -> vec4"),
@@ -83,6 +89,9 @@ pub const NAMES: &[&str] = &[
     "harmonic",
     "dense",
     "mlp",
+    "hashgrid",
+    "grid",
+    "sh",
     "vec2",
     "vec3",
     "vec4",
@@ -316,6 +325,8 @@ pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Spa
         "harmonic" => harmonic(el, name, args),
         "dense" => dense(el, name, args),
         "mlp" => mlp(el, name, args),
+        "hashgrid" | "grid" => grid(el, name, args),
+        "sh" => spherical_harmonics(el, name, args),
         _ => unreachable!("unhandled builtin {nm}"),
     }
 }
@@ -352,6 +363,151 @@ fn harmonic(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResul
     let mut out = comps.clone();
     out.extend(scaled.iter().map(|&s| g.push(Op::Sin(s))));
     out.extend(scaled.iter().map(|&s| g.push(Op::Cos(s))));
+    Ok(Val::Vector(out))
+}
+
+/// `hashgrid(g, p)` / `grid(v, p)`: the trilinear read of every level of a grid encoding at p (see
+/// [`crate::grid`]), levels × features values, level-major.
+fn grid(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResult<Val> {
+    if args.len() != 2 {
+        return Err(arity_error(name, "2", args.len()));
+    }
+    let hashed = name.name == "hashgrid";
+    let shape = match &args[0].0 {
+        Val::Grid { offset, shape } if shape.hashed == hashed => shape.spec(*offset),
+        other => {
+            let (kind, example) = if hashed {
+                (
+                    "hashgrid",
+                    "'param g: hashgrid<3, levels: 16, features: 2> = uniform(-1e-4, 1e-4)'",
+                )
+            } else {
+                ("grid", "'param v: grid<3, res: 128, features: 4> = 0'")
+            };
+            let found = other.ty();
+            let mut d = Diagnostic::new(
+                args[0].1,
+                format!("'{kind}' needs a {kind} param first, found {found}"),
+            );
+            d = match found {
+                crate::types::Type::Grid(_) => {
+                    d.with_hint(format!("read a {found} with {}", found_reader(hashed)))
+                }
+                _ => d.with_hint(format!("declare one with {example}")),
+            };
+            return Err(d);
+        }
+    };
+    let p = el.vector(&args[1].0, args[1].1)?;
+    let [x, y, z] = p[..] else {
+        return Err(Diagnostic::new(
+            args[1].1,
+            format!("'{}' reads a vec3, found {}", name.name, args[1].0.ty()),
+        ));
+    };
+    Ok(Val::Vector(el.g.grid(shape, [x, y, z], 0)))
+}
+
+/// The builtin that reads the other kind of grid.
+fn found_reader(hashed: bool) -> &'static str {
+    if hashed {
+        "grid(v, p)"
+    } else {
+        "hashgrid(g, p)"
+    }
+}
+
+/// `sh(d, degree)`: the real spherical harmonics of direction d in bands 0..degree (degree² values, the
+/// basis and signs of instant-ngp's direction encoding), as polynomials of d's components.
+fn spherical_harmonics(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>) -> EResult<Val> {
+    if args.len() != 2 {
+        return Err(arity_error(name, "2", args.len()));
+    }
+    let d = el.vector(&args[0].0, args[0].1)?;
+    let [x, y, z] = d[..] else {
+        return Err(Diagnostic::new(
+            args[0].1,
+            format!("'sh' reads a direction vec3, found {}", args[0].0.ty()),
+        ));
+    };
+    let degree = match &args[1].0 {
+        Val::Scalar(v) => el.g.const_value(*v),
+        _ => None,
+    };
+    let degree = match degree {
+        Some(k) if k.fract() == 0.0 && (1.0..=4.0).contains(&k) => k as usize,
+        _ => {
+            return Err(
+                Diagnostic::new(args[1].1, "the degree must be a constant from 1 to 4")
+                    .with_hint("sh(d, 4) gives 16 values"),
+            )
+        }
+    };
+    let g = &mut *el.g;
+    // Σ cᵢ·(monomial) terms: each basis function is a list of (coefficient, powers of x, y, z).
+    type Term = (f64, [u32; 3]);
+    const BASIS: [&[Term]; 16] = [
+        &[(0.282_094_791_773_878_14, [0, 0, 0])],
+        &[(-0.488_602_511_902_919_87, [0, 1, 0])],
+        &[(0.488_602_511_902_919_87, [0, 0, 1])],
+        &[(-0.488_602_511_902_919_87, [1, 0, 0])],
+        &[(1.092_548_430_592_079_2, [1, 1, 0])],
+        &[(-1.092_548_430_592_079_2, [0, 1, 1])],
+        &[
+            (0.946_174_695_757_559_97, [0, 0, 2]),
+            (-0.315_391_565_252_519_99, [0, 0, 0]),
+        ],
+        &[(-1.092_548_430_592_079_2, [1, 0, 1])],
+        &[
+            (0.546_274_215_296_039_59, [2, 0, 0]),
+            (-0.546_274_215_296_039_59, [0, 2, 0]),
+        ],
+        &[
+            (-1.770_130_769_779_930_6, [2, 1, 0]),
+            (0.590_043_589_926_643_52, [0, 3, 0]),
+        ],
+        &[(2.890_611_442_640_553_8, [1, 1, 1])],
+        &[
+            (0.457_045_799_464_465_72, [0, 1, 0]),
+            (-2.285_228_997_322_328_6, [0, 1, 2]),
+        ],
+        &[
+            (1.865_881_662_950_577, [0, 0, 3]),
+            (-1.119_528_997_770_346_2, [0, 0, 1]),
+        ],
+        &[
+            (0.457_045_799_464_465_72, [1, 0, 0]),
+            (-2.285_228_997_322_328_6, [1, 0, 2]),
+        ],
+        &[
+            (1.445_305_721_320_276_9, [2, 0, 1]),
+            (-1.445_305_721_320_276_9, [0, 2, 1]),
+        ],
+        &[
+            (-0.590_043_589_926_643_52, [3, 0, 0]),
+            (1.770_130_769_779_930_6, [1, 2, 0]),
+        ],
+    ];
+    let power = |g: &mut Graph, v: V, k: u32| -> V {
+        let mut acc = g.constant(1.0);
+        for _ in 0..k {
+            acc = g.push(Op::Mul(acc, v));
+        }
+        acc
+    };
+    let mut out = Vec::with_capacity(degree * degree);
+    for terms in &BASIS[..degree * degree] {
+        let mut sum = g.constant(0.0);
+        for &(c, [a, b, e]) in terms.iter() {
+            let (px, py, pz) = (power(g, x, a), power(g, y, b), power(g, z, e));
+            let xy = g.push(Op::Mul(px, py));
+            let monomial = g.push(Op::Mul(xy, pz));
+            let c = g.constant(c);
+            let term = g.push(Op::Mul(c, monomial));
+            sum = g.push(Op::Add(sum, term));
+        }
+        out.push(sum);
+    }
     Ok(Val::Vector(out))
 }
 

@@ -70,7 +70,7 @@ impl<'a, 'g> Elaborator<'a, 'g> {
         let mut next_input = 0u32;
         let mut scope = HashMap::new();
         for p in &f.params {
-            if let Type::Mat(..) | Type::Mlp(_) = p.ty.ty {
+            if let Type::Mat(..) | Type::Mlp(_) | Type::Grid(_) = p.ty.ty {
                 return Err(Diagnostic::new(
                     p.ty.span,
                     format!(
@@ -268,6 +268,10 @@ impl<'a, 'g> Elaborator<'a, 'g> {
             return Ok(match p.ty {
                 Type::Mat(rows, cols) => Val::Matrix { offset, rows, cols },
                 Type::Mlp(ref shape) => Val::Mlp {
+                    offset,
+                    shape: shape.clone(),
+                },
+                Type::Grid(ref shape) => Val::Grid {
                     offset,
                     shape: shape.clone(),
                 },

@@ -3,7 +3,8 @@
 
 use std::collections::HashMap;
 
-use crate::ir::{Dense, Graph, Op};
+use crate::grid::{corner_vertex, corner_weight};
+use crate::ir::{Dense, Graph, GridRead, Op};
 
 /// What one evaluation produced.
 #[derive(Clone, Debug, PartialEq)]
@@ -20,7 +21,7 @@ pub fn apply(op: Op, a: &[f64]) -> f64 {
     let bool01 = |b: bool| if b { 1.0 } else { 0.0 };
     match op {
         Const(bits) => f64::from_bits(bits),
-        Input(_) | Param(_) | Dense(_) | Pick(..) => f64::NAN,
+        Input(_) | Param(_) | Dense(_) | Grid(_) | Pick(..) => f64::NAN,
         Neg(_) => -a[0],
         Abs(_) => a[0].abs(),
         Sign(_) => {
@@ -91,7 +92,34 @@ fn dense(d: &Dense, x: &[f64], params: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// Evaluates `g` at one point. The outer products of `g` add to the reductions they target.
+/// Calls `visit(table param, weight, output)` for every table float that a grid read at `p` combines, with
+/// its trilinear weight (differentiated as the read asks) and the output it adds to.
+fn grid_terms(r: &GridRead, p: [f64; 3], mut visit: impl FnMut(usize, f64, usize)) {
+    let spec = r.spec;
+    let features = spec.features as usize;
+    for (l, level) in spec.layout().iter().enumerate() {
+        let cell = spec.cell(l as u32, p);
+        for k in 0..8 {
+            let w = corner_weight(&cell, k, r.deriv);
+            let entry = level.entry(corner_vertex(&cell, k));
+            for f in 0..features {
+                let param = spec.table as usize + entry as usize * features + f;
+                visit(param, w, l * features + f);
+            }
+        }
+    }
+}
+
+/// The outputs of a grid read (NaN for params out of range).
+fn grid_read(r: &GridRead, p: [f64; 3], params: &[f64]) -> Vec<f64> {
+    let mut out = vec![0.0; r.spec.n_outputs()];
+    grid_terms(r, p, |param, w, o| {
+        out[o] += w * params.get(param).copied().unwrap_or(f64::NAN)
+    });
+    out
+}
+
+/// Evaluates `g` at one point. The outer products and scatters of `g` add to the reductions they target.
 pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
     let mut vals = vec![0.0; g.len()];
     let mut args = Vec::with_capacity(3);
@@ -103,6 +131,11 @@ pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
             Op::Dense(d) => {
                 let x: Vec<f64> = g.list(d.x).iter().map(|a| vals[a.0 as usize]).collect();
                 products.insert(i, dense(&d, &x, params));
+                0.0
+            }
+            Op::Grid(r) => {
+                let p = r.p.map(|a| vals[a.0 as usize]);
+                products.insert(i, grid_read(&r, p, params));
                 0.0
             }
             Op::Pick(d, k) => products[&(d.0 as usize)][k as usize],
@@ -123,6 +156,14 @@ pub fn eval_point(g: &Graph, inputs: &[f64], params: &[f64]) -> Eval {
                 }
             }
         }
+    }
+    for sc in &g.scatter {
+        let p = sc.read.p.map(|a| vals[a.0 as usize]);
+        grid_terms(&sc.read, p, |param, w, o| {
+            if let Some(slot) = reductions.get_mut(param) {
+                *slot += w * vals[sc.cotangent[o].0 as usize];
+            }
+        });
     }
     Eval {
         outputs: g.outputs.iter().map(|v| vals[v.0 as usize]).collect(),

@@ -81,6 +81,47 @@ pub struct Outer {
     pub right: Vec<V>,
 }
 
+/// A grid encoding's table and layout (see [`crate::grid`]): a `grid` or `hashgrid` param.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct GridSpec {
+    /// The first param of the table.
+    pub table: u32,
+    /// Levels of resolution.
+    pub levels: u32,
+    /// Floats per entry.
+    pub features: u32,
+    /// Entries per hashed level: 2^log2_size.
+    pub log2_size: u32,
+    /// Cells per axis of the coarsest level.
+    pub base: u32,
+    /// Cells per axis of the finest level.
+    pub finest: u32,
+    /// The half extent of the cubic bounds (f32 bits, so that the spec can be hashed).
+    pub extent: u32,
+}
+
+/// A read of a grid encoding at a point (multi-valued: levels × features outputs, read through
+/// [`Op::Pick`]), or of its derivative along the axes of `deriv` (bit a: ∂/∂p_a).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct GridRead {
+    /// The grid.
+    pub spec: GridSpec,
+    /// The point.
+    pub p: [V; 3],
+    /// The axes the read is differentiated along.
+    pub deriv: u8,
+}
+
+/// The param gradient of a grid read: `reductions[entry·features + f] += w(corner)·cotangent[l·features + f]`
+/// for the 8 corners of every level (only the table entries the points touch).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Scatter {
+    /// The read whose table gets the gradient.
+    pub read: GridRead,
+    /// One cotangent per output of the read.
+    pub cotangent: Vec<V>,
+}
+
 /// One scalar operation. Comparisons give 1.0 or 0.0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Op {
@@ -139,7 +180,9 @@ pub enum Op {
     /// A matrix–vector product (multi-valued; see [`Dense`]). Its list operand is read with
     /// [`Graph::args`]; [`Op::args`] does not see it.
     Dense(Dense),
-    /// Output `k` of the [`Op::Dense`] node `d`.
+    /// A read of a grid encoding (multi-valued; see [`GridRead`]).
+    Grid(GridRead),
+    /// Output `k` of the multi-valued node `d` ([`Op::Dense`] or [`Op::Grid`]).
     Pick(V, u32),
 }
 
@@ -150,6 +193,7 @@ impl Op {
         match *self {
             Const(_) | Input(_) | Param(_) | Dense(_) => vec![],
             Pick(d, _) => vec![d],
+            Grid(r) => r.p.to_vec(),
             Neg(a) | Abs(a) | Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Sin(a) | Cos(a) | Tan(a)
             | Tanh(a) | Sigmoid(a) | Softplus(a) => vec![a],
             Add(a, b)
@@ -172,6 +216,7 @@ impl Op {
         match *self {
             Const(_) | Input(_) | Param(_) | Dense(_) => *self,
             Pick(d, k) => Pick(f(d), k),
+            Grid(r) => Grid(GridRead { p: r.p.map(f), ..r }),
             Neg(a) => Neg(f(a)),
             Abs(a) => Abs(f(a)),
             Sign(a) => Sign(f(a)),
@@ -230,6 +275,8 @@ impl Op {
             Select(..) => "select",
             Dense(d) if d.transposed => "dense_t",
             Dense(_) => "dense",
+            Grid(r) if r.deriv != 0 => "grid_d",
+            Grid(_) => "grid",
             Pick(..) => "pick",
         }
     }
@@ -248,6 +295,8 @@ pub struct Graph {
     pub reductions: Vec<V>,
     /// Outer-product sums added to the reductions (the gradients of dense layers' matrices).
     pub outer: Vec<Outer>,
+    /// Scatters added to the reductions (the gradients of grid encodings' tables).
+    pub scatter: Vec<Scatter>,
     /// The number of per-point inputs a kernel of this graph takes (at least 1 + the largest input index).
     pub n_inputs: u32,
 }
@@ -296,9 +345,18 @@ impl Graph {
         }
     }
 
-    /// Whether the graph has dense nodes (and needs the tiled executor).
-    pub fn has_dense(&self) -> bool {
-        self.ops.iter().any(|op| matches!(op, Op::Dense(_)))
+    /// Whether the graph has multi-valued nodes (dense products or grid reads) or scatters: it runs
+    /// over tiles of points, not as one elementwise kernel.
+    pub fn needs_tiles(&self) -> bool {
+        !self.scatter.is_empty() || self.ops.iter().any(|op| matches!(op, Op::Dense(_) | Op::Grid(_)))
+    }
+
+    /// The outputs of a grid read at `p` (differentiated along the axes of `deriv`).
+    pub fn grid(&mut self, spec: GridSpec, p: [V; 3], deriv: u8) -> Vec<V> {
+        let node = self.insert(Op::Grid(GridRead { spec, p, deriv }));
+        (0..spec.n_outputs() as u32)
+            .map(|k| self.insert(Op::Pick(node, k)))
+            .collect()
     }
 
     fn intern_list(&mut self, xs: &[V]) -> ListId {
@@ -442,6 +500,8 @@ impl Graph {
                     let list = out.intern_list(&xs);
                     out.insert(Op::Dense(Dense { x: list, ..d }))
                 }
+                // A read at a constant point is not folded: it reads the params.
+                Op::Grid(_) => out.insert(op.map_args(|a| map[a.0 as usize])),
                 _ => out.push(op.map_args(|a| map[a.0 as usize])),
             };
         }
@@ -457,6 +517,17 @@ impl Graph {
                 right: remap(&o.right),
             })
             .collect();
+        out.scatter = self
+            .scatter
+            .iter()
+            .map(|sc| Scatter {
+                read: GridRead {
+                    p: sc.read.p.map(|v| map[v.0 as usize]),
+                    ..sc.read
+                },
+                cotangent: remap(&sc.cotangent),
+            })
+            .collect();
         out.n_inputs = self.n_inputs;
         out
     }
@@ -465,7 +536,17 @@ impl Graph {
     pub fn live(&self) -> Vec<bool> {
         let mut live = vec![false; self.ops.len()];
         let outer = self.outer.iter().flat_map(|o| o.left.iter().chain(&o.right));
-        for v in self.outputs.iter().chain(&self.reductions).chain(outer) {
+        let scatter = self
+            .scatter
+            .iter()
+            .flat_map(|s| s.read.p.iter().chain(&s.cotangent));
+        for v in self
+            .outputs
+            .iter()
+            .chain(&self.reductions)
+            .chain(outer)
+            .chain(scatter)
+        {
             live[v.0 as usize] = true;
         }
         for i in (0..self.ops.len()).rev() {
@@ -511,6 +592,14 @@ impl fmt::Display for Graph {
                     let args: Vec<String> = self.list(d.x).iter().map(|a| format!("v{}", a.0)).collect();
                     write!(f, " p{}:{}x{} [{}]", d.w, d.rows, d.cols, args.join(", "))?;
                 }
+                Op::Grid(r) => {
+                    let [x, y, z] = r.p.map(|v| v.0);
+                    write!(
+                        f,
+                        " p{}:{}x{} d{} v{x}, v{y}, v{z}",
+                        r.spec.table, r.spec.levels, r.spec.features, r.deriv
+                    )?;
+                }
                 _ => {
                     let args: Vec<String> = op.args().iter().map(|a| format!("v{}", a.0)).collect();
                     write!(f, " {}", args.join(", "))?;
@@ -539,6 +628,17 @@ impl fmt::Display for Graph {
                 o.right.len(),
                 names(&o.left),
                 names(&o.right)
+            )?;
+        }
+        for sc in &self.scatter {
+            let names: Vec<String> = sc.cotangent.iter().map(|v| format!("v{}", v.0)).collect();
+            let [x, y, z] = sc.read.p.map(|v| v.0);
+            writeln!(
+                f,
+                "reduce p{}.. += scatter d{} at v{x}, v{y}, v{z} [{}]",
+                sc.read.spec.table,
+                sc.read.deriv,
+                names.join(", ")
             )?;
         }
         Ok(())

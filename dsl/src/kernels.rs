@@ -15,18 +15,45 @@
 //!   loss on the host and a backward pass (the eikonal and surface losses of neural SDFs).
 //!
 //! In the kinds with param gradients, the gradients of dense layers' matrices are the graph's outer
-//! products ([`crate::ir::Outer`]), added to the reductions of the same params.
+//! products ([`crate::ir::Outer`]) and those of grid encodings' tables its scatters
+//! ([`crate::ir::Scatter`]), added to the reductions of the same params.
 
 use crate::autodiff;
-use crate::ir::{Graph, V};
+use crate::ir::{Graph, Op, V};
 use crate::program::Lowered;
 
 fn inputs(g: &mut Graph, count: u32) -> Vec<V> {
     (0..count).map(|i| g.input(i)).collect()
 }
 
-fn params(g: &mut Graph, n_params: usize) -> Vec<V> {
-    (0..n_params as u32).map(|i| g.param(i)).collect()
+/// The params the graph reads as scalars (matrices and tables are read as blocks and get their
+/// gradients from outer products and scatters), so that a table of millions of floats adds no node.
+fn scalar_params(g: &Graph, n_params: usize) -> Vec<u32> {
+    let mut read = vec![false; n_params];
+    for op in g.ops() {
+        if let Op::Param(k) = op {
+            if let Some(r) = read.get_mut(*k as usize) {
+                *r = true;
+            }
+        }
+    }
+    (0..n_params as u32).filter(|&k| read[k as usize]).collect()
+}
+
+/// Appends the gradient of Σ cot·out over `seeds` with respect to `xs` (returned first) and to every
+/// param (returned second: one value per param, the reductions), and installs the block gradients.
+fn gradients(g: &mut Graph, seeds: &[(V, V)], xs: &[V], n_params: usize) -> (Vec<V>, Vec<V>) {
+    let read = scalar_params(g, n_params);
+    let mut wrt = xs.to_vec();
+    wrt.extend(read.iter().map(|&k| g.param(k)));
+    let (grads, blocks) = autodiff::vjp_with_dense_params(g, seeds, &wrt, true);
+    blocks.install(g);
+    let zero = g.constant(0.0);
+    let mut reductions = vec![zero; n_params];
+    for (&k, &v) in read.iter().zip(&grads[xs.len()..]) {
+        reductions[k as usize] = v;
+    }
+    (grads[..xs.len()].to_vec(), reductions)
 }
 
 /// The function's values.
@@ -59,12 +86,9 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
         .enumerate()
         .map(|(k, &o)| (o, g.input(n_in + k as u32)))
         .collect();
-    let mut wrt = xs.clone();
-    wrt.extend(params(&mut g, n_params));
-    let (grads, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &wrt, true);
-    g.outputs.extend(&grads[..xs.len()]);
-    g.reductions = grads[xs.len()..].to_vec();
-    g.outer = outer;
+    let (input_grads, reductions) = gradients(&mut g, &seeds, &xs, n_params);
+    g.outputs.extend(input_grads);
+    g.reductions = reductions;
     g.compact()
 }
 
@@ -100,10 +124,7 @@ pub fn loss_gradient(
     let one = g.constant(1.0);
     let terms = terms(&mut g, out, &grad_x);
     let seeds: Vec<(V, V)> = terms.iter().map(|&t| (t, one)).collect();
-    let ps = params(&mut g, n_params);
-    let (reductions, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &ps, true);
-    g.reductions = reductions;
-    g.outer = outer;
+    g.reductions = gradients(&mut g, &seeds, &[], n_params).1;
     g.outputs = terms;
     g.compact()
 }
@@ -121,10 +142,7 @@ pub fn second_order(f: &Lowered, n_params: usize) -> Graph {
     for (k, &gk) in grad_x.iter().enumerate() {
         seeds.push((gk, g.input(n_in + 1 + k as u32)));
     }
-    let ps = params(&mut g, n_params);
-    let (reductions, outer) = autodiff::vjp_with_dense_params(&mut g, &seeds, &ps, true);
-    g.reductions = reductions;
-    g.outer = outer;
+    g.reductions = gradients(&mut g, &seeds, &[], n_params).1;
     g.outputs = std::iter::once(out).chain(grad_x).collect();
     g.compact()
 }

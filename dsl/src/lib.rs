@@ -19,6 +19,7 @@ pub mod builtins;
 pub mod config;
 pub mod diag;
 pub mod elaborate;
+pub mod grid;
 pub mod init;
 pub mod interp;
 pub mod ir;

@@ -12,6 +12,8 @@ pub const MAX_DEPTH: usize = 200;
 pub const MAX_SOURCE_BYTES: usize = 4 << 20;
 /// Largest vector or matrix dimension a type may name.
 pub const MAX_DIM: usize = 1 << 16;
+/// Most floats a grid encoding's table may hold (2^28 floats: 1 GiB).
+pub const MAX_GRID_PARAMS: u64 = 1 << 28;
 
 /// Parses a whole script whose spans start at byte offset `base` (see [`crate::diag::SourceMap`]).
 pub fn parse(source: &str, base: usize) -> Result<Script, Diagnostic> {
@@ -270,6 +272,130 @@ impl Parser {
         Ok(Type::Mlp(shape))
     }
 
+    /// `<3, key: value, ...>` after `hashgrid` (`hashed`) or `grid`: the settings of a grid encoding, each
+    /// checked against its range, and the table's size against [`MAX_GRID_PARAMS`].
+    fn grid_shape(&mut self, hashed: bool) -> PResult<Type> {
+        let start = self.span();
+        let kind = if hashed { "hashgrid" } else { "grid" };
+        let example = if hashed {
+            "write hashgrid<3, levels: 16, features: 2, log2_size: 19, base: 16, finest: 2048, bounds: 1.5>"
+        } else {
+            "write grid<3, res: 128, features: 4, bounds: 1.5>"
+        };
+        self.expect("<")?;
+        let at = self.span();
+        if self.dim()? != 3 {
+            return Err(Diagnostic::new(at, format!("a {kind} is 3-dimensional")).with_hint(example));
+        }
+        let keys: &[(&str, f64, f64)] = if hashed {
+            &[
+                ("levels", 1.0, 32.0),
+                ("features", 1.0, 64.0),
+                ("log2_size", 4.0, 26.0),
+                ("base", 1.0, 65536.0),
+                ("finest", 1.0, 1048576.0),
+                ("bounds", 0.0, 1e6),
+            ]
+        } else {
+            &[
+                ("res", 2.0, 4096.0),
+                ("features", 1.0, 64.0),
+                ("bounds", 0.0, 1e6),
+            ]
+        };
+        let mut values: Vec<Option<f64>> = vec![None; keys.len()];
+        while self.eat(",") {
+            let key = self.ident("a setting")?;
+            let Some(k) = keys.iter().position(|(name, ..)| *name == key.name) else {
+                let names = keys.iter().map(|(n, ..)| *n);
+                let mut d = Diagnostic::new(key.span, format!("unknown {kind} setting '{}'", key.name));
+                d = match crate::diag::closest(&key.name, names.clone()) {
+                    Some(c) => d.with_hint(format!("did you mean '{c}'?")),
+                    None => d.with_hint(format!(
+                        "{kind} settings are: {}",
+                        names.collect::<Vec<_>>().join(", ")
+                    )),
+                };
+                return Err(d);
+            };
+            self.expect(":")?;
+            let span = self.span();
+            let (name, lo, hi) = keys[k];
+            let value = match self.bump().tok {
+                Tok::Number(n) if name == "bounds" && n > lo && n <= hi => n,
+                Tok::Number(n) if n.fract() == 0.0 && (lo..=hi).contains(&n) => n,
+                _ if name == "bounds" => {
+                    return Err(Diagnostic::new(
+                        span,
+                        "bounds is the half extent of the grid's cube, a number > 0",
+                    )
+                    .with_hint("bounds: 1.5 covers [-1.5, 1.5]³"))
+                }
+                _ => {
+                    return Err(Diagnostic::new(
+                        span,
+                        format!("{kind} setting '{name}' is a whole number from {lo} to {hi}"),
+                    )
+                    .with_hint(example))
+                }
+            };
+            values[k] = Some(value);
+        }
+        self.expect(">")?;
+        let span = start.to(self.prev_span());
+        let get = |name: &str, default: f64| {
+            let k = keys.iter().position(|(n, ..)| *n == name).expect("a known key");
+            values[k].unwrap_or(default)
+        };
+        let extent = (get("bounds", 1.5) as f32).to_bits();
+        let shape = if hashed {
+            let (base, finest) = (get("base", 16.0) as u32, get("finest", 2048.0) as u32);
+            if finest < base {
+                return Err(
+                    Diagnostic::new(span, format!("finest ({finest}) is below base ({base})"))
+                        .with_hint("the levels grow from base to finest cells per axis"),
+                );
+            }
+            crate::types::GridShape {
+                hashed,
+                levels: get("levels", 16.0) as u32,
+                features: get("features", 2.0) as u32,
+                log2_size: get("log2_size", 19.0) as u32,
+                base,
+                finest,
+                extent,
+            }
+        } else {
+            let Some(res) = values[0] else {
+                return Err(Diagnostic::new(span, "a grid needs its resolution").with_hint(example));
+            };
+            let cells = res as u32 - 1;
+            let vertices = u64::from(cells + 1).pow(3);
+            crate::types::GridShape {
+                hashed,
+                levels: 1,
+                features: get("features", 1.0) as u32,
+                // A table as large as the vertices: never hashed.
+                log2_size: 64 - (vertices - 1).leading_zeros(),
+                base: cells,
+                finest: cells,
+                extent,
+            }
+        };
+        let floats = shape.spec(0).n_params();
+        if floats > MAX_GRID_PARAMS {
+            return Err(Diagnostic::new(
+                span,
+                format!(
+                    "this {kind} needs {floats} floats ({:.1} GiB); the limit is {MAX_GRID_PARAMS} floats (1 GiB)",
+                    floats as f64 * 4.0 / f64::from(1u32 << 30)
+                ),
+            )
+            .with_hint("use fewer levels or features, or a smaller log2_size or res"));
+        }
+        Ok(Type::Grid(shape))
+    }
+
     fn type_expr(&mut self) -> PResult<TypeExpr> {
         let start = self.span();
         if self.eat("(") {
@@ -307,15 +433,21 @@ impl Parser {
                 Type::Mat(r, c)
             }
             "mlp" => self.mlp_shape()?,
+            "hashgrid" => self.grid_shape(true)?,
+            "grid" => self.grid_shape(false)?,
             other => {
                 let mut d = Diagnostic::new(name.span, format!("unknown type '{other}'"));
-                let names = ["f32", "vec2", "vec3", "vec4", "vec", "mat", "mlp"];
+                let names = [
+                    "f32", "vec2", "vec3", "vec4", "vec", "mat", "mlp", "hashgrid", "grid",
+                ];
                 if matches!(other, "float" | "double" | "f64" | "real" | "scalar") {
                     d = d.with_hint("did you mean 'f32'?");
                 } else if let Some(c) = crate::diag::closest(other, names) {
                     d = d.with_hint(format!("did you mean '{c}'?"));
                 } else {
-                    d = d.with_hint("types are f32, vec2, vec3, vec4, vec<N>, mat<R, C> and mlp<I, W, D>");
+                    d = d.with_hint(
+                        "types are f32, vec2, vec3, vec4, vec<N>, mat<R, C>, mlp<I, W, D>, hashgrid<3, ...> and grid<3, ...>",
+                    );
                 }
                 return Err(d);
             }

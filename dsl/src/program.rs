@@ -259,7 +259,7 @@ impl Program {
         let values = self.constant(&decl.init)?;
         match values.len() {
             1 => Ok(vec![values[0] as f32; count]),
-            n if n == count && !matches!(ty, Type::Mat(..) | Type::Mlp(_)) => {
+            n if n == count && !matches!(ty, Type::Mat(..) | Type::Mlp(_) | Type::Grid(_)) => {
                 Ok(values.iter().map(|&x| x as f32).collect())
             }
             n => Err(Diagnostic::new(
@@ -448,7 +448,7 @@ impl Elaborator<'_, '_> {
     pub fn check_fn(&mut self, f: &FnDef) -> Result<Val, Diagnostic> {
         if f.params
             .iter()
-            .any(|p| matches!(p.ty.ty, Type::Mat(..) | Type::Mlp(_)))
+            .any(|p| matches!(p.ty.ty, Type::Mat(..) | Type::Mlp(_) | Type::Grid(_)))
         {
             // Functions taking a matrix are checked where they are called with a real matrix param.
             return Ok(Val::Tuple(vec![]));

@@ -13,8 +13,46 @@ pub enum Type {
     Mat(usize, usize),
     /// The weights and biases of a ReLU network (params only), used by `mlp`.
     Mlp(MlpShape),
+    /// The table of a grid encoding (params only), read by `hashgrid` or `grid`.
+    Grid(GridShape),
     /// Several results of a function.
     Tuple(Vec<Type>),
+}
+
+/// The shape of a `hashgrid<3, levels: L, features: F, log2_size: T, base: N0, finest: N1, bounds: B>` or
+/// `grid<3, res: R, features: F, bounds: B>` param (a dense grid is one level of R − 1 cells per axis, never
+/// hashed). See [`crate::grid`] for the layout.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct GridShape {
+    /// Whether the param was declared as a `hashgrid` (else a dense `grid`).
+    pub hashed: bool,
+    /// Levels of resolution.
+    pub levels: u32,
+    /// Floats per entry.
+    pub features: u32,
+    /// Entries per hashed level: 2^log2_size.
+    pub log2_size: u32,
+    /// Cells per axis of the coarsest level.
+    pub base: u32,
+    /// Cells per axis of the finest level.
+    pub finest: u32,
+    /// The half extent of the cubic bounds, as f32 bits.
+    pub extent: u32,
+}
+
+impl GridShape {
+    /// The IR's description of this grid with its table at param `table`.
+    pub fn spec(&self, table: u32) -> crate::ir::GridSpec {
+        crate::ir::GridSpec {
+            table,
+            levels: self.levels,
+            features: self.features,
+            log2_size: self.log2_size,
+            base: self.base,
+            finest: self.finest,
+            extent: self.extent,
+        }
+    }
 }
 
 /// The shape of an `mlp<input, width, depth, skip: k>` param: `depth` layers of `width` outputs; layer 0
@@ -54,6 +92,7 @@ impl Type {
             Type::Vec(n) => *n,
             Type::Mat(r, c) => r * c,
             Type::Mlp(shape) => shape.layers().iter().map(|(r, c)| r * c + r).sum(),
+            Type::Grid(shape) => shape.spec(0).n_params() as usize,
             Type::Tuple(ts) => ts.iter().map(Type::scalars).sum(),
         }
     }
@@ -85,6 +124,23 @@ impl fmt::Display for Type {
                 Some(k) => write!(f, "mlp<{}, {}, {}, skip: {k}>", s.input, s.width, s.depth),
                 None => write!(f, "mlp<{}, {}, {}>", s.input, s.width, s.depth),
             },
+            Type::Grid(g) => {
+                let extent = f32::from_bits(g.extent);
+                if g.hashed {
+                    write!(
+                        f,
+                        "hashgrid<3, levels: {}, features: {}, log2_size: {}, base: {}, finest: {}, bounds: {extent}>",
+                        g.levels, g.features, g.log2_size, g.base, g.finest
+                    )
+                } else {
+                    write!(
+                        f,
+                        "grid<3, res: {}, features: {}, bounds: {extent}>",
+                        g.base + 1,
+                        g.features
+                    )
+                }
+            }
             Type::Tuple(ts) => {
                 write!(f, "(")?;
                 for (i, t) in ts.iter().enumerate() {

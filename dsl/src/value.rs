@@ -26,6 +26,13 @@ pub enum Val {
         /// The layers.
         shape: crate::types::MlpShape,
     },
+    /// A grid encoding's table (starting at param index `offset`).
+    Grid {
+        /// Index of the first element in the param vector.
+        offset: u32,
+        /// The grid's layout.
+        shape: crate::types::GridShape,
+    },
     /// Several values.
     Tuple(Vec<Val>),
 }
@@ -38,6 +45,7 @@ impl Val {
             Val::Vector(v) => Type::Vec(v.len()),
             Val::Matrix { rows, cols, .. } => Type::Mat(*rows, *cols),
             Val::Mlp { shape, .. } => Type::Mlp(shape.clone()),
+            Val::Grid { shape, .. } => Type::Grid(shape.clone()),
             Val::Tuple(vs) => Type::Tuple(vs.iter().map(Val::ty).collect()),
         }
     }
@@ -61,7 +69,7 @@ impl Val {
                 }
                 Some(out)
             }
-            Val::Matrix { .. } | Val::Mlp { .. } => None,
+            Val::Matrix { .. } | Val::Mlp { .. } | Val::Grid { .. } => None,
             _ => self.components(),
         }
     }
@@ -84,7 +92,9 @@ impl Val {
             Type::F32 => Val::Scalar(scalars.next().expect("enough scalars")),
             Type::Vec(n) => Val::Vector(scalars.take(*n).collect()),
             Type::Tuple(ts) => Val::Tuple(ts.iter().map(|t| Val::unflatten(t, scalars)).collect()),
-            Type::Mat(..) | Type::Mlp(_) => unreachable!("matrices are never function inputs"),
+            Type::Mat(..) | Type::Mlp(_) | Type::Grid(_) => {
+                unreachable!("matrices are never function inputs")
+            }
         }
     }
 }

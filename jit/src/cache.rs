@@ -23,6 +23,7 @@ fn same(a: &Graph, b: &Graph) -> bool {
         && a.outputs == b.outputs
         && a.reductions == b.reductions
         && a.outer == b.outer
+        && a.scatter == b.scatter
         && a.n_inputs == b.n_inputs
 }
 
@@ -33,6 +34,7 @@ fn fingerprint(g: &Graph) -> u64 {
     g.reductions.hash(&mut h);
     g.lists().hash(&mut h);
     g.outer.hash(&mut h);
+    g.scatter.hash(&mut h);
     g.n_inputs.hash(&mut h);
     h.finish()
 }

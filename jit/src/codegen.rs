@@ -198,7 +198,7 @@ impl<'g> GraphEmitter<'g> {
                     };
                     s.select(m, v(a), v(d))
                 }
-                Op::Dense(_) | Op::Pick(..) => {
+                Op::Dense(_) | Op::Grid(_) | Op::Pick(..) => {
                     unreachable!("graphs with dense nodes are compiled by the tiled executor")
                 }
             };

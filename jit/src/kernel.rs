@@ -121,6 +121,7 @@ pub(crate) fn params_read(graph: &Graph) -> usize {
         .filter_map(|op| match op {
             Op::Param(k) => Some(*k as usize + 1),
             Op::Dense(d) => Some(d.params_end()),
+            Op::Grid(r) => Some(r.spec.table as usize + r.spec.n_params() as usize),
             _ => None,
         })
         .max()
@@ -176,7 +177,7 @@ impl Kernel {
     pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
         let start = Instant::now();
         let graph = graph.compact();
-        if graph.has_dense() {
+        if graph.needs_tiles() {
             return Ok(Kernel {
                 body: Body::Tiled(Box::new(Tiled::compile(&graph, options)?)),
                 n_inputs: graph.n_inputs as usize,

@@ -19,6 +19,7 @@
 
 mod cache;
 mod codegen;
+mod encode;
 pub mod gemm;
 mod kernel;
 mod march;

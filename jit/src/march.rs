@@ -54,7 +54,7 @@ impl Marcher {
     pub fn compile(sdf: &Graph) -> Result<Marcher, JitError> {
         let start = Instant::now();
         let sdf = sdf.compact();
-        if sdf.has_dense() {
+        if sdf.needs_tiles() {
             return Err(JitError(
                 "the fused sphere tracer takes elementwise SDFs; dense layers run tiled".into(),
             ));

@@ -14,6 +14,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::ir::{Graph, Op, V};
 
+use crate::encode::GridPlan;
 use crate::gemm::{self, TILE};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
 
@@ -43,6 +44,20 @@ struct OuterProduct {
     right: Vec<usize>,
 }
 
+/// One grid read: its outputs from the point's slots.
+struct GridStep {
+    plan: GridPlan,
+    p: [usize; 3],
+    out: Vec<usize>,
+}
+
+/// One grid scatter into the table's gradient (in the reductions).
+struct ScatterStep {
+    plan: GridPlan,
+    p: [usize; 3],
+    cotangent: Vec<usize>,
+}
+
 /// A value filled into a slot once per evaluation.
 #[derive(Clone, Copy)]
 enum Fill {
@@ -55,7 +70,10 @@ pub(crate) struct Tiled {
     /// Segment `s` runs after the products of `products[s]`.
     segments: Vec<Option<Segment>>,
     products: Vec<Vec<Product>>,
+    /// The grid reads of each stage, run with its products.
+    grids: Vec<Vec<GridStep>>,
     outer: Vec<OuterProduct>,
+    scatters: Vec<ScatterStep>,
     fills: Vec<(usize, Fill)>,
     input_slots: Vec<Option<usize>>,
     output_slots: Vec<usize>,
@@ -74,7 +92,7 @@ fn is_rematerialized(op: &Op) -> bool {
 fn is_elementwise(op: &Op) -> bool {
     !matches!(
         op,
-        Op::Const(_) | Op::Param(_) | Op::Input(_) | Op::Dense(_) | Op::Pick(..)
+        Op::Const(_) | Op::Param(_) | Op::Input(_) | Op::Dense(_) | Op::Grid(_) | Op::Pick(..)
     )
 }
 
@@ -83,7 +101,7 @@ fn levels(g: &Graph) -> Vec<usize> {
     for (i, op) in g.ops().iter().enumerate() {
         let highest = g.args(op).iter().map(|a| level[a.0 as usize]).max().unwrap_or(0);
         level[i] = match op {
-            Op::Dense(_) => highest + 1,
+            Op::Dense(_) | Op::Grid(_) => highest + 1,
             _ => highest,
         };
     }
@@ -127,6 +145,11 @@ impl Tiled {
                         slots.get(a);
                     }
                 }
+                Op::Grid(r) => {
+                    for a in r.p {
+                        slots.get(a);
+                    }
+                }
                 _ if is_elementwise(op) => {
                     for a in op.args() {
                         let arg = &ops[a.0 as usize];
@@ -140,6 +163,11 @@ impl Tiled {
         }
         for o in &g.outer {
             for &v in o.left.iter().chain(&o.right) {
+                slots.get(v);
+            }
+        }
+        for sc in &g.scatter {
+            for &v in sc.read.p.iter().chain(&sc.cotangent) {
                 slots.get(v);
             }
         }
@@ -167,6 +195,34 @@ impl Tiled {
                         .collect(),
                 });
             }
+        }
+
+        let mut grids: Vec<Vec<GridStep>> = (0..n_levels).map(|_| Vec::new()).collect();
+        for (i, op) in ops.iter().enumerate() {
+            if let Op::Grid(r) = op {
+                grids[level[i]].push(GridStep {
+                    plan: GridPlan::new(r),
+                    p: r.p.map(|a| slots.get(a)),
+                    out: (0..r.spec.n_outputs() as u32)
+                        .map(|k| picks.get(&(i as u32, k)).copied().unwrap_or(spare))
+                        .collect(),
+                });
+            }
+        }
+        let scatters: Vec<ScatterStep> = g
+            .scatter
+            .iter()
+            .map(|sc| ScatterStep {
+                plan: GridPlan::new(&sc.read),
+                p: sc.read.p.map(|v| slots.get(v)),
+                cotangent: sc.cotangent.iter().map(|&v| slots.get(v)).collect(),
+            })
+            .collect();
+        if scatters
+            .iter()
+            .any(|sc| sc.plan.params_end() > g.reductions.len())
+        {
+            return Err(JitError("a scatter writes past the reductions".into()));
         }
 
         let mut segments = Vec::with_capacity(n_levels);
@@ -222,7 +278,9 @@ impl Tiled {
         let mut plan = Tiled {
             segments,
             products,
+            grids,
             outer,
+            scatters,
             fills,
             input_slots,
             output_slots,
@@ -262,11 +320,23 @@ impl Tiled {
                 }
             }
         }
+        for (s, grids) in self.grids.iter().enumerate() {
+            for step in grids {
+                for &slot in step.p.iter().chain(&step.out) {
+                    touch(slot, 2 * s + 1);
+                }
+            }
+        }
         for (s, segment) in self.segments.iter().enumerate() {
             if let Some(seg) = segment {
                 for &slot in seg.reads.iter().chain(&seg.writes) {
                     touch(slot, 2 * s + 2);
                 }
+            }
+        }
+        for sc in &self.scatters {
+            for &slot in sc.p.iter().chain(&sc.cotangent) {
+                touch(slot, end);
             }
         }
         for o in &self.outer {
@@ -309,6 +379,14 @@ impl Tiled {
         for seg in self.segments.iter_mut().flatten() {
             map(&mut seg.reads);
             map(&mut seg.writes);
+        }
+        for step in self.grids.iter_mut().flatten() {
+            step.p = step.p.map(|s| column[s]);
+            map(&mut step.out);
+        }
+        for sc in &mut self.scatters {
+            sc.p = sc.p.map(|s| column[s]);
+            map(&mut sc.cotangent);
         }
         for o in &mut self.outer {
             map(&mut o.left);
@@ -377,6 +455,22 @@ impl Tiled {
             .iter()
             .map(|o| (reads(&o.left), reads(&o.right)))
             .collect();
+        let grid_io: Vec<Vec<([*const f32; 3], Vec<*mut f32>)>> = self
+            .grids
+            .iter()
+            .map(|level| {
+                let point = |p: [usize; 3]| p.map(|s| column(s) as *const f32);
+                level
+                    .iter()
+                    .map(|step| (point(step.p), columns(&step.out)))
+                    .collect()
+            })
+            .collect();
+        let scatter_io: Vec<([*const f32; 3], Vec<*const f32>)> = self
+            .scatters
+            .iter()
+            .map(|sc| (sc.p.map(|s| column(s) as *const f32), reads(&sc.cotangent)))
+            .collect();
         let mut scratch = Vec::new();
 
         for start in (0..n).step_by(TILE) {
@@ -392,6 +486,11 @@ impl Tiled {
                     // slots no input of the same product uses (its inputs precede it).
                     unsafe { gemm::matmul(m, &p.0, &p.1) };
                 }
+                for (step, (p, out)) in self.grids[s].iter().zip(&grid_io[s]) {
+                    // SAFETY: all columns are TILE ≥ count floats in the arena; the outputs are picks,
+                    // whose slots the point (read before them) does not share.
+                    unsafe { step.plan.read(*p, out, params, count) };
+                }
                 if let (Some(seg), Some((ins, outs))) = (&self.segments[s], &segment_io[s]) {
                     // SAFETY: the segment's columns are TILE ≥ count rounded up to 4 floats each.
                     unsafe { seg.kernel.call_raw(ins, outs, params, &mut accums[s], count) };
@@ -400,6 +499,10 @@ impl Tiled {
             for ((io, g), _) in outer_io.iter().zip(&mut grads).zip(&self.outer) {
                 // SAFETY: operand columns hold TILE ≥ count floats.
                 unsafe { gemm::outer(&io.0, &io.1, count, g, &mut scratch) };
+            }
+            for (sc, (p, cot)) in self.scatters.iter().zip(&scatter_io) {
+                // SAFETY: operand columns hold TILE ≥ count floats.
+                unsafe { sc.plan.scatter(*p, cot, reductions, count) };
             }
             for (out, &slot) in outputs.iter_mut().zip(&self.output_slots) {
                 out[start..start + count].copy_from_slice(&arena[slot * TILE..slot * TILE + count]);
