@@ -47,6 +47,7 @@ impl GridPlan {
         self.end
     }
 
+    #[inline(always)]
     fn corners(&self, level: &Level, p: [f32; 3]) -> Corners {
         let res = level.res as f32;
         let mut lower = [0u32; 3];
