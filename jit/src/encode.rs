@@ -83,26 +83,27 @@ impl GridPlan {
 
     /// `out[l·features + f][t] = Σ_corners w · table[corner·features + f]` for t < count.
     ///
+    /// Levels are the outer loop, so that a level's part of the table stays in cache across the tile.
+    ///
     /// # Safety
     /// The pointers of `p` must address `count` readable floats and those of `out` (levels × features of
-    /// them) `count` writable floats; `params` must hold [`GridPlan::params_end`] floats.
+    /// them) `count` writable floats.
     pub(crate) unsafe fn read(&self, p: [*const f32; 3], out: &[*mut f32], params: &[f32], count: usize) {
-        assert!(
-            params.len() >= self.params_end(),
-            "the grid's table is outside the params"
-        );
+        assert!(params.len() >= self.end, "the grid's table is outside the params");
         assert_eq!(out.len(), self.levels.len() * self.features);
-        for t in 0..count {
-            // SAFETY: t < count, as the caller guarantees for every column.
-            let point = p.map(|c| unsafe { *c.add(t) });
-            for (l, level) in self.levels.iter().enumerate() {
+        for (l, level) in self.levels.iter().enumerate() {
+            for t in 0..count {
+                // SAFETY: t < count, as the caller guarantees for every column.
+                let point = p.map(|c| unsafe { *c.add(t) });
                 let corners = self.corners(level, point);
                 for f in 0..self.features {
                     let mut sum = 0.0;
                     for k in 0..8 {
-                        sum += corners.weight[k] * params[corners.entry[k] + f];
+                        // SAFETY: a corner's entry is below its level's end (Level::entry masks or
+                        // indexes within the level), so entry + f < self.end ≤ params.len().
+                        sum += corners.weight[k] * unsafe { params.get_unchecked(corners.entry[k] + f) };
                     }
-                    // SAFETY: as above.
+                    // SAFETY: as above for the columns.
                     unsafe { *out[l * self.features + f].add(t) = sum };
                 }
             }
@@ -112,8 +113,7 @@ impl GridPlan {
     /// `grads[corner·features + f] += w · cot[l·features + f][t]` for t < count.
     ///
     /// # Safety
-    /// The pointers of `p` and `cot` must address `count` readable floats; `grads` must hold
-    /// [`GridPlan::params_end`] floats.
+    /// The pointers of `p` and `cot` must address `count` readable floats.
     pub(crate) unsafe fn scatter(
         &self,
         p: [*const f32; 3],
@@ -122,14 +122,14 @@ impl GridPlan {
         count: usize,
     ) {
         assert!(
-            grads.len() >= self.params_end(),
+            grads.len() >= self.end,
             "the grid's table is outside the gradients"
         );
         assert_eq!(cot.len(), self.levels.len() * self.features);
-        for t in 0..count {
-            // SAFETY: t < count, as the caller guarantees for every column.
-            let point = p.map(|c| unsafe { *c.add(t) });
-            for (l, level) in self.levels.iter().enumerate() {
+        for (l, level) in self.levels.iter().enumerate() {
+            for t in 0..count {
+                // SAFETY: t < count, as the caller guarantees for every column.
+                let point = p.map(|c| unsafe { *c.add(t) });
                 let corners = self.corners(level, point);
                 for f in 0..self.features {
                     // SAFETY: as above.
@@ -138,7 +138,8 @@ impl GridPlan {
                         continue;
                     }
                     for k in 0..8 {
-                        grads[corners.entry[k] + f] += corners.weight[k] * c;
+                        // SAFETY: entry + f < self.end ≤ grads.len(), as in `read`.
+                        unsafe { *grads.get_unchecked_mut(corners.entry[k] + f) += corners.weight[k] * c };
                     }
                 }
             }

@@ -77,6 +77,8 @@ pub(crate) struct Tiled {
     fills: Vec<(usize, Fill)>,
     input_slots: Vec<Option<usize>>,
     output_slots: Vec<usize>,
+    /// Where products and grid reads write the outputs that nothing reads.
+    spare: usize,
     n_slots: usize,
     n_reductions: usize,
     /// The compilation of all segments.
@@ -284,6 +286,7 @@ impl Tiled {
             fills,
             input_slots,
             output_slots,
+            spare,
             n_slots: slots.count,
             n_reductions: g.reductions.len(),
             stats,
@@ -347,6 +350,9 @@ impl Tiled {
         for &slot in &self.output_slots {
             touch(slot, end);
         }
+        // The spare column is written at every stage: it shares with nothing.
+        touch(self.spare, 0);
+        touch(self.spare, end);
         // Interval colouring: in order of first use, take a column freed strictly before.
         let mut order: Vec<usize> = (0..n).filter(|&s| first[s] != UNSET).collect();
         order.sort_by_key(|&s| first[s]);
@@ -393,6 +399,7 @@ impl Tiled {
             map(&mut o.right);
         }
         map(&mut self.output_slots);
+        self.spare = column[self.spare];
         for (slot, _) in &mut self.fills {
             *slot = column[*slot];
         }

@@ -26,6 +26,8 @@ fn c(p: vec3, dir: vec3) -> vec3 = sigmoid(dense(wc, concat(features(p)[1], feat
     compile("grid.sdf", src).unwrap_or_else(|r| panic!("{r}"))
 }
 
+/// Random points in [−spread, spread]. The grid's derivatives jump at cell boundaries, where the JIT (f32)
+/// and the interpreter (f64) may round to different sides; irregular spreads keep points off them.
 fn points(seed: u64, n: usize, inputs: usize, spread: f64) -> Vec<Vec<f64>> {
     let mut s = seed | 1;
     let mut next = || {
@@ -52,7 +54,7 @@ proptest! {
         let p = field();
         let params = p.param_values_f64();
         let d = p.lower("d").unwrap();
-        let pt = points(seed, 1, 3, 1.1).remove(0);
+        let pt = points(seed, 1, 3, 1.1037).remove(0);
         let value = |x: &[f64], theta: &[f64]| interp::eval_point(&d.graph, x, theta).outputs[0];
         // ∂d/∂p
         let grad = interp::eval_point(&kernels::with_gradient(&d), &pt, &params).outputs;
@@ -94,7 +96,7 @@ proptest! {
         let d = p.lower("d").unwrap();
         let first = kernels::with_gradient(&d);
         let second = kernels::second_order(&d, p.n_params());
-        let pt = points(seed, 1, 7, 1.1).remove(0);
+        let pt = points(seed, 1, 7, 1.1037).remove(0);
         let loss = |theta: &[f64]| {
             let out = interp::eval_point(&first, &pt[..3], theta).outputs;
             (0..4).map(|k| pt[3 + k] * out[k]).sum::<f64>()
@@ -123,7 +125,7 @@ proptest! {
         let params = p.param_values_f64();
         let both = p.lower_many(&["d", "c"]).unwrap();
         let d = p.lower("d").unwrap();
-        let pts = points(seed, n, 6, 1.6);
+        let pts = points(seed, n, 6, 1.6171);
         for (name, g) in [("value", kernels::value(&both)), ("gradient", kernels::with_gradient(&d))] {
             let (jo, _) = jit_eval(&g, &pts, &params, Options::default());
             let (io, _) = interp_eval(&g, &pts, &params);
@@ -133,7 +135,7 @@ proptest! {
                 }
             }
         }
-        let pts = points(seed, n, 10, 1.6);
+        let pts = points(seed, n, 10, 1.6171);
         for (name, g) in [("vjp", kernels::vjp(&both, p.n_params())), ("second order", kernels::second_order(&d, p.n_params()))] {
             let (jo, jr) = jit_eval(&g, &pts, &params, Options::default());
             let (io, ir) = interp_eval(&g, &pts, &params);
