@@ -670,16 +670,23 @@ pub fn describe_params(program: &Program, params: &[f32]) -> String {
         .join("\n")
 }
 
-/// The params of `program` by name, as JSON.
+/// The params of `program` by name, as JSON (a grid encoding's table as its type, size and mean |value|).
 pub fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
     let map: serde_json::Map<String, serde_json::Value> = program
         .params
         .iter()
         .map(|p| {
-            (
-                p.name.clone(),
-                serde_json::json!(params[p.offset..p.offset + p.ty.scalars()]),
-            )
+            let values = &params[p.offset..p.offset + p.ty.scalars()];
+            let value = match p.ty {
+                // A grid's table (millions of floats) stays in the checkpoint; the summary describes it.
+                nerfjit_dsl::Type::Grid(_) => serde_json::json!({
+                    "type": p.ty.to_string(),
+                    "values": values.len(),
+                    "mean_abs": values.iter().map(|x| f64::from(x.abs())).sum::<f64>() / values.len().max(1) as f64,
+                }),
+                _ => serde_json::json!(values),
+            };
+            (p.name.clone(), value)
         })
         .collect();
     serde_json::Value::Object(map)

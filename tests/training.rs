@@ -129,6 +129,33 @@ fn early_termination_still_recovers_the_box_and_a_time_limit_stops_training() {
 }
 
 #[test]
+fn a_hash_grid_field_learns_the_box_from_its_renders() {
+    // No box in the script: a hash encoding and a small network learn the views' colors and opacities.
+    let dir = scratch("hashgrid");
+    make_views(&dir);
+    let script = "param g: hashgrid<3, levels: 8, features: 2, log2_size: 12, base: 4, finest: 64> = uniform(-1e-4, 1e-4)\n\
+                  param w1: mat<32, 16> = kaiming(seed: 2)\nparam w2: mat<4, 32> = xavier(seed: 3)\n\
+                  fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, hashgrid(g, p))))\n\
+                  fn opacity(p: vec3) -> f32 = sigmoid(h(p)[0] - 3.0)\n\
+                  fn color(p: vec3) -> vec3 = sigmoid(vec3(h(p)[1], h(p)[2], h(p)[3]))\n\
+                  train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: STEPS, batch: 800, lr: 0.01, \
+                  summary: \"summary.json\" }\n";
+    let psnr = |steps: &str| {
+        std::fs::write(dir.join("grid.sdf"), script.replace("STEPS", steps)).unwrap();
+        let (ok, _, err) = run(&dir, &["run", "grid.sdf"]);
+        assert!(ok, "{err}");
+        let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
+        let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+        json["final_psnr"].as_f64().expect("a final PSNR")
+    };
+    let (start, trained) = (psnr("1"), psnr("300"));
+    assert!(
+        trained > 24.0 && trained > start + 10.0,
+        "PSNR {start:.2} dB after 1 step, {trained:.2} dB after 300"
+    );
+}
+
+#[test]
 fn diverging_training_stops_with_a_message() {
     let dir = scratch("nan");
     make_views(&dir);

@@ -136,8 +136,8 @@ impl GridSpec {
             frac: [0.0; 3],
             scale: [0.0; 3],
         };
-        for a in 0..3 {
-            let unit = (p[a] + extent) / (2.0 * extent);
+        for (a, &x) in p.iter().enumerate() {
+            let unit = (x + extent) / (2.0 * extent);
             let inside = unit > 0.0 && unit < 1.0;
             // NaN is clamped to 0 (max and min ignore it), so a NaN point never indexes out of the table.
             let u = unit.clamp(0.0, 1.0).max(0.0) * f64::from(res);
