@@ -110,11 +110,6 @@ impl GridSpec {
         (self.levels * self.features) as usize
     }
 
-    /// The entry of vertex `v` within level `l` (dense row-major index, or the spatial hash).
-    pub fn entry(&self, l: u32, v: [u32; 3]) -> u64 {
-        self.layout()[l as usize].entry(v) - self.layout()[l as usize].offset
-    }
-
     /// Each level's layout, for reads that visit many points.
     pub fn layout(&self) -> Vec<Level> {
         let offsets = self.level_offsets();
@@ -222,10 +217,11 @@ mod tests {
     #[test]
     fn entries_stay_in_their_level() {
         let s = spec(6, 10, 2, 64);
-        for l in 0..6 {
-            let n = s.resolution(l) + 1;
+        for (l, level) in s.layout().iter().enumerate() {
+            let n = level.res + 1;
             for v in [[0, 0, 0], [n - 1, n - 1, n - 1], [n / 2, 1, n - 1]] {
-                assert!(s.entry(l, v) < s.level_size(l), "level {l} vertex {v:?}");
+                let local = level.entry(v) - level.offset;
+                assert!(local < s.level_size(l as u32), "level {l} vertex {v:?}");
             }
         }
         let far = s.cell(5, [f64::NAN, 1e30, -1e30]);

@@ -3,6 +3,7 @@
 
 use crate::ast::*;
 use crate::diag::{Diagnostic, Span};
+use crate::ir::GridSpec;
 use crate::lexer::{lex, Tok, Token};
 use crate::types::Type;
 
@@ -348,7 +349,7 @@ impl Parser {
             values[k].unwrap_or(default)
         };
         let extent = (get("bounds", 1.5) as f32).to_bits();
-        let shape = if hashed {
+        let layout = if hashed {
             let (base, finest) = (get("base", 16.0) as u32, get("finest", 2048.0) as u32);
             if finest < base {
                 return Err(
@@ -356,8 +357,8 @@ impl Parser {
                         .with_hint("the levels grow from base to finest cells per axis"),
                 );
             }
-            crate::types::GridShape {
-                hashed,
+            GridSpec {
+                table: 0,
                 levels: get("levels", 16.0) as u32,
                 features: get("features", 2.0) as u32,
                 log2_size: get("log2_size", 19.0) as u32,
@@ -371,8 +372,8 @@ impl Parser {
             };
             let cells = res as u32 - 1;
             let vertices = u64::from(cells + 1).pow(3);
-            crate::types::GridShape {
-                hashed,
+            GridSpec {
+                table: 0,
                 levels: 1,
                 features: get("features", 1.0) as u32,
                 // A table as large as the vertices: never hashed.
@@ -382,7 +383,7 @@ impl Parser {
                 extent,
             }
         };
-        let floats = shape.spec(0).n_params();
+        let floats = layout.n_params();
         if floats > MAX_GRID_PARAMS {
             return Err(Diagnostic::new(
                 span,
@@ -393,7 +394,7 @@ impl Parser {
             )
             .with_hint("use fewer levels or features, or a smaller log2_size or res"));
         }
-        Ok(Type::Grid(shape))
+        Ok(Type::Grid(crate::types::GridShape { hashed, layout }))
     }
 
     fn type_expr(&mut self) -> PResult<TypeExpr> {

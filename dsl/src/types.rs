@@ -26,32 +26,14 @@ pub enum Type {
 pub struct GridShape {
     /// Whether the param was declared as a `hashgrid` (else a dense `grid`).
     pub hashed: bool,
-    /// Levels of resolution.
-    pub levels: u32,
-    /// Floats per entry.
-    pub features: u32,
-    /// Entries per hashed level: 2^log2_size.
-    pub log2_size: u32,
-    /// Cells per axis of the coarsest level.
-    pub base: u32,
-    /// Cells per axis of the finest level.
-    pub finest: u32,
-    /// The half extent of the cubic bounds, as f32 bits.
-    pub extent: u32,
+    /// The layout, with its table at param 0.
+    pub layout: crate::ir::GridSpec,
 }
 
 impl GridShape {
     /// The IR's description of this grid with its table at param `table`.
     pub fn spec(&self, table: u32) -> crate::ir::GridSpec {
-        crate::ir::GridSpec {
-            table,
-            levels: self.levels,
-            features: self.features,
-            log2_size: self.log2_size,
-            base: self.base,
-            finest: self.finest,
-            extent: self.extent,
-        }
+        crate::ir::GridSpec { table, ..self.layout }
     }
 }
 
@@ -92,7 +74,7 @@ impl Type {
             Type::Vec(n) => *n,
             Type::Mat(r, c) => r * c,
             Type::Mlp(shape) => shape.layers().iter().map(|(r, c)| r * c + r).sum(),
-            Type::Grid(shape) => shape.spec(0).n_params() as usize,
+            Type::Grid(shape) => shape.layout.n_params() as usize,
             Type::Tuple(ts) => ts.iter().map(Type::scalars).sum(),
         }
     }
@@ -124,9 +106,9 @@ impl fmt::Display for Type {
                 Some(k) => write!(f, "mlp<{}, {}, {}, skip: {k}>", s.input, s.width, s.depth),
                 None => write!(f, "mlp<{}, {}, {}>", s.input, s.width, s.depth),
             },
-            Type::Grid(g) => {
+            Type::Grid(GridShape { hashed, layout: g }) => {
                 let extent = f32::from_bits(g.extent);
-                if g.hashed {
+                if *hashed {
                     write!(
                         f,
                         "hashgrid<3, levels: {}, features: {}, log2_size: {}, base: {}, finest: {}, bounds: {extent}>",
