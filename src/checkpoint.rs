@@ -7,6 +7,7 @@ use nerfjit_dsl::Program;
 use nerfjit_runtime::Adam;
 
 use crate::failure::{Failure, Result};
+use crate::train::AdamSettings;
 
 /// A saved training state.
 pub struct Checkpoint {
@@ -101,11 +102,13 @@ pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
 }
 
 /// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists,
-/// else fresh Adam at `lr` from step 0 (params untouched).
+/// else fresh Adam at `lr` from step 0 (params untouched); either way with the decay rates and ε of
+/// `settings`.
 pub fn resume_or_start(
     checkpoint: Option<&Path>,
     resume: bool,
     params: &mut Vec<f32>,
+    settings: AdamSettings,
     lr: impl Fn(u32) -> f32,
 ) -> Result<(Adam, u32)> {
     let n = params.len();
@@ -115,10 +118,18 @@ pub fn resume_or_start(
             *params = ck.params;
             let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
             eprintln!("resuming from {} at step {}", path.display(), ck.step);
-            Ok((adam, ck.step))
+            Ok((configured(adam, settings), ck.step))
         }
-        None => Ok((Adam::new(n, lr(0)), 0)),
+        None => Ok((configured(Adam::new(n, lr(0)), settings), 0)),
     }
+}
+
+/// `adam` with the decay rates and ε of `settings`.
+fn configured(mut adam: Adam, settings: AdamSettings) -> Adam {
+    adam.beta1 = settings.beta1;
+    adam.beta2 = settings.beta2;
+    adam.eps = settings.eps;
+    adam
 }
 
 /// The error of a training run that produced a non-finite loss or gradient at `step`, saying whether a

@@ -33,7 +33,7 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// Worker threads (default: all cores).
+    /// Worker threads (default: all cores; at most 8 per core).
     #[arg(long, global = true)]
     threads: Option<usize>,
     #[command(subcommand)]
@@ -230,14 +230,51 @@ impl ViewOptions {
     }
 }
 
+/// The stack of the thread that does the work: deep (but limited) expressions make the compiler's
+/// passes recurse deeply; the pages are only committed as they are used.
+const WORK_STACK_BYTES: usize = 1 << 30;
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    let mut pool = rayon::ThreadPoolBuilder::new().start_handler(|_| nerfjit_runtime::flush_denormals());
     if let Some(n) = cli.threads {
-        // Ignored if a pool exists already; this is the first thing the program does.
-        let _ = rayon::ThreadPoolBuilder::new()
-            .num_threads(n.max(1))
-            .build_global();
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if n > MAX_THREADS_PER_CORE * cores {
+            eprintln!(
+                "error: --threads {n} is more than {MAX_THREADS_PER_CORE} threads per core ({cores} cores here)"
+            );
+            return ExitCode::FAILURE;
+        }
+        pool = pool.num_threads(n.max(1));
     }
+    // This is the first thing the program does: no pool exists yet.
+    if let Err(e) = pool.build_global() {
+        eprintln!("error: cannot start the worker threads: {e}");
+        return ExitCode::FAILURE;
+    }
+    let worker = std::thread::Builder::new()
+        .name("nerfjit".into())
+        .stack_size(WORK_STACK_BYTES)
+        .spawn(move || {
+            nerfjit_runtime::flush_denormals();
+            run_command(cli)
+        });
+    match worker.map(|w| w.join()) {
+        Ok(Ok(code)) => code,
+        // A panic has printed its message already.
+        Ok(Err(_)) => ExitCode::FAILURE,
+        Err(e) => {
+            eprintln!("error: cannot start the worker thread: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Most `--threads` per core.
+const MAX_THREADS_PER_CORE: usize = 8;
+
+/// Runs the command line's command; prints its error, if any.
+fn run_command(cli: Cli) -> ExitCode {
     let result = match cli.command {
         Command::Run {
             script,

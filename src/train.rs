@@ -51,6 +51,7 @@ const KEYS: &[&str] = &[
     "grid_warmup",
     "minutes",
     "early_termination",
+    "optimizer",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -71,6 +72,8 @@ pub struct TrainPlan {
     time_limit: Option<f64>,
     batch: usize,
     schedule: Schedule,
+    /// Adam's decay rates and ε.
+    optimizer: AdamSettings,
     random_views: bool,
     jitter: bool,
     seed: u64,
@@ -188,6 +191,64 @@ pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
     }
 }
 
+/// Adam's decay rates and ε: the `optimizer` setting.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamSettings {
+    /// Decay of the first moment.
+    pub beta1: f32,
+    /// Decay of the second moment.
+    pub beta2: f32,
+    /// Added to √v̂ in the denominator.
+    pub eps: f32,
+}
+
+impl Default for AdamSettings {
+    /// Kingma and Ba's defaults: β = (0.9, 0.999), ε = 1e-8.
+    fn default() -> AdamSettings {
+        AdamSettings {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+        }
+    }
+}
+
+/// The `optimizer` setting: `adam(beta1: 0.9, beta2: 0.99, eps: 1e-15)` (every argument optional, the
+/// default Adam when the setting is absent).
+pub(crate) fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagnostic> {
+    let defaults = AdamSettings::default();
+    let Some(v) = v else {
+        return Ok(defaults);
+    };
+    let hint = "write adam(beta1: 0.9, beta2: 0.99, eps: 1e-15)";
+    match &v.value {
+        Value::Call(name, _) if name == "adam" => {}
+        Value::Name(name) if name == "adam" => return Ok(defaults),
+        _ => {
+            return Err(
+                Diagnostic::new(v.span, format!("expected an optimizer, found {}", v.describe()))
+                    .with_hint(hint),
+            )
+        }
+    }
+    let a = CallArgs::new(&v, &["beta1", "beta2", "eps"])?;
+    let decay = |slot: &str, default: f32| -> std::result::Result<f32, Diagnostic> {
+        match a.raw(slot) {
+            None => Ok(default),
+            Some(x) => Ok(crate::settings::ranged(x, 0.0, 0.999_999)? as f32),
+        }
+    };
+    let eps = match a.raw("eps") {
+        None => defaults.eps,
+        Some(x) => crate::settings::ranged(x, 1e-30, 1.0)? as f32,
+    };
+    Ok(AdamSettings {
+        beta1: decay("beta1", defaults.beta1)?,
+        beta2: decay("beta2", defaults.beta2)?,
+        eps,
+    })
+}
+
 pub(crate) fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
     let Some(v) = v else {
         return Ok(Schedule::Constant { lr });
@@ -274,6 +335,7 @@ impl TrainPlan {
         });
         let background = b.triple("background")?;
         let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let random_views = b.choice("views", &["cycle", "random"], "cycle")? == "random";
         let jitter = b.choice("jitter", &["true", "false"], "false")? == "true";
         let checkpoint = b.output("checkpoint")?;
@@ -334,6 +396,7 @@ impl TrainPlan {
             time_limit,
             batch,
             schedule,
+            optimizer,
             random_views,
             jitter,
             seed,
@@ -418,10 +481,13 @@ impl TrainPlan {
             early_termination: self.early_termination,
             ..settings
         };
-        let (mut adam, first) =
-            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
-                self.schedule.lr(k)
-            })?;
+        let (mut adam, first) = crate::checkpoint::resume_or_start(
+            self.checkpoint.as_deref(),
+            resume,
+            params,
+            self.optimizer,
+            |k| self.schedule.lr(k),
+        )?;
         let bar = ProgressBar::new(u64::from(self.steps)).with_style(
             ProgressStyle::with_template("{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}")
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -447,7 +513,7 @@ impl TrainPlan {
                 // Rebuilt on schedule, and at once when a resumed run starts past the warm-up.
                 if step >= g.warmup && (grid.is_none() || (step - g.warmup) % g.every == 0) {
                     let t = Instant::now();
-                    let built = OccupancyGrid::build(
+                    let built = OccupancyGrid::build_for_training(
                         &forward,
                         g.grid.bounds,
                         g.grid.resolution,

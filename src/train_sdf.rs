@@ -28,6 +28,7 @@ const KEYS: &[&str] = &[
     "bounds",
     "lr",
     "schedule",
+    "optimizer",
     "near_weight",
     "near_sharpness",
     "eikonal_weight",
@@ -50,6 +51,8 @@ pub struct SdfTrainPlan {
     bound: f32,
     /// Adam's learning rate over the steps (pre-training included).
     schedule: Schedule,
+    /// Adam's decay rates and ε.
+    optimizer: crate::train::AdamSettings,
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
@@ -96,6 +99,7 @@ impl SdfTrainPlan {
         };
         let lr = b.number("lr", 1e-12, 10.0, 1e-4)? as f32;
         let schedule = crate::train::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = crate::train::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let plan = SdfTrainPlan {
             data,
             key,
@@ -105,6 +109,7 @@ impl SdfTrainPlan {
             random: b.whole("random", 1, 1 << 20, 4096)? as usize,
             bound: b.number("bounds", 1e-3, 1e6, 4.0)? as f32,
             schedule,
+            optimizer,
             near_weight: b.number("near_weight", 0.0, 1e6, 0.1)? as f32,
             near_sharpness: b.number("near_sharpness", 0.0, 1e6, 100.0)? as f32,
             eikonal_weight: b.number("eikonal_weight", 0.0, 1e6, 0.02)? as f32,
@@ -182,10 +187,13 @@ impl SdfTrainPlan {
         let t = Instant::now();
         let k = self.compile(program)?;
         let compile_s = t.elapsed().as_secs_f64();
-        let (mut adam, first) =
-            crate::checkpoint::resume_or_start(self.checkpoint.as_deref(), resume, params, |k| {
-                self.schedule.lr(k)
-            })?;
+        let (mut adam, first) = crate::checkpoint::resume_or_start(
+            self.checkpoint.as_deref(),
+            resume,
+            params,
+            self.optimizer,
+            |k| self.schedule.lr(k),
+        )?;
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;

@@ -436,3 +436,78 @@ fn render_and_eval_views_agree_on_a_blender_camera_file() {
         png.height()
     );
 }
+
+#[test]
+fn long_expressions_compile_up_to_the_limit_and_are_refused_beyond_it() {
+    let dir = scratch("chains");
+    let sum = |n: usize| vec!["p.x * 0.001"; n].join(" + ");
+    // 4,000 terms: deeper than the main thread's stack would take through every pass; sphere traced.
+    let long = write(
+        &dir,
+        "long.sdf",
+        &format!(
+            "fn sdf(p: vec3) -> f32 = length(p) - 1.0 + {}\nrender sphere_trace {{ camera: orbit(radius: 3, frames: 1), size: 8, out: \"long.png\" }}\n",
+            sum(4_000)
+        ),
+    );
+    let out = nerfjit(&["run", &long, "--out", &dir.display().to_string()], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}{stderr}");
+    assert!(dir.join("long.png").is_file());
+    // 100,000 terms: refused with the place and a hint, at once.
+    let huge = write(
+        &dir,
+        "huge.sdf",
+        &format!("fn sdf(p: vec3) -> f32 =\n    {}\n", sum(100_000)),
+    );
+    let out = nerfjit(&["check", &huge], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(stderr.contains("expression too long"), "{stderr}");
+    assert!(stderr.contains("huge.sdf:2:"), "{stderr}");
+    assert!(stderr.contains("split it with 'let'"), "{stderr}");
+}
+
+#[test]
+fn absurd_thread_counts_are_refused() {
+    let torus = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/torus.sdf");
+    let out = nerfjit(&["--threads", "100000", "check", torus], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(stderr.contains("--threads 100000"), "{stderr}");
+}
+
+#[test]
+fn optimizer_settings_are_checked_and_used() {
+    let dir = scratch("optimizer");
+    std::fs::write(
+        dir.join("cloud.xyz"),
+        "1 0 0\n0 1 0\n0 0 1\n-1 0 0\n0 -1 0\n0 0 -1\n",
+    )
+    .expect("cloud");
+    let script = |optimizer: &str| {
+        format!(
+            "param r: vec<1> = [0.5]\nfn sdf(p: vec3) -> f32 = length(p) - r[0]\ntrain sdf {{\n    data: points(\"cloud.xyz\"),\n    steps: 200, batch: 6, random: 6, lr: 1e-2,\n    optimizer: {optimizer},\n}}\n"
+        )
+    };
+    let bad = write(&dir, "bad.sdf", &script("adam(beta2: 1.5)"));
+    let out = nerfjit(&["run", &bad, "--out", &dir.display().to_string()], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("bad.sdf:6:28") && stderr.contains("out of range"),
+        "{stderr}"
+    );
+    let good = write(&dir, "good.sdf", &script("adam(beta2: 0.99, eps: 1e-15)"));
+    let out = nerfjit(&["run", &good, "--out", &dir.display().to_string()], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}{stderr}");
+    // The radius moves from 0.5 toward the unit sphere the points lie on.
+    let r: f32 = stdout
+        .split("r = [")
+        .nth(1)
+        .and_then(|rest| rest.split(']').next())
+        .and_then(|v| v.parse().ok())
+        .expect("the trained radius is printed");
+    assert!(r > 0.9 && r < 1.1, "{stdout}");
+}

@@ -7,8 +7,13 @@ use crate::ir::GridSpec;
 use crate::lexer::{lex, Tok, Token};
 use crate::types::Type;
 
-/// Deepest nesting of expressions the parser accepts.
+/// Deepest nesting of expressions (parentheses, calls, blocks, unary operators) the parser accepts.
 pub const MAX_DEPTH: usize = 200;
+/// Longest path from an expression to its deepest part the parser accepts, counting each link of an
+/// operator chain (`a + b + c` is two deep) or of a swizzle and index chain (`v.xy[0]`), and each level
+/// of nesting. The later passes recurse along such paths: at most 2·`MAX_HEIGHT` frames deep, a few
+/// kilobytes each, so the `nerfjit` binary runs them on a thread with a large stack.
+pub const MAX_HEIGHT: usize = 10_000;
 /// Largest script the parser accepts, in bytes.
 pub const MAX_SOURCE_BYTES: usize = 4 << 20;
 /// Largest vector or matrix dimension a type may name.
@@ -39,6 +44,7 @@ pub fn parse(source: &str, base: usize) -> Result<Script, Diagnostic> {
         tokens,
         pos: 0,
         depth: 0,
+        height: 0,
     };
     let mut script = Script::default();
     while p.peek() != &Tok::Eof {
@@ -51,6 +57,8 @@ struct Parser {
     tokens: Vec<Token>,
     pos: usize,
     depth: usize,
+    /// Nesting levels plus the chain links open above the current position (see [`MAX_HEIGHT`]).
+    height: usize,
 }
 
 type PResult<T> = Result<T, Diagnostic>;
@@ -136,6 +144,24 @@ impl Parser {
         if self.depth > MAX_DEPTH {
             return Err(Diagnostic::new(self.span(), "expression nested too deeply")
                 .with_hint(format!("the limit is {MAX_DEPTH} levels; split it with 'let'")));
+        }
+        self.link()
+    }
+
+    /// Leaves a level entered by [`Parser::enter`].
+    fn leave(&mut self) {
+        self.depth -= 1;
+        self.height -= 1;
+    }
+
+    /// One more link of an operator, swizzle or index chain.
+    fn link(&mut self) -> PResult<()> {
+        self.height += 1;
+        if self.height > MAX_HEIGHT {
+            return Err(Diagnostic::new(self.span(), "expression too long")
+                .with_hint(format!(
+                    "at most {MAX_HEIGHT} chained operations and nesting levels in one expression; split it with 'let'"
+                )));
         }
         Ok(())
     }
@@ -527,7 +553,7 @@ impl Parser {
         let value = self.expr()?;
         self.eat(";");
         let end = self.expect("}")?;
-        self.depth -= 1;
+        self.leave();
         Ok(Expr {
             kind: ExprKind::Block(lets, Box::new(value)),
             span: start.to(end),
@@ -538,7 +564,7 @@ impl Parser {
     pub fn expr(&mut self) -> PResult<Expr> {
         self.enter()?;
         let e = self.binary(0)?;
-        self.depth -= 1;
+        self.leave();
         Ok(e)
     }
 
@@ -561,7 +587,10 @@ impl Parser {
             return self.unary();
         }
         let mut lhs = self.binary(level + 1)?;
+        let mut links = 0;
         while let Some(&(_, op)) = LEVELS[level].iter().find(|(s, _)| self.is(s)) {
+            self.link()?;
+            links += 1;
             self.bump();
             let rhs = self.binary(level + 1)?;
             let span = lhs.span.to(rhs.span);
@@ -570,6 +599,7 @@ impl Parser {
                 span,
             };
         }
+        self.height -= links;
         Ok(lhs)
     }
 
@@ -584,7 +614,7 @@ impl Parser {
         };
         self.enter()?;
         let operand = self.unary()?;
-        self.depth -= 1;
+        self.leave();
         let span = start.to(operand.span);
         Ok(Expr {
             kind: ExprKind::Unary(op, Box::new(operand)),
@@ -594,7 +624,12 @@ impl Parser {
 
     fn postfix(&mut self) -> PResult<Expr> {
         let mut e = self.primary()?;
+        let mut links = 0;
         loop {
+            if self.is(".") || self.is("[") {
+                self.link()?;
+                links += 1;
+            }
             if self.eat(".") {
                 let field = self.ident("a swizzle such as 'xy' after '.'")?;
                 let span = e.span.to(field.span);
@@ -604,18 +639,16 @@ impl Parser {
                 };
             } else if self.eat("[") {
                 let first = self.expr()?;
-                let kind = if self.eat("..") {
-                    let end = self.expr()?;
-                    ExprKind::Slice(Box::new(e.clone()), Box::new(first), Box::new(end))
-                } else {
-                    ExprKind::Index(Box::new(e.clone()), Box::new(first))
-                };
+                let end = if self.eat("..") { Some(self.expr()?) } else { None };
                 let close = self.expect("]")?;
-                e = Expr {
-                    kind,
-                    span: e.span.to(close),
+                let span = e.span.to(close);
+                let kind = match end {
+                    Some(end) => ExprKind::Slice(Box::new(e), Box::new(first), Box::new(end)),
+                    None => ExprKind::Index(Box::new(e), Box::new(first)),
                 };
+                e = Expr { kind, span };
             } else {
+                self.height -= links;
                 return Ok(e);
             }
         }
@@ -717,7 +750,7 @@ impl Parser {
             self.block()?
         };
         let span = start.to(other.span);
-        self.depth -= 1;
+        self.leave();
         Ok(Expr {
             kind: ExprKind::If(Box::new(cond), Box::new(then), Box::new(other)),
             span,
@@ -772,5 +805,29 @@ mod tests {
         assert!(err.message.contains("nested too deeply"), "{}", err.message);
         let src = format!("fn f(x: f32) -> f32 = {}x", "-".repeat(100_000));
         assert!(parse(&src, 0).is_err());
+    }
+
+    #[test]
+    fn long_chains_are_an_error_not_a_crash() {
+        let terms = |op: &str, n: usize| vec!["x"; n].join(op);
+        for src in [
+            format!("fn f(x: f32) -> f32 = {}", terms(" + ", 100_000)),
+            format!("fn f(x: f32) -> f32 = {}", terms(" * ", 100_000)),
+            format!("fn f(x: vec3) -> f32 = x{}.x", ".xyz".repeat(100_000)),
+            format!("fn f(x: vec3) -> f32 = x{}", "[0]".repeat(100_000)),
+            // Short chains, but nested: the lengths add up along the path.
+            format!(
+                "fn f(x: f32) -> f32 = {}x{}",
+                format!("{} + (", terms(" + ", 80)).repeat(150),
+                ")".repeat(150)
+            ),
+        ] {
+            let err = parse(&src, 0).unwrap_err();
+            assert!(err.message.contains("too long"), "{}", err.message);
+            assert!(err.hint.as_deref().is_some_and(|h| h.contains("let")));
+        }
+        // Up to the limit, chains parse.
+        let src = format!("fn f(x: f32) -> f32 = {}", terms(" + ", MAX_HEIGHT / 2));
+        assert!(parse(&src, 0).is_ok());
     }
 }

@@ -72,6 +72,30 @@ impl OccupancyGrid {
         mode: Mode,
         threshold: f32,
     ) -> Result<OccupancyGrid> {
+        OccupancyGrid::build_with(field, bounds, resolution, mode, threshold, false)
+    }
+
+    /// [`OccupancyGrid::build`] with the threshold lowered to the mean of the cells' peak probe values
+    /// where that is lower (instant-ngp's rule for training): a field whose values are all small keeps
+    /// its larger half occupied instead of an empty grid, whose samples would never be trained again.
+    pub fn build_for_training(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        mode: Mode,
+        threshold: f32,
+    ) -> Result<OccupancyGrid> {
+        OccupancyGrid::build_with(field, bounds, resolution, mode, threshold, true)
+    }
+
+    fn build_with(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        mode: Mode,
+        threshold: f32,
+        capped_by_mean: bool,
+    ) -> Result<OccupancyGrid> {
         let (lo, hi) = bounds;
         if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
             return Err(Error::Invalid(format!(
@@ -102,9 +126,9 @@ impl OccupancyGrid {
         }
 
         // 1. Probe the lattice of m³ points, a few layers of cells at a time (sharing their
-        //    boundary planes of probes), and 2. mark a cell occupied if any probe of its
-        //    closed box is hot: a max filter of width SUBDIVISIONS + 1 and stride
-        //    SUBDIVISIONS along each axis.
+        //    boundary planes of probes), and 2. take each cell's peak over the probes of its
+        //    closed box: a max filter of width SUBDIVISIONS + 1 and stride SUBDIVISIONS along
+        //    each axis. NaN probes count as +∞.
         let res = resolution;
         let (s, m) = (SUBDIVISIONS, res * SUBDIVISIONS + 1);
         let step = [0, 1, 2].map(|i| (hi[i] - lo[i]) / (m - 1) as f32);
@@ -115,21 +139,21 @@ impl OccupancyGrid {
                 lo[i] + step[i] * k as f32
             }
         };
-        let mut cells = vec![false; res * res * res];
-        cells
+        let mut peaks = vec![0.0f32; res * res * res];
+        peaks
             .par_chunks_mut(res * res * LAYERS_PER_TASK)
             .enumerate()
             .for_each(|(task, cells)| {
                 let (layers, z0) = (cells.len() / (res * res), task * LAYERS_PER_TASK * s);
-                let mut hot = vec![false; (layers * s + 1) * m * m];
-                let batch = BUILD_BATCH.min(hot.len());
+                let mut probes = vec![0.0f32; (layers * s + 1) * m * m];
+                let batch = BUILD_BATCH.min(probes.len());
                 let mut inputs = vec![vec![0.0f32; batch]; n_inputs];
                 if n_inputs == 6 {
                     inputs[5].fill(1.0);
                 }
                 let mut outputs = vec![vec![0.0f32; batch]; field.n_outputs()];
-                for (c, hot) in hot.chunks_mut(batch).enumerate() {
-                    let n = hot.len();
+                for (c, probes) in probes.chunks_mut(batch).enumerate() {
+                    let n = probes.len();
                     for (k, i) in (c * batch..c * batch + n).enumerate() {
                         let (x, y, z) = (i % m, i / m % m, z0 + i / (m * m));
                         (inputs[0][k], inputs[1][k], inputs[2][k]) = (coord(0, x), coord(1, y), coord(2, z));
@@ -137,26 +161,37 @@ impl OccupancyGrid {
                     let inputs: Vec<&[f32]> = inputs.iter().map(|v| &v[..n]).collect();
                     let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(|v| &mut v[..n]).collect();
                     field.eval(n, &inputs, &mut outs);
-                    for (h, v) in hot.iter_mut().zip(&outputs[0]) {
-                        *h = *v > threshold || v.is_nan();
+                    for (probe, &v) in probes.iter_mut().zip(&outputs[0]) {
+                        *probe = if v.is_nan() { f32::INFINITY } else { v };
                     }
                 }
                 let window = |c: usize| c * s..=c * s + s;
                 cells.copy_from_slice(&max_filter(
-                    &hot,
+                    &probes,
                     [m, m, layers * s + 1],
                     window,
                     [res, res, layers],
                 ));
             });
 
-        // 3. The dilation: a max filter of width 3 and stride 1 along each axis.
+        // 3. The cells above the threshold, 4. dilated: a max filter of width 3 and stride 1
+        //    along each axis.
+        let threshold = if capped_by_mean {
+            let mean = peaks.iter().map(|&p| f64::from(p)).sum::<f64>() / peaks.len() as f64;
+            threshold.min(mean as f32)
+        } else {
+            threshold
+        };
+        let hot: Vec<f32> = peaks
+            .iter()
+            .map(|&p| if p > threshold { 1.0 } else { 0.0 })
+            .collect();
         let dilate = |c: usize| c.saturating_sub(1)..=(c + 1).min(res - 1);
-        let dilated = max_filter(&cells, [res, res, res], dilate, [res, res, res]);
+        let dilated = max_filter(&hot, [res, res, res], dilate, [res, res, res]);
 
         let shift = res.next_power_of_two().trailing_zeros();
         let mut bits = vec![0u64; (1usize << (3 * shift)).div_ceil(64) + 1];
-        for (i, _) in dilated.iter().enumerate().filter(|(_, &b)| b) {
+        for (i, _) in dilated.iter().enumerate().filter(|(_, &b)| b > 0.0) {
             let bit = bit_of(shift, [i % res, i / res % res, i / (res * res)].map(|c| c as u32)) as usize;
             bits[bit / 64] |= 1 << (bit % 64);
         }
@@ -326,36 +361,36 @@ fn bit_of(shift: u32, [x, y, z]: [u32; 3]) -> u32 {
 /// turn: output cell c along an axis is the or of the input cells `window(c)`; the axes
 /// become `out` = [x, y, z] long.
 fn max_filter<W: Iterator<Item = usize>>(
-    v: &[bool],
+    v: &[f32],
     [nx, ny, nz]: [usize; 3],
     window: impl Fn(usize) -> W,
     [ox, oy, oz]: [usize; 3],
-) -> Vec<bool> {
+) -> Vec<f32> {
     // Along x: rows of nx → ox.
-    let mut a = vec![false; ox * ny * nz];
+    let mut a = vec![f32::NEG_INFINITY; ox * ny * nz];
     for (src, dst) in v.chunks_exact(nx).zip(a.chunks_exact_mut(ox)) {
         for (c, d) in dst.iter_mut().enumerate() {
-            *d = window(c).any(|i| src[i]);
+            *d = window(c).map(|i| src[i]).fold(f32::NEG_INFINITY, f32::max);
         }
     }
     // Along y: planes of ox·ny → ox·oy.
-    let mut b = vec![false; ox * oy * nz];
+    let mut b = vec![f32::NEG_INFINITY; ox * oy * nz];
     for (src, dst) in a.chunks_exact(ox * ny).zip(b.chunks_exact_mut(ox * oy)) {
         for (c, row) in dst.chunks_exact_mut(ox).enumerate() {
             for i in window(c) {
                 for (d, s) in row.iter_mut().zip(&src[i * ox..(i + 1) * ox]) {
-                    *d |= *s;
+                    *d = d.max(*s);
                 }
             }
         }
     }
     // Along z: planes of ox·oy, nz → oz.
     let plane = ox * oy;
-    let mut c = vec![false; plane * oz];
+    let mut c = vec![f32::NEG_INFINITY; plane * oz];
     for (k, dst) in c.chunks_exact_mut(plane).enumerate() {
         for i in window(k) {
             for (d, s) in dst.iter_mut().zip(&b[i * plane..(i + 1) * plane]) {
-                *d |= *s;
+                *d = d.max(*s);
             }
         }
     }
@@ -415,6 +450,35 @@ mod tests {
         let nan = ClosureFn::new(3, 1, |_, out| out[0] = f32::NAN);
         let grid = OccupancyGrid::build(&nan, UNIT, 4, Mode::Opacity, 0.5).unwrap();
         assert_eq!(grid.occupancy(), 1.0);
+    }
+
+    #[test]
+    fn a_training_grid_of_a_faint_field_keeps_its_denser_half() {
+        // σ = 0.01 in the half x > 0, 0.001 elsewhere: all below the threshold 0.3.
+        let faint = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = if p[0] > 0.0 { 0.01 } else { 0.001 };
+        });
+        let bounds = ([-1.0; 3], [1.0; 3]);
+        let plain = OccupancyGrid::build(&faint, bounds, 16, Mode::Density, 0.3).unwrap();
+        assert_eq!(plain.occupied_cells(), 0);
+        let training = OccupancyGrid::build_for_training(&faint, bounds, 16, Mode::Density, 0.3).unwrap();
+        // The cells of x > 0 (and the dilated layer next to them), none further.
+        for x in 0..16 {
+            let expected = x >= 7;
+            assert!(
+                (0..16).all(|y| (0..16).all(|z| training.cell(x, y, z) == expected)),
+                "x = {x}"
+            );
+        }
+        // A field above the threshold somewhere keeps the threshold.
+        let bright = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = if p[0] > 0.5 { 100.0 } else { 0.2 };
+        });
+        let a = OccupancyGrid::build(&bright, bounds, 16, Mode::Density, 0.3).unwrap();
+        let b = OccupancyGrid::build_for_training(&bright, bounds, 16, Mode::Density, 0.3).unwrap();
+        assert_eq!(a, b);
     }
 
     #[test]
