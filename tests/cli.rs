@@ -511,3 +511,38 @@ fn optimizer_settings_are_checked_and_used() {
         .expect("the trained radius is printed");
     assert!(r > 0.9 && r < 1.1, "{stdout}");
 }
+
+#[test]
+fn numbers_beyond_f32_are_refused_in_scripts_and_settings() {
+    let dir = scratch("overflow");
+    let script = write(
+        &dir,
+        "big.sdf",
+        "param r: vec<1> = [1.0]\nfn sdf(p: vec3) -> f32 = length(p) - r[0] * 1e39\n",
+    );
+    let out = nerfjit(&["check", &script], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("big.sdf:2:45") && stderr.contains("32-bit float"),
+        "{stderr}"
+    );
+    let torus = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/torus.sdf");
+    let out = nerfjit(
+        &[
+            "run",
+            torus,
+            "--out",
+            &dir.display().to_string(),
+            "--set",
+            "render.size=1e40",
+        ],
+        None,
+    );
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("--set:1:13") && stderr.contains("32-bit float"),
+        "{stderr}"
+    );
+}

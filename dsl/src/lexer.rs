@@ -59,6 +59,13 @@ pub fn lex(source: &str) -> Result<Vec<Token>, Diagnostic> {
                 Diagnostic::new(Span::new(start, i), format!("malformed number '{text}'"))
                     .with_hint("numbers look like 1, 0.25, 1e-5 or 2.5e3")
             })?;
+            if value > f64::from(f32::MAX) {
+                return Err(Diagnostic::new(
+                    Span::new(start, i),
+                    format!("the number '{text}' does not fit in a 32-bit float"),
+                )
+                .with_hint(format!("numbers are at most {:e}", f32::MAX)));
+            }
             tokens.push(token(Tok::Number(value), start, i));
         } else if c == b'"' {
             let start = i;
@@ -127,6 +134,21 @@ mod tests {
 
     fn kinds(s: &str) -> Vec<Tok> {
         lex(s).unwrap().into_iter().map(|t| t.tok).collect()
+    }
+
+    #[test]
+    fn numbers_beyond_f32_are_errors_at_their_place() {
+        for text in ["1e39", "1e999", "340282350000000000000000000000000000001"] {
+            let source = format!("x = {text} + 1");
+            let e = lex(&source).unwrap_err();
+            assert!(
+                e.message.contains("does not fit in a 32-bit float"),
+                "{}",
+                e.message
+            );
+            assert_eq!((e.span.start as usize, e.span.end as usize), (4, 4 + text.len()));
+        }
+        assert_eq!(kinds("3.4e38"), vec![Tok::Number(3.4e38), Tok::Eof]);
     }
 
     #[test]
