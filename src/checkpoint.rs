@@ -80,13 +80,24 @@ pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
             .ok_or_else(|| bad(&format!("no '{key}' array")))?
             .iter()
             .map(|v| {
-                v.as_f64()
-                    .map(|x| x as f32)
-                    .ok_or_else(|| bad(&format!("'{key}' holds a non-number")))
+                let x = v
+                    .as_f64()
+                    .ok_or_else(|| bad(&format!("'{key}' holds a non-number")))?
+                    as f32;
+                if x.is_finite() {
+                    Ok(x)
+                } else {
+                    Err(bad(&format!(
+                        "'{key}' holds {v}, beyond the range of a 32-bit float"
+                    )))
+                }
             })
             .collect()
     };
-    let step = json["step"].as_u64().ok_or_else(|| bad("no 'step'"))? as u32;
+    let step = json["step"]
+        .as_u64()
+        .and_then(|s| u32::try_from(s).ok())
+        .ok_or_else(|| bad("no 'step', or not a step count"))?;
     let params = floats("params")?;
     if params.len() != n_params {
         return Err(bad(&format!(
@@ -101,10 +112,12 @@ pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
     })
 }
 
-/// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists,
-/// else fresh Adam at `lr` from step 0 (params untouched); either way with the decay rates and ε of
-/// `settings`.
+/// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists
+/// (refused if a script with other params wrote it), else fresh Adam at `lr` from step 0 (params
+/// untouched); either way with the decay rates and ε of `settings`. Says on standard error what it
+/// resumed, or that there was nothing to resume.
 pub fn resume_or_start(
+    program: &Program,
     checkpoint: Option<&Path>,
     resume: bool,
     params: &mut Vec<f32>,
@@ -112,8 +125,33 @@ pub fn resume_or_start(
     lr: impl Fn(u32) -> f32,
 ) -> Result<(Adam, u32)> {
     let n = params.len();
+    if resume {
+        match checkpoint {
+            None => {
+                eprintln!("nothing to resume: the training block writes no checkpoint; starting at step 0")
+            }
+            Some(p) if !p.exists() => {
+                eprintln!(
+                    "nothing to resume: no checkpoint at '{}' yet; starting at step 0",
+                    p.display()
+                )
+            }
+            Some(_) => {}
+        }
+    }
     match checkpoint.filter(|p| resume && p.exists()) {
         Some(path) => {
+            let (written_by, _) = load_trained(path)?;
+            let (theirs, ours) = (param_layout(&written_by), param_layout(program));
+            if theirs != ours {
+                return Err(Failure::Message(format!(
+                    "checkpoint '{}' was written by a script with other params ({}) than this one ({}): \
+                     resume from a checkpoint of this script, or train without --resume",
+                    path.display(),
+                    theirs.join(", "),
+                    ours.join(", ")
+                )));
+            }
             let ck = read(path, n)?;
             *params = ck.params;
             let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
@@ -122,6 +160,15 @@ pub fn resume_or_start(
         }
         None => Ok((configured(Adam::new(n, lr(0)), settings), 0)),
     }
+}
+
+/// Each param of `program` as `name: type`.
+fn param_layout(program: &Program) -> Vec<String> {
+    program
+        .params
+        .iter()
+        .map(|p| format!("{}: {}", p.name, p.ty))
+        .collect()
 }
 
 /// `adam` with the decay rates and ε of `settings`.

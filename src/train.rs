@@ -482,6 +482,7 @@ impl TrainPlan {
             ..settings
         };
         let (mut adam, first) = crate::checkpoint::resume_or_start(
+            program,
             self.checkpoint.as_deref(),
             resume,
             params,

@@ -188,6 +188,7 @@ impl SdfTrainPlan {
         let k = self.compile(program)?;
         let compile_s = t.elapsed().as_secs_f64();
         let (mut adam, first) = crate::checkpoint::resume_or_start(
+            program,
             self.checkpoint.as_deref(),
             resume,
             params,

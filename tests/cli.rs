@@ -546,3 +546,41 @@ fn numbers_beyond_f32_are_refused_in_scripts_and_settings() {
         "{stderr}"
     );
 }
+
+#[test]
+fn resume_refuses_another_scripts_checkpoint_and_says_when_there_is_nothing() {
+    let dir = scratch("resume");
+    std::fs::write(
+        dir.join("cloud.xyz"),
+        "1 0 0\n0 1 0\n0 0 1\n-1 0 0\n0 -1 0\n0 0 -1\n",
+    )
+    .expect("cloud");
+    let script = |param: &str| {
+        format!(
+            "param {param}: vec<1> = [0.5]\nfn sdf(p: vec3) -> f32 = length(p) - {param}[0]\ntrain sdf {{\n    data: points(\"cloud.xyz\"),\n    steps: 20, batch: 6, random: 6,\n    checkpoint: \"fit.ckpt.json\",\n}}\n"
+        )
+    };
+    let out_dir = dir.display().to_string();
+    let first = write(&dir, "first.sdf", &script("r"));
+    let out = nerfjit(&["run", &first, "--out", &out_dir, "--resume"], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}{stderr}");
+    assert!(stderr.contains("nothing to resume: no checkpoint at"), "{stderr}");
+    assert!(dir.join("fit.ckpt.json").is_file());
+    // Same number of params, other names: not this script's checkpoint.
+    let other = write(&dir, "other.sdf", &script("radius"));
+    let out = nerfjit(&["run", &other, "--out", &out_dir, "--resume"], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("written by a script with other params (r: vec<1>)"),
+        "{stderr}"
+    );
+    // Its own script resumes from it.
+    let out = nerfjit(&["run", &first, "--out", &out_dir, "--resume"], None);
+    let (_, stderr) = text(&out);
+    assert!(
+        out.status.success() && stderr.contains("resuming from"),
+        "{stderr}"
+    );
+}
