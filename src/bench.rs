@@ -213,6 +213,7 @@ fn first_block<'p>(program: &'p nerfjit_dsl::Program, kind: &str, script_dir: &s
         settings,
         std::path::Path::new(script_dir),
         Some(&temp),
+        std::rc::Rc::default(),
     ))
 }
 

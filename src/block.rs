@@ -1,7 +1,9 @@
 //! Typed access to the settings of one block, with errors pointing into the script. Every setting is
 //! taken once; [`Block::finish`] rejects any left over as unknown.
 
+use std::cell::RefCell;
 use std::path::{Path, PathBuf};
+use std::rc::Rc;
 
 use nerfjit_dsl::config::{Settings, Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program, Span};
@@ -13,28 +15,36 @@ use crate::settings::{name_among, ranged, triple, whole};
 /// The most pixels a render block may produce (all frames).
 const MAX_PIXELS: u64 = 1 << 27;
 
+/// The files a script's blocks write so far, with the settings that name them: no two outputs of a run
+/// may be the same file (one would silently replace the other, e.g. a summary its checkpoint).
+#[derive(Default)]
+pub struct Outputs(RefCell<Vec<(PathBuf, Span)>>);
+
 /// A block's settings with what resolving them needs.
 pub struct Block<'p> {
     program: &'p Program,
     settings: Settings,
     script_dir: PathBuf,
     out_dir: Option<PathBuf>,
+    outputs: Rc<Outputs>,
 }
 
 impl<'p> Block<'p> {
     /// The settings of one block of `program`; relative input files are looked up next to the script,
-    /// outputs go to `out_dir` when given.
+    /// outputs go to `out_dir` when given and are recorded in `outputs` (shared by the run's blocks).
     pub fn new(
         program: &'p Program,
         settings: Settings,
         script_dir: &Path,
         out_dir: Option<&Path>,
+        outputs: Rc<Outputs>,
     ) -> Block<'p> {
         Block {
             program,
             settings,
             script_dir: script_dir.to_path_buf(),
             out_dir: out_dir.map(Path::to_path_buf),
+            outputs,
         }
     }
 
@@ -196,7 +206,31 @@ impl<'p> Block<'p> {
                 .with_hint("create the folder first, or pass --out DIR"),
             ));
         }
+        let mut outputs = self.outputs.0.borrow_mut();
+        if let Some((_, earlier)) = outputs.iter().find(|(p, _)| *p == path) {
+            let (line, col) = self.position(*earlier);
+            return Err(self.error(
+                Diagnostic::new(
+                    v.span,
+                    format!(
+                        "'{}' is written twice: also by the setting at line {line}, column {col}",
+                        path.display()
+                    ),
+                )
+                .with_hint("give each output its own file name (--out keeps only the names)"),
+            ));
+        }
+        outputs.push((path.clone(), v.span));
         Ok(path)
+    }
+
+    /// The line and column (from 1) of `span`'s start in its file.
+    fn position(&self, span: Span) -> (usize, usize) {
+        let at = span.start as usize;
+        match self.program.sources.file_at(at) {
+            Some(file) => nerfjit_dsl::diag::line_col(&file.text, at - file.base),
+            None => (0, 0),
+        }
     }
 
     /// Setting `key` as an image output (`.gif` for all frames, `.png` for one or numbered frames).

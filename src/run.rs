@@ -1,12 +1,13 @@
 //! `nerfjit run`: does what the script's blocks say.
 
 use std::path::Path;
+use std::rc::Rc;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::Diagnostic;
 
-use crate::block::Block;
+use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
 use crate::mesh::MeshPlan;
 use crate::render::RenderPlan;
@@ -45,10 +46,11 @@ pub fn run(path: &str, overrides: &[String], out_dir: Option<&Path>, resume: boo
     }
     let script_dir = Path::new(path).parent().unwrap_or(Path::new("."));
     let mut plans = Vec::new();
+    let outputs = Rc::new(Outputs::default());
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
         let (kind, name) = (settings.kind.clone(), settings.name.clone());
-        let b = Block::new(&program, settings, script_dir, out_dir);
+        let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs));
         match (kind.as_str(), name.as_deref()) {
             ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(b)?)),
             ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(b)?)),

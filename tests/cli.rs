@@ -584,3 +584,41 @@ fn resume_refuses_another_scripts_checkpoint_and_says_when_there_is_nothing() {
         "{stderr}"
     );
 }
+
+#[test]
+fn two_outputs_of_one_run_may_not_be_the_same_file() {
+    let dir = scratch("same-output");
+    for sub in ["a", "b"] {
+        std::fs::create_dir_all(dir.join(sub)).expect("folder");
+    }
+    let block = |out: &str| {
+        format!("render sphere_trace {{ camera: orbit(radius: 3, frames: 1), size: 8, out: \"{out}\" }}\n")
+    };
+    let source = format!(
+        "fn sdf(p: vec3) -> f32 = length(p) - 1.0\n{}{}",
+        block("a/x.png"),
+        block("b/x.png")
+    );
+    let script = write(&dir, "twice.sdf", &source);
+    // Different folders: two files.
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+            .args(args)
+            .current_dir(&dir)
+            .output()
+            .expect("nerfjit runs")
+    };
+    let out = run(&["run", &script]);
+    assert!(out.status.success(), "{:?}", text(&out));
+    // --out keeps only the names: the same file twice, refused before anything is written.
+    let flat = dir.join("flat");
+    let out = run(&["run", &script, "--out", &flat.display().to_string()]);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("is written twice: also by the setting at line 2"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("twice.sdf:3:"), "{stderr}");
+    assert!(!flat.join("x.png").exists());
+}
