@@ -50,6 +50,12 @@ pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &[
 /// The script a checkpoint was written by, and its params: the program is compiled again from the source
 /// the checkpoint holds.
 pub fn load_trained(path: &Path) -> Result<(Program, Vec<f32>)> {
+    let (program, ck) = load(path)?;
+    Ok((program, ck.params))
+}
+
+/// Reads a checkpoint (parsed once) and compiles the script it holds; its params must fit that script.
+fn load(path: &Path) -> Result<(Program, Checkpoint)> {
     let bad = |why: &str| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
     let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
     let json: serde_json::Value =
@@ -63,17 +69,6 @@ pub fn load_trained(path: &Path) -> Result<(Program, Vec<f32>)> {
         .map(|a| a.iter().filter_map(|v| v.as_str().map(str::to_string)).collect())
         .unwrap_or_default();
     let program = nerfjit_dsl::compile_with(name, source, &overrides).map_err(Failure::Script)?;
-    let n = program.n_params();
-    let ck = read(path, n)?;
-    Ok((program, ck.params))
-}
-
-/// Reads a checkpoint for a program of `n_params` params.
-pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
-    let bad = |why: &str| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
-    let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| bad(&format!("invalid JSON ({e})")))?;
     let floats = |key: &str| -> Result<Vec<f32>> {
         json[key]
             .as_array()
@@ -99,17 +94,19 @@ pub fn read(path: &Path, n_params: usize) -> Result<Checkpoint> {
         .and_then(|s| u32::try_from(s).ok())
         .ok_or_else(|| bad("no 'step', or not a step count"))?;
     let params = floats("params")?;
+    let n_params = program.n_params();
     if params.len() != n_params {
         return Err(bad(&format!(
             "it holds {} params but the script has {n_params}",
             params.len()
         )));
     }
-    Ok(Checkpoint {
+    let ck = Checkpoint {
         step,
         params,
         adam: floats("adam")?,
-    })
+    };
+    Ok((program, ck))
 }
 
 /// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists
@@ -125,41 +122,37 @@ pub fn resume_or_start(
     lr: impl Fn(u32) -> f32,
 ) -> Result<(Adam, u32)> {
     let n = params.len();
-    if resume {
-        match checkpoint {
-            None => {
-                eprintln!("nothing to resume: the training block writes no checkpoint; starting at step 0")
-            }
-            Some(p) if !p.exists() => {
-                eprintln!(
-                    "nothing to resume: no checkpoint at '{}' yet; starting at step 0",
-                    p.display()
-                )
-            }
-            Some(_) => {}
+    let fresh = || Ok((configured(Adam::new(n, lr(0)), settings), 0));
+    let path = match checkpoint {
+        Some(path) if resume && path.exists() => path,
+        Some(path) if resume => {
+            eprintln!(
+                "nothing to resume: no checkpoint at '{}' yet; starting at step 0",
+                path.display()
+            );
+            return fresh();
         }
-    }
-    match checkpoint.filter(|p| resume && p.exists()) {
-        Some(path) => {
-            let (written_by, _) = load_trained(path)?;
-            let (theirs, ours) = (param_layout(&written_by), param_layout(program));
-            if theirs != ours {
-                return Err(Failure::Message(format!(
-                    "checkpoint '{}' was written by a script with other params ({}) than this one ({}): \
-                     resume from a checkpoint of this script, or train without --resume",
-                    path.display(),
-                    theirs.join(", "),
-                    ours.join(", ")
-                )));
-            }
-            let ck = read(path, n)?;
-            *params = ck.params;
-            let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
-            eprintln!("resuming from {} at step {}", path.display(), ck.step);
-            Ok((configured(adam, settings), ck.step))
+        None if resume => {
+            eprintln!("nothing to resume: the training block writes no checkpoint; starting at step 0");
+            return fresh();
         }
-        None => Ok((configured(Adam::new(n, lr(0)), settings), 0)),
+        _ => return fresh(),
+    };
+    let (written_by, ck) = load(path)?;
+    let (theirs, ours) = (param_layout(&written_by), param_layout(program));
+    if theirs != ours {
+        return Err(Failure::Message(format!(
+            "checkpoint '{}' was written by a script with other params ({}) than this one ({}): \
+             resume from a checkpoint of this script, or train without --resume",
+            path.display(),
+            theirs.join(", "),
+            ours.join(", ")
+        )));
     }
+    *params = ck.params;
+    let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
+    eprintln!("resuming from {} at step {}", path.display(), ck.step);
+    Ok((configured(adam, settings), ck.step))
 }
 
 /// Each param of `program` as `name: type`.

@@ -234,6 +234,9 @@ impl ViewOptions {
 /// passes recurse deeply; the pages are only committed as they are used.
 const WORK_STACK_BYTES: usize = 1 << 30;
 
+/// Most `--threads` per core.
+const MAX_THREADS_PER_CORE: usize = 8;
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let mut pool = rayon::ThreadPoolBuilder::new().start_handler(|_| nerfjit_runtime::flush_denormals());
@@ -269,9 +272,6 @@ fn main() -> ExitCode {
         }
     }
 }
-
-/// Most `--threads` per core.
-const MAX_THREADS_PER_CORE: usize = 8;
 
 /// Runs the command line's command; prints its error, if any.
 fn run_command(cli: Cli) -> ExitCode {
