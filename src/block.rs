@@ -183,6 +183,40 @@ impl<'p> Block<'p> {
         self.resolve_output(&v, written).map(Some)
     }
 
+    /// Setting `key` as an output file that is written by default: `none` turns it off; when absent it is
+    /// `<script>.<suffix>` (the script's file stem, then `-2`, `-3`, … if an earlier block took that name)
+    /// in the working folder or in `--out`.
+    pub fn default_output(&mut self, key: &str, suffix: &str) -> Result<Option<PathBuf>> {
+        match self.take(key) {
+            Some(v) if matches!(&v.value, Value::Name(n) if n == "none") => Ok(None),
+            Some(v) => {
+                let written = PathBuf::from(v.string().map_err(|d| self.error(d))?);
+                self.resolve_output(&v, written).map(Some)
+            }
+            None => {
+                let script = Path::new(&self.program.sources.files[1].name);
+                let stem = script.file_stem().unwrap_or_default().to_string_lossy();
+                let taken = |path: &Path| self.outputs.0.borrow().iter().any(|(p, _)| p == path);
+                let path = (1..)
+                    .map(|k| {
+                        let numbered = if k == 1 { String::new() } else { format!("-{k}") };
+                        let name = format!("{stem}{numbered}.{suffix}");
+                        match &self.out_dir {
+                            Some(dir) => dir.join(name),
+                            None => PathBuf::from(name),
+                        }
+                    })
+                    .find(|p| !taken(p))
+                    .expect("unbounded");
+                let v = Spanned {
+                    value: Value::Str(path.display().to_string()),
+                    span: self.span(),
+                };
+                self.resolve_output(&v, path).map(Some)
+            }
+        }
+    }
+
     /// Where output `written` (from setting `v`) goes: into `--out` when given; its folder must exist.
     pub fn resolve_output(&self, v: &Spanned, written: PathBuf) -> Result<PathBuf> {
         let path = match &self.out_dir {

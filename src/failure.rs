@@ -11,6 +11,8 @@ pub enum Failure {
     Script(Report),
     /// Anything else: a missing file, a bad argument, a runtime error.
     Message(String),
+    /// Stopped by Ctrl-C or SIGTERM, having saved what it could (said in the message).
+    Interrupted(String),
 }
 
 impl fmt::Display for Failure {
@@ -18,6 +20,7 @@ impl fmt::Display for Failure {
         match self {
             Failure::Script(report) => write!(f, "{report}"),
             Failure::Message(m) => writeln!(f, "error: {m}"),
+            Failure::Interrupted(m) => writeln!(f, "interrupted: {m}"),
         }
     }
 }

@@ -9,8 +9,10 @@ mod compare;
 mod eval;
 mod failure;
 mod field;
+mod interrupt;
 mod ir_dump;
 mod mesh;
+mod metrics_log;
 mod output;
 mod regularizers;
 mod render;
@@ -110,9 +112,10 @@ enum Command {
         #[arg(long, default_value_t = 9)]
         reps: usize,
     },
-    /// Extract the marching-cubes mesh of a script's function (its zero level set by default).
+    /// Extract the marching-cubes mesh of a script's function (its zero level set by default), or of a
+    /// trained field from a checkpoint.
     Mesh {
-        /// The script.
+        /// A script, or a checkpoint written by a training block (it holds its script).
         script: String,
         /// The function to mesh, `fn f(p: vec3) -> f32`.
         #[arg(long, default_value = "sdf")]
@@ -239,6 +242,7 @@ const MAX_THREADS_PER_CORE: usize = 8;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    interrupt::install();
     let mut pool = rayon::ThreadPoolBuilder::new().start_handler(|_| nerfjit_runtime::flush_denormals());
     if let Some(n) = cli.threads {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -353,6 +357,10 @@ fn run_command(cli: Cli) -> ExitCode {
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        Err(failure @ failure::Failure::Interrupted(_)) => {
+            eprint!("{failure}");
+            ExitCode::from(interrupt::EXIT_STATUS)
+        }
         Err(failure) => {
             eprint!("{failure}");
             ExitCode::FAILURE

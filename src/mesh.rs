@@ -14,7 +14,6 @@ use nerfjit_runtime::{chamfer_report, mean_center, read_points, save_gif, Camera
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::field::{Compiler, Kind};
-use crate::script;
 use crate::settings::CallArgs;
 
 /// What to extract and where to write it.
@@ -68,10 +67,11 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
     }
 }
 
-/// `nerfjit mesh`: loads the script and meshes `args.function` with the params' initial values.
-pub fn run(script: &str, args: &MeshArgs) -> Result<String> {
-    let program = script::load(script)?;
-    let (_, summary) = extract_and_write(&program, &program.param_values, args)?;
+/// `nerfjit mesh`: meshes `args.function` of a script (with the params' initial values) or of a training
+/// checkpoint (with the trained ones).
+pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
+    let (program, params) = crate::views::load(source)?;
+    let (_, summary) = extract_and_write(&program, &params, args)?;
     Ok(summary)
 }
 

@@ -16,6 +16,8 @@ use nerfjit_runtime::{
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::field::{VolumeField, VolumeFields};
+use crate::interrupt::Watch;
+use crate::metrics_log::MetricsLog;
 use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
@@ -52,6 +54,19 @@ const KEYS: &[&str] = &[
     "minutes",
     "early_termination",
     "optimizer",
+    "log",
+];
+
+/// The columns of a volume training run's metrics log.
+const LOG_COLUMNS: &[&str] = &[
+    "step",
+    "train_seconds",
+    "lr",
+    "loss",
+    "psnr",
+    "eikonal",
+    "val_psnr",
+    "val_ssim",
 ];
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
@@ -79,6 +94,8 @@ pub struct TrainPlan {
     seed: u64,
     checkpoint: Option<PathBuf>,
     checkpoint_every: u32,
+    /// The metrics log (JSON Lines, or CSV).
+    log: Option<PathBuf>,
     summary: Option<PathBuf>,
     preview: Option<PathBuf>,
     preview_every: u32,
@@ -338,7 +355,8 @@ impl TrainPlan {
         let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let random_views = b.choice("views", &["cycle", "random"], "cycle")? == "random";
         let jitter = b.choice("jitter", &["true", "false"], "false")? == "true";
-        let checkpoint = b.output("checkpoint")?;
+        let checkpoint = b.default_output("checkpoint", "ckpt.safetensors")?;
+        let log = b.default_output("log", "metrics.jsonl")?;
         let summary = b.output("summary")?;
         let preview = b.output("preview")?;
         let validation = match b.take("val") {
@@ -402,6 +420,7 @@ impl TrainPlan {
             seed,
             checkpoint,
             checkpoint_every,
+            log,
             summary,
             preview,
             preview_every,
@@ -439,6 +458,7 @@ impl TrainPlan {
         let quiet = TrainPlan {
             steps,
             checkpoint: None,
+            log: None,
             summary: None,
             preview: None,
             data: self.data.clone(),
@@ -489,9 +509,16 @@ impl TrainPlan {
             self.optimizer,
             |k| self.schedule.lr(k),
         )?;
+        let mut log = match &self.log {
+            Some(path) => Some(MetricsLog::open(path, LOG_COLUMNS, first > 0)?),
+            None => None,
+        };
+        let watch = Watch::start();
         let bar = ProgressBar::new(u64::from(self.steps)).with_style(
-            ProgressStyle::with_template("{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template(
+                "{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}, {eta} to go",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         bar.set_position(u64::from(first));
         let mut rng = Rng::new(self.seed ^ 0x5eed);
@@ -594,7 +621,8 @@ impl TrainPlan {
             train_seconds += step_start.elapsed().as_secs_f64();
             done = step + 1;
             let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);
-            let last = done == self.steps || out_of_time;
+            let interrupted = watch.requested();
+            let last = done == self.steps || out_of_time || interrupted;
             if let (Some(v), Some(val)) = (&self.validation, &val_views) {
                 let marks_before = next_val_time;
                 while v
@@ -605,7 +633,8 @@ impl TrainPlan {
                     next_val_time += 1;
                 }
                 let time_mark = next_val_time > marks_before;
-                if done % v.every == 0 || time_mark || last {
+                // An interrupted run stops at once: it is not validated.
+                if done % v.every == 0 || time_mark || (last && !interrupted) {
                     let (p, s) = crate::views::means(&crate::views::score(val, &fields, params, &settings)?);
                     val_message = format!(" val {p:.2} dB");
                     let line = format!(
@@ -616,9 +645,26 @@ impl TrainPlan {
                     history.push(serde_json::json!({
                         "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
                     }));
+                    if let Some(log) = &mut log {
+                        let at = [done as f64, train_seconds].map(Some);
+                        log.record(&[at[0], at[1], None, None, None, None, Some(p), Some(s)])?;
+                    }
                 }
             }
             if done % 10 == 0 || last {
+                if let Some(log) = &mut log {
+                    let eikonal = self.eikonal.is_some().then_some(f64::from(eikonal_loss));
+                    log.record(&[
+                        Some(f64::from(done)),
+                        Some(train_seconds),
+                        Some(f64::from(adam.lr)),
+                        Some(f64::from(loss)),
+                        Some(f64::from(psnr)),
+                        eikonal,
+                        None,
+                        None,
+                    ])?;
+                }
                 let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
                 bar.set_message(format!(
                     "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",
@@ -633,13 +679,16 @@ impl TrainPlan {
             bar.set_position(u64::from(done));
             if let Some(path) = &self.checkpoint {
                 if done % self.checkpoint_every == 0 || last {
-                    crate::checkpoint::write(path, program, done, params, &adam.state())?;
+                    crate::checkpoint::write(path, program, done, params, &adam)?;
                 }
             }
             if let Some(path) = &self.preview {
-                if done % self.preview_every == 0 || last {
+                if done % self.preview_every == 0 || (last && !interrupted) {
                     self.write_preview(path, &views, &fields, params, &settings)?;
                 }
+            }
+            if interrupted {
+                break;
             }
             if out_of_time {
                 report(
@@ -677,6 +726,9 @@ impl TrainPlan {
                 "params": params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        if watch.requested() {
+            return Err(crate::interrupt::stopped(done, self.checkpoint.as_deref()));
         }
         Ok(format!(
             "trained {trained} steps in {seconds:.1} s ({ms_per_step:.2} ms/step, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{values}"

@@ -16,6 +16,8 @@ use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
+use crate::interrupt::Watch;
+use crate::metrics_log::MetricsLog;
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
@@ -37,8 +39,12 @@ const KEYS: &[&str] = &[
     "seed",
     "checkpoint",
     "checkpoint_every",
+    "log",
     "summary",
 ];
+
+/// The columns of a point-cloud fit's metrics log.
+const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near", "eikonal"];
 
 /// A checked `train sdf` block.
 pub struct SdfTrainPlan {
@@ -61,6 +67,8 @@ pub struct SdfTrainPlan {
     seed: u64,
     checkpoint: Option<PathBuf>,
     checkpoint_every: u32,
+    /// The metrics log (JSON Lines, or CSV).
+    log: Option<PathBuf>,
     summary: Option<PathBuf>,
     points_gif: Option<PathBuf>,
 }
@@ -116,8 +124,9 @@ impl SdfTrainPlan {
             pretrain_steps: b.whole("pretrain_steps", 0, 1_000_000, 0)? as u32,
             pretrain_radius: b.number("pretrain_radius", 1e-3, 1e6, 1.0)? as f32,
             seed: b.whole("seed", 0, u64::MAX >> 1, 0)?,
-            checkpoint: b.output("checkpoint")?,
+            checkpoint: b.default_output("checkpoint", "ckpt.safetensors")?,
             checkpoint_every: b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32,
+            log: b.default_output("log", "metrics.jsonl")?,
             summary: b.output("summary")?,
             points_gif: b.image_output("points_gif")?,
         };
@@ -164,6 +173,7 @@ impl SdfTrainPlan {
             steps,
             pretrain_steps: 0,
             checkpoint: None,
+            log: None,
             summary: None,
             points_gif: None,
             ..self
@@ -198,13 +208,21 @@ impl SdfTrainPlan {
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;
+        let mut log = match &self.log {
+            Some(path) => Some(MetricsLog::open(path, LOG_COLUMNS, first > 0)?),
+            None => None,
+        };
+        let watch = Watch::start();
         let bar = ProgressBar::new(u64::from(total)).with_style(
-            ProgressStyle::with_template("{spinner} fitting [{bar:30}] {pos}/{len} {msg} {elapsed}")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template(
+                "{spinner} fitting [{bar:30}] {pos}/{len} {msg} {elapsed}, {eta} to go",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         bar.set_position(u64::from(first));
         let start = Instant::now();
         let mut terms = [f32::NAN; 3];
+        let mut done = first;
         for step in first..total {
             let mut grads = vec![0.0f32; params.len()];
             if step < self.pretrain_steps {
@@ -227,8 +245,19 @@ impl SdfTrainPlan {
             }
             adam.lr = self.schedule.lr(step);
             adam.step(params, &grads)?;
-            let done = step + 1;
-            if done % 10 == 0 || done == total {
+            done = step + 1;
+            let last = done == total || watch.requested();
+            if done % 10 == 0 || last {
+                if let Some(log) = &mut log {
+                    let mut record = vec![
+                        Some(f64::from(done)),
+                        Some(start.elapsed().as_secs_f64()),
+                        Some(f64::from(adam.lr)),
+                        Some(f64::from(loss)),
+                    ];
+                    record.extend(terms.map(|t| Some(f64::from(t))));
+                    log.record(&record)?;
+                }
                 bar.set_message(format!(
                     "surface {:.5} near {:.5} eikonal {:.5}{}",
                     terms[0],
@@ -243,14 +272,17 @@ impl SdfTrainPlan {
             }
             bar.set_position(u64::from(done));
             if let Some(path) = &self.checkpoint {
-                if done % self.checkpoint_every == 0 || done == total {
-                    crate::checkpoint::write(path, program, done, params, &adam.state())?;
+                if done % self.checkpoint_every == 0 || last {
+                    crate::checkpoint::write(path, program, done, params, &adam)?;
                 }
+            }
+            if watch.requested() {
+                break;
             }
         }
         bar.finish_and_clear();
         let seconds = start.elapsed().as_secs_f64();
-        let trained = total - first;
+        let trained = done - first;
         let ms = if trained > 0 {
             1e3 * seconds / f64::from(trained)
         } else {
@@ -261,7 +293,7 @@ impl SdfTrainPlan {
                 "data": self.data.display().to_string(),
                 "points": cloud.len(),
                 "mean_centered_by": mean,
-                "steps": total,
+                "steps": done,
                 "resumed_from": first,
                 "surface_loss": terms[0],
                 "near_loss": terms[1],
@@ -272,6 +304,9 @@ impl SdfTrainPlan {
                 "params": crate::train::params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        if watch.requested() {
+            return Err(crate::interrupt::stopped(done, self.checkpoint.as_deref()));
         }
         Ok(format!(
             "fitted '{}' to {} points in {trained} steps, {seconds:.1} s ({ms:.2} ms/step, JIT compile {compile_s:.2} s): \

@@ -37,9 +37,9 @@ pub struct ViewArgs<'a> {
     pub importance: usize,
 }
 
-/// The program and params: a checkpoint's, or a script's initial ones.
+/// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
 pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
-    let is_checkpoint = source.ends_with(".json");
+    let is_checkpoint = source.ends_with(".safetensors") || source.ends_with(".json");
     if is_checkpoint {
         crate::checkpoint::load_trained(Path::new(source))
     } else {

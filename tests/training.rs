@@ -49,12 +49,18 @@ fn make_views(dir: &Path) {
     assert!(dir.join("view_003.png").exists());
 }
 
-fn trainer(steps: u32) -> String {
+/// A script that trains the box for `steps`, with `extra` settings (the checkpoint is the default
+/// `train.ckpt.safetensors` unless they name one).
+fn trainer_with(steps: u32, extra: &str) -> String {
     format!(
         "param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1.0, 1.0, 1.0]\n{FIELD}\
          train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: {steps}, batch: 800, lr: 0.01, \
-         schedule: exponential(gamma: 0.1, every: 400), checkpoint: \"box.ckpt.json\", checkpoint_every: 50, summary: \"summary.json\" }}\n"
+         schedule: exponential(gamma: 0.1, every: 400), checkpoint_every: 50, summary: \"summary.json\" {extra}}}\n"
     )
+}
+
+fn trainer(steps: u32) -> String {
+    trainer_with(steps, "")
 }
 
 fn learned(dir: &Path) -> (Vec<f64>, Vec<f64>, u64) {
@@ -83,7 +89,10 @@ fn recovers_a_box_from_its_own_renders_and_resumes() {
     std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
     let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
     assert!(ok, "{err}");
-    assert!(err.contains("resuming from box.ckpt.json at step 200"), "{err}");
+    assert!(
+        err.contains("resuming from train.ckpt.safetensors at step 200"),
+        "{err}"
+    );
     assert!(out.contains("trained 300 steps"), "{out}");
     assert_eq!(assert_recovered(&dir), 200);
 }
@@ -249,7 +258,9 @@ fn fits_an_sdf_to_points_with_the_eikonal_term() {
 fn checkpoints_hold_their_script_and_overrides() {
     let dir = scratch("ckpt");
     make_views(&dir);
-    std::fs::write(dir.join("train.sdf"), trainer(500)).unwrap();
+    // A checkpoint named .json is written as readable JSON.
+    let script = trainer_with(500, ", checkpoint: \"box.ckpt.json\"");
+    std::fs::write(dir.join("train.sdf"), script).unwrap();
     let (ok, _, err) = run(
         &dir,
         &[
@@ -336,4 +347,202 @@ fn a_neural_sdf_converges_to_points_on_a_sphere() {
     assert!(out.contains("triangles, closed"), "{out}");
     let mean = mean_point_to_mesh(&out);
     assert!(mean < 0.016, "{out}");
+}
+
+/// The metadata and tensors (name → shape) of a safetensors file, read as the format's spec says (a
+/// little-endian u64 header length, then the JSON header).
+fn safetensors_header(path: &Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).expect("checkpoint written");
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).expect("JSON header");
+    let data = bytes.len() - 8 - n;
+    let end = header
+        .as_object()
+        .unwrap()
+        .values()
+        .filter_map(|t| t["data_offsets"][1].as_u64())
+        .max()
+        .unwrap();
+    assert_eq!(end as usize, data, "the tensors cover the data exactly");
+    header
+}
+
+#[test]
+fn checkpoints_are_safetensors_by_default_with_a_tensor_per_param() {
+    let dir = scratch("safetensors");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(5)).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let header = safetensors_header(&dir.join("train.ckpt.safetensors"));
+    let meta = &header["__metadata__"];
+    assert_eq!(meta["format"], "nerfjit-checkpoint-2");
+    assert_eq!(meta["step"], "5");
+    assert_eq!(meta["script_name"], "train.sdf");
+    assert!(meta["script_source"]
+        .as_str()
+        .unwrap()
+        .contains("param sides: vec3"));
+    for name in ["center", "sides", "adam.m.center", "adam.v.sides"] {
+        assert_eq!(header[name]["dtype"], "F32", "{name}");
+        assert_eq!(header[name]["shape"], serde_json::json!([3]), "{name}");
+    }
+    // The metrics log has a line every 10 steps and at the end.
+    let log = std::fs::read_to_string(dir.join("train.metrics.jsonl")).expect("metrics log");
+    let last: serde_json::Value = serde_json::from_str(log.lines().last().unwrap()).unwrap();
+    assert_eq!(last["step"], 5);
+    assert!(
+        last["loss"].as_f64().unwrap() > 0.0 && last["lr"].as_f64().is_some(),
+        "{last}"
+    );
+    // The checkpoint alone is meshed (its script's opacity, trained params).
+    let (ok, out, err) = run(
+        &dir,
+        &[
+            "mesh",
+            "train.ckpt.safetensors",
+            "--function",
+            "opacity",
+            "--level",
+            "0.5",
+            "--res",
+            "24",
+            "--out",
+            "box.ply",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(out.contains("closed"), "{out}");
+    // `none` turns the checkpoint and the log off.
+    let off = trainer_with(5, ", checkpoint: none, log: none");
+    std::fs::write(dir.join("off.sdf"), off).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "off.sdf"]);
+    assert!(ok, "{err}");
+    assert!(!dir.join("off.ckpt.safetensors").exists() && !dir.join("off.metrics.jsonl").exists());
+}
+
+#[test]
+fn an_mlp_is_saved_as_pytorch_linear_layers() {
+    let dir = scratch("mlp-tensors");
+    std::fs::write(
+        dir.join("cloud.xyz"),
+        "1 0 0\n0 1 0\n0 0 1\n-1 0 0\n0 -1 0\n0 0 -1\n",
+    )
+    .unwrap();
+    let script =
+        "param net: mlp<3, 8, 2> = linear_init(seed: 1)\nparam head: mat<1, 8> = linear_init(seed: 2)\n\
+                  fn sdf(p: vec3) -> f32 = length(p) - 1.0 + 0.1 * dense(head, [0.0], mlp(net, p))[0]\n\
+                  train sdf { data: points(\"cloud.xyz\"), steps: 3, batch: 6, random: 6 }\n";
+    std::fs::write(dir.join("fit.sdf"), script).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "fit.sdf"]);
+    assert!(ok, "{err}");
+    let header = safetensors_header(&dir.join("fit.ckpt.safetensors"));
+    let shape = |name: &str| header[name]["shape"].clone();
+    assert_eq!(shape("net.0.weight"), serde_json::json!([8, 3]));
+    assert_eq!(shape("net.0.bias"), serde_json::json!([8]));
+    assert_eq!(shape("net.1.weight"), serde_json::json!([8, 8]));
+    assert_eq!(shape("adam.v.net.1.bias"), serde_json::json!([8]));
+    assert_eq!(shape("head"), serde_json::json!([1, 8]));
+}
+
+#[test]
+fn a_damaged_checkpoint_is_refused_with_its_name_and_what_is_wrong() {
+    let dir = scratch("damaged");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(3)).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let path = dir.join("train.ckpt.safetensors");
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() - 4]).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+    assert!(!ok);
+    assert!(
+        err.contains("checkpoint 'train.ckpt.safetensors' is not usable") && err.contains("truncated"),
+        "{err}"
+    );
+    std::fs::write(&path, b"\xff\xff\xff\xff\xff\xff\xff\xff garbage").unwrap();
+    let (ok, _, err) = run(&dir, &["mesh", "train.ckpt.safetensors", "--out", "m.ply"]);
+    assert!(!ok);
+    assert!(err.contains("is not usable: its header claims"), "{err}");
+}
+
+/// Starts a long box training run in `dir` (checkpoints every `every` steps) and waits until its metrics
+/// log shows it has taken steps.
+fn start_long_run(dir: &Path, every: u32) -> std::process::Child {
+    if !dir.join("cams.json").exists() {
+        make_views(dir);
+    }
+    let script = trainer_with(1_000_000, &format!(", checkpoint_every: {every}"));
+    std::fs::write(
+        dir.join("train.sdf"),
+        script.replace("checkpoint_every: 50, ", ""),
+    )
+    .unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(["run", "train.sdf"])
+        .current_dir(dir)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("starts");
+    let log = dir.join("train.metrics.jsonl");
+    // Not the log of an earlier run in `dir`.
+    let _ = std::fs::remove_file(&log);
+    let started = std::time::Instant::now();
+    while std::fs::read_to_string(&log).map_or(true, |t| t.lines().count() < 3) {
+        assert!(started.elapsed().as_secs() < 120, "training did not start");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    child
+}
+
+/// The step of the checkpoint in `dir`, read from its metadata.
+fn checkpoint_step(dir: &Path) -> u32 {
+    let header = safetensors_header(&dir.join("train.ckpt.safetensors"));
+    header["__metadata__"]["step"].as_str().unwrap().parse().unwrap()
+}
+
+#[test]
+fn ctrl_c_saves_a_checkpoint_that_resumes() {
+    let dir = scratch("sigint");
+    let child = start_long_run(&dir, 100_000);
+    let pid = child.id().to_string();
+    let status = Command::new("kill").args(["-INT", &pid]).status().expect("kill");
+    assert!(status.success());
+    let out = child.wait_with_output().expect("exits");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    let step = checkpoint_step(&dir);
+    assert!(step >= 20, "stopped at step {step}");
+    assert!(
+        err.contains(&format!("training stopped at step {step}: the checkpoint")),
+        "{err}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["steps"], step);
+    std::fs::write(dir.join("train.sdf"), trainer(step + 10)).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+    assert!(ok, "{err}");
+    assert!(err.contains(&format!("at step {step}")), "{err}");
+    assert!(out.contains("trained 10 steps"), "{out}");
+}
+
+#[test]
+fn a_run_killed_at_any_moment_leaves_a_checkpoint_that_resumes() {
+    let dir = scratch("sigkill");
+    for wait_ms in [0, 37, 113] {
+        let mut child = start_long_run(&dir, 7);
+        std::thread::sleep(std::time::Duration::from_millis(wait_ms));
+        child.kill().expect("SIGKILL");
+        child.wait().expect("reaped");
+        let step = checkpoint_step(&dir);
+        assert_eq!(step % 7, 0, "a checkpoint of step {step}");
+        std::fs::write(dir.join("train.sdf"), trainer(step + 3)).unwrap();
+        let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+        assert!(ok, "after {wait_ms} ms: {err}");
+        assert!(out.contains("trained 3 steps"), "{out}");
+        std::fs::remove_file(dir.join("train.ckpt.safetensors")).unwrap();
+    }
 }

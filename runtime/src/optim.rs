@@ -65,6 +65,29 @@ impl Adam {
         Ok(())
     }
 
+    /// The first and second moments, one of each per parameter.
+    pub fn moments(&self) -> (&[f32], &[f32]) {
+        (&self.m, &self.v)
+    }
+
+    /// An optimizer with learning rate `lr` (and the default β1, β2, ε) that has taken `steps` steps and
+    /// holds the moments `m` and `v` (as [`Adam::moments`] gives them; of equal length).
+    pub fn from_moments(lr: f32, steps: u32, m: Vec<f32>, v: Vec<f32>) -> Result<Adam> {
+        if m.len() != v.len() {
+            return Err(Error::Invalid(format!(
+                "Adam moments of unequal lengths ({} and {})",
+                m.len(),
+                v.len()
+            )));
+        }
+        Ok(Adam {
+            steps,
+            m,
+            v,
+            ..Adam::new(0, lr)
+        })
+    }
+
     /// The state for a checkpoint: `[steps, m…, v…]` (steps exact up to 2²⁴).
     pub fn state(&self) -> Vec<f32> {
         let mut state = Vec::with_capacity(1 + 2 * self.m.len());

@@ -1,5 +1,10 @@
-//! Training checkpoints: params and optimizer state as JSON, written atomically (temporary file, then
-//! rename) so that an interrupted write never replaces a good checkpoint.
+//! Training checkpoints: params and optimizer state with the script that wrote them, written atomically
+//! (temporary file, then rename) so that an interrupted write never replaces a good checkpoint. The
+//! format follows the file name: a `.json` name gets readable JSON ([`json`]), any other the binary
+//! safetensors format ([`binary`]); both are read whatever the name.
+
+mod binary;
+mod json;
 
 use std::path::Path;
 
@@ -9,14 +14,49 @@ use nerfjit_runtime::Adam;
 use crate::failure::{Failure, Result};
 use crate::train::AdamSettings;
 
+/// The script a checkpoint holds: enough to compile its program again.
+pub struct Script {
+    /// The script's file name when it was run.
+    pub name: String,
+    /// Its text.
+    pub source: String,
+    /// The `--set` overrides it was run with.
+    pub overrides: Vec<String>,
+}
+
+impl Script {
+    /// The script `program` was compiled from.
+    pub fn of(program: &Program) -> Script {
+        // The source map holds the prelude, the script, then each `--set` override.
+        let files = &program.sources.files;
+        let (name, source) = files
+            .get(1)
+            .map(|f| (f.name.clone(), f.text.clone()))
+            .unwrap_or_default();
+        let overrides = files.iter().skip(2).map(|f| f.text.clone()).collect();
+        Script {
+            name,
+            source,
+            overrides,
+        }
+    }
+
+    /// Compiles the script again.
+    pub fn compile(&self) -> Result<Program> {
+        nerfjit_dsl::compile_with(&self.name, &self.source, &self.overrides).map_err(Failure::Script)
+    }
+}
+
 /// A saved training state.
-pub struct Checkpoint {
+pub struct Saved {
+    /// The script that wrote it.
+    pub script: Script,
     /// Steps done.
     pub step: u32,
     /// Param values.
     pub params: Vec<f32>,
-    /// The optimizer's state.
-    pub adam: Vec<f32>,
+    /// The optimizer (its learning rate is set by the schedule when training resumes).
+    pub adam: Adam,
 }
 
 /// Writes `text` to `path` atomically.
@@ -27,86 +67,49 @@ pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
     std::fs::rename(&tmp, path).map_err(fail)
 }
 
-/// Saves a checkpoint, with the script it belongs to (so that `nerfjit render` and `eval-views` can use
-/// the checkpoint alone).
-pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &[f32]) -> Result<()> {
-    // The source map holds the prelude, the script, then each `--set` override.
-    let files = &program.sources.files;
-    let (name, source) = files
-        .get(1)
-        .map(|f| (f.name.as_str(), f.text.as_str()))
-        .unwrap_or_default();
-    let overrides: Vec<&str> = files.iter().skip(2).map(|f| f.text.as_str()).collect();
-    let json = serde_json::json!({
-        "format": "nerfjit-checkpoint-1",
-        "script": { "name": name, "source": source, "overrides": overrides },
-        "step": step,
-        "params": params,
-        "adam": adam,
-    });
-    write_atomic(path, &json.to_string())
+/// Whether `path` names a JSON checkpoint.
+fn is_json(path: &Path) -> bool {
+    path.extension().is_some_and(|e| e == "json")
+}
+
+/// Saves a checkpoint, with the script it belongs to (so that `nerfjit render`, `mesh` and `eval-views`
+/// can use the checkpoint alone), in the format its name asks for.
+pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &Adam) -> Result<()> {
+    if is_json(path) {
+        write_atomic(path, &json::encode(&Script::of(program), step, params, adam))
+    } else {
+        binary::write(path, program, step, params, adam)
+    }
 }
 
 /// The script a checkpoint was written by, and its params: the program is compiled again from the source
 /// the checkpoint holds.
 pub fn load_trained(path: &Path) -> Result<(Program, Vec<f32>)> {
-    let (program, ck) = load(path)?;
-    Ok((program, ck.params))
+    let (program, saved) = load(path)?;
+    Ok((program, saved.params))
 }
 
-/// Reads a checkpoint (parsed once) and compiles the script it holds; its params must fit that script.
-fn load(path: &Path) -> Result<(Program, Checkpoint)> {
+/// Reads a checkpoint (parsed once, in either format) and compiles the script it holds; its params must
+/// fit that script.
+fn load(path: &Path) -> Result<(Program, Saved)> {
     let bad = |why: &str| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
+    let mut start = [0u8; 1];
+    let opened = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut start));
+    opened.map_err(|e| bad(&e.to_string()))?;
+    if start[0] != b'{' {
+        return binary::read(path, &bad);
+    }
     let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| bad(&format!("invalid JSON ({e})")))?;
-    let (Some(name), Some(source)) = (json["script"]["name"].as_str(), json["script"]["source"].as_str())
-    else {
-        return Err(bad("it holds no script"));
-    };
-    let overrides: Vec<String> = json["script"]["overrides"]
-        .as_array()
-        .map(|a| a.iter().filter_map(|v| v.as_str().map(str::to_string)).collect())
-        .unwrap_or_default();
-    let program = nerfjit_dsl::compile_with(name, source, &overrides).map_err(Failure::Script)?;
-    let floats = |key: &str| -> Result<Vec<f32>> {
-        json[key]
-            .as_array()
-            .ok_or_else(|| bad(&format!("no '{key}' array")))?
-            .iter()
-            .map(|v| {
-                let x = v
-                    .as_f64()
-                    .ok_or_else(|| bad(&format!("'{key}' holds a non-number")))?
-                    as f32;
-                if x.is_finite() {
-                    Ok(x)
-                } else {
-                    Err(bad(&format!(
-                        "'{key}' holds {v}, beyond the range of a 32-bit float"
-                    )))
-                }
-            })
-            .collect()
-    };
-    let step = json["step"]
-        .as_u64()
-        .and_then(|s| u32::try_from(s).ok())
-        .ok_or_else(|| bad("no 'step', or not a step count"))?;
-    let params = floats("params")?;
+    let saved = json::decode(&text, &bad)?;
+    let program = saved.script.compile()?;
     let n_params = program.n_params();
-    if params.len() != n_params {
+    if saved.params.len() != n_params {
         return Err(bad(&format!(
             "it holds {} params but the script has {n_params}",
-            params.len()
+            saved.params.len()
         )));
     }
-    let ck = Checkpoint {
-        step,
-        params,
-        adam: floats("adam")?,
-    };
-    Ok((program, ck))
+    Ok((program, saved))
 }
 
 /// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists
@@ -138,7 +141,7 @@ pub fn resume_or_start(
         }
         _ => return fresh(),
     };
-    let (written_by, ck) = load(path)?;
+    let (written_by, saved) = load(path)?;
     let (theirs, ours) = (param_layout(&written_by), param_layout(program));
     if theirs != ours {
         return Err(Failure::Message(format!(
@@ -149,10 +152,11 @@ pub fn resume_or_start(
             ours.join(", ")
         )));
     }
-    *params = ck.params;
-    let adam = Adam::from_state(n, lr(ck.step), &ck.adam)?;
-    eprintln!("resuming from {} at step {}", path.display(), ck.step);
-    Ok((configured(adam, settings), ck.step))
+    *params = saved.params;
+    let mut adam = saved.adam;
+    adam.lr = lr(saved.step);
+    eprintln!("resuming from {} at step {}", path.display(), saved.step);
+    Ok((configured(adam, settings), saved.step))
 }
 
 /// Each param of `program` as `name: type`.
