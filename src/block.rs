@@ -13,7 +13,7 @@ use crate::failure::{at, Failure, Result};
 use crate::settings::{name_among, ranged, triple, whole};
 
 /// The most pixels a render block may produce (all frames).
-const MAX_PIXELS: u64 = 1 << 27;
+pub const MAX_PIXELS: u64 = 1 << 27;
 
 /// The files a script's blocks write so far, with the settings that name them: no two outputs of a run
 /// may be the same file (one would silently replace the other, e.g. a summary its checkpoint).
@@ -267,18 +267,22 @@ impl<'p> Block<'p> {
         }
     }
 
-    /// Setting `key` as an image output (`.gif` for all frames, `.png` for one or numbered frames).
+    /// Setting `key` as an image output (`.gif` or `.mp4` for all frames, `.png` for one or numbered
+    /// frames).
     pub fn image_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
         let span = self.settings_span(key);
         let path = self.output(key)?;
         if let Some(p) = &path {
-            if !matches!(p.extension().and_then(|e| e.to_str()), Some("gif" | "png")) {
+            if !matches!(
+                p.extension().and_then(|e| e.to_str()),
+                Some("gif" | "png" | "mp4")
+            ) {
                 return Err(self.error(
                     Diagnostic::new(
                         span,
                         format!("cannot write '{}': unknown image format", p.display()),
                     )
-                    .with_hint("use a file ending in .gif or .png"),
+                    .with_hint("use a file ending in .gif, .mp4 or .png"),
                 ));
             }
         }

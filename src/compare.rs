@@ -37,9 +37,11 @@ const SCALE: usize = 2;
 const BACKGROUND: [f32; 3] = [0.12, 0.12, 0.14];
 const INK: [f32; 3] = [0.95, 0.95, 0.95];
 
-/// Renders the grid of `rows` × `columns` (plus the target column) from view `index` of `args.cameras`.
+/// Renders the grid of `rows` × `columns` (plus the target column) from view `index` of `cameras`; settings
+/// not given in `args` come from the first entry's script (the target is composited on its background).
 pub fn compare(
     args: &ViewArgs,
+    cameras: &Path,
     index: usize,
     columns: &[String],
     rows: &[Row],
@@ -56,11 +58,13 @@ pub fn compare(
             columns.len()
         )));
     }
-    let views = load_blender_views(args.cameras, Some(args.size), args.background, None)?;
+    let (first, _) = crate::views::load(&rows[0].sources[0])?;
+    let background = args.resolve(&first).background;
+    let views = load_blender_views(cameras, Some(args.size), background, None)?;
     let (Some(camera), Some(target)) = (views.cameras.get(index), views.images.get(index)) else {
         return Err(Failure::Message(format!(
             "view {index} does not exist: {} has {} views",
-            args.cameras.display(),
+            cameras.display(),
             views.cameras.len()
         )));
     };
@@ -70,8 +74,12 @@ pub fn compare(
         let mut rendered = Vec::new();
         for source in &row.sources {
             let (program, params) = crate::views::load(source)?;
-            let fields = VolumeFields::compile(&program, &cache, args.importance)?;
-            let settings = crate::views::settings(args, fields.fine.mode);
+            let rendering = crate::views::Rendering {
+                background,
+                ..args.resolve(&program)
+            };
+            let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+            let settings = rendering.settings(fields.fine.mode);
             let f = fields.render(camera, views.width, views.height, &params, &settings)?;
             let image = ImageF32 {
                 width: f.width,

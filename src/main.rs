@@ -137,16 +137,24 @@ enum Command {
         gif: Option<PathBuf>,
     },
     /// Render a script's volume field (or a training checkpoint's) from every camera of a Blender-format
-    /// camera file.
+    /// camera file, of a camera path, or of the script's own render block, as PNGs, a GIF or an MP4.
     Render {
         /// A script, or a checkpoint written by a train block (it holds its script).
         source: String,
+        /// A camera file (Blender `transforms_*.json`).
+        #[arg(long)]
+        cameras: Option<PathBuf>,
+        /// A camera path as in a script, e.g. 'orbit(radius: 4, frames: 60, up: z, focal: 2)' or
+        /// 'surround(radius: 4, frames: 20, up: z, focal: 2)'. Without --cameras or --path: the script's
+        /// render block's camera.
+        #[arg(long, conflicts_with = "cameras")]
+        path: Option<String>,
         #[command(flatten)]
         view: ViewOptions,
-        /// The output folder (view_000.png, ...).
+        /// A .mp4 (H.264) or .gif file of all views, or an output folder (view_000.png, ...).
         #[arg(long)]
         out: PathBuf,
-        /// Write one GIF of all views (views.gif) instead of PNGs.
+        /// With a folder: write one GIF of all views (views.gif) instead of PNGs.
         #[arg(long)]
         gif: bool,
     },
@@ -155,12 +163,18 @@ enum Command {
     EvalViews {
         /// A script, or a checkpoint written by a train block.
         source: String,
+        /// The camera file with the views' images (Blender `transforms_*.json`).
+        #[arg(long)]
+        cameras: PathBuf,
         #[command(flatten)]
         view: ViewOptions,
     },
     /// Render several trained fields (checkpoints or scripts) from one view of a Blender-format camera file
     /// as a labeled grid beside the target image, with each render's PSNR (the fewer-views comparison).
     Compare {
+        /// The camera file with the views' images (Blender `transforms_*.json`).
+        #[arg(long)]
+        cameras: PathBuf,
         #[command(flatten)]
         view: ViewOptions,
         /// Which view of the camera file.
@@ -190,45 +204,46 @@ fn emit(text: &str) {
     let _ = std::io::stdout().lock().write_all(text.as_bytes());
 }
 
-/// How `render` and `eval-views` render views.
+/// How `render`, `eval-views` and `compare` render views. Settings not given are those the script's
+/// train block trains with (a checkpoint holds its script), else near 2, far 6, 128 samples, black.
 #[derive(clap::Args)]
 struct ViewOptions {
-    /// The camera file (Blender `transforms_*.json`).
-    #[arg(long)]
-    cameras: PathBuf,
     /// Image side in pixels (1 to 4096).
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(1..=4096))]
     size: u32,
-    /// Start of the sampled interval along each ray.
-    #[arg(long, default_value_t = 2.0)]
-    near: f32,
-    /// End of the sampled interval.
-    #[arg(long, default_value_t = 6.0)]
-    far: f32,
-    /// Samples per ray.
-    #[arg(long, default_value_t = 128)]
-    samples: usize,
-    /// Background: black or white (the images' alpha is composited on it too).
-    #[arg(long, default_value = "black", value_parser = ["black", "white"])]
-    background: String,
+    /// Start of the sampled interval along each ray [default: the script's, else 2].
+    #[arg(long)]
+    near: Option<f32>,
+    /// End of the sampled interval [default: the script's, else 6].
+    #[arg(long)]
+    far: Option<f32>,
+    /// Samples per ray (1 to 4096) [default: the script's, else 128].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    samples: Option<u32>,
+    /// Background: black or white (the images' alpha is composited on it too) [default: the script's,
+    /// else black].
+    #[arg(long, value_parser = ["black", "white"])]
+    background: Option<String>,
     /// Importance samples per ray drawn from a coarse pass (hierarchical sampling: the script needs
-    /// coarse_density and coarse_color; `--samples` is then the coarse count). 0: none.
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=4096))]
-    importance: u32,
+    /// coarse_density and coarse_color; `--samples` is then the coarse count). 0: none [default: the
+    /// script's, else 0].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=4096))]
+    importance: Option<u32>,
 }
 
 impl ViewOptions {
     fn args<'a>(&'a self, source: &'a str) -> views::ViewArgs<'a> {
-        let bg = if self.background == "white" { 1.0 } else { 0.0 };
         views::ViewArgs {
             source,
-            cameras: &self.cameras,
             size: self.size,
             near: self.near,
             far: self.far,
-            samples: self.samples,
-            background: [bg; 3],
-            importance: self.importance as usize,
+            samples: self.samples.map(|n| n as usize),
+            background: self
+                .background
+                .as_ref()
+                .map(|b| [if b == "white" { 1.0 } else { 0.0 }; 3]),
+            importance: self.importance.map(|n| n as usize),
         }
     }
 }
@@ -340,18 +355,32 @@ fn run_command(cli: Cli) -> ExitCode {
             .map(|text| emit(&format!("{text}\n"))),
         Command::Render {
             source,
+            cameras,
+            path,
             view,
             out,
             gif,
-        } => views::render(&view.args(&source), &out, gif).map(|text| emit(&format!("{text}\n"))),
-        Command::EvalViews { source, view } => views::eval(&view.args(&source)).map(|text| emit(&text)),
+        } => {
+            let cameras = match (&cameras, &path) {
+                (Some(file), _) => views::CameraSource::File(file),
+                (None, Some(text)) => views::CameraSource::Path(text),
+                (None, None) => views::CameraSource::Script,
+            };
+            views::render(&view.args(&source), cameras, &out, gif).map(|text| emit(&format!("{text}\n")))
+        }
+        Command::EvalViews {
+            source,
+            cameras,
+            view,
+        } => views::eval(&view.args(&source), &cameras).map(|text| emit(&text)),
         Command::Compare {
+            cameras,
             view,
             index,
             columns,
             rows,
             out,
-        } => compare::compare(&view.args(""), index, &columns, &rows, &out)
+        } => compare::compare(&view.args(""), &cameras, index, &columns, &rows, &out)
             .map(|text| emit(&format!("{text}\n"))),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
     };

@@ -9,7 +9,7 @@ use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::marching::extract;
 use nerfjit_runtime::raster::render_mesh;
-use nerfjit_runtime::{chamfer_report, mean_center, read_points, save_gif, Camera, Mesh};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, Camera, Mesh};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -133,7 +133,7 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
                 )
             })
             .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
-        save_gif(gif, &frames, 50)?;
+        crate::output::write_images(gif, frames, 50)?;
     }
     let summary = format!(
         "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s): {} vertices, {} triangles, {} → {}",

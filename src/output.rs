@@ -1,9 +1,10 @@
-//! Writing rendered frames: a GIF of all frames, a PNG of one, or numbered PNGs (`name_000.png`, ...).
+//! Writing rendered frames: a GIF or an MP4 (H.264) of all frames, a PNG of one, or numbered PNGs
+//! (`name_000.png`, ...).
 
 use std::path::Path;
 
 use image::RgbImage;
-use nerfjit_runtime::{save_gif, save_png};
+use nerfjit_runtime::{save_gif, save_mp4, save_png};
 
 use crate::failure::Result;
 
@@ -11,6 +12,8 @@ use crate::failure::Result;
 pub fn write_images(path: &Path, images: Vec<RgbImage>, frame_ms: u32) -> Result<()> {
     if path.extension().is_some_and(|e| e == "gif") {
         save_gif(path, &images, frame_ms)?;
+    } else if path.extension().is_some_and(|e| e == "mp4") {
+        save_mp4(path, &images, frame_ms)?;
     } else if images.len() == 1 {
         save_png(path, images.into_iter().next().expect("one image"))?;
     } else {

@@ -5,36 +5,125 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nerfjit_dsl::Program;
+use nerfjit_dsl::config::{Settings, Value};
+use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_cameras, load_blender_views, psnr, rgb_image, ssim, ImageF32, Quantize, Views,
+    load_blender_cameras, load_blender_views, psnr, rgb_image, ssim, Camera, ImageF32, Quantize, Views,
     VolumeSettings,
 };
 
-use crate::failure::{Failure, Result};
+use crate::block::MAX_PIXELS;
+use crate::failure::{at, Failure, Result};
 use crate::field::VolumeFields;
 use crate::output::write_images;
+use crate::settings::triple;
 
-/// Where the field comes from and how to render it.
+/// Where the field comes from and how to render it. Settings not given come from the script's `train`
+/// block (a checkpoint's script included): see [`ViewArgs::resolve`].
 pub struct ViewArgs<'a> {
     /// A script, or a checkpoint written by `train` (it holds its script).
     pub source: &'a str,
-    /// A Blender `transforms_*.json`.
-    pub cameras: &'a Path,
     /// Image side in pixels.
     pub size: u32,
-    /// Sampled interval and samples per ray.
+    /// Start of the sampled interval.
+    pub near: Option<f32>,
+    /// End of the sampled interval.
+    pub far: Option<f32>,
+    /// Samples per ray.
+    pub samples: Option<usize>,
+    /// Background color (the data's alpha is composited on it too).
+    pub background: Option<[f32; 3]>,
+    /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
+    pub importance: Option<usize>,
+}
+
+/// How a field is rendered, every setting decided.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rendering {
+    /// Start of the sampled interval.
     pub near: f32,
     /// End of the sampled interval.
     pub far: f32,
     /// Samples per ray.
     pub samples: usize,
-    /// Background color (the data's alpha is composited on it too).
+    /// Background color.
     pub background: [f32; 3],
-    /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
+    /// Importance samples per ray (0: none).
     pub importance: usize,
+}
+
+impl ViewArgs<'_> {
+    /// The settings given, else those `program`'s first `train` block trains with (its `near`, `far`,
+    /// `samples`, `importance`, and `background` or its Blender data's background), else near 2, far 6,
+    /// 128 samples, black, no importance sampling.
+    pub fn resolve(&self, program: &Program) -> Rendering {
+        let trained = TrainedWith::of(program);
+        Rendering {
+            near: self.near.or(trained.near).unwrap_or(2.0),
+            far: self.far.or(trained.far).unwrap_or(6.0),
+            samples: self.samples.or(trained.samples).unwrap_or(128),
+            background: self.background.or(trained.background).unwrap_or([0.0; 3]),
+            importance: self.importance.or(trained.importance).unwrap_or(0),
+        }
+    }
+}
+
+/// The render settings a script's `train` block gives (those it writes, valid or not checked here: the
+/// block was checked when it trained).
+#[derive(Default)]
+struct TrainedWith {
+    near: Option<f32>,
+    far: Option<f32>,
+    samples: Option<usize>,
+    background: Option<[f32; 3]>,
+    importance: Option<usize>,
+}
+
+impl TrainedWith {
+    fn of(program: &Program) -> TrainedWith {
+        let block = program
+            .blocks()
+            .into_iter()
+            .find(|b| b.kind.name == "train" && b.name.is_none());
+        let Some(mut settings) = block.and_then(|b| Settings::new(program, b).ok()) else {
+            return TrainedWith::default();
+        };
+        let mut number = |key: &str| settings.take(key).and_then(|v| v.number().ok());
+        let (near, far) = (number("near"), number("far"));
+        let (samples, importance) = (number("samples"), number("importance"));
+        let count = |x: Option<f64>| x.filter(|n| *n >= 0.0 && n.fract() == 0.0).map(|n| n as usize);
+        let data_background = settings.take("data").and_then(|data| match data.value {
+            Value::Call(_, args) => args
+                .into_iter()
+                .find(|(name, _)| name.as_deref() == Some("background"))
+                .and_then(|(_, v)| triple(&v).ok()),
+            _ => None,
+        });
+        let background = settings.take("background").and_then(|v| triple(&v).ok());
+        TrainedWith {
+            near: near.map(|x| x as f32),
+            far: far.map(|x| x as f32),
+            samples: count(samples),
+            background: background.or(data_background),
+            importance: count(importance),
+        }
+    }
+}
+
+impl Rendering {
+    /// The renderer's settings for a field of `mode`.
+    pub fn settings(&self, mode: Mode) -> VolumeSettings {
+        VolumeSettings {
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            mode,
+            background: Some(self.background),
+            early_termination: None,
+        }
+    }
 }
 
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
@@ -49,56 +138,89 @@ pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     }
 }
 
-/// The renderer settings of `args` for a field of `mode`.
-pub(crate) fn settings(args: &ViewArgs, mode: Mode) -> VolumeSettings {
-    VolumeSettings {
-        near: args.near,
-        far: args.far,
-        samples: args.samples,
-        mode,
-        background: Some(args.background),
-        early_termination: None,
-    }
+/// Where `nerfjit render` takes its cameras from.
+pub enum CameraSource<'a> {
+    /// A Blender `transforms_*.json`.
+    File(&'a Path),
+    /// A camera path written as in a script, e.g. `orbit(radius: 4, frames: 60, up: z, focal: 2)`.
+    Path(&'a str),
+    /// The first `render` block of the script (a checkpoint's script included) that sets a camera.
+    Script,
 }
 
-/// `nerfjit render`: one PNG per camera in `out`, or a GIF of all.
-pub fn render(args: &ViewArgs, out: &Path, gif: bool) -> Result<String> {
-    if !out.is_dir() {
+/// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
+/// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
+pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
+    let (program, params) = load(args.source)?;
+    let cameras = match cameras {
+        CameraSource::File(file) => load_blender_cameras(file)?.cameras,
+        CameraSource::Path(text) => path_cameras(text)?,
+        CameraSource::Script => script_cameras(&program)?.ok_or_else(|| {
+            Failure::Message(format!(
+                "{} has no render block with a camera: give --cameras FILE or --path 'orbit(radius: 4, frames: 60, up: z, focal: 2)'",
+                args.source
+            ))
+        })?,
+    };
+    let (n, size) = (cameras.len(), args.size);
+    let pixels = n as u64 * u64::from(size) * u64::from(size);
+    if pixels > MAX_PIXELS {
+        return Err(Failure::Message(format!(
+            "{n} views of {size}×{size} are {pixels} pixels, more than the {MAX_PIXELS} kept in memory at once"
+        )));
+    }
+    let animation = matches!(out.extension().and_then(|e| e.to_str()), Some("gif" | "mp4"));
+    let target: PathBuf = if animation {
+        out.to_path_buf()
+    } else {
         std::fs::create_dir_all(out)
             .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", out.display())))?;
-    }
-    let (program, params) = load(args.source)?;
-    let set = load_blender_cameras(args.cameras)?;
+        out.join(if gif { "views.gif" } else { "view.png" })
+    };
+    let rendering = args.resolve(&program);
     let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, args.importance)?;
-    let settings = settings(args, fields.fine.mode);
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let settings = rendering.settings(fields.fine.mode);
     let start = Instant::now();
-    let images = set
-        .cameras
+    let images = cameras
         .iter()
         .map(|camera| {
-            let f = fields.render(camera, args.size, args.size, &params, &settings)?;
+            let f = fields.render(camera, size, size, &params, &settings)?;
             Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
         })
         .collect::<Result<Vec<_>>>()?;
     let seconds = start.elapsed().as_secs_f64();
-    let n = images.len();
-    let target: PathBuf = if gif {
-        out.join("views.gif")
-    } else {
-        out.join("view.png")
-    };
     write_images(&target, images, 100)?;
-    let size = args.size;
     let per_view = seconds / n.max(1) as f64;
-    let written = if gif {
-        target.display().to_string()
-    } else {
-        out.display().to_string()
-    };
+    let written = if animation || gif { &target } else { out };
     Ok(format!(
-        "rendered {n} views of {size}×{size} in {seconds:.2} s ({per_view:.2} s/view) → {written}"
+        "rendered {n} views of {size}×{size} in {seconds:.2} s ({per_view:.2} s/view; near {}, far {}, {} samples) → {}",
+        rendering.near,
+        rendering.far,
+        rendering.samples,
+        written.display()
     ))
+}
+
+/// The cameras of a camera path written as in a script (`--path`).
+fn path_cameras(text: &str) -> Result<Vec<Camera>> {
+    let script = format!("render volume {{ camera: {text} }}\n");
+    let program = nerfjit_dsl::compile("--path", &script).map_err(Failure::Script)?;
+    Ok(script_cameras(&program)?.expect("the block sets a camera"))
+}
+
+/// The cameras of the first `render` block of `program` that sets `camera`, if any.
+fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
+    for block in program.blocks().into_iter().filter(|b| b.kind.name == "render") {
+        let mut settings = Settings::new(program, block).map_err(|d| at(program, d))?;
+        let Some(v) = settings.take("camera") else {
+            continue;
+        };
+        let made = crate::cameras::cameras(&v, Path::new(".")).map_err(|d| at(program, d))?;
+        let cameras = made.map_err(|e| at(program, Diagnostic::new(v.span, e)))?;
+        return Ok(Some(cameras));
+    }
+    Ok(None)
 }
 
 /// PSNR and SSIM of `fields` rendered from every camera of `views` against its image.
@@ -133,12 +255,13 @@ pub fn means(scores: &[(f32, f32)]) -> (f64, f64) {
 }
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means.
-pub fn eval(args: &ViewArgs) -> Result<String> {
+pub fn eval(args: &ViewArgs, cameras: &Path) -> Result<String> {
     let (program, params) = load(args.source)?;
-    let views = load_blender_views(args.cameras, Some(args.size), args.background, None)?;
+    let rendering = args.resolve(&program);
+    let views = load_blender_views(cameras, Some(args.size), rendering.background, None)?;
     let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, args.importance)?;
-    let scores = score(&views, &fields, &params, &settings(args, fields.fine.mode))?;
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let scores = score(&views, &fields, &params, &rendering.settings(fields.fine.mode))?;
     let mut lines = String::from("view  PSNR (dB)  SSIM\n");
     for (i, (p, s)) in scores.iter().enumerate() {
         lines += &format!("{i:>4}  {p:>9.2}  {s:.4}\n");

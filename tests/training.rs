@@ -413,6 +413,27 @@ fn checkpoints_are_safetensors_by_default_with_a_tensor_per_param() {
     );
     assert!(ok, "{err}");
     assert!(out.contains("closed"), "{out}");
+    // Rendered alone along a camera path into an MP4, with the near, far and samples it trained with.
+    let (ok, out, err) = run(
+        &dir,
+        &[
+            "render",
+            "train.ckpt.safetensors",
+            "--path",
+            "orbit(radius: 3, frames: 4, up: y)",
+            "--size",
+            "16",
+            "--out",
+            "orbit.mp4",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("rendered 4 views of 16×16") && out.contains("near 0, far 5, 48 samples"),
+        "{out}"
+    );
+    let video = std::fs::read(dir.join("orbit.mp4")).unwrap();
+    assert_eq!(&video[4..8], b"ftyp", "an MP4 file");
     // `none` turns the checkpoint and the log off.
     let off = trainer_with(5, ", checkpoint: none, log: none");
     std::fs::write(dir.join("off.sdf"), off).unwrap();

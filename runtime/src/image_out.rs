@@ -87,7 +87,7 @@ pub fn normal_image(frame: &Frame) -> Result<RgbImage> {
 }
 
 /// Creates `path` for writing, with an error naming a missing folder.
-fn create(path: &Path) -> Result<BufWriter<File>> {
+pub(crate) fn create(path: &Path) -> Result<BufWriter<File>> {
     check_output_folder(path)?;
     File::create(path)
         .map(BufWriter::new)
@@ -103,15 +103,10 @@ pub fn save_png(path: &Path, image: impl Into<DynamicImage>) -> Result<()> {
         .map_err(|e| Error::write(path, e))
 }
 
-/// NeuQuant sampling factor of the GIF palette (1 best and slowest, 30 fastest).
-const GIF_SPEED: i32 = 10;
-
-/// Writes `frames` (all of the same size, at most 65535 pixels a side) as a GIF that loops
-/// forever, showing each frame for `delay_ms` milliseconds (GIF stores hundredths of a
-/// second, so this is rounded down to a multiple of 10 ms).
-pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
+/// The size of `frames`, which must be at least one and all of one size (for an animation at `path`).
+pub(crate) fn frame_size(path: &Path, frames: &[RgbImage]) -> Result<(u32, u32)> {
     let Some(first) = frames.first() else {
-        return Err(Error::write(path, "a GIF needs at least one frame"));
+        return Err(Error::write(path, "an animation needs at least one frame"));
     };
     let size = first.dimensions();
     if let Some(k) = frames.iter().position(|f| f.dimensions() != size) {
@@ -126,6 +121,17 @@ pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
             ),
         ));
     }
+    Ok(size)
+}
+
+/// NeuQuant sampling factor of the GIF palette (1 best and slowest, 30 fastest).
+const GIF_SPEED: i32 = 10;
+
+/// Writes `frames` (all of the same size, at most 65535 pixels a side) as a GIF that loops
+/// forever, showing each frame for `delay_ms` milliseconds (GIF stores hundredths of a
+/// second, so this is rounded down to a multiple of 10 ms).
+pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
+    let size = frame_size(path, frames)?;
     if size.0 == 0 || size.1 == 0 || size.0 > 65535 || size.1 > 65535 {
         return Err(Error::write(
             path,

@@ -49,6 +49,7 @@ pub mod sampler;
 pub mod sphere_trace;
 pub mod train;
 pub mod transmittance;
+pub mod video;
 pub mod viz;
 pub mod volume;
 
@@ -76,5 +77,6 @@ pub use sampler::{sample_depths, sample_points, DepthRange, Spacing};
 pub use sphere_trace::{render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings};
 pub use train::{volume_step, volume_step_with, FinePass, StepOptions, StepResult};
 pub use transmittance::{Medium, Segment, Transmittance};
+pub use video::save_mp4;
 pub use volume::render_volume_with;
 pub use volume::{render_volume, VolumeFrame, VolumeSettings};
