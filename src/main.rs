@@ -29,7 +29,7 @@ mod volume;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
@@ -168,6 +168,9 @@ enum Command {
         cameras: PathBuf,
         #[command(flatten)]
         view: ViewOptions,
+        /// Also write the scores as JSON: per view and mean PSNR and SSIM, the settings and render time.
+        #[arg(long)]
+        json: Option<PathBuf>,
     },
     /// Render several trained fields (checkpoints or scripts) from one view of a Blender-format camera file
     /// as a labeled grid beside the target image, with each render's PSNR (the fewer-views comparison).
@@ -194,6 +197,11 @@ enum Command {
     Examples {
         /// The example to print.
         name: Option<String>,
+    },
+    /// Print a shell completion script, e.g. `nerfjit completions bash > ~/.local/share/bash-completion/completions/nerfjit`.
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
     },
 }
 
@@ -372,7 +380,8 @@ fn run_command(cli: Cli) -> ExitCode {
             source,
             cameras,
             view,
-        } => views::eval(&view.args(&source), &cameras).map(|text| emit(&text)),
+            json,
+        } => views::eval(&view.args(&source), &cameras, json.as_deref()).map(|text| emit(&text)),
         Command::Compare {
             cameras,
             view,
@@ -383,6 +392,12 @@ fn run_command(cli: Cli) -> ExitCode {
         } => compare::compare(&view.args(""), &cameras, index, &columns, &rows, &out)
             .map(|text| emit(&format!("{text}\n"))),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
+        Command::Completions { shell } => {
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut Cli::command(), "nerfjit", &mut script);
+            emit(&String::from_utf8_lossy(&script));
+            Ok(())
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -254,19 +254,38 @@ pub fn means(scores: &[(f32, f32)]) -> (f64, f64) {
     (sum(|x| x.0), sum(|x| x.1))
 }
 
-/// `nerfjit eval-views`: PSNR and SSIM of every view, and their means.
-pub fn eval(args: &ViewArgs, cameras: &Path) -> Result<String> {
+/// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
+pub fn eval(args: &ViewArgs, cameras: &Path, json: Option<&Path>) -> Result<String> {
     let (program, params) = load(args.source)?;
     let rendering = args.resolve(&program);
     let views = load_blender_views(cameras, Some(args.size), rendering.background, None)?;
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let start = Instant::now();
     let scores = score(&views, &fields, &params, &rendering.settings(fields.fine.mode))?;
+    let seconds = start.elapsed().as_secs_f64();
     let mut lines = String::from("view  PSNR (dB)  SSIM\n");
     for (i, (p, s)) in scores.iter().enumerate() {
         lines += &format!("{i:>4}  {p:>9.2}  {s:.4}\n");
     }
     let (p, s) = means(&scores);
     lines += &format!("mean  {p:>9.2}  {s:.4}\n");
+    if let Some(path) = json {
+        let report = serde_json::json!({
+            "source": args.source,
+            "cameras": cameras.display().to_string(),
+            "size": args.size,
+            "near": rendering.near,
+            "far": rendering.far,
+            "samples": rendering.samples,
+            "importance": rendering.importance,
+            "background": rendering.background,
+            "views": scores.iter().map(|(p, s)| serde_json::json!({"psnr": p, "ssim": s})).collect::<Vec<_>>(),
+            "mean_psnr": p,
+            "mean_ssim": s,
+            "render_seconds": seconds,
+        });
+        crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&report).unwrap_or_default())?;
+    }
     Ok(lines)
 }

@@ -622,3 +622,20 @@ fn two_outputs_of_one_run_may_not_be_the_same_file() {
     assert!(stderr.contains("twice.sdf:3:"), "{stderr}");
     assert!(!flat.join("x.png").exists());
 }
+
+#[test]
+fn completions_are_printed_for_each_shell() {
+    for (shell, marker) in [
+        ("bash", "_nerfjit()"),
+        ("zsh", "#compdef nerfjit"),
+        ("fish", "complete -c nerfjit"),
+    ] {
+        let out = nerfjit(&["completions", shell], None);
+        let (stdout, stderr) = text(&out);
+        assert!(out.status.success(), "{stderr}");
+        assert!(
+            stdout.contains(marker) && stdout.contains("eval-views"),
+            "{shell}: {stdout}"
+        );
+    }
+}
