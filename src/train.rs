@@ -509,10 +509,11 @@ impl TrainPlan {
             self.optimizer,
             |k| self.schedule.lr(k),
         )?;
-        let mut log = match &self.log {
-            Some(path) => Some(MetricsLog::open(path, LOG_COLUMNS, first > 0)?),
-            None => None,
-        };
+        let mut log = self
+            .log
+            .as_deref()
+            .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
+            .transpose()?;
         let watch = Watch::start();
         let bar = ProgressBar::new(u64::from(self.steps)).with_style(
             ProgressStyle::with_template(
@@ -646,8 +647,8 @@ impl TrainPlan {
                         "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
                     }));
                     if let Some(log) = &mut log {
-                        let at = [done as f64, train_seconds].map(Some);
-                        log.record(&[at[0], at[1], None, None, None, None, Some(p), Some(s)])?;
+                        let (step, seconds) = (Some(f64::from(done)), Some(train_seconds));
+                        log.record(&[step, seconds, None, None, None, None, Some(p), Some(s)])?;
                     }
                 }
             }

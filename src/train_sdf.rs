@@ -208,10 +208,11 @@ impl SdfTrainPlan {
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;
-        let mut log = match &self.log {
-            Some(path) => Some(MetricsLog::open(path, LOG_COLUMNS, first > 0)?),
-            None => None,
-        };
+        let mut log = self
+            .log
+            .as_deref()
+            .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
+            .transpose()?;
         let watch = Watch::start();
         let bar = ProgressBar::new(u64::from(total)).with_style(
             ProgressStyle::with_template(
