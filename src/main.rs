@@ -22,6 +22,7 @@ mod settings;
 mod train;
 mod train_sdf;
 mod transmittance;
+mod viewer;
 mod views;
 mod viz;
 mod volume;
@@ -192,6 +193,19 @@ enum Command {
         /// The PNG to write.
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Serve a live view of a script (or a checkpoint) in the browser: orbit the scene, edit the script and
+    /// see it re-compiled and re-rendered, move its consts with sliders. Prints the page's URL.
+    View {
+        /// A script, or a checkpoint written by a train block.
+        source: String,
+        /// The address to serve on. Anyone who reaches another address than the loopback default, with
+        /// the printed token, runs code compiled from what they type on this machine.
+        #[arg(long, default_value = "127.0.0.1")]
+        host: std::net::IpAddr,
+        /// The port (0: any free one).
+        #[arg(long, default_value_t = 7007)]
+        port: u16,
     },
     /// List the example scripts built into the binary, or print one.
     Examples {
@@ -391,6 +405,11 @@ fn run_command(cli: Cli) -> ExitCode {
             out,
         } => compare::compare(&view.args(""), &cameras, index, &columns, &rows, &out)
             .map(|text| emit(&format!("{text}\n"))),
+        Command::View { source, host, port } => viewer::run(&viewer::ViewArgs {
+            source: &source,
+            host,
+            port,
+        }),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
         Command::Completions { shell } => {
             let mut script = Vec::new();

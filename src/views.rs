@@ -128,14 +128,18 @@ impl Rendering {
 
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
 pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
-    let is_checkpoint = source.ends_with(".safetensors") || source.ends_with(".json");
-    if is_checkpoint {
+    if is_checkpoint(source) {
         crate::checkpoint::load_trained(Path::new(source))
     } else {
         let program = crate::script::load(source)?;
         let params = program.param_values.clone();
         Ok((program, params))
     }
+}
+
+/// Whether `source` names a checkpoint (a `.safetensors` or `.json` file) rather than a script.
+pub(crate) fn is_checkpoint(source: &str) -> bool {
+    source.ends_with(".safetensors") || source.ends_with(".json")
 }
 
 /// Where `nerfjit render` takes its cameras from.
@@ -210,7 +214,7 @@ fn path_cameras(text: &str) -> Result<Vec<Camera>> {
 }
 
 /// The cameras of the first `render` block of `program` that sets `camera`, if any.
-fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
+pub(crate) fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
     for block in program.blocks().into_iter().filter(|b| b.kind.name == "render") {
         let mut settings = Settings::new(program, block).map_err(|d| at(program, d))?;
         let Some(v) = settings.take("camera") else {

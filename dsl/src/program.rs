@@ -425,6 +425,20 @@ impl Program {
         })
     }
 
+    /// The script's `const`s whose value is one number, with that value, in source order (the live
+    /// viewer's sliders).
+    pub fn scalar_consts(&self) -> Vec<(String, f64)> {
+        self.user_items()
+            .filter_map(|item| match item {
+                Item::Const(c) => match self.constant(&c.value).ok()?.as_slice() {
+                    [x] => Some((c.name.name.clone(), *x)),
+                    _ => None,
+                },
+                _ => None,
+            })
+            .collect()
+    }
+
     /// Lowers a standalone constant expression in the context of this program (consts visible).
     pub fn eval_constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
         self.constant(e)

@@ -132,6 +132,11 @@ impl Camera {
         self.position
     }
 
+    /// Focal lengths (x, y) in NDC units of the side chosen by [`Camera::ndc_scale`].
+    pub fn focal(&self) -> Vec2 {
+        self.focal
+    }
+
     /// Which image side spans NDC [−1, 1]: the shorter side for PyTorch3D cameras, the width
     /// for Blender cameras.
     pub fn ndc_scale(&self) -> NdcScale {

@@ -1,0 +1,480 @@
+// The page of `nerfjit view`: draws the frames the server renders, sends camera moves and script edits.
+// Protocol (one WebSocket, /ws?token=...):
+//   page → server (JSON): {type: "camera", id, eye, target, up, focal, width, height, layer}
+//                         {type: "source", id, text}
+//   server → page (JSON): hello {name, source, checkpoint}, scene {kind, layers, cameras, consts, ...},
+//                         diagnostics {source_id, items: [{message, hint, at: {line, column, end_line, end_column}}]},
+//                         error {message}
+//   server → page (binary): frame = u32 LE header length, JSON header {camera_id, source_id, width, height,
+//                           final, format, render_ms}, PNG or JPEG bytes.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const canvas = $("canvas");
+const context = canvas.getContext("2d");
+const editor = $("source");
+
+// Everything the page knows, also read by the browser test (window.nerfjitViewer).
+const viewer = {
+  socket: null,
+  nextId: 1,
+  name: "",
+  scene: null,
+  camera: null,          // {eye, target, up, focal}
+  layer: "color",
+  cameraSent: new Map(), // camera request id → time sent
+  sourceSent: new Map(), // source request id → time sent
+  lastCameraId: 0,
+  lastSourceId: 0,
+  stats: { cameraToFrame: [], editToFrame: [], frames: 0, finalFrames: 0 },
+  lastFinal: null,       // {cameraId, sourceId, blob} of the last full-size frame
+  diagnostics: [],
+};
+window.nerfjitViewer = viewer;
+
+// ---- small vector helpers -------------------------------------------------------------------------
+const add = (a, b) => a.map((x, i) => x + b[i]);
+const sub = (a, b) => a.map((x, i) => x - b[i]);
+const scale = (a, s) => a.map((x) => x * s);
+const dot = (a, b) => a.reduce((s, x, i) => s + x * b[i], 0);
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const norm = (a) => Math.hypot(...a);
+const unit = (a) => scale(a, 1 / (norm(a) || 1));
+// Rotates v about unit axis k by angle (Rodrigues).
+function rotate(v, k, angle) {
+  const c = Math.cos(angle), s = Math.sin(angle);
+  return add(add(scale(v, c), scale(cross(k, v), s)), scale(k, dot(k, v) * (1 - c)));
+}
+
+// ---- connection -----------------------------------------------------------------------------------
+function connect() {
+  const token = new URLSearchParams(location.search).get("token") || "";
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const socket = new WebSocket(`${scheme}://${location.host}/ws?token=${encodeURIComponent(token)}`);
+  socket.binaryType = "arraybuffer";
+  socket.onmessage = (event) => {
+    if (typeof event.data === "string") {
+      onMessage(JSON.parse(event.data));
+    } else {
+      onFrame(event.data);
+    }
+  };
+  socket.onclose = () => setStatus("disconnected: reload the page (is `nerfjit view` still running?)");
+  viewer.socket = socket;
+}
+
+function send(message) {
+  if (viewer.socket && viewer.socket.readyState === WebSocket.OPEN) {
+    viewer.socket.send(JSON.stringify(message));
+  }
+}
+
+function setStatus(text) {
+  $("status").textContent = text;
+}
+
+function onMessage(message) {
+  switch (message.type) {
+    case "hello":
+      viewer.name = message.name;
+      $("name").textContent = message.name + (message.checkpoint ? " (trained checkpoint)" : "");
+      editor.value = message.source;
+      refreshEditor();
+      break;
+    case "scene":
+      onScene(message);
+      break;
+    case "diagnostics":
+      viewer.diagnostics = message.items;
+      refreshEditor();
+      showDiagnostics(message.items);
+      break;
+    case "error":
+      setStatus("error: " + message.message);
+      break;
+  }
+}
+
+function onScene(scene) {
+  const first = viewer.scene === null;
+  viewer.scene = scene;
+  const layer = $("layer");
+  layer.replaceChildren(...scene.layers.map((name) => new Option(name, name, false, name === viewer.layer)));
+  if (!scene.layers.includes(viewer.layer)) {
+    viewer.layer = "color";
+  }
+  const cameras = $("camera");
+  cameras.replaceChildren(new Option("free", "free"),
+    ...scene.cameras.map((_, i) => new Option(`script view ${i + 1} of ${scene.cameras.length}`, String(i))));
+  buildSliders(scene.consts);
+  if (first) {
+    viewer.camera = scene.cameras.length > 0 ? { ...scene.cameras[0] }
+      : { eye: [2.5, 2, -4], target: [0, 0, 0], up: [0, 1, 0], focal: 1.5 };
+    if (scene.cameras.length > 0) {
+      cameras.value = "0";
+    }
+  }
+  setStatus(`${scene.kind} · compiled in ${scene.compile_ms.toFixed(0)} ms` + (scene.note ? ` · ${scene.note}` : ""));
+  updateCommands();
+  requestFrame();
+}
+
+// ---- frames ---------------------------------------------------------------------------------------
+let frameQueued = false;
+// Sends the current camera once per animation frame at most (the server renders the latest anyway).
+function requestFrame() {
+  if (frameQueued) {
+    return;
+  }
+  frameQueued = true;
+  requestAnimationFrame(() => {
+    frameQueued = false;
+    if (!viewer.camera) {
+      return;
+    }
+    const id = viewer.nextId++;
+    viewer.cameraSent.set(id, performance.now());
+    viewer.lastCameraId = id;
+    send({ type: "camera", id, ...viewer.camera, width: canvas.width, height: canvas.height, layer: viewer.layer });
+  });
+}
+
+// Frames are drawn in the order they arrive (the server's order), even when a later one decodes first.
+let framesArrived = 0, framesDrawn = 0;
+async function onFrame(data) {
+  const order = ++framesArrived;
+  const view = new DataView(data);
+  const headerLength = view.getUint32(0, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(data, 4, headerLength)));
+  const blob = new Blob([new Uint8Array(data, 4 + headerLength)], { type: `image/${header.format}` });
+  const bitmap = await createImageBitmap(blob);
+  if (order < framesDrawn) {
+    return;
+  }
+  framesDrawn = order;
+  context.imageSmoothingEnabled = !header.final;
+  context.drawImage(bitmap, 0, 0, canvas.width, canvas.height);
+  const now = performance.now();
+  viewer.stats.frames += 1;
+  const sent = viewer.cameraSent.get(header.camera_id);
+  if (sent !== undefined) {
+    viewer.stats.cameraToFrame.push(now - sent);
+    viewer.cameraSent.delete(header.camera_id);
+  }
+  const edited = viewer.sourceSent.get(header.source_id);
+  if (edited !== undefined) {
+    viewer.stats.editToFrame.push(now - edited);
+    viewer.sourceSent.delete(header.source_id);
+  }
+  if (header.final) {
+    viewer.stats.finalFrames += 1;
+    viewer.lastFinal = { cameraId: header.camera_id, sourceId: header.source_id, blob };
+  }
+  const size = `${header.width}×${header.height}`;
+  const kind = viewer.scene ? viewer.scene.kind : "";
+  setStatus(`${kind} · ${size} in ${header.render_ms.toFixed(1)} ms` + (header.final ? "" : " (refining…)"));
+}
+
+// ---- camera controls: drag to orbit, shift-drag or right-drag to pan, wheel or pinch to zoom --------
+function orbit(dx, dy) {
+  const c = viewer.camera;
+  const up = unit(c.up);
+  let offset = sub(c.eye, c.target);
+  offset = rotate(offset, up, -dx * 0.008);
+  const right = unit(cross(up, offset));
+  const turned = rotate(offset, right, dy * 0.008);
+  // Stop short of the poles, where the view would flip.
+  if (Math.abs(dot(unit(turned), up)) < 0.995) {
+    offset = turned;
+  }
+  c.eye = add(c.target, offset);
+  cameraMoved();
+}
+
+function pan(dx, dy) {
+  const c = viewer.camera;
+  const forward = unit(sub(c.target, c.eye));
+  const right = unit(cross(forward, c.up));
+  const upward = cross(right, forward);
+  const step = norm(sub(c.eye, c.target)) / (c.focal * canvas.height * 0.5);
+  const move = add(scale(right, -dx * step), scale(upward, dy * step));
+  c.eye = add(c.eye, move);
+  c.target = add(c.target, move);
+  cameraMoved();
+}
+
+function zoom(factor) {
+  const c = viewer.camera;
+  c.eye = add(c.target, scale(sub(c.eye, c.target), factor));
+  cameraMoved();
+}
+
+function cameraMoved() {
+  $("camera").value = "free";
+  updateCommands();
+  requestFrame();
+}
+
+const pointers = new Map();
+let pinchDistance = 0;
+canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+canvas.addEventListener("pointerdown", (e) => {
+  canvas.setPointerCapture(e.pointerId);
+  pointers.set(e.pointerId, { x: e.clientX, y: e.clientY, pan: e.shiftKey || e.button === 2 });
+  canvas.classList.add("dragging");
+  if (pointers.size === 2) {
+    const [a, b] = [...pointers.values()];
+    pinchDistance = Math.hypot(a.x - b.x, a.y - b.y);
+  }
+});
+canvas.addEventListener("pointermove", (e) => {
+  const p = pointers.get(e.pointerId);
+  if (!p || !viewer.camera) {
+    return;
+  }
+  const dx = e.clientX - p.x, dy = e.clientY - p.y;
+  p.x = e.clientX;
+  p.y = e.clientY;
+  if (pointers.size === 2) {
+    const [a, b] = [...pointers.values()];
+    const distance = Math.hypot(a.x - b.x, a.y - b.y);
+    if (pinchDistance > 0 && distance > 0) {
+      zoom(pinchDistance / distance);
+    }
+    pinchDistance = distance;
+  } else if (p.pan) {
+    pan(dx, dy);
+  } else {
+    orbit(dx, dy);
+  }
+});
+const release = (e) => {
+  pointers.delete(e.pointerId);
+  if (pointers.size === 0) {
+    canvas.classList.remove("dragging");
+  }
+};
+canvas.addEventListener("pointerup", release);
+canvas.addEventListener("pointercancel", release);
+canvas.addEventListener("wheel", (e) => {
+  e.preventDefault();
+  if (viewer.camera) {
+    zoom(Math.exp(e.deltaY * 0.001));
+  }
+}, { passive: false });
+
+$("layer").addEventListener("change", (e) => {
+  viewer.layer = e.target.value;
+  requestFrame();
+});
+$("camera").addEventListener("change", (e) => {
+  const i = Number(e.target.value);
+  if (viewer.scene && Number.isInteger(i) && viewer.scene.cameras[i]) {
+    viewer.camera = { ...viewer.scene.cameras[i] };
+    updateCommands();
+    requestFrame();
+  }
+});
+
+// ---- the editor -----------------------------------------------------------------------------------
+function escapeHtml(text) {
+  return text.replace(/&/g, "&amp;").replace(/</g, "&lt;").replace(/>/g, "&gt;");
+}
+
+// The offset in `text` of 1-based `line` and `column` (in code points).
+function offsetOf(text, line, column) {
+  let offset = 0;
+  for (let l = 1; l < line; l++) {
+    const next = text.indexOf("\n", offset);
+    if (next < 0) {
+      return text.length;
+    }
+    offset = next + 1;
+  }
+  let rest = column - 1;
+  while (rest > 0 && offset < text.length && text[offset] !== "\n") {
+    offset += text.codePointAt(offset) > 0xffff ? 2 : 1;
+    rest -= 1;
+  }
+  return offset;
+}
+
+// Redraws the line numbers and the marks under each diagnostic's span.
+function refreshEditor() {
+  const text = editor.value;
+  const badLines = new Set(viewer.diagnostics.filter((d) => d.at).map((d) => d.at.line));
+  const lines = text.split("\n").length;
+  let gutter = "";
+  for (let i = 1; i <= lines; i++) {
+    gutter += badLines.has(i) ? `<span class="bad">${i}</span>\n` : `${i}\n`;
+  }
+  $("gutter").innerHTML = gutter;
+  const spans = viewer.diagnostics
+    .filter((d) => d.at)
+    .map((d) => ({
+      start: offsetOf(text, d.at.line, d.at.column),
+      end: offsetOf(text, d.at.end_line, d.at.end_column),
+      message: d.message,
+    }))
+    .sort((a, b) => a.start - b.start);
+  let html = "", at = 0;
+  for (const s of spans) {
+    if (s.start < at) {
+      continue;
+    }
+    html += escapeHtml(text.slice(at, s.start));
+    const marked = text.slice(s.start, Math.max(s.end, s.start));
+    const title = escapeHtml(s.message).replace(/"/g, "&quot;");
+    html += marked.length > 0
+      ? `<mark title="${title}">${escapeHtml(marked)}</mark>`
+      : `<mark class="point" title="${title}"></mark>`;
+    at = Math.max(s.end, s.start);
+  }
+  html += escapeHtml(text.slice(at)) + "\n";
+  $("highlight").innerHTML = html;
+  syncScroll();
+}
+
+function syncScroll() {
+  $("highlight").scrollTop = editor.scrollTop;
+  $("highlight").scrollLeft = editor.scrollLeft;
+  $("gutter").scrollTop = editor.scrollTop;
+}
+
+function showDiagnostics(items) {
+  const list = $("diagnostics");
+  list.replaceChildren(...items.map((d) => {
+    const li = document.createElement("li");
+    const place = d.at ? `${viewer.name}:${d.at.line}:${d.at.column}: ` : "";
+    li.textContent = `${place}error: ${d.message}`;
+    if (d.hint) {
+      const hint = document.createElement("div");
+      hint.className = "hint";
+      hint.textContent = `hint: ${d.hint}`;
+      li.append(hint);
+    }
+    if (d.at) {
+      li.addEventListener("click", () => {
+        const offset = offsetOf(editor.value, d.at.line, d.at.column);
+        editor.focus();
+        editor.setSelectionRange(offset, offsetOf(editor.value, d.at.end_line, d.at.end_column));
+      });
+    }
+    return li;
+  }));
+  if (items.length > 0) {
+    setStatus(`${items.length} error${items.length > 1 ? "s" : ""}: the last scene that compiled stays on screen`);
+  }
+}
+
+// Sends the editor's text as a new version of the script.
+function sourceChanged() {
+  refreshEditor();
+  const id = viewer.nextId++;
+  viewer.sourceSent.set(id, performance.now());
+  viewer.lastSourceId = id;
+  send({ type: "source", id, text: editor.value });
+  updateCommands();
+}
+editor.addEventListener("input", sourceChanged);
+editor.addEventListener("scroll", syncScroll);
+editor.addEventListener("keydown", (e) => {
+  if (e.key === "Tab") {
+    e.preventDefault();
+    editor.setRangeText("    ", editor.selectionStart, editor.selectionEnd, "end");
+    sourceChanged();
+  }
+});
+
+// ---- sliders for the script's consts ------------------------------------------------------------
+const number = String.raw`-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?`;
+const constPattern = (name) => new RegExp(String.raw`^(\s*const\s+${name}\s*=\s*)(${number})(?=\s*(?://.*)?$)`, "m");
+
+function buildSliders(consts) {
+  const box = $("sliders");
+  box.replaceChildren();
+  for (const { name, value } of consts) {
+    // Only consts written as a plain number can be moved: the slider rewrites that number.
+    if (!constPattern(name).test(editor.value)) {
+      continue;
+    }
+    const magnitude = Math.abs(value) > 0 ? Math.abs(value) : 1;
+    const [lo, hi] = value > 0 ? [0, 2 * value] : value < 0 ? [2 * value, 0] : [-1, 1];
+    const label = document.createElement("label");
+    label.textContent = name;
+    const slider = Object.assign(document.createElement("input"), {
+      type: "range", min: lo, max: hi, step: magnitude / 100, value, id: `const-${name}`,
+    });
+    const shown = document.createElement("output");
+    shown.textContent = String(value);
+    slider.addEventListener("input", () => {
+      const v = Number(Number(slider.value).toPrecision(4));
+      shown.textContent = String(v);
+      editor.value = editor.value.replace(constPattern(name), (_, head) => head + String(v));
+      sourceChanged();
+    });
+    box.append(label, slider, shown);
+  }
+}
+
+// ---- exports ----------------------------------------------------------------------------------------
+const fmt = (v) => `[${v.map((x) => Number(x.toFixed(4))).join(", ")}]`;
+
+function lookAt() {
+  const c = viewer.camera;
+  return `look_at(eye: ${fmt(c.eye)}, at: ${fmt(c.target)}, up: ${fmt(c.up)}, focal: ${Number(c.focal.toFixed(4))})`;
+}
+
+function orbitPath() {
+  const c = viewer.camera;
+  const offset = sub(c.eye, c.target);
+  const up = unit(c.up);
+  const radius = norm(offset);
+  const elevation = (Math.asin(Math.max(-1, Math.min(1, dot(offset, up) / radius))) * 180) / Math.PI;
+  const axis = up[2] !== 0 ? "z" : "y";
+  return `orbit(radius: ${radius.toFixed(3)}, elevation: ${elevation.toFixed(1)}, frames: 60, up: ${axis}, focal: ${Number(c.focal.toFixed(4))})`;
+}
+
+function updateCommands() {
+  if (!viewer.scene || !viewer.camera) {
+    return;
+  }
+  const name = viewer.name;
+  const size = canvas.width;
+  const lines = viewer.scene.kind === "surface"
+    ? [
+      `# this view as a PNG`,
+      `nerfjit run ${name} --set 'render.camera=${lookAt()}' --set render.size=${size} --set 'render.out="view.png"'`,
+      `# an orbit video`,
+      `nerfjit run ${name} --set 'render.camera=${orbitPath()}' --set 'render.out="orbit.mp4"'`,
+      `# a mesh`,
+      `nerfjit mesh ${name} --res 256 --out mesh.ply`,
+    ]
+    : [
+      `# this view as a PNG (in views/)`,
+      `nerfjit render ${name} --path '${lookAt()}' --size ${size} --out views`,
+      `# an orbit video`,
+      `nerfjit render ${name} --path '${orbitPath()}' --size ${size} --out orbit.mp4`,
+      `# a mesh of the density`,
+      `nerfjit mesh ${name} --function density --level 10 --bounds 1.5 --res 256 --out mesh.ply`,
+    ];
+  $("command-text").textContent = lines.join("\n");
+}
+
+function download(blob, filename) {
+  const link = Object.assign(document.createElement("a"), { href: URL.createObjectURL(blob), download: filename });
+  link.click();
+  setTimeout(() => URL.revokeObjectURL(link.href), 1000);
+}
+
+const baseName = () => viewer.name.replace(/^.*\//, "").replace(/\.sdf$/, "");
+$("export-png").addEventListener("click", () => {
+  if (viewer.lastFinal) {
+    download(viewer.lastFinal.blob, `${baseName()}.png`);
+  }
+});
+$("save-script").addEventListener("click", () => {
+  download(new Blob([editor.value], { type: "text/plain" }), `${baseName()}.sdf`);
+});
+
+connect();

@@ -1,0 +1,230 @@
+//! The viewer's HTTP server: the page (HTML, JS and CSS embedded in the binary) and a WebSocket per open
+//! page, each with a renderer thread of its own. Nothing answers without the access token.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{Query, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
+use glam::Vec3;
+use serde_json::{json, Value};
+
+use super::mailbox::{FrameRequest, Mailbox};
+use super::renderer::{self, Outgoing, MAX_SIDE};
+use super::scene::{Layer, ViewCamera};
+use super::Document;
+use crate::failure::{Failure, Result};
+
+const PAGE: &str = include_str!("page/index.html");
+const SCRIPT: &str = include_str!("page/viewer.js");
+const STYLE: &str = include_str!("page/viewer.css");
+
+/// The longest script a page may send, in bytes.
+const MAX_SOURCE_BYTES: usize = 1 << 20;
+
+#[derive(Clone)]
+struct Shared {
+    document: Arc<Document>,
+    token: Arc<str>,
+}
+
+/// Serves the page on `listener` until the process ends.
+pub fn serve(listener: std::net::TcpListener, document: Document, token: String) -> Result<()> {
+    let failed = |e: std::io::Error| Failure::Message(format!("the viewer's server failed: {e}"));
+    listener.set_nonblocking(true).map_err(failed)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .map_err(failed)?;
+    let shared = Shared {
+        document: Arc::new(document),
+        token: token.into(),
+    };
+    let app = Router::new()
+        .route("/", get(page))
+        .route("/viewer.js", get(|| async { asset("text/javascript", SCRIPT) }))
+        .route("/viewer.css", get(|| async { asset("text/css", STYLE) }))
+        .route("/ws", get(socket))
+        .with_state(shared);
+    runtime
+        .block_on(async move {
+            let listener = tokio::net::TcpListener::from_std(listener)?;
+            axum::serve(listener, app).await
+        })
+        .map_err(failed)
+}
+
+/// Whether the query carries the token (compared in time independent of where they differ).
+fn authorized(query: &HashMap<String, String>, token: &str) -> bool {
+    query.get("token").is_some_and(|given| {
+        given.len() == token.len() && given.bytes().zip(token.bytes()).fold(0, |d, (a, b)| d | (a ^ b)) == 0
+    })
+}
+
+fn forbidden() -> Response {
+    (
+        StatusCode::FORBIDDEN,
+        "nerfjit view: this address needs the token in the URL that `nerfjit view` printed\n",
+    )
+        .into_response()
+}
+
+fn asset(content_type: &'static str, body: &'static str) -> Response {
+    ([(header::CONTENT_TYPE, content_type)], body).into_response()
+}
+
+async fn page(State(shared): State<Shared>, Query(query): Query<HashMap<String, String>>) -> Response {
+    if !authorized(&query, &shared.token) {
+        return forbidden();
+    }
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        PAGE,
+    )
+        .into_response()
+}
+
+async fn socket(
+    State(shared): State<Shared>,
+    Query(query): Query<HashMap<String, String>>,
+    upgrade: WebSocketUpgrade,
+) -> Response {
+    if !authorized(&query, &shared.token) {
+        return forbidden();
+    }
+    upgrade
+        .max_message_size(2 * MAX_SOURCE_BYTES)
+        .on_upgrade(move |socket| session(socket, shared.document))
+}
+
+/// One open page: its requests go to its renderer thread, the renderer's messages to the page.
+async fn session(mut socket: WebSocket, document: Arc<Document>) {
+    let mailbox = Arc::new(Mailbox::default());
+    let (outbox, mut outgoing) = tokio::sync::mpsc::unbounded_channel();
+    let hello = json!({
+        "type": "hello",
+        "name": document.name,
+        "source": document.source,
+        "checkpoint": document.trained.is_some(),
+    });
+    if socket
+        .send(Message::Text(hello.to_string().into()))
+        .await
+        .is_err()
+    {
+        return;
+    }
+    let worker = {
+        let mailbox = Arc::clone(&mailbox);
+        std::thread::Builder::new()
+            .name("nerfjit view".into())
+            .stack_size(crate::WORK_STACK_BYTES)
+            .spawn(move || {
+                nerfjit_runtime::flush_denormals();
+                renderer::serve(&document, &mailbox, &outbox);
+            })
+    };
+    if let Err(e) = worker {
+        let message = json!({"type": "error", "message": format!("cannot start a renderer: {e}")});
+        let _ = socket.send(Message::Text(message.to_string().into())).await;
+        return;
+    }
+    loop {
+        tokio::select! {
+            incoming = socket.recv() => match incoming {
+                Some(Ok(Message::Text(text))) => {
+                    if let Err(message) = post(&text, &mailbox) {
+                        let error = json!({"type": "error", "message": message});
+                        if socket.send(Message::Text(error.to_string().into())).await.is_err() {
+                            break;
+                        }
+                    }
+                }
+                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => break,
+                Some(Ok(_)) => {}
+            },
+            message = outgoing.recv() => {
+                let message = match message {
+                    Some(Outgoing::Text(text)) => Message::Text(text.into()),
+                    Some(Outgoing::Frame(bytes)) => Message::Binary(bytes.into()),
+                    // The renderer has ended (it panicked: its message is on stderr).
+                    None => break,
+                };
+                if socket.send(message).await.is_err() {
+                    break;
+                }
+            }
+        }
+    }
+    mailbox.close();
+}
+
+/// Reads one request of the page and posts it for the renderer; says what is wrong with a bad one.
+fn post(text: &str, mailbox: &Mailbox) -> std::result::Result<(), String> {
+    let request: Value =
+        serde_json::from_str(text).map_err(|e| format!("a request that is not JSON: {e}"))?;
+    let id = request["id"]
+        .as_u64()
+        .ok_or("a request needs a whole number 'id'")?;
+    match request["type"].as_str() {
+        Some("source") => {
+            let source = request["text"]
+                .as_str()
+                .ok_or("a 'source' request needs its 'text'")?;
+            if source.len() > MAX_SOURCE_BYTES {
+                return Err(format!("the script is longer than {MAX_SOURCE_BYTES} bytes"));
+            }
+            mailbox.post_source(id, source.to_string());
+        }
+        Some("camera") => mailbox.post_frame(frame_request(id, &request)?),
+        other => return Err(format!("unknown request type {other:?}: 'camera' or 'source'")),
+    }
+    Ok(())
+}
+
+fn frame_request(id: u64, request: &Value) -> std::result::Result<FrameRequest, String> {
+    let vector = |key: &str| -> std::result::Result<Vec3, String> {
+        let values: Option<Vec<f32>> = request[key]
+            .as_array()
+            .filter(|a| a.len() == 3)
+            .and_then(|a| a.iter().map(|x| x.as_f64().map(|x| x as f32)).collect());
+        values
+            .filter(|v| v.iter().all(|x| x.is_finite()))
+            .map(|v| Vec3::from_slice(&v))
+            .ok_or_else(|| format!("camera '{key}' must be three finite numbers"))
+    };
+    let side = |key: &str| -> std::result::Result<u32, String> {
+        request[key]
+            .as_u64()
+            .filter(|n| (1..=u64::from(MAX_SIDE)).contains(n))
+            .map(|n| n as u32)
+            .ok_or_else(|| format!("'{key}' must be a whole number from 1 to {MAX_SIDE}"))
+    };
+    let (eye, target, up) = (vector("eye")?, vector("target")?, vector("up")?);
+    let focal = request["focal"]
+        .as_f64()
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .ok_or("camera 'focal' must be a positive number")? as f32;
+    let layer = request["layer"].as_str().unwrap_or("color");
+    Ok(FrameRequest {
+        id,
+        view: ViewCamera {
+            eye,
+            target,
+            up,
+            focal,
+        },
+        width: side("width")?,
+        height: side("height")?,
+        layer: Layer::parse(layer)
+            .ok_or_else(|| format!("unknown layer '{layer}': color, depth or normals"))?,
+    })
+}
