@@ -2,6 +2,7 @@
 //! count (a camera dragged across the screen sends many; the renderer skips to the last one).
 
 use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::Duration;
 
 use super::scene::{Layer, ViewCamera};
 
@@ -86,9 +87,14 @@ impl Mailbox {
         }
     }
 
-    /// Whether a request (or the close) waits: work for an older one is then wasted.
-    pub fn has_news(&self) -> bool {
+    /// Waits up to `timeout` for a request (or the close); whether one came (work for an older request
+    /// is then wasted).
+    pub fn news_within(&self, timeout: Duration) -> bool {
         let state = self.lock();
+        let (state, _) = self
+            .posted
+            .wait_timeout_while(state, timeout, |s| !s.closed && s.pending.is_empty())
+            .unwrap_or_else(|e| e.into_inner());
         state.closed || !state.pending.is_empty()
     }
 }
@@ -116,16 +122,19 @@ mod tests {
     #[test]
     fn only_the_latest_requests_are_taken() {
         let mailbox = Mailbox::default();
-        assert!(!mailbox.has_news());
+        assert!(!mailbox.news_within(Duration::ZERO));
         mailbox.post_frame(request(1));
         mailbox.post_source(1, "a".into());
         mailbox.post_frame(request(2));
         mailbox.post_source(2, "b".into());
-        assert!(mailbox.has_news());
+        assert!(
+            mailbox.news_within(Duration::from_secs(60)),
+            "news that waits is seen at once"
+        );
         let pending = mailbox.take().unwrap();
         assert_eq!(pending.frame.map(|f| f.id), Some(2));
         assert_eq!(pending.source, Some((2, "b".to_string())));
-        assert!(!mailbox.has_news());
+        assert!(!mailbox.news_within(Duration::from_millis(1)));
     }
 
     #[test]
@@ -142,7 +151,7 @@ mod tests {
             })
         };
         mailbox.post_frame(request(7));
-        while mailbox.has_news() {
+        while mailbox.news_within(Duration::ZERO) {
             std::thread::yield_now();
         }
         mailbox.close();

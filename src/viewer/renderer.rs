@@ -3,7 +3,7 @@
 //! ones while no newer request waits, the last at full size as PNG.
 
 use std::io::Cursor;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use image::{ImageFormat, RgbImage};
 use nerfjit_dsl::diag::line_col;
@@ -32,6 +32,9 @@ const FIRST_GUESS_NS_PER_PIXEL: f64 = 2_000.0;
 
 /// What the first frame after a camera move may take.
 const COARSE_FRAME_BUDGET_MS: f64 = 25.0;
+
+/// How long the camera must rest before a frame is refined.
+const REST: Duration = Duration::from_millis(40);
 
 /// The largest canvas side rendered.
 pub const MAX_SIDE: u32 = 4096;
@@ -162,7 +165,8 @@ impl Renderer<'_> {
             });
             let bytes = frame_message(&header, &image, last);
             self.outbox.send(Outgoing::Frame(bytes)).map_err(|_| Gone)?;
-            if last || mailbox.has_news() {
+            // A camera being dragged sends a request every few milliseconds: refine only once it rests.
+            if last || mailbox.news_within(REST) {
                 return Ok(());
             }
             divisor /= 2;

@@ -172,7 +172,9 @@ async function onFrame(data) {
   }
   const size = `${header.width}×${header.height}`;
   const kind = viewer.scene ? viewer.scene.kind : "";
-  setStatus(`${kind} · ${size} in ${header.render_ms.toFixed(1)} ms` + (header.final ? "" : " (refining…)"));
+  const errors = viewer.diagnostics.length;
+  setStatus(`${kind} · ${size} in ${header.render_ms.toFixed(1)} ms` + (header.final ? "" : " (refining…)")
+    + (errors > 0 ? ` · ${errors} error${errors > 1 ? "s" : ""}: showing the last scene that compiled` : ""));
 }
 
 // ---- camera controls: drag to orbit, shift-drag or right-drag to pan, wheel or pinch to zoom --------
@@ -386,20 +388,37 @@ editor.addEventListener("keydown", (e) => {
   }
 });
 
-// ---- sliders for the script's consts ------------------------------------------------------------
+// ---- sliders for the script's consts (only those written as a plain number: a slider rewrites it) --
 const number = String.raw`-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?`;
 const constPattern = (name) => new RegExp(String.raw`^(\s*const\s+${name}\s*=\s*)(${number})(?=\s*(?://.*)?$)`, "m");
 
+// The range a slider for `value` spans.
+const sliderRange = (value) => (value > 0 ? [0, 2 * value] : value < 0 ? [2 * value, 0] : [-1, 1]);
+
+// One slider per movable const. A script whose consts keep their names keeps its sliders (one being
+// dragged is left alone), so the edits a slider makes do not rebuild it under the pointer.
 function buildSliders(consts) {
   const box = $("sliders");
-  box.replaceChildren();
-  for (const { name, value } of consts) {
-    // Only consts written as a plain number can be moved: the slider rewrites that number.
-    if (!constPattern(name).test(editor.value)) {
-      continue;
+  const movable = consts.filter(({ name }) => constPattern(name).test(editor.value));
+  const key = movable.map((c) => c.name).join(",");
+  if (box.dataset.names === key) {
+    for (const { name, value } of movable) {
+      const slider = document.getElementById(`const-${name}`);
+      if (slider !== document.activeElement) {
+        const [lo, hi] = sliderRange(value);
+        slider.min = Math.min(Number(slider.min), lo);
+        slider.max = Math.max(Number(slider.max), hi);
+        slider.value = value;
+        slider.nextElementSibling.textContent = String(value);
+      }
     }
+    return;
+  }
+  box.dataset.names = key;
+  box.replaceChildren();
+  for (const { name, value } of movable) {
     const magnitude = Math.abs(value) > 0 ? Math.abs(value) : 1;
-    const [lo, hi] = value > 0 ? [0, 2 * value] : value < 0 ? [2 * value, 0] : [-1, 1];
+    const [lo, hi] = sliderRange(value);
     const label = document.createElement("label");
     label.textContent = name;
     const slider = Object.assign(document.createElement("input"), {
