@@ -58,6 +58,16 @@ enum Command {
         /// Override a const (`beta=0.1`) or a block setting (`train.steps=100`, `render.size=64`); repeatable.
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
+        /// Follow the training in the browser (`nerfjit view`'s page, with progress, a chart and pause);
+        /// prints the page's URL and keeps serving after the last block until Ctrl-C.
+        #[arg(long)]
+        view: bool,
+        /// With --view: the address to serve on.
+        #[arg(long, default_value = "127.0.0.1", requires = "view")]
+        host: std::net::IpAddr,
+        /// With --view: the port (0: any free one).
+        #[arg(long, default_value_t = 7007, requires = "view")]
+        port: u16,
     },
     /// Transmittance through a piecewise-constant medium along a ray.
     Transmittance {
@@ -322,7 +332,17 @@ fn run_command(cli: Cli) -> ExitCode {
             out,
             resume,
             set,
-        } => run::run(&script, &set, out.as_deref(), resume),
+            view,
+            host,
+            port,
+        } => {
+            let view = view.then_some(viewer::ViewArgs {
+                source: &script,
+                host,
+                port,
+            });
+            run::run(&script, &set, out.as_deref(), resume, view.as_ref())
+        }
         Command::Transmittance { segments, from, to } => {
             transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
         }

@@ -2,6 +2,7 @@
 
 use std::path::Path;
 use std::rc::Rc;
+use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::Settings;
@@ -14,6 +15,7 @@ use crate::render::RenderPlan;
 use crate::script;
 use crate::train::TrainPlan;
 use crate::train_sdf::SdfTrainPlan;
+use crate::viewer::{Document, Live, ViewArgs};
 use crate::viz::VizPlan;
 use crate::volume::VolumePlan;
 
@@ -37,8 +39,15 @@ fn bar(len: usize, what: &str) -> ProgressBar {
 }
 
 /// Runs every block of the script in order; all blocks are checked before the first one runs. Training
-/// updates the params that later blocks render with.
-pub fn run(path: &str, overrides: &[String], out_dir: Option<&Path>, resume: bool) -> Result<()> {
+/// updates the params that later blocks render with. With `view`, a live viewer follows the training
+/// (and stays open after the last block until the process is stopped).
+pub fn run(
+    path: &str,
+    overrides: &[String],
+    out_dir: Option<&Path>,
+    resume: bool,
+    view: Option<&ViewArgs>,
+) -> Result<()> {
     let program = script::load_with(path, overrides)?;
     if let Some(dir) = out_dir {
         std::fs::create_dir_all(dir)
@@ -75,6 +84,15 @@ pub fn run(path: &str, overrides: &[String], out_dir: Option<&Path>, resume: boo
             "{path} has nothing to run: add a block such as 'render sphere_trace {{ camera: ..., out: \"scene.gif\" }}'"
         )));
     }
+    let live = match view {
+        Some(args) => {
+            let live = Arc::new(Live::new());
+            let document = Document::of(&program, program.param_values.clone(), false)?;
+            crate::viewer::attach(args, document, Arc::clone(&live))?;
+            Some(live)
+        }
+        None => None,
+    };
     let mut params = program.param_values.clone();
     for plan in &plans {
         let summary = match plan {
@@ -90,12 +108,18 @@ pub fn run(path: &str, overrides: &[String], out_dir: Option<&Path>, resume: boo
                 bar.finish_and_clear();
                 summary
             }
-            Plan::Train(p) => p.run(&program, &mut params, resume)?,
+            Plan::Train(p) => p.run(&program, &mut params, resume, live.as_deref())?,
             Plan::Viz(p) => p.run()?,
             Plan::FitSdf(p) => p.run(&program, &mut params, resume)?,
             Plan::Mesh(p) => p.run(&program, &params)?,
         };
         crate::emit(&format!("{summary}\n"));
+    }
+    if live.is_some() {
+        eprintln!("done: the viewer stays open until Ctrl-C");
+        loop {
+            std::thread::park();
+        }
     }
     Ok(())
 }

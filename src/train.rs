@@ -20,6 +20,7 @@ use crate::interrupt::Watch;
 use crate::metrics_log::MetricsLog;
 use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
+use crate::viewer::Live;
 
 const KEYS: &[&str] = &[
     "data",
@@ -467,12 +468,19 @@ impl TrainPlan {
             validation: None,
             ..*self
         };
-        let line = quiet.run(program, params, false)?;
+        let line = quiet.run(program, params, false, None)?;
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
-    /// Trains `params` in place (resuming from the checkpoint when asked); returns a summary line.
-    pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
+    /// Trains `params` in place (resuming from the checkpoint when asked), publishing its progress and
+    /// params to a live viewer when given; returns a summary line.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &mut Vec<f32>,
+        resume: bool,
+        live: Option<&Live>,
+    ) -> Result<String> {
         let views = match self.blender {
             None => load_box_views(&self.data)?,
             Some(b) => load_blender_views(&self.data, Some(b.size), b.background, b.views)?,
@@ -652,7 +660,16 @@ impl TrainPlan {
                     }
                 }
             }
+            let mut record = None;
             if done % 10 == 0 || last {
+                let elapsed = start.elapsed().as_secs_f64();
+                let steps_per_s = f64::from(done - first) / elapsed;
+                record = Some(serde_json::json!({
+                    "step": done, "steps": self.steps, "loss": loss, "psnr": psnr,
+                    "val_psnr": history.last().and_then(|h| h["val_psnr"].as_f64()),
+                    "train_seconds": train_seconds, "steps_per_s": steps_per_s,
+                    "eta_seconds": f64::from(self.steps - done) / steps_per_s,
+                }));
                 if let Some(log) = &mut log {
                     let eikonal = self.eikonal.is_some().then_some(f64::from(eikonal_loss));
                     log.record(&[
@@ -666,7 +683,7 @@ impl TrainPlan {
                         None,
                     ])?;
                 }
-                let rays_per_s = f64::from(done - first) * self.batch as f64 / start.elapsed().as_secs_f64();
+                let rays_per_s = steps_per_s * self.batch as f64;
                 bar.set_message(format!(
                     "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",
                     if self.eikonal.is_some() {
@@ -678,6 +695,9 @@ impl TrainPlan {
                 ));
             }
             bar.set_position(u64::from(done));
+            if let Some(live) = live {
+                live.after_step(done, last, params, record, &watch);
+            }
             if let Some(path) = &self.checkpoint {
                 if done % self.checkpoint_every == 0 || last {
                     crate::checkpoint::write(path, program, done, params, &adam)?;

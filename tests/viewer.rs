@@ -3,11 +3,13 @@
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use serde_json::{json, Value};
+
+mod common;
 use tungstenite::{Message, WebSocket};
 
 /// A `nerfjit view` process, stopped when dropped.
@@ -27,9 +29,16 @@ impl Drop for Viewer {
 
 /// Starts `nerfjit view SOURCE` on a free port and reads the URL it prints.
 fn view(source: &str) -> Viewer {
+    serve(&["view", source, "--port", "0"], Path::new("."))
+}
+
+/// Starts nerfjit with `args` (that serve a page on a free port) in `dir` and reads the URL it prints.
+fn serve(args: &[&str], dir: &Path) -> Viewer {
     let mut child = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
-        .args(["view", source, "--port", "0"])
+        .args(args)
+        .current_dir(dir)
         .stdout(Stdio::piped())
+        .stderr(Stdio::null())
         .spawn()
         .expect("nerfjit starts");
     let mut line = String::new();
@@ -332,5 +341,87 @@ fn a_volume_field_renders_color_and_depth_and_bad_requests_are_answered() {
         .as_str()
         .unwrap()
         .contains("not JSON"));
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+/// Messages up to the first that `stop` accepts (returned last); frames are returned as their headers.
+fn until(socket: &mut Socket, stop: impl Fn(&Value) -> bool) -> Vec<Value> {
+    let mut seen = Vec::new();
+    loop {
+        let message = match receive(socket) {
+            Reply::Json(v) => v,
+            Reply::Frame(header, _) => header,
+        };
+        let done = stop(&message);
+        seen.push(message);
+        if done {
+            return seen;
+        }
+    }
+}
+
+fn progress_steps(messages: &[Value]) -> Vec<u64> {
+    messages
+        .iter()
+        .filter(|m| m["type"] == "progress")
+        .map(|m| m["record"]["step"].as_u64().unwrap())
+        .collect()
+}
+
+#[test]
+fn a_training_run_streams_its_progress_and_frames_of_its_params_and_pauses() {
+    let dir = scratch("live");
+    common::make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), common::trainer_with(50_000, "")).unwrap();
+    let viewer = serve(&["run", "train.sdf", "--view", "--port", "0"], &dir);
+    let mut socket = connect(&viewer, &viewer.token).unwrap();
+    let hello = json_message(&mut socket);
+    assert_eq!(hello["training"]["paused"], false, "{hello}");
+    assert!(hello["source"].as_str().unwrap().contains("train {"));
+    let camera = json!({"eye": [-2.5, 0.3, 0.0], "target": [0, 0, 0], "up": [0, 1, 0], "focal": 1.0});
+    send(&mut socket, camera_request(1, &camera, 40, 40, "color"));
+    // Records every 10 steps, and frames of ever newer params (the renderer is woken by each copy).
+    let seen = until(&mut socket, |m| {
+        m["type"] == "frame" && m["params_step"].as_u64().is_some_and(|s| s >= 20)
+    });
+    let steps = progress_steps(&seen);
+    assert!(
+        steps.len() >= 2 && steps.windows(2).all(|w| w[0] < w[1]),
+        "{steps:?}"
+    );
+    assert!(steps.iter().all(|s| s % 10 == 0));
+    let record = &seen.iter().find(|m| m["type"] == "progress").unwrap()["record"];
+    for key in ["loss", "psnr", "steps_per_s", "eta_seconds", "train_seconds"] {
+        assert!(
+            record[key].as_f64().is_some_and(f64::is_finite),
+            "{key} in {record}"
+        );
+    }
+    assert_eq!(record["steps"], 50_000);
+
+    // Paused, the run stops within a step (one record may be in flight).
+    send(&mut socket, json!({"type": "pause", "id": 2, "paused": true}));
+    let last = *progress_steps(&until(&mut socket, |m| m["type"] == "progress"))
+        .last()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(800));
+    send(
+        &mut socket,
+        json!({"type": "source", "id": 3, "text": "fn f() -> f32 = 1"}),
+    );
+    let seen = until(&mut socket, |m| m["type"] == "error");
+    let error = seen.last().unwrap()["message"].as_str().unwrap();
+    assert!(error.contains("being trained"), "{error}");
+    let paused_steps = progress_steps(&seen);
+    assert!(
+        paused_steps.iter().all(|&s| s <= last + 10),
+        "{last} then {paused_steps:?}"
+    );
+    // Resumed, it goes on.
+    send(&mut socket, json!({"type": "pause", "id": 4, "paused": false}));
+    until(&mut socket, |m| {
+        m["type"] == "progress" && m["record"]["step"].as_u64().unwrap() > last + 10
+    });
+    drop(viewer);
     std::fs::remove_dir_all(dir).unwrap();
 }

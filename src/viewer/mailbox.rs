@@ -28,11 +28,13 @@ pub struct Pending {
     pub source: Option<(u64, String)>,
     /// A new camera.
     pub frame: Option<FrameRequest>,
+    /// New params (of a training run) to render the last camera with.
+    pub refresh: bool,
 }
 
 impl Pending {
     fn is_empty(&self) -> bool {
-        self.source.is_none() && self.frame.is_none()
+        self.source.is_none() && self.frame.is_none() && !self.refresh
     }
 }
 
@@ -64,6 +66,12 @@ impl Mailbox {
     /// Replaces the pending camera.
     pub fn post_frame(&self, request: FrameRequest) {
         self.lock().pending.frame = Some(request);
+        self.posted.notify_all();
+    }
+
+    /// Asks for the last camera again (the params changed).
+    pub fn post_refresh(&self) {
+        self.lock().pending.refresh = true;
         self.posted.notify_all();
     }
 

@@ -5,12 +5,16 @@
 //! The page runs native code compiled from what is typed into it, so the server binds the loopback address
 //! unless told otherwise and answers nothing without the random token in the URL it prints.
 
+mod live;
 mod mailbox;
 mod renderer;
 mod scene;
 mod server;
 
-use std::net::{IpAddr, SocketAddr};
+use std::net::{IpAddr, SocketAddr, TcpListener};
+use std::sync::Arc;
+
+pub use live::Live;
 
 use nerfjit_dsl::{Program, Type};
 
@@ -32,6 +36,8 @@ pub struct Document {
     pub name: String,
     /// Its text.
     pub source: String,
+    /// `--set` overrides every compile of it applies.
+    overrides: Vec<String>,
     /// A checkpoint's params.
     trained: Option<Trained>,
 }
@@ -48,17 +54,29 @@ impl Document {
     /// The document of a script file (or shipped example) or a checkpoint.
     pub fn load(source: &str) -> Result<Document> {
         let (program, params) = crate::views::load(source)?;
-        let file = program
-            .sources
-            .files
-            .last()
-            .ok_or_else(|| Failure::Message(format!("{source} holds no script")))?;
-        let is_checkpoint = crate::views::is_checkpoint(source);
+        Document::of(&program, params, crate::views::is_checkpoint(source))
+    }
+
+    /// The document of `program` (its script and `--set` overrides) with `params`, trained ones for a
+    /// checkpoint.
+    pub fn of(program: &Program, params: Vec<f32>, is_checkpoint: bool) -> Result<Document> {
+        let files = &program.sources.files;
+        let overrides = files
+            .iter()
+            .filter(|f| f.name == "--set")
+            .map(|f| f.text.clone())
+            .collect();
+        let file = files
+            .iter()
+            .rev()
+            .find(|f| f.name != "<prelude>" && f.name != "--set")
+            .ok_or_else(|| Failure::Message("the program holds no script".into()))?;
         Ok(Document {
             name: file.name.clone(),
             source: file.text.clone(),
+            overrides,
             trained: is_checkpoint.then(|| Trained {
-                layout: param_layout(&program),
+                layout: param_layout(program),
                 values: params,
             }),
         })
@@ -82,12 +100,11 @@ fn new_token() -> Result<String> {
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
-/// Serves the page until the process is stopped; prints its URL (with the token) first.
-pub fn run(args: &ViewArgs) -> Result<()> {
-    let document = Document::load(args.source)?;
+/// Binds the address and prints the page's URL with a new token.
+fn open(args: &ViewArgs, document: &Document) -> Result<(TcpListener, String)> {
     let token = new_token()?;
     let address = SocketAddr::new(args.host, args.port);
-    let listener = std::net::TcpListener::bind(address)
+    let listener = TcpListener::bind(address)
         .map_err(|e| Failure::Message(format!("cannot listen on {address}: {e}")))?;
     let bound = listener
         .local_addr()
@@ -101,5 +118,27 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         "nerfjit view: {} on http://{bound}/?token={token}\n",
         document.name
     ));
-    server::serve(listener, document, token)
+    Ok((listener, token))
+}
+
+/// `nerfjit view`: serves the page until the process is stopped; prints its URL (with the token) first.
+pub fn run(args: &ViewArgs) -> Result<()> {
+    let document = Document::load(args.source)?;
+    let (listener, token) = open(args, &document)?;
+    server::serve(listener, document, token, None)
+}
+
+/// `nerfjit run --view`: serves the page of a training run from a thread of its own, for as long as the
+/// process lives; prints its URL first.
+pub fn attach(args: &ViewArgs, document: Document, live: Arc<Live>) -> Result<()> {
+    let (listener, token) = open(args, &document)?;
+    std::thread::Builder::new()
+        .name("nerfjit view server".into())
+        .spawn(move || {
+            if let Err(failure) = server::serve(listener, document, token, Some(live)) {
+                eprint!("{failure}");
+            }
+        })
+        .map_err(|e| Failure::Message(format!("cannot start the viewer: {e}")))?;
+    Ok(())
 }

@@ -10,6 +10,7 @@ use nerfjit_dsl::diag::line_col;
 use nerfjit_dsl::Program;
 use serde_json::{json, Value};
 
+use super::live::Live;
 use super::mailbox::{FrameRequest, Mailbox};
 use super::scene::Scene;
 use super::Document;
@@ -33,6 +34,12 @@ const FIRST_GUESS_NS_PER_PIXEL: f64 = 2_000.0;
 /// What the first frame after a camera move may take.
 const COARSE_FRAME_BUDGET_MS: f64 = 25.0;
 
+/// What a frame may take while a run trains (it is not refined until the run pauses or ends).
+const TRAINING_FRAME_BUDGET_MS: f64 = 200.0;
+
+/// The share of the time the viewer renders while a run trains (it rests the remainder).
+const TRAINING_SHARE: f64 = 0.07;
+
 /// How long the camera must rest before a frame is refined.
 const REST: Duration = Duration::from_millis(40);
 
@@ -40,12 +47,15 @@ const REST: Duration = Duration::from_millis(40);
 pub const MAX_SIDE: u32 = 4096;
 
 /// Serves `mailbox` until it closes or the page goes: the document's script first, then every request.
-pub fn serve(document: &Document, mailbox: &Mailbox, outbox: &Outbox) {
+/// With a training run, frames show its latest params.
+pub fn serve(document: &Document, mailbox: &Mailbox, outbox: &Outbox, live: Option<&Live>) {
     let mut renderer = Renderer {
         document,
         outbox,
+        live,
         scene: None,
         source_id: 0,
+        params_step: None,
         ns_per_pixel: FIRST_GUESS_NS_PER_PIXEL,
     };
     renderer.compile(&document.source);
@@ -54,6 +64,9 @@ pub fn serve(document: &Document, mailbox: &Mailbox, outbox: &Outbox) {
         if let Some((id, text)) = pending.source {
             renderer.source_id = id;
             renderer.compile(&text);
+        }
+        if pending.refresh {
+            renderer.take_new_params();
         }
         frame = pending.frame.or(frame);
         if let Some(request) = &frame {
@@ -67,8 +80,11 @@ pub fn serve(document: &Document, mailbox: &Mailbox, outbox: &Outbox) {
 struct Renderer<'a> {
     document: &'a Document,
     outbox: &'a Outbox,
+    live: Option<&'a Live>,
     scene: Option<Scene>,
     source_id: u64,
+    /// The training step of the params shown, with a training run.
+    params_step: Option<u32>,
     ns_per_pixel: f64,
 }
 
@@ -86,12 +102,17 @@ impl Renderer<'_> {
     /// A script that fails keeps the last scene on screen.
     fn compile(&mut self, text: &str) {
         let start = Instant::now();
-        let compiled = nerfjit_dsl::compile(&self.document.name, text)
+        let trained = self.live.and_then(Live::params);
+        let compiled = nerfjit_dsl::compile_with(&self.document.name, text, &self.document.overrides)
             .map_err(Failure::Script)
             .and_then(|program| {
-                let (params, note) = self.document.params_for(&program);
+                let (params, note) = match &trained {
+                    Some((_, params)) => (&params[..], None),
+                    None => self.document.params_for(&program),
+                };
                 Scene::compile(&program, params).map(|scene| (scene, note))
             });
+        self.params_step = trained.map(|(step, _)| step);
         let compile_ms = 1e3 * start.elapsed().as_secs_f64();
         let items = match compiled {
             Ok((scene, note)) => {
@@ -126,17 +147,37 @@ impl Renderer<'_> {
         let _ = self.send(json!({"type": "diagnostics", "source_id": self.source_id, "items": items}));
     }
 
+    /// Shows the training run's latest params, if newer than those shown.
+    fn take_new_params(&mut self) {
+        let Some((step, params)) = self.live.and_then(Live::params) else {
+            return;
+        };
+        if let Some(scene) = &mut self.scene {
+            if self.params_step != Some(step) {
+                scene.set_params(&params);
+                self.params_step = Some(step);
+            }
+        }
+    }
+
     /// Renders `request` at growing sizes until the full one, stopping early when a newer request waits.
+    /// While a run trains, renders one small frame and then rests, to leave the cores to training.
     fn render(&mut self, request: &FrameRequest, mailbox: &Mailbox) -> Result<(), Gone> {
         let Some(scene) = &self.scene else {
             return Ok(());
         };
+        let training = self.live.is_some_and(Live::busy);
         let (width, height) = (
             request.width.clamp(1, MAX_SIDE),
             request.height.clamp(1, MAX_SIDE),
         );
         let full = f64::from(width) * f64::from(height);
-        let budget_pixels = COARSE_FRAME_BUDGET_MS * 1e6 / self.ns_per_pixel;
+        let budget_ms = if training {
+            TRAINING_FRAME_BUDGET_MS
+        } else {
+            COARSE_FRAME_BUDGET_MS
+        };
+        let budget_pixels = budget_ms * 1e6 / self.ns_per_pixel;
         let mut divisor = 1u32;
         while f64::from(divisor * divisor) * budget_pixels < full && divisor < 16 {
             divisor *= 2;
@@ -162,9 +203,14 @@ impl Renderer<'_> {
                 "final": last,
                 "format": if last { "png" } else { "jpeg" },
                 "render_ms": 1e3 * seconds,
+                "params_step": self.params_step,
             });
             let bytes = frame_message(&header, &image, last);
             self.outbox.send(Outgoing::Frame(bytes)).map_err(|_| Gone)?;
+            if training {
+                std::thread::sleep(Duration::from_secs_f64(seconds * (1.0 / TRAINING_SHARE - 1.0)));
+                return Ok(());
+            }
             // A camera being dragged sends a request every few milliseconds: refine only once it rests.
             if last || mailbox.news_within(REST) {
                 return Ok(());

@@ -152,6 +152,16 @@ impl Scene {
         })
     }
 
+    /// Renders a volume with `params` from now on (a training run's latest); a surface keeps those it
+    /// was compiled with.
+    pub fn set_params(&mut self, new: &[f32]) {
+        if let Renderer::Volume { params, .. } = &mut self.renderer {
+            if params.len() == new.len() {
+                params.copy_from_slice(new);
+            }
+        }
+    }
+
     /// `surface` (sphere traced) or `volume`.
     pub fn kind(&self) -> &'static str {
         match self.renderer {

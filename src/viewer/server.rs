@@ -16,7 +16,7 @@ use serde_json::{json, Value};
 use super::mailbox::{FrameRequest, Mailbox};
 use super::renderer::{self, Outgoing, MAX_SIDE};
 use super::scene::{Layer, ViewCamera};
-use super::Document;
+use super::{Document, Live};
 use crate::failure::{Failure, Result};
 
 const PAGE: &str = include_str!("page/index.html");
@@ -30,10 +30,16 @@ const MAX_SOURCE_BYTES: usize = 1 << 20;
 struct Shared {
     document: Arc<Document>,
     token: Arc<str>,
+    live: Option<Arc<Live>>,
 }
 
-/// Serves the page on `listener` until the process ends.
-pub fn serve(listener: std::net::TcpListener, document: Document, token: String) -> Result<()> {
+/// Serves the page on `listener` until the process ends; with a training run, pages follow it.
+pub fn serve(
+    listener: std::net::TcpListener,
+    document: Document,
+    token: String,
+    live: Option<Arc<Live>>,
+) -> Result<()> {
     let failed = |e: std::io::Error| Failure::Message(format!("the viewer's server failed: {e}"));
     listener.set_nonblocking(true).map_err(failed)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -44,6 +50,7 @@ pub fn serve(listener: std::net::TcpListener, document: Document, token: String)
     let shared = Shared {
         document: Arc::new(document),
         token: token.into(),
+        live,
     };
     let app = Router::new()
         .route("/", get(page))
@@ -102,18 +109,21 @@ async fn socket(
     }
     upgrade
         .max_message_size(2 * MAX_SOURCE_BYTES)
-        .on_upgrade(move |socket| session(socket, shared.document))
+        .on_upgrade(move |socket| session(socket, shared.document, shared.live))
 }
 
-/// One open page: its requests go to its renderer thread, the renderer's messages to the page.
-async fn session(mut socket: WebSocket, document: Arc<Document>) {
+/// One open page: its requests go to its renderer thread, the renderer's messages to the page, and a
+/// training run's progress records to the page as they come.
+async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Arc<Live>>) {
     let mailbox = Arc::new(Mailbox::default());
     let (outbox, mut outgoing) = tokio::sync::mpsc::unbounded_channel();
+    let mut progress = live.as_ref().and_then(|l| l.subscribe());
     let hello = json!({
         "type": "hello",
         "name": document.name,
         "source": document.source,
         "checkpoint": document.trained.is_some(),
+        "training": live.as_ref().map(|l| json!({"history": l.history(), "paused": l.paused()})),
     });
     if socket
         .send(Message::Text(hello.to_string().into()))
@@ -122,14 +132,18 @@ async fn session(mut socket: WebSocket, document: Arc<Document>) {
     {
         return;
     }
+    if let Some(live) = &live {
+        live.listen(&mailbox);
+    }
     let worker = {
         let mailbox = Arc::clone(&mailbox);
+        let live = live.clone();
         std::thread::Builder::new()
             .name("nerfjit view".into())
             .stack_size(crate::WORK_STACK_BYTES)
             .spawn(move || {
                 nerfjit_runtime::flush_denormals();
-                renderer::serve(&document, &mailbox, &outbox);
+                renderer::serve(&document, &mailbox, &outbox, live.as_deref());
             })
     };
     if let Err(e) = worker {
@@ -141,7 +155,7 @@ async fn session(mut socket: WebSocket, document: Arc<Document>) {
         tokio::select! {
             incoming = socket.recv() => match incoming {
                 Some(Ok(Message::Text(text))) => {
-                    if let Err(message) = post(&text, &mailbox) {
+                    if let Err(message) = post(&text, &mailbox, live.as_deref()) {
                         let error = json!({"type": "error", "message": message});
                         if socket.send(Message::Text(error.to_string().into())).await.is_err() {
                             break;
@@ -151,6 +165,12 @@ async fn session(mut socket: WebSocket, document: Arc<Document>) {
                 Some(Ok(Message::Close(_))) | Some(Err(_)) | None => break,
                 Some(Ok(_)) => {}
             },
+            Some(record) = next_record(&mut progress) => {
+                let message = json!({"type": "progress", "record": record});
+                if socket.send(Message::Text(message.to_string().into())).await.is_err() {
+                    break;
+                }
+            }
             message = outgoing.recv() => {
                 let message = match message {
                     Some(Outgoing::Text(text)) => Message::Text(text.into()),
@@ -167,14 +187,36 @@ async fn session(mut socket: WebSocket, document: Arc<Document>) {
     mailbox.close();
 }
 
-/// Reads one request of the page and posts it for the renderer; says what is wrong with a bad one.
-fn post(text: &str, mailbox: &Mailbox) -> std::result::Result<(), String> {
+/// The next progress record of a training run; never, without one (or once it has ended).
+async fn next_record(progress: &mut Option<tokio::sync::watch::Receiver<Value>>) -> Option<Value> {
+    if let Some(receiver) = progress {
+        if receiver.changed().await.is_ok() {
+            return Some(receiver.borrow_and_update().clone());
+        }
+    }
+    std::future::pending().await
+}
+
+/// Reads one request of the page and posts it for the renderer (or, to pause or resume, to the training
+/// run); says what is wrong with a bad one.
+fn post(text: &str, mailbox: &Mailbox, live: Option<&Live>) -> std::result::Result<(), String> {
     let request: Value =
         serde_json::from_str(text).map_err(|e| format!("a request that is not JSON: {e}"))?;
     let id = request["id"]
         .as_u64()
         .ok_or("a request needs a whole number 'id'")?;
     match request["type"].as_str() {
+        Some("source") if live.is_some() => {
+            return Err("the script is being trained: edit it once the run has ended".into());
+        }
+        Some("pause") => {
+            let live = live.ok_or("only a training run (nerfjit run --view) can be paused")?;
+            live.set_paused(
+                request["paused"]
+                    .as_bool()
+                    .ok_or("a 'pause' request needs 'paused': true or false")?,
+            );
+        }
         Some("source") => {
             let source = request["text"]
                 .as_str()
@@ -185,7 +227,11 @@ fn post(text: &str, mailbox: &Mailbox) -> std::result::Result<(), String> {
             mailbox.post_source(id, source.to_string());
         }
         Some("camera") => mailbox.post_frame(frame_request(id, &request)?),
-        other => return Err(format!("unknown request type {other:?}: 'camera' or 'source'")),
+        other => {
+            return Err(format!(
+                "unknown request type {other:?}: 'camera', 'source' or 'pause'"
+            ))
+        }
     }
     Ok(())
 }

@@ -29,6 +29,7 @@ const viewer = {
   stats: { cameraToFrame: [], editToFrame: [], frames: 0, finalFrames: 0 },
   lastFinal: null,       // {cameraId, sourceId, blob} of the last full-size frame
   diagnostics: [],
+  training: null,        // {history: [records], paused} during `nerfjit run --view`
 };
 window.nerfjitViewer = viewer;
 
@@ -80,6 +81,16 @@ function onMessage(message) {
       $("name").textContent = message.name + (message.checkpoint ? " (trained checkpoint)" : "");
       editor.value = message.source;
       refreshEditor();
+      if (message.training) {
+        viewer.training = message.training;
+        editor.readOnly = true;
+        $("training").hidden = false;
+        showTraining();
+      }
+      break;
+    case "progress":
+      viewer.training.history.push(message.record);
+      showTraining();
       break;
     case "scene":
       onScene(message);
@@ -276,6 +287,60 @@ $("camera").addEventListener("change", (e) => {
     updateCommands();
     requestFrame();
   }
+});
+
+// ---- a training run: progress, a chart of PSNR, pause -----------------------------------------------
+function showTraining() {
+  const { history, paused } = viewer.training;
+  $("pause").textContent = paused ? "resume" : "pause";
+  const last = history[history.length - 1];
+  if (last) {
+    const eta = Number.isFinite(last.eta_seconds) ? `${Math.round(last.eta_seconds)} s to go` : "";
+    const val = last.val_psnr != null ? ` · val ${last.val_psnr.toFixed(2)} dB` : "";
+    $("train-status").textContent = `step ${last.step}/${last.steps} · loss ${last.loss.toPrecision(4)} · ` +
+      `PSNR ${last.psnr.toFixed(2)} dB${val} · ${last.steps_per_s.toFixed(1)} steps/s · ${paused ? "paused" : eta}`;
+  }
+  drawChart(history);
+}
+
+function drawChart(history) {
+  const chart = $("chart");
+  const g = chart.getContext("2d");
+  const w = chart.width, h = chart.height, pad = 28;
+  g.clearRect(0, 0, w, h);
+  const points = history.filter((r) => Number.isFinite(r.psnr));
+  if (points.length === 0) {
+    return;
+  }
+  const values = points.flatMap((r) => (r.val_psnr != null ? [r.psnr, r.val_psnr] : [r.psnr]));
+  const lo = Math.floor(Math.min(...values)), hi = Math.ceil(Math.max(...values)) + 1;
+  const steps = points[0].steps;
+  const x = (step) => pad + ((w - 2 * pad) * step) / steps;
+  const y = (v) => h - pad + ((2 * pad - h) * (v - lo)) / (hi - lo);
+  g.fillStyle = "#8a92a0";
+  g.font = "11px sans-serif";
+  g.fillText(`${hi} dB`, 2, pad - 4);
+  g.fillText(`${lo} dB`, 2, h - pad + 12);
+  g.fillText(`step ${steps}`, w - pad - 40, h - 6);
+  g.strokeStyle = "#6cb6ff";
+  g.beginPath();
+  points.forEach((r, i) => (i === 0 ? g.moveTo(x(r.step), y(r.psnr)) : g.lineTo(x(r.step), y(r.psnr))));
+  g.stroke();
+  g.fillStyle = "#ffb86c";
+  for (const r of points.filter((r) => r.val_psnr != null)) {
+    g.beginPath();
+    g.arc(x(r.step), y(r.val_psnr), 3, 0, 2 * Math.PI);
+    g.fill();
+  }
+  g.fillText("train PSNR", pad + 4, 12);
+  g.fillStyle = "#ffb86c";
+  g.fillText("● val PSNR", pad + 80, 12);
+}
+
+$("pause").addEventListener("click", () => {
+  viewer.training.paused = !viewer.training.paused;
+  send({ type: "pause", id: viewer.nextId++, paused: viewer.training.paused });
+  showTraining();
 });
 
 // ---- the editor -----------------------------------------------------------------------------------
