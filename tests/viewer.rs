@@ -88,10 +88,12 @@ fn connect(viewer: &Viewer, token: &str) -> Result<Socket, tungstenite::Error> {
         })
 }
 
-/// One message of the server: JSON, or a frame's header and decoded image.
+/// One message of the server: JSON, a frame's header and decoded image, or an exported file's header and
+/// bytes.
 enum Reply {
     Json(Value),
     Frame(Value, image::RgbImage),
+    File(Value, Vec<u8>),
 }
 
 fn receive(socket: &mut Socket) -> Reply {
@@ -101,6 +103,9 @@ fn receive(socket: &mut Socket) -> Reply {
             Message::Binary(bytes) => {
                 let length = u32::from_le_bytes(bytes[..4].try_into().unwrap()) as usize;
                 let header: Value = serde_json::from_slice(&bytes[4..4 + length]).unwrap();
+                if header["type"] == "file" {
+                    return Reply::File(header, bytes[4 + length..].to_vec());
+                }
                 let format = match header["format"].as_str() {
                     Some("png") => image::ImageFormat::Png,
                     Some("jpeg") => image::ImageFormat::Jpeg,
@@ -120,7 +125,9 @@ fn receive(socket: &mut Socket) -> Reply {
 fn json_message(socket: &mut Socket) -> Value {
     match receive(socket) {
         Reply::Json(v) => v,
-        Reply::Frame(header, _) => panic!("expected a JSON message, got frame {header}"),
+        Reply::Frame(header, _) | Reply::File(header, _) => {
+            panic!("expected a JSON message, got {header}")
+        }
     }
 }
 
@@ -144,7 +151,7 @@ fn frames_until_final(socket: &mut Socket, camera_id: u64) -> (Vec<Value>, image
                     return (headers, picture);
                 }
             }
-            Reply::Json(v) => panic!("expected a frame, got {v}"),
+            Reply::Json(v) | Reply::File(v, _) => panic!("expected a frame, got {v}"),
         }
     }
 }
@@ -350,7 +357,7 @@ fn until(socket: &mut Socket, stop: impl Fn(&Value) -> bool) -> Vec<Value> {
     loop {
         let message = match receive(socket) {
             Reply::Json(v) => v,
-            Reply::Frame(header, _) => header,
+            Reply::Frame(header, _) | Reply::File(header, _) => header,
         };
         let done = stop(&message);
         seen.push(message);
@@ -399,29 +406,65 @@ fn a_training_run_streams_its_progress_and_frames_of_its_params_and_pauses() {
     }
     assert_eq!(record["steps"], 50_000);
 
-    // Paused, the run stops within a step (one record may be in flight).
+    // Paused, the run stops: no record comes between two requests answered 0.8 s apart (a request the
+    // run refuses serves as the ping).
     send(&mut socket, json!({"type": "pause", "id": 2, "paused": true}));
-    let last = *progress_steps(&until(&mut socket, |m| m["type"] == "progress"))
-        .last()
-        .unwrap();
-    std::thread::sleep(Duration::from_millis(800));
-    send(
-        &mut socket,
-        json!({"type": "source", "id": 3, "text": "fn f() -> f32 = 1"}),
-    );
-    let seen = until(&mut socket, |m| m["type"] == "error");
-    let error = seen.last().unwrap()["message"].as_str().unwrap();
-    assert!(error.contains("being trained"), "{error}");
-    let paused_steps = progress_steps(&seen);
-    assert!(
-        paused_steps.iter().all(|&s| s <= last + 10),
-        "{last} then {paused_steps:?}"
-    );
+    let ping = |socket: &mut Socket, id: u64| {
+        std::thread::sleep(Duration::from_millis(800));
+        send(
+            socket,
+            json!({"type": "source", "id": id, "text": "fn f() -> f32 = 1"}),
+        );
+        let seen = until(socket, |m| m["type"] == "error");
+        let error = seen.last().unwrap()["message"].as_str().unwrap().to_string();
+        assert!(error.contains("being trained"), "{error}");
+        progress_steps(&seen)
+    };
+    let before_pause = ping(&mut socket, 3);
+    assert_eq!(ping(&mut socket, 4), Vec::<u64>::new(), "a paused run goes on");
     // Resumed, it goes on.
-    send(&mut socket, json!({"type": "pause", "id": 4, "paused": false}));
+    let last = before_pause.into_iter().chain(steps).max().unwrap();
+    send(&mut socket, json!({"type": "pause", "id": 5, "paused": false}));
     until(&mut socket, |m| {
-        m["type"] == "progress" && m["record"]["step"].as_u64().unwrap() > last + 10
+        m["type"] == "progress" && m["record"]["step"].as_u64().unwrap() > last
     });
     drop(viewer);
     std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn the_export_buttons_get_an_orbit_video_and_a_mesh() {
+    let viewer = view("examples/torus.sdf");
+    let mut socket = connect(&viewer, &viewer.token).unwrap();
+    let (_, scene) = opening(&mut socket);
+    let camera = &scene["cameras"][0];
+    let export = |what: &str, id: u64| {
+        json!({"type": "export", "id": id, "what": what, "eye": camera["eye"], "target": camera["target"],
+               "up": camera["up"], "focal": camera["focal"]})
+    };
+    send(&mut socket, export("video", 1));
+    let Reply::File(header, video) = receive(&mut socket) else {
+        panic!("expected a file")
+    };
+    assert_eq!(header["name"], "torus-orbit.mp4");
+    assert_eq!(header["mime"], "video/mp4");
+    assert_eq!(&video[4..8], b"ftyp", "an MP4 file");
+    send(&mut socket, export("mesh", 2));
+    let Reply::File(header, mesh) = receive(&mut socket) else {
+        panic!("expected a file")
+    };
+    assert_eq!(header["name"], "torus.ply");
+    assert!(
+        mesh.starts_with(b"ply\nformat binary_little_endian"),
+        "a binary PLY file"
+    );
+    send(&mut socket, export("gltf", 3));
+    let error = json_message(&mut socket);
+    assert!(
+        error["message"]
+            .as_str()
+            .unwrap()
+            .contains("cannot export 'gltf'"),
+        "{error}"
+    );
 }

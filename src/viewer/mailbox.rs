@@ -4,6 +4,7 @@
 use std::sync::{Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
+use super::export::Export;
 use super::scene::{Layer, ViewCamera};
 
 /// A frame the page wants: a camera, a size and a layer, numbered by the page.
@@ -21,6 +22,17 @@ pub struct FrameRequest {
     pub layer: Layer,
 }
 
+/// A file the page wants, made from a view.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExportRequest {
+    /// The page's number for the request.
+    pub id: u64,
+    /// What to make.
+    pub what: Export,
+    /// The view it starts from.
+    pub view: ViewCamera,
+}
+
 /// Requests not yet taken by the renderer.
 #[derive(Debug, Default)]
 pub struct Pending {
@@ -30,11 +42,13 @@ pub struct Pending {
     pub frame: Option<FrameRequest>,
     /// New params (of a training run) to render the last camera with.
     pub refresh: bool,
+    /// A file to make.
+    pub export: Option<ExportRequest>,
 }
 
 impl Pending {
     fn is_empty(&self) -> bool {
-        self.source.is_none() && self.frame.is_none() && !self.refresh
+        self.source.is_none() && self.frame.is_none() && !self.refresh && self.export.is_none()
     }
 }
 
@@ -66,6 +80,12 @@ impl Mailbox {
     /// Replaces the pending camera.
     pub fn post_frame(&self, request: FrameRequest) {
         self.lock().pending.frame = Some(request);
+        self.posted.notify_all();
+    }
+
+    /// Replaces the pending export.
+    pub fn post_export(&self, request: ExportRequest) {
+        self.lock().pending.export = Some(request);
         self.posted.notify_all();
     }
 

@@ -5,6 +5,7 @@
 //! The page runs native code compiled from what is typed into it, so the server binds the loopback address
 //! unless told otherwise and answers nothing without the random token in the URL it prints.
 
+mod export;
 mod live;
 mod mailbox;
 mod renderer;

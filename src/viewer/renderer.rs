@@ -10,8 +10,9 @@ use nerfjit_dsl::diag::line_col;
 use nerfjit_dsl::Program;
 use serde_json::{json, Value};
 
+use super::export;
 use super::live::Live;
-use super::mailbox::{FrameRequest, Mailbox};
+use super::mailbox::{ExportRequest, FrameRequest, Mailbox};
 use super::scene::Scene;
 use super::Document;
 use crate::failure::Failure;
@@ -21,7 +22,8 @@ use crate::failure::Failure;
 pub enum Outgoing {
     /// A JSON message.
     Text(String),
-    /// A frame: a little-endian u32 header length, the JSON header, then the PNG or JPEG bytes.
+    /// A frame or a file: a little-endian u32 header length, the JSON header, then the PNG or JPEG (or
+    /// file) bytes.
     Frame(Vec<u8>),
 }
 
@@ -68,6 +70,11 @@ pub fn serve(document: &Document, mailbox: &Mailbox, outbox: &Outbox, live: Opti
         if pending.refresh {
             renderer.take_new_params();
         }
+        if let Some(request) = pending.export {
+            if renderer.export(&request).is_err() {
+                return;
+            }
+        }
         frame = pending.frame.or(frame);
         if let Some(request) = &frame {
             if renderer.render(request, mailbox).is_err() {
@@ -107,10 +114,13 @@ impl Renderer<'_> {
             .map_err(Failure::Script)
             .and_then(|program| {
                 let (params, note) = match &trained {
-                    Some((_, params)) => (&params[..], None),
-                    None => self.document.params_for(&program),
+                    Some((_, params)) => (params.to_vec(), None),
+                    None => {
+                        let (params, note) = self.document.params_for(&program);
+                        (params.to_vec(), note)
+                    }
                 };
-                Scene::compile(&program, params).map(|scene| (scene, note))
+                Scene::compile(program, &params).map(|scene| (scene, note))
             });
         self.params_step = trained.map(|(step, _)| step);
         let compile_ms = 1e3 * start.elapsed().as_secs_f64();
@@ -145,6 +155,30 @@ impl Renderer<'_> {
             Err(failure) => diagnostics(&self.document.name, &failure),
         };
         let _ = self.send(json!({"type": "diagnostics", "source_id": self.source_id, "items": items}));
+    }
+
+    /// Makes the file `request` asks for and sends it (or what went wrong).
+    fn export(&self, request: &ExportRequest) -> Result<(), Gone> {
+        let Some(scene) = &self.scene else {
+            return self.send(
+                json!({"type": "error", "message": "nothing to export: the script has not compiled yet"}),
+            );
+        };
+        let stem = std::path::Path::new(&self.document.name)
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or("scene");
+        match export::export(request.what, scene, &request.view, stem) {
+            Ok(file) => {
+                let header = json!({"type": "file", "id": request.id, "name": file.name, "mime": file.mime});
+                let header = header.to_string();
+                let mut bytes = (header.len() as u32).to_le_bytes().to_vec();
+                bytes.extend_from_slice(header.as_bytes());
+                bytes.extend_from_slice(&file.bytes);
+                self.outbox.send(Outgoing::Frame(bytes)).map_err(|_| Gone)
+            }
+            Err(failure) => self.send(json!({"type": "error", "message": failure.to_string().trim()})),
+        }
     }
 
     /// Shows the training run's latest params, if newer than those shown.

@@ -55,6 +55,18 @@ pub struct ViewCamera {
     pub focal: f32,
 }
 
+impl Default for ViewCamera {
+    /// Looking at the origin from 4 units down −z, y up, a 74° field of view.
+    fn default() -> ViewCamera {
+        ViewCamera {
+            eye: Vec3::new(0.0, 0.0, -4.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            focal: 1.5,
+        }
+    }
+}
+
 impl ViewCamera {
     /// The renderer's camera.
     pub fn camera(&self) -> Result<Camera> {
@@ -104,12 +116,14 @@ enum Renderer {
     Volume {
         fields: VolumeFields,
         rendering: Rendering,
-        params: Vec<f32>,
     },
 }
 
 /// A script compiled for display, with what the page offers for it.
 pub struct Scene {
+    program: Program,
+    /// The params the renderer reads (a volume's follow a training run; a surface's are compiled in).
+    params: Vec<f32>,
     renderer: Renderer,
     /// The cameras of the script's first render block with a camera (empty if none).
     pub cameras: Vec<ViewCamera>,
@@ -119,10 +133,10 @@ pub struct Scene {
 
 impl Scene {
     /// Compiles `program` for display with `params` (a checkpoint's trained values, or the script's own).
-    pub fn compile(program: &Program, params: &[f32]) -> Result<Scene> {
+    pub fn compile(program: Program, params: &[f32]) -> Result<Scene> {
         let cache = KernelCache::new();
         let renderer = if program.signature("sdf").is_some() {
-            surface(program, params, &cache)?
+            surface(&program, params, &cache)?
         } else {
             let rendering = ViewArgs {
                 source: "",
@@ -133,32 +147,54 @@ impl Scene {
                 background: None,
                 importance: None,
             }
-            .resolve(program);
+            .resolve(&program);
             Renderer::Volume {
-                fields: VolumeFields::compile(program, &cache, rendering.importance)?,
+                fields: VolumeFields::compile(&program, &cache, rendering.importance)?,
                 rendering,
-                params: params.to_vec(),
             }
         };
-        let cameras = script_cameras(program)?
+        let cameras = script_cameras(&program)?
             .unwrap_or_default()
             .iter()
             .map(ViewCamera::of)
             .collect();
         Ok(Scene {
+            consts: program.scalar_consts(),
+            program,
+            params: params.to_vec(),
             renderer,
             cameras,
-            consts: program.scalar_consts(),
         })
+    }
+
+    /// The program shown.
+    pub fn program(&self) -> &Program {
+        &self.program
+    }
+
+    /// The params shown.
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// What a mesh of the scene extracts: the function, its level and the half-side of the grid around
+    /// the origin (a surface's zero level within 4 units, or a volume's density 10 or opacity ½ within
+    /// 1.5, the bounds of the NeRF scenes).
+    pub fn mesh_settings(&self) -> (&'static str, f32, f32) {
+        match &self.renderer {
+            Renderer::Surface(_) => ("sdf", 0.0, 4.0),
+            Renderer::Volume { fields, .. } => match fields.fine.mode {
+                nerfjit_runtime::composite::Mode::Density => ("density", 10.0, 1.5),
+                _ => ("opacity", 0.5, 1.5),
+            },
+        }
     }
 
     /// Renders a volume with `params` from now on (a training run's latest); a surface keeps those it
     /// was compiled with.
     pub fn set_params(&mut self, new: &[f32]) {
-        if let Renderer::Volume { params, .. } = &mut self.renderer {
-            if params.len() == new.len() {
-                params.copy_from_slice(new);
-            }
+        if matches!(self.renderer, Renderer::Volume { .. }) && self.params.len() == new.len() {
+            self.params.copy_from_slice(new);
         }
     }
 
@@ -220,18 +256,14 @@ impl Scene {
                     Layer::Normals => normal_image(&frame)?,
                 })
             }
-            Renderer::Volume {
-                fields,
-                rendering,
-                params,
-            } => {
+            Renderer::Volume { fields, rendering } => {
                 if layer == Layer::Normals {
                     return Err(Failure::Message(
                         "normals are shown for surfaces (scripts with an sdf) only".into(),
                     ));
                 }
                 let settings = rendering.settings(fields.fine.mode);
-                let frame = fields.render(&camera, width, height, params, &settings)?;
+                let frame = fields.render(&camera, width, height, &self.params, &settings)?;
                 Ok(match layer {
                     Layer::Depth => volume_depth(&frame.depth, &frame.opacity, width, height, rendering),
                     _ => rgb_image(width, height, &frame.rgb, Quantize::Truncate)?,
@@ -324,10 +356,11 @@ mod tests {
              render sphere_trace { camera: orbit(radius: 5, elevation: 30, frames: 4, up: y, focal: 1.5), out: \"x.png\" }",
         )
         .unwrap();
-        let scene = Scene::compile(&program, &program.param_values).unwrap();
+        let params = program.param_values.clone();
+        let scene = Scene::compile(program, &params).unwrap();
         assert_eq!(scene.kind(), "surface");
         assert_eq!(scene.cameras.len(), 4);
-        let cameras = script_cameras(&program).unwrap().unwrap();
+        let cameras = script_cameras(scene.program()).unwrap().unwrap();
         for (view, original) in scene.cameras.iter().zip(&cameras) {
             assert_eq!(view.up, Vec3::Y);
             assert!(
@@ -360,7 +393,8 @@ mod tests {
         };
         for source in [surface, volume] {
             let program = nerfjit_dsl::compile("t.sdf", source).unwrap();
-            let scene = Scene::compile(&program, &program.param_values).unwrap();
+            let params = program.param_values.clone();
+            let scene = Scene::compile(program, &params).unwrap();
             for name in scene.layers() {
                 let image = scene.render(&view, 33, 31, Layer::parse(name).unwrap()).unwrap();
                 assert_eq!(image.dimensions(), (33, 31));

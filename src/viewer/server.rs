@@ -13,7 +13,8 @@ use axum::Router;
 use glam::Vec3;
 use serde_json::{json, Value};
 
-use super::mailbox::{FrameRequest, Mailbox};
+use super::export::Export;
+use super::mailbox::{ExportRequest, FrameRequest, Mailbox};
 use super::renderer::{self, Outgoing, MAX_SIDE};
 use super::scene::{Layer, ViewCamera};
 use super::{Document, Live};
@@ -227,16 +228,23 @@ fn post(text: &str, mailbox: &Mailbox, live: Option<&Live>) -> std::result::Resu
             mailbox.post_source(id, source.to_string());
         }
         Some("camera") => mailbox.post_frame(frame_request(id, &request)?),
+        Some("export") => {
+            let name = request["what"].as_str().unwrap_or_default();
+            let what = Export::parse(name).ok_or_else(|| format!("cannot export '{name}': video or mesh"))?;
+            let view = view_camera(&request)?;
+            mailbox.post_export(ExportRequest { id, what, view });
+        }
         other => {
             return Err(format!(
-                "unknown request type {other:?}: 'camera', 'source' or 'pause'"
+                "unknown request type {other:?}: 'camera', 'source', 'export' or 'pause'"
             ))
         }
     }
     Ok(())
 }
 
-fn frame_request(id: u64, request: &Value) -> std::result::Result<FrameRequest, String> {
+/// The camera of a request: `eye`, `target`, `up` and `focal`.
+fn view_camera(request: &Value) -> std::result::Result<ViewCamera, String> {
     let vector = |key: &str| -> std::result::Result<Vec3, String> {
         let values: Option<Vec<f32>> = request[key]
             .as_array()
@@ -247,6 +255,20 @@ fn frame_request(id: u64, request: &Value) -> std::result::Result<FrameRequest, 
             .map(|v| Vec3::from_slice(&v))
             .ok_or_else(|| format!("camera '{key}' must be three finite numbers"))
     };
+    let (eye, target, up) = (vector("eye")?, vector("target")?, vector("up")?);
+    let focal = request["focal"]
+        .as_f64()
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .ok_or("camera 'focal' must be a positive number")? as f32;
+    Ok(ViewCamera {
+        eye,
+        target,
+        up,
+        focal,
+    })
+}
+
+fn frame_request(id: u64, request: &Value) -> std::result::Result<FrameRequest, String> {
     let side = |key: &str| -> std::result::Result<u32, String> {
         request[key]
             .as_u64()
@@ -254,20 +276,11 @@ fn frame_request(id: u64, request: &Value) -> std::result::Result<FrameRequest, 
             .map(|n| n as u32)
             .ok_or_else(|| format!("'{key}' must be a whole number from 1 to {MAX_SIDE}"))
     };
-    let (eye, target, up) = (vector("eye")?, vector("target")?, vector("up")?);
-    let focal = request["focal"]
-        .as_f64()
-        .filter(|f| f.is_finite() && *f > 0.0)
-        .ok_or("camera 'focal' must be a positive number")? as f32;
+    let view = view_camera(request)?;
     let layer = request["layer"].as_str().unwrap_or("color");
     Ok(FrameRequest {
         id,
-        view: ViewCamera {
-            eye,
-            target,
-            up,
-            focal,
-        },
+        view,
         width: side("width")?,
         height: side("height")?,
         layer: Layer::parse(layer)

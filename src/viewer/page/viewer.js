@@ -30,6 +30,7 @@ const viewer = {
   lastFinal: null,       // {cameraId, sourceId, blob} of the last full-size frame
   diagnostics: [],
   training: null,        // {history: [records], paused} during `nerfjit run --view`
+  exported: [],          // {name, size} of the files the server made for the export buttons
 };
 window.nerfjitViewer = viewer;
 
@@ -157,6 +158,13 @@ async function onFrame(data) {
   const view = new DataView(data);
   const headerLength = view.getUint32(0, true);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(data, 4, headerLength)));
+  if (header.type === "file") {
+    const file = new Blob([new Uint8Array(data, 4 + headerLength)], { type: header.mime });
+    viewer.exported.push({ name: header.name, size: file.size });
+    download(file, header.name);
+    setStatus(`exported ${header.name} (${(file.size / 1024).toFixed(0)} KiB)`);
+    return;
+  }
   const blob = new Blob([new Uint8Array(data, 4 + headerLength)], { type: `image/${header.format}` });
   const bitmap = await createImageBitmap(blob);
   if (order < framesDrawn) {
@@ -525,22 +533,23 @@ function updateCommands() {
   }
   const name = viewer.name;
   const size = canvas.width;
+  // The same settings as the export buttons (an orbit of 60 frames, a 160³ mesh).
   const lines = viewer.scene.kind === "surface"
     ? [
       `# this view as a PNG`,
       `nerfjit run ${name} --set 'render.camera=${lookAt()}' --set render.size=${size} --set 'render.out="view.png"'`,
       `# an orbit video`,
-      `nerfjit run ${name} --set 'render.camera=${orbitPath()}' --set 'render.out="orbit.mp4"'`,
+      `nerfjit run ${name} --set 'render.camera=${orbitPath()}' --set render.size=256 --set 'render.out="orbit.mp4"'`,
       `# a mesh`,
-      `nerfjit mesh ${name} --res 256 --out mesh.ply`,
+      `nerfjit mesh ${name} --bounds 4 --res 160 --out mesh.ply`,
     ]
     : [
       `# this view as a PNG (in views/)`,
       `nerfjit render ${name} --path '${lookAt()}' --size ${size} --out views`,
       `# an orbit video`,
-      `nerfjit render ${name} --path '${orbitPath()}' --size ${size} --out orbit.mp4`,
+      `nerfjit render ${name} --path '${orbitPath()}' --size 128 --out orbit.mp4`,
       `# a mesh of the density`,
-      `nerfjit mesh ${name} --function density --level 10 --bounds 1.5 --res 256 --out mesh.ply`,
+      `nerfjit mesh ${name} --function density --level 10 --bounds 1.5 --res 160 --out mesh.ply`,
     ];
   $("command-text").textContent = lines.join("\n");
 }
@@ -557,6 +566,14 @@ $("export-png").addEventListener("click", () => {
     download(viewer.lastFinal.blob, `${baseName()}.png`);
   }
 });
+for (const what of ["video", "mesh"]) {
+  $(`export-${what}`).addEventListener("click", () => {
+    if (viewer.camera) {
+      send({ type: "export", id: viewer.nextId++, what, ...viewer.camera });
+      setStatus(`exporting the ${what}… (the view pauses until it is done)`);
+    }
+  });
+}
 $("save-script").addEventListener("click", () => {
   download(new Blob([editor.value], { type: "text/plain" }), `${baseName()}.sdf`);
 });
