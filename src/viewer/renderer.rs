@@ -30,8 +30,9 @@ pub enum Outgoing {
 /// Where the renderer's messages go; sending fails once the page has gone.
 pub type Outbox = tokio::sync::mpsc::UnboundedSender<Outgoing>;
 
-/// Render time per pixel the coarsest frame is sized for before any frame was timed.
-const FIRST_GUESS_NS_PER_PIXEL: f64 = 2_000.0;
+/// Render time per pixel assumed before any frame was timed: so slow that the first frame is the
+/// coarsest (a trained hash-grid NeRF takes ~100 µs a pixel, a sphere-traced SDF well under 1 µs).
+const FIRST_GUESS_NS_PER_PIXEL: f64 = 1e6;
 
 /// What the first frame after a camera move may take.
 const COARSE_FRAME_BUDGET_MS: f64 = 25.0;

@@ -58,6 +58,7 @@ pub fn serve(
         .route("/viewer.js", get(|| async { asset("text/javascript", SCRIPT) }))
         .route("/viewer.css", get(|| async { asset("text/css", STYLE) }))
         .route("/ws", get(socket))
+        .route("/favicon.ico", get(|| async { StatusCode::NO_CONTENT }))
         .with_state(shared);
     runtime
         .block_on(async move {

@@ -31,6 +31,7 @@ const viewer = {
   diagnostics: [],
   training: null,        // {history: [records], paused} during `nerfjit run --view`
   exported: [],          // {name, size} of the files the server made for the export buttons
+  paramsStep: null,      // the training step of the params in the last frame drawn
 };
 window.nerfjitViewer = viewer;
 
@@ -175,6 +176,7 @@ async function onFrame(data) {
   context.drawImage(bitmap, 0, 0, canvas.width, canvas.height);
   const now = performance.now();
   viewer.stats.frames += 1;
+  viewer.paramsStep = header.params_step;
   const sent = viewer.cameraSent.get(header.camera_id);
   if (sent !== undefined) {
     viewer.stats.cameraToFrame.push(now - sent);
