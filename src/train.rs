@@ -193,6 +193,25 @@ fn data_source(v: &Spanned) -> std::result::Result<(String, Option<BlenderData>)
     }
 }
 
+/// The cameras of the data the first `train` block of `program` trains on (a script in `script_dir`), if
+/// it names data whose camera file can be read.
+pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_runtime::Camera>> {
+    let block = program
+        .blocks()
+        .into_iter()
+        .find(|b| b.kind.name == "train" && b.name.is_none())?;
+    let data = nerfjit_dsl::config::Settings::new(program, block)
+        .ok()?
+        .take("data")?;
+    let (file, blender) = data_source(&data).ok()?;
+    let path = data_path(&file, script_dir);
+    let set = match blender {
+        Some(_) => nerfjit_runtime::load_blender_cameras(&path),
+        None => nerfjit_runtime::load_box_cameras(&path),
+    };
+    set.ok().map(|s| s.cameras)
+}
+
 /// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
 /// script's folder.
 pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {

@@ -391,6 +391,25 @@ fn a_training_run_streams_its_progress_and_frames_of_its_params_and_pauses() {
     let seen = until(&mut socket, |m| {
         m["type"] == "frame" && m["params_step"].as_u64().is_some_and(|s| s >= 20)
     });
+    let scene = seen
+        .iter()
+        .find(|m| m["type"] == "scene")
+        .expect("the scene comes first");
+    let labels: Vec<&str> = scene["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["label"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        labels,
+        [
+            "data view 1 of 4",
+            "data view 2 of 4",
+            "data view 3 of 4",
+            "data view 4 of 4"
+        ]
+    );
     let steps = progress_steps(&seen);
     assert!(
         steps.len() >= 2 && steps.windows(2).all(|w| w[0] < w[1]),

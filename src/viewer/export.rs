@@ -125,6 +125,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::Path;
 
     #[test]
     fn an_orbit_turns_about_the_up_axis_at_a_constant_distance() {
@@ -149,7 +150,7 @@ mod tests {
     fn a_mesh_and_a_video_of_a_sphere() {
         let program = nerfjit_dsl::compile("ball.sdf", "fn sdf(p: vec3) -> f32 = length(p) - 1").unwrap();
         let params = program.param_values.clone();
-        let scene = Scene::compile(program, &params).unwrap();
+        let scene = Scene::compile(program, &params, Path::new(".")).unwrap();
         let mesh = export(Export::Mesh, &scene, &ViewCamera::default(), "ball").unwrap();
         assert_eq!(mesh.name, "ball.ply");
         assert!(mesh.bytes.starts_with(b"ply\n"));

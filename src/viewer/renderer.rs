@@ -121,7 +121,10 @@ impl Renderer<'_> {
                         (params.to_vec(), note)
                     }
                 };
-                Scene::compile(program, &params).map(|scene| (scene, note))
+                let script_dir = std::path::Path::new(&self.document.name)
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."));
+                Scene::compile(program, &params, script_dir).map(|scene| (scene, note))
             });
         self.params_step = trained.map(|(step, _)| step);
         let compile_ms = 1e3 * start.elapsed().as_secs_f64();
@@ -130,7 +133,7 @@ impl Renderer<'_> {
                 let cameras: Vec<Value> = scene
                     .cameras
                     .iter()
-                    .map(|c| json!({"eye": c.eye.to_array(), "target": c.target.to_array(), "up": c.up.to_array(), "focal": c.focal}))
+                    .map(|(label, c)| json!({"label": label, "eye": c.eye.to_array(), "target": c.target.to_array(), "up": c.up.to_array(), "focal": c.focal}))
                     .collect();
                 let consts: Vec<Value> = scene
                     .consts

@@ -125,15 +125,17 @@ pub struct Scene {
     /// The params the renderer reads (a volume's follow a training run; a surface's are compiled in).
     params: Vec<f32>,
     renderer: Renderer,
-    /// The cameras of the script's first render block with a camera (empty if none).
-    pub cameras: Vec<ViewCamera>,
+    /// The cameras of the script's first render block with a camera, then those of the data its train
+    /// block trains on, each with a label.
+    pub cameras: Vec<(String, ViewCamera)>,
     /// The script's one-number consts (the page's sliders).
     pub consts: Vec<(String, f64)>,
 }
 
 impl Scene {
-    /// Compiles `program` for display with `params` (a checkpoint's trained values, or the script's own).
-    pub fn compile(program: Program, params: &[f32]) -> Result<Scene> {
+    /// Compiles `program` (a script in `script_dir`) for display with `params` (a checkpoint's trained
+    /// values, or the script's own).
+    pub fn compile(program: Program, params: &[f32], script_dir: &Path) -> Result<Scene> {
         let cache = KernelCache::new();
         let renderer = if program.signature("sdf").is_some() {
             surface(&program, params, &cache)?
@@ -153,11 +155,20 @@ impl Scene {
                 rendering,
             }
         };
-        let cameras = script_cameras(&program)?
-            .unwrap_or_default()
-            .iter()
-            .map(ViewCamera::of)
-            .collect();
+        let labeled = |what: &str, cameras: Vec<Camera>| -> Vec<(String, ViewCamera)> {
+            let n = cameras.len();
+            let label = |i: usize| format!("{what} {} of {n}", i + 1);
+            cameras
+                .iter()
+                .enumerate()
+                .map(|(i, c)| (label(i), ViewCamera::of(c)))
+                .collect()
+        };
+        let mut cameras = labeled("script view", script_cameras(&program)?.unwrap_or_default());
+        cameras.extend(labeled(
+            "data view",
+            crate::train::data_cameras(&program, script_dir).unwrap_or_default(),
+        ));
         Ok(Scene {
             consts: program.scalar_consts(),
             program,
@@ -357,11 +368,15 @@ mod tests {
         )
         .unwrap();
         let params = program.param_values.clone();
-        let scene = Scene::compile(program, &params).unwrap();
+        let scene = Scene::compile(program, &params, Path::new(".")).unwrap();
         assert_eq!(scene.kind(), "surface");
         assert_eq!(scene.cameras.len(), 4);
         let cameras = script_cameras(scene.program()).unwrap().unwrap();
-        for (view, original) in scene.cameras.iter().zip(&cameras) {
+        for ((label, view), original) in scene.cameras.iter().zip(&cameras) {
+            assert!(
+                label.starts_with("script view ") && label.ends_with(" of 4"),
+                "{label}"
+            );
             assert_eq!(view.up, Vec3::Y);
             assert!(
                 view.target.length() < 1e-4,
@@ -394,7 +409,7 @@ mod tests {
         for source in [surface, volume] {
             let program = nerfjit_dsl::compile("t.sdf", source).unwrap();
             let params = program.param_values.clone();
-            let scene = Scene::compile(program, &params).unwrap();
+            let scene = Scene::compile(program, &params, Path::new(".")).unwrap();
             for name in scene.layers() {
                 let image = scene.render(&view, 33, 31, Layer::parse(name).unwrap()).unwrap();
                 assert_eq!(image.dimensions(), (33, 31));

@@ -118,7 +118,7 @@ function onScene(scene) {
   }
   const cameras = $("camera");
   cameras.replaceChildren(new Option("free", "free"),
-    ...scene.cameras.map((_, i) => new Option(`script view ${i + 1} of ${scene.cameras.length}`, String(i))));
+    ...scene.cameras.map((camera, i) => new Option(camera.label, String(i))));
   buildSliders(scene.consts);
   if (first) {
     viewer.camera = scene.cameras.length > 0 ? { ...scene.cameras[0] }
