@@ -1,11 +1,25 @@
 //! `nerfjit check`: diagnostics, or a summary of the script's functions, params and blocks.
 
-use crate::failure::Result;
+use nerfjit_dsl::config::Settings;
+use nerfjit_dsl::Report;
+
+use crate::failure::{Failure, Result};
 use crate::script;
 
-/// Checks the script and describes what it defines.
+/// Checks the script (its blocks' setting values included) and describes what it defines.
 pub fn run(path: &str) -> Result<String> {
     let program = script::load(path)?;
+    let diagnostics: Vec<_> = program
+        .blocks()
+        .into_iter()
+        .filter_map(|b| Settings::new(&program, b).err())
+        .collect();
+    if !diagnostics.is_empty() {
+        return Err(Failure::Script(Report {
+            sources: program.sources.clone(),
+            diagnostics,
+        }));
+    }
     let mut out = format!("{path}: ok\n");
     for sig in program.functions() {
         out += &format!("  {sig}\n");

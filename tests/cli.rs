@@ -64,20 +64,33 @@ fn check_passes_on_every_example() {
     }
 }
 
+/// `nerfjit check` of a script `source` saved as `name`, which must fail: the script's path and stderr.
+fn check_fails(name: &str, source: &str) -> (String, String) {
+    let path = write(&scratch(name), &format!("{name}.sdf"), source);
+    let out = nerfjit(&["check", &path], None);
+    assert!(!out.status.success());
+    (path, text(&out).1)
+}
+
 #[test]
 fn a_typo_gets_a_diagnostic_with_caret_and_hint() {
-    let dir = scratch("typo");
-    let path = write(
-        &dir,
-        "typo.sdf",
-        "fn sdf(p: vec3) -> f32 {\n    lenght(p) - 1.0\n}\n",
-    );
-    let out = nerfjit(&["check", &path], None);
-    let (_, stderr) = text(&out);
-    assert!(!out.status.success());
+    let (path, stderr) = check_fails("typo", "fn sdf(p: vec3) -> f32 {\n    lenght(p) - 1.0\n}\n");
     assert!(stderr.contains(&format!("{path}:2:5")), "{stderr}");
     assert!(stderr.contains("    lenght(p) - 1.0\n  |     ^^^^^^"), "{stderr}");
     assert!(stderr.contains("hint: did you mean 'length'?"), "{stderr}");
+}
+
+#[test]
+fn check_evaluates_block_settings_and_refuses_a_nan_at_its_place() {
+    let (path, stderr) = check_fails(
+        "nan",
+        "fn sdf(p: vec3) -> f32 = length(p) - 1\nrender sphere_trace { size: 16, background: [0 / 0, 0, 0] }\n",
+    );
+    assert!(stderr.contains(&format!("{path}:2:46")), "{stderr}");
+    assert!(
+        stderr.contains("this value is NaN, not a finite 32-bit float"),
+        "{stderr}"
+    );
 }
 
 fn parse_rows(s: &str) -> Vec<Vec<f64>> {

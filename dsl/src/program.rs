@@ -101,6 +101,7 @@ pub fn compile_with(file: &str, source: &str, overrides: &[String]) -> Result<Pr
         param_values: Vec::new(),
     };
     let mut diagnostics = program.check_names();
+    diagnostics.extend(program.check_consts());
     diagnostics.extend(program.init_params());
     if diagnostics.is_empty() {
         diagnostics.extend(program.check_functions());
@@ -223,8 +224,28 @@ impl Program {
         diagnostics
     }
 
-    /// Evaluates `e` to constants (consts are visible, params are not).
+    /// Each `const` whose value is not finite (as an f32), at its value.
+    fn check_consts(&self) -> Vec<Diagnostic> {
+        self.user_items()
+            .filter_map(|item| match item {
+                Item::Const(c) => {
+                    let values = self.constant_values(&c.value).ok()?;
+                    finite(c.value.span, &values).err()
+                }
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Evaluates `e` to finite constants (consts are visible, params are not).
     fn constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
+        let values = self.constant_values(e)?;
+        finite(e.span, &values)?;
+        Ok(values)
+    }
+
+    /// Evaluates `e` to constants, finite or not.
+    fn constant_values(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
         let globals = Globals {
             params: HashMap::new(),
             ..self.globals()
@@ -442,6 +463,31 @@ impl Program {
     /// Lowers a standalone constant expression in the context of this program (consts visible).
     pub fn eval_constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
         self.constant(e)
+    }
+}
+
+/// Fails unless every value is a finite f32 (NaN from 0/0, or beyond ±3.4e38, would poison every
+/// result that uses it).
+fn finite(span: Span, values: &[f64]) -> Result<(), Diagnostic> {
+    match values.iter().find(|x| !(**x as f32).is_finite()) {
+        None => Ok(()),
+        Some(x) => {
+            let what = if x.is_nan() {
+                "NaN".to_string()
+            } else {
+                format!("{x:e}")
+            };
+            let at = if values.len() > 1 {
+                " (one of its components)"
+            } else {
+                ""
+            };
+            Err(Diagnostic::new(
+                span,
+                format!("this value is {what}{at}, not a finite 32-bit float"),
+            )
+            .with_hint("look for a division by zero, or a number beyond ±3.4e38"))
+        }
     }
 }
 

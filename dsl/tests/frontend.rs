@@ -200,3 +200,34 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn constants_initial_values_and_settings_must_be_finite() {
+    let text = error("const bad = 0 / 0\nfn f(p: vec3) -> f32 = bad");
+    assert!(
+        text.contains("this value is NaN, not a finite 32-bit float"),
+        "{text}"
+    );
+    assert!(text.contains("scene.sdf:1:13"), "points at the value: {text}");
+    let text = error("param y: vec3 = [1, 1e38 * 10, 0]");
+    assert!(
+        text.contains("this value is 1e39 (one of its components)"),
+        "{text}"
+    );
+    assert!(text.contains("division by zero"), "{text}");
+    let text = error("param w: mat<2, 3> = uniform(0, 1 / 0, seed: 1)");
+    assert!(text.contains("not a finite 32-bit float"), "{text}");
+    // Settings are evaluated when a block runs: a NaN color is refused with its place.
+    let program = compile("scene.sdf", "render sphere_trace { background: [0 / 0, 0, 0] }").unwrap();
+    let block = program.blocks()[0];
+    let Err(d) = nerfjit_dsl::config::Settings::new(&program, block) else {
+        panic!("a NaN setting is refused")
+    };
+    assert!(d.message.contains("NaN"), "{}", d.message);
+    // Large intermediate values are fine when the result is finite.
+    assert!(compile(
+        "s.sdf",
+        "const tiny = 1 / (1e38 * 10)\nfn f(p: vec3) -> f32 = tiny"
+    )
+    .is_ok());
+}
