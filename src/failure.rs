@@ -25,6 +25,8 @@ impl fmt::Display for Failure {
     }
 }
 
+impl std::error::Error for Failure {}
+
 impl From<nerfjit_runtime::Error> for Failure {
     fn from(e: nerfjit_runtime::Error) -> Self {
         Failure::Message(e.to_string())

@@ -1,36 +1,13 @@
-//! `nerfjit`: neural volume and surface rendering on the CPU, driven by `.sdf` scene scripts.
-
-mod bench;
-mod block;
-mod cameras;
-mod check;
-mod checkpoint;
-mod compare;
-mod eval;
-mod failure;
-mod field;
-mod interrupt;
-mod ir_dump;
-mod mesh;
-mod metrics_log;
-mod output;
-mod regularizers;
-mod render;
-mod run;
-mod script;
-mod settings;
-mod train;
-mod train_sdf;
-mod transmittance;
-mod viewer;
-mod views;
-mod viz;
-mod volume;
+//! The `nerfjit` command line: parses arguments, calls the library and prints.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
+use nerfjit::{
+    bench, check, compare, emit, eval, failure, interrupt, ir_dump, mesh, run, script, transmittance, viewer,
+    views, WORK_STACK_BYTES,
+};
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
@@ -229,13 +206,6 @@ enum Command {
     },
 }
 
-/// Writes command output to standard output; a closed pipe (`nerfjit ir ... | head`) ends the output
-/// quietly instead of panicking.
-fn emit(text: &str) {
-    use std::io::Write;
-    let _ = std::io::stdout().lock().write_all(text.as_bytes());
-}
-
 /// How `render`, `eval-views` and `compare` render views. Settings not given are those the script's
 /// train block trains with (a checkpoint holds its script), else near 2, far 6, 128 samples, black.
 #[derive(clap::Args)]
@@ -279,10 +249,6 @@ impl ViewOptions {
         }
     }
 }
-
-/// The stack of the thread that does the work: deep (but limited) expressions make the compiler's
-/// passes recurse deeply; the pages are only committed as they are used.
-const WORK_STACK_BYTES: usize = 1 << 30;
 
 /// Most `--threads` per core.
 const MAX_THREADS_PER_CORE: usize = 8;

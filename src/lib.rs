@@ -1,0 +1,58 @@
+//! nerfjit: neural volume and surface rendering on the CPU, driven by `.sdf` scene scripts. This crate is
+//! the application the `nerfjit` command line drives: running a script's blocks (training, rendering,
+//! meshing), checkpoints, the live viewer, and the commands' work; the compiler, JIT and runtime are the
+//! `nerfjit-dsl`, `nerfjit-jit` and `nerfjit-runtime` crates.
+//!
+//! Running a script from Rust as `nerfjit run` does (here a shipped example, smaller, into a folder):
+//!
+//! ```
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let out = std::env::temp_dir().join(format!("nerfjit-doctest-{}", std::process::id()));
+//! let overrides = ["render.size=32".to_string()];
+//! nerfjit::run::run("examples/torus.sdf", &overrides, Some(&out), false, None)?;
+//! assert!(std::fs::metadata(out.join("torus.gif"))?.len() > 0);
+//! # std::fs::remove_dir_all(&out)?;
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! The library API is still the commands' (one function per command or block kind); a `Session` that
+//! keeps compiled kernels between blocks is not there yet.
+
+pub mod bench;
+pub mod block;
+pub mod cameras;
+pub mod check;
+pub mod checkpoint;
+pub mod compare;
+pub mod eval;
+pub mod failure;
+pub mod field;
+pub mod interrupt;
+pub mod ir_dump;
+pub mod mesh;
+pub mod metrics_log;
+pub mod output;
+pub mod regularizers;
+pub mod render;
+pub mod run;
+pub mod script;
+pub mod settings;
+pub mod train;
+pub mod train_sdf;
+pub mod transmittance;
+pub mod viewer;
+pub mod views;
+pub mod viz;
+pub mod volume;
+
+/// The stack of the thread that does the work: deep (but limited) expressions make the compiler's
+/// passes recurse deeply; the pages are only committed as they are used.
+pub const WORK_STACK_BYTES: usize = 1 << 30;
+
+/// Writes command output to standard output; a closed pipe (`nerfjit ir ... | head`) ends the output
+/// quietly instead of panicking.
+pub fn emit(text: &str) {
+    use std::io::Write;
+    let _ = std::io::stdout().lock().write_all(text.as_bytes());
+}
