@@ -29,6 +29,7 @@ pub mod overrides;
 pub mod parser;
 pub mod program;
 pub mod types;
+mod validate;
 pub mod value;
 
 pub use diag::{Diagnostic, Report, Span};

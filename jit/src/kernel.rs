@@ -177,6 +177,10 @@ impl Kernel {
     pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
         let start = Instant::now();
         let graph = graph.compact();
+        // A graph that breaks the IR's rules would make the code read or write outside its buffers.
+        graph
+            .validate()
+            .map_err(|e| JitError(format!("invalid IR: {e}")))?;
         if graph.needs_tiles() {
             return Ok(Kernel {
                 body: Body::Tiled(Box::new(Tiled::compile(&graph, options)?)),

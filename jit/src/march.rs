@@ -54,6 +54,7 @@ impl Marcher {
     pub fn compile(sdf: &Graph) -> Result<Marcher, JitError> {
         let start = Instant::now();
         let sdf = sdf.compact();
+        sdf.validate().map_err(|e| JitError(format!("invalid IR: {e}")))?;
         if sdf.needs_tiles() {
             return Err(JitError(
                 "the fused sphere tracer takes elementwise SDFs; dense layers run tiled".into(),

@@ -122,6 +122,8 @@ proptest! {
     #[test]
     fn jit_matches_interpreter(gen in nodes(), pts in prop::collection::vec(point(), 0..=17), p in params()) {
         let g = build(&gen, true);
+        prop_assert_eq!(g.validate(), Ok(()));
+        prop_assert_eq!(g.compact().validate(), Ok(()));
         let (got, _) = jit_eval(&g, &pts, &p, Options::default());
         let (want, _) = interp_eval(&g, &pts, &p);
         for (gp, wp) in got.iter().zip(&want) {
@@ -141,6 +143,7 @@ proptest! {
         let grads = vjp(&mut g, &seeds, &wrt);
         let mut gg = g.clone();
         gg.outputs = grads;
+        prop_assert_eq!(gg.validate(), Ok(()));
         let analytic = eval_point(&gg, &x, &p).outputs;
         let h = 1e-6;
         for k in 0..(N_INPUTS + N_PARAMS) as usize {
@@ -163,6 +166,7 @@ proptest! {
         let grads = vjp(&mut g, &seeds, &wrt);
         g.outputs = grads[..3].to_vec();
         g.reductions = grads[3..].to_vec();
+        prop_assert_eq!(g.validate(), Ok(()));
         let pts: Vec<Vec<f64>> = pts.iter().map(|x| {
             let mut v = x.clone();
             v.extend([0.7, -0.3]);
@@ -202,6 +206,7 @@ proptest! {
         let second = vjp(&mut g, &seeds, &ps);
         let mut sg = g.clone();
         sg.outputs = second;
+        prop_assert_eq!(sg.validate(), Ok(()));
         let analytic = eval_point(&sg, &x, &p).outputs;
         let h = 1e-5;
         for k in 0..N_PARAMS as usize {
