@@ -32,7 +32,8 @@ enum Command {
         /// Continue training from the train block's checkpoint, if it exists.
         #[arg(long)]
         resume: bool,
-        /// Override a const (`beta=0.1`) or a block setting (`train.steps=100`, `render.size=64`); repeatable.
+        /// Override a const (`beta=0.1`) or a block setting (`train.steps=100`, `render.size=64`; a block by
+        /// kind or name, the first or the i-th from 0: `render[1].size=64`, `volume.size=64`); repeatable.
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
         /// Follow the training in the browser (`nerfjit view`'s page, with progress, a chart and pause);

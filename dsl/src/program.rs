@@ -77,8 +77,9 @@ pub fn compile(file: &str, source: &str) -> Result<Program, Report> {
 }
 
 /// Parses and checks `source` after applying `overrides`, each `name=value` (a `const`) or
-/// `kind.key=value` (a setting of the first block of that kind, e.g. `train.steps=100` or
-/// `render.size=64`); the values are expressions of the language. Errors in an override point at it.
+/// `block.key=value` (a setting of the first block of that kind or name, e.g. `train.steps=100`,
+/// `render.size=64` or `volume.size=64`, or of the i-th with `render[1].size=64`); the values are
+/// expressions of the language. Errors in an override point at it.
 pub fn compile_with(file: &str, source: &str, overrides: &[String]) -> Result<Program, Report> {
     let mut sources = SourceMap::default();
     sources.add("<prelude>", PRELUDE);
