@@ -487,3 +487,42 @@ fn the_export_buttons_get_an_orbit_video_and_a_mesh() {
         "{error}"
     );
 }
+
+#[test]
+fn a_checkpoint_is_shown_with_its_trained_params_and_an_edit_that_changes_them_says_so() {
+    let dir = scratch("checkpoint");
+    common::make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), common::trainer_with(20, "")).unwrap();
+    let (ok, _, err) = common::run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let checkpoint = dir.join("train.ckpt.safetensors");
+    let viewer = view(checkpoint.to_str().unwrap());
+    let mut socket = connect(&viewer, &viewer.token).unwrap();
+    let (hello, scene) = opening(&mut socket);
+    assert_eq!(hello["checkpoint"], true);
+    assert!(hello["name"].as_str().unwrap().ends_with("train.sdf"), "{hello}");
+    assert_eq!(scene["kind"], "volume");
+    assert_eq!(scene["note"], Value::Null);
+    let camera = json!({"eye": [-2.5, 0.3, 0.0], "target": [0, 0, 0], "up": [0, 1, 0], "focal": 1.0});
+    send(&mut socket, camera_request(1, &camera, 40, 40, "color"));
+    let (_, trained) = frames_until_final(&mut socket, 1);
+    // Another param: the script's own initial values are shown, and the page is told.
+    let source = hello["source"].as_str().unwrap();
+    let edited = format!("param extra: f32 = 1\n{source}");
+    send(&mut socket, json!({"type": "source", "id": 2, "text": edited}));
+    let scene = json_message(&mut socket);
+    assert!(
+        scene["note"]
+            .as_str()
+            .unwrap()
+            .contains("differ from the checkpoint's"),
+        "{scene}"
+    );
+    assert_eq!(json_message(&mut socket)["items"], json!([]));
+    let (_, initial) = frames_until_final(&mut socket, 1);
+    assert!(
+        mean_difference(&trained, &initial) > 0.5,
+        "trained and initial params differ"
+    );
+    std::fs::remove_dir_all(dir).unwrap();
+}
