@@ -25,6 +25,7 @@ pub mod cameras;
 pub mod check;
 pub mod checkpoint;
 pub mod compare;
+pub mod data_check;
 pub mod eval;
 pub mod failure;
 pub mod field;

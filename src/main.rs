@@ -5,8 +5,8 @@ use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::{
-    bench, check, compare, emit, eval, failure, interrupt, ir_dump, mesh, run, script, transmittance, viewer,
-    views, WORK_STACK_BYTES,
+    bench, check, compare, data_check, emit, eval, failure, interrupt, ir_dump, mesh, run, script,
+    transmittance, viewer, views, WORK_STACK_BYTES,
 };
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
@@ -195,6 +195,11 @@ enum Command {
         #[arg(long, default_value_t = 7007)]
         port: u16,
     },
+    /// Data sets: `nerfjit data check DIR|FILE`.
+    Data {
+        #[command(subcommand)]
+        action: DataCommand,
+    },
     /// List the example scripts built into the binary, or print one.
     Examples {
         /// The example to print.
@@ -204,6 +209,17 @@ enum Command {
     Completions {
         /// The shell.
         shell: clap_complete::Shell,
+    },
+}
+
+/// What `nerfjit data` does.
+#[derive(Subcommand)]
+enum DataCommand {
+    /// Report what a data set holds — camera files, views, image sizes and formats, intrinsics, where the
+    /// cameras are — or name precisely what is wrong with it.
+    Check {
+        /// A camera file (Blender `transforms_*.json` or the course's `box_cameras.json`) or a folder of them.
+        path: PathBuf,
     },
 }
 
@@ -397,6 +413,9 @@ fn run_command(cli: Cli) -> ExitCode {
             host,
             port,
         }),
+        Command::Data {
+            action: DataCommand::Check { path },
+        } => data_check::run(&path).map(|text| emit(&text)),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
         Command::Completions { shell } => {
             let mut script = Vec::new();

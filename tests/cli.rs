@@ -1,5 +1,7 @@
 //! End-to-end tests of the `nerfjit` binary on scripts the tests write themselves and on the shipped examples.
 
+mod common;
+
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -651,4 +653,47 @@ fn completions_are_printed_for_each_shell() {
             "{shell}: {stdout}"
         );
     }
+}
+
+#[test]
+fn data_check_reports_a_data_set_or_names_what_is_wrong() {
+    let dir = scratch("data-check");
+    common::make_views(&dir);
+    let (ok, report, err) = common::run(&dir, &["data", "check", "."]);
+    assert!(ok, "{err}");
+    assert!(
+        report.contains("./cams.json: course (PyTorch3D look-at) cameras"),
+        "{report}"
+    );
+    assert!(
+        report.contains("4 views, images 40×40 PNG (Rgb8), all present"),
+        "{report}"
+    );
+    assert!(
+        report.contains(
+            "camera centers 2.47 to 2.54 from the origin, within [-2.50, -0.40, -2.50] to [1.80, 0.80, 0.00]"
+        ),
+        "{report}"
+    );
+
+    std::fs::remove_file(dir.join("view_002.png")).unwrap();
+    let (ok, _, err) = common::run(&dir, &["data", "check", "cams.json"]);
+    assert!(!ok);
+    assert!(
+        err.contains("1 of the 4 images are missing: 'view_002.png'"),
+        "{err}"
+    );
+
+    std::fs::write(dir.join("other.json"), "{\"views\": []}").unwrap();
+    let (ok, _, err) = common::run(&dir, &["data", "check", "other.json"]);
+    assert!(
+        !ok && err.contains("is neither a Blender transforms file"),
+        "{err}"
+    );
+    let empty = scratch("data-check-empty");
+    let (ok, _, err) = common::run(&empty, &["data", "check", "."]);
+    assert!(
+        !ok && err.contains("holds no camera file: looked for transforms_train.json"),
+        "{err}"
+    );
 }

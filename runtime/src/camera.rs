@@ -25,7 +25,8 @@ pub enum NdcScale {
 }
 
 impl NdcScale {
-    fn pixels(self, width: u32, height: u32) -> f32 {
+    /// The pixels the side spanning NDC [−1, 1] has in a `width`×`height` image.
+    pub fn pixels(self, width: u32, height: u32) -> f32 {
         match self {
             NdcScale::ShorterSide => width.min(height) as f32,
             NdcScale::Width => width as f32,

@@ -1,6 +1,9 @@
 //! What the integration tests share: running nerfjit in a folder, and a small training scene (four views
 //! of a box rendered by the CLI, and a script that recovers the box from them).
 
+// Each test crate compiles this module and uses a part of it.
+#![allow(dead_code)]
+
 use std::path::Path;
 use std::process::Command;
 

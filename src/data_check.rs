@@ -1,0 +1,197 @@
+//! `nerfjit data check`: what a data set holds (its camera files, views, image sizes and formats,
+//! intrinsics, where the cameras are), or precisely what is wrong with it, before any training.
+
+use std::path::{Path, PathBuf};
+
+use image::ImageDecoder;
+use nerfjit_runtime::{load_blender_cameras, load_box_cameras, CameraSet};
+
+use crate::failure::{Failure, Result};
+
+/// The camera files looked for in a folder, in this order.
+const CAMERA_FILES: &[&str] = &[
+    "transforms_train.json",
+    "transforms_val.json",
+    "transforms_test.json",
+    "transforms.json",
+    "box_cameras.json",
+];
+
+/// The camera formats nerfjit reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Format {
+    /// Blender / NeRF-synthetic `transforms_*.json` (`camera_angle_x`, `frames`).
+    Blender,
+    /// The course's `box_cameras.json` (`image_size`, `cameras`).
+    Box,
+}
+
+/// Checks `path`, a camera file or a folder of them; a report, or what is wrong.
+pub fn run(path: &Path) -> Result<String> {
+    let files: Vec<PathBuf> = if path.is_dir() {
+        let mut found: Vec<PathBuf> = CAMERA_FILES
+            .iter()
+            .map(|f| path.join(f))
+            .filter(|f| f.is_file())
+            .collect();
+        if found.is_empty() {
+            found = other_camera_files(path)?;
+        }
+        if found.is_empty() {
+            return Err(Failure::Message(format!(
+                "'{}' holds no camera file: looked for {} and other .json files with frames or cameras",
+                path.display(),
+                CAMERA_FILES.join(", ")
+            )));
+        }
+        found
+    } else if path.is_file() {
+        vec![path.to_path_buf()]
+    } else {
+        return Err(Failure::Message(format!("'{}' does not exist", path.display())));
+    };
+    let reports = files.iter().map(|f| check_file(f)).collect::<Result<Vec<_>>>()?;
+    Ok(reports.concat())
+}
+
+/// The `.json` files of `folder` that look like camera files, by name.
+fn other_camera_files(folder: &Path) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(folder)
+        .map_err(|e| Failure::Message(format!("cannot list '{}': {e}", folder.display())))?;
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "json") && format_of(p).is_ok())
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+fn format_of(file: &Path) -> Result<Format> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
+    if text.contains("\"frames\"") {
+        Ok(Format::Blender)
+    } else if text.contains("\"cameras\"") {
+        Ok(Format::Box)
+    } else {
+        Err(Failure::Message(format!(
+            "'{}' is neither a Blender transforms file (camera_angle_x, frames) nor a course camera file \
+             (image_size, cameras)",
+            file.display()
+        )))
+    }
+}
+
+/// One camera file: its report, or the first problem found.
+fn check_file(file: &Path) -> Result<String> {
+    let format = format_of(file)?;
+    let set = match format {
+        Format::Blender => load_blender_cameras(file)?,
+        Format::Box => load_box_cameras(file)?,
+    };
+    let n = set.cameras.len();
+    let mut out = format!(
+        "{}: {} cameras\n",
+        file.display(),
+        match format {
+            Format::Blender => "Blender (NeRF-synthetic)",
+            Format::Box => "course (PyTorch3D look-at)",
+        }
+    );
+    let images = image_summary(&set)?;
+    out += &format!("  {n} view{}, {images}\n", if n == 1 { "" } else { "s" });
+    if format == Format::Blender {
+        let width = image_width(&set)?;
+        let scale = set.cameras[0].ndc_scale().pixels(width, width);
+        let focal = set.cameras[0].focal().x * 0.5 * scale;
+        out += &format!(
+            "  focal {focal:.1} px for {width} px wide images ({:.1}° horizontal field of view)\n",
+            2.0 * (0.5 * width as f32 / focal).atan().to_degrees()
+        );
+    }
+    let centers: Vec<glam::Vec3> = set.cameras.iter().map(|c| c.position()).collect();
+    let distances: Vec<f32> = centers.iter().map(|c| c.length()).collect();
+    let (near, far) = (
+        distances.iter().copied().fold(f32::INFINITY, f32::min),
+        distances.iter().copied().fold(0.0, f32::max),
+    );
+    let lo = centers.iter().fold(glam::Vec3::INFINITY, |a, c| a.min(*c));
+    let hi = centers.iter().fold(glam::Vec3::NEG_INFINITY, |a, c| a.max(*c));
+    out += &format!(
+        "  camera centers {near:.2} to {far:.2} from the origin, within [{:.2}, {:.2}, {:.2}] to [{:.2}, {:.2}, {:.2}]\n",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
+    Ok(out)
+}
+
+/// Whether every image exists and all have one size: e.g. "images 800×800 PNG (RGBA), all present".
+fn image_summary(set: &CameraSet) -> Result<String> {
+    let missing: Vec<&PathBuf> = set.images.iter().filter(|p| !p.is_file()).collect();
+    if !missing.is_empty() {
+        let shown: Vec<String> = missing
+            .iter()
+            .take(3)
+            .map(|p| format!("'{}'", p.display()))
+            .collect();
+        return Err(Failure::Message(format!(
+            "{} of the {} images are missing: {}{}",
+            missing.len(),
+            set.images.len(),
+            shown.join(", "),
+            if missing.len() > 3 { ", ..." } else { "" }
+        )));
+    }
+    let mut kinds: Vec<(u32, u32, String)> = Vec::new();
+    for path in &set.images {
+        let kind = image_kind(path)?;
+        if let Some((w, h)) = set.image_size {
+            if (kind.0, kind.1) != (w, h) {
+                return Err(Failure::Message(format!(
+                    "'{}' is {}×{}, but the camera file says the images are {w}×{h}",
+                    path.display(),
+                    kind.0,
+                    kind.1
+                )));
+            }
+        }
+        if !kinds.contains(&kind) {
+            kinds.push(kind);
+        }
+    }
+    match kinds.as_slice() {
+        [(w, h, what)] => Ok(format!("images {w}×{h} {what}, all present")),
+        _ => Err(Failure::Message(format!(
+            "the images differ in size or format ({}): nerfjit trains on images of one size",
+            kinds
+                .iter()
+                .map(|(w, h, what)| format!("{w}×{h} {what}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))),
+    }
+}
+
+/// Width, height and format of an image, read from its header only (`.npy` images: from their shape).
+fn image_kind(path: &Path) -> Result<(u32, u32, String)> {
+    let bad =
+        |e: &dyn std::fmt::Display| Failure::Message(format!("cannot read image '{}': {e}", path.display()));
+    if path.extension().is_some_and(|e| e == "npy") {
+        let image = nerfjit_runtime::read_npy_rgb(path)?;
+        return Ok((image.width, image.height, "NumPy RGB".into()));
+    }
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| bad(&e))?
+        .with_guessed_format()
+        .map_err(|e| bad(&e))?;
+    let format = reader
+        .format()
+        .map_or("unknown format".to_string(), |f| format!("{f:?}").to_uppercase());
+    let decoder = reader.into_decoder().map_err(|e| bad(&e))?;
+    let (w, h) = decoder.dimensions();
+    Ok((w, h, format!("{format} ({:?})", decoder.color_type())))
+}
+
+/// The width of the set's images (the first's: [`image_summary`] checked they agree).
+fn image_width(set: &CameraSet) -> Result<u32> {
+    Ok(image_kind(&set.images[0])?.0)
+}
