@@ -41,7 +41,7 @@ const COARSE_FRAME_BUDGET_MS: f64 = 25.0;
 const TRAINING_FRAME_BUDGET_MS: f64 = 200.0;
 
 /// The share of the time the viewer renders while a run trains (it rests the remainder).
-const TRAINING_SHARE: f64 = 0.07;
+const TRAINING_SHARE: f64 = 0.05;
 
 /// How long the camera must rest before a frame is refined.
 const REST: Duration = Duration::from_millis(40);

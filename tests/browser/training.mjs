@@ -56,7 +56,7 @@ const browser = await chromium.launch({
 });
 const results = { steps };
 try {
-  const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+  const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
   page.on("pageerror", (e) => fail(`error in the page: ${e.message}`));
   await page.goto(url);
   // Polled once a second: polling every animation frame would keep the browser busy, taking the cores
