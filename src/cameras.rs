@@ -6,7 +6,7 @@ use std::path::Path;
 use glam::{Vec2, Vec3};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::{load_blender_cameras, load_box_cameras, orbit, surround, Camera, Up};
+use nerfjit_runtime::{load_blender_cameras, load_box_cameras, orbit, surround, Camera, CameraFormat, Up};
 
 use crate::settings::{triple, CallArgs};
 
@@ -53,7 +53,7 @@ pub fn cameras(
             let a = CallArgs::new(v, &["file"])?;
             let file = script_dir.join(a.string("file")?);
             let text = std::fs::read_to_string(&file).unwrap_or_default();
-            let set = if text.contains("\"frames\"") {
+            let set = if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
                 load_blender_cameras(&file)
             } else {
                 load_box_cameras(&file)

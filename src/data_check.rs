@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use image::ImageDecoder;
-use nerfjit_runtime::{load_blender_cameras, load_box_cameras, CameraSet};
+use nerfjit_runtime::{load_blender_cameras, load_box_cameras, CameraFormat, CameraSet};
 
 use crate::failure::{Failure, Result};
 
@@ -16,15 +16,6 @@ const CAMERA_FILES: &[&str] = &[
     "transforms.json",
     "box_cameras.json",
 ];
-
-/// The camera formats nerfjit reads.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Format {
-    /// Blender / NeRF-synthetic `transforms_*.json` (`camera_angle_x`, `frames`).
-    Blender,
-    /// The course's `box_cameras.json` (`image_size`, `cameras`).
-    Box,
-}
 
 /// Checks `path`, a camera file or a folder of them; a report, or what is wrong.
 pub fn run(path: &Path) -> Result<String> {
@@ -66,42 +57,37 @@ fn other_camera_files(folder: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-fn format_of(file: &Path) -> Result<Format> {
+fn format_of(file: &Path) -> Result<CameraFormat> {
     let text = std::fs::read_to_string(file)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
-    if text.contains("\"frames\"") {
-        Ok(Format::Blender)
-    } else if text.contains("\"cameras\"") {
-        Ok(Format::Box)
-    } else {
-        Err(Failure::Message(format!(
+    CameraFormat::of_text(&text).ok_or_else(|| {
+        Failure::Message(format!(
             "'{}' is neither a Blender transforms file (camera_angle_x, frames) nor a course camera file \
              (image_size, cameras)",
             file.display()
-        )))
-    }
+        ))
+    })
 }
 
 /// One camera file: its report, or the first problem found.
 fn check_file(file: &Path) -> Result<String> {
     let format = format_of(file)?;
     let set = match format {
-        Format::Blender => load_blender_cameras(file)?,
-        Format::Box => load_box_cameras(file)?,
+        CameraFormat::Blender => load_blender_cameras(file)?,
+        CameraFormat::Box => load_box_cameras(file)?,
     };
     let n = set.cameras.len();
     let mut out = format!(
         "{}: {} cameras\n",
         file.display(),
         match format {
-            Format::Blender => "Blender (NeRF-synthetic)",
-            Format::Box => "course (PyTorch3D look-at)",
+            CameraFormat::Blender => "Blender (NeRF-synthetic)",
+            CameraFormat::Box => "course (PyTorch3D look-at)",
         }
     );
-    let images = image_summary(&set)?;
+    let (images, width) = image_summary(&set)?;
     out += &format!("  {n} view{}, {images}\n", if n == 1 { "" } else { "s" });
-    if format == Format::Blender {
-        let width = image_width(&set)?;
+    if format == CameraFormat::Blender {
         let scale = set.cameras[0].ndc_scale().pixels(width, width);
         let focal = set.cameras[0].focal().x * 0.5 * scale;
         out += &format!(
@@ -124,8 +110,9 @@ fn check_file(file: &Path) -> Result<String> {
     Ok(out)
 }
 
-/// Whether every image exists and all have one size: e.g. "images 800×800 PNG (RGBA), all present".
-fn image_summary(set: &CameraSet) -> Result<String> {
+/// Whether every image exists and all have one size: e.g. "images 800×800 PNG (RGBA), all present", and
+/// their width.
+fn image_summary(set: &CameraSet) -> Result<(String, u32)> {
     let missing: Vec<&PathBuf> = set.images.iter().filter(|p| !p.is_file()).collect();
     if !missing.is_empty() {
         let shown: Vec<String> = missing
@@ -159,7 +146,7 @@ fn image_summary(set: &CameraSet) -> Result<String> {
         }
     }
     match kinds.as_slice() {
-        [(w, h, what)] => Ok(format!("images {w}×{h} {what}, all present")),
+        [(w, h, what)] => Ok((format!("images {w}×{h} {what}, all present"), *w)),
         _ => Err(Failure::Message(format!(
             "the images differ in size or format ({}): nerfjit trains on images of one size",
             kinds
@@ -189,9 +176,4 @@ fn image_kind(path: &Path) -> Result<(u32, u32, String)> {
     let decoder = reader.into_decoder().map_err(|e| bad(&e))?;
     let (w, h) = decoder.dimensions();
     Ok((w, h, format!("{format} ({:?})", decoder.color_type())))
-}
-
-/// The width of the set's images (the first's: [`image_summary`] checked they agree).
-fn image_width(set: &CameraSet) -> Result<u32> {
-    Ok(image_kind(&set.images[0])?.0)
 }

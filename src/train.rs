@@ -542,12 +542,7 @@ impl TrainPlan {
             .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
             .transpose()?;
         let watch = Watch::start();
-        let bar = ProgressBar::new(u64::from(self.steps)).with_style(
-            ProgressStyle::with_template(
-                "{spinner} training [{bar:30}] {pos}/{len} {msg} {elapsed}, {eta} to go",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
+        let bar = step_bar(self.steps, "training");
         bar.set_position(u64::from(first));
         let mut rng = Rng::new(self.seed ^ 0x5eed);
         let start = Instant::now();
@@ -800,6 +795,17 @@ impl TrainPlan {
         )?;
         Ok(())
     }
+}
+
+/// The progress bar of a training loop of `steps` steps: `verb` (e.g. "training"), the steps, the loop's
+/// message, the time taken and the time to go.
+pub(crate) fn step_bar(steps: u32, verb: &str) -> ProgressBar {
+    ProgressBar::new(u64::from(steps)).with_style(
+        ProgressStyle::with_template(&format!(
+            "{{spinner}} {verb} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}}, {{eta}} to go"
+        ))
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    )
 }
 
 /// Prints a line above the progress bar, or to standard error when the bar is hidden (not a terminal).

@@ -8,7 +8,6 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::ir::{Op, V};
 use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, Options};
@@ -214,12 +213,7 @@ impl SdfTrainPlan {
             .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
             .transpose()?;
         let watch = Watch::start();
-        let bar = ProgressBar::new(u64::from(total)).with_style(
-            ProgressStyle::with_template(
-                "{spinner} fitting [{bar:30}] {pos}/{len} {msg} {elapsed}, {eta} to go",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
+        let bar = crate::train::step_bar(total, "fitting");
         bar.set_position(u64::from(first));
         let start = Instant::now();
         let mut terms = [f32::NAN; 3];

@@ -59,13 +59,28 @@ impl ViewArgs<'_> {
     /// `samples`, `importance`, and `background` or its Blender data's background), else near 2, far 6,
     /// 128 samples, black, no importance sampling.
     pub fn resolve(&self, program: &Program) -> Rendering {
+        let script = Rendering::of_script(program);
+        Rendering {
+            near: self.near.unwrap_or(script.near),
+            far: self.far.unwrap_or(script.far),
+            samples: self.samples.unwrap_or(script.samples),
+            background: self.background.unwrap_or(script.background),
+            importance: self.importance.unwrap_or(script.importance),
+        }
+    }
+}
+
+impl Rendering {
+    /// The settings `program`'s first `train` block trains with, else near 2, far 6, 128 samples, black,
+    /// no importance sampling.
+    pub fn of_script(program: &Program) -> Rendering {
         let trained = TrainedWith::of(program);
         Rendering {
-            near: self.near.or(trained.near).unwrap_or(2.0),
-            far: self.far.or(trained.far).unwrap_or(6.0),
-            samples: self.samples.or(trained.samples).unwrap_or(128),
-            background: self.background.or(trained.background).unwrap_or([0.0; 3]),
-            importance: self.importance.or(trained.importance).unwrap_or(0),
+            near: trained.near.unwrap_or(2.0),
+            far: trained.far.unwrap_or(6.0),
+            samples: trained.samples.unwrap_or(128),
+            background: trained.background.unwrap_or([0.0; 3]),
+            importance: trained.importance.unwrap_or(0),
         }
     }
 }

@@ -20,6 +20,28 @@ pub struct CameraSet {
     pub image_size: Option<(u32, u32)>,
 }
 
+/// The camera file formats read here.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CameraFormat {
+    /// Blender / NeRF-synthetic `transforms_*.json` (`camera_angle_x`, `frames`).
+    Blender,
+    /// The course's `box_cameras.json` (`image_size`, `cameras`).
+    Box,
+}
+
+impl CameraFormat {
+    /// The format of a camera file's text: Blender if it has `frames`, the course's if it has `cameras`.
+    pub fn of_text(text: &str) -> Option<CameraFormat> {
+        if text.contains("\"frames\"") {
+            Some(CameraFormat::Blender)
+        } else if text.contains("\"cameras\"") {
+            Some(CameraFormat::Box)
+        } else {
+            None
+        }
+    }
+}
+
 /// `path` relative to the folder of `file` (a leading `./` is dropped).
 fn beside(file: &Path, path: &str) -> PathBuf {
     let path = path.strip_prefix("./").unwrap_or(path);

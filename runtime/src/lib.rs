@@ -55,7 +55,7 @@ pub mod volume;
 
 pub use blender::load_blender_views;
 pub use camera::{Camera, NdcScale};
-pub use camera_files::{load_blender_cameras, load_box_cameras, CameraSet};
+pub use camera_files::{load_blender_cameras, load_box_cameras, CameraFormat, CameraSet};
 pub use composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
 pub use dataset::{load_box_views, read_rgb_image, Views};
 pub use denormals::flush_denormals;

@@ -25,21 +25,28 @@ struct State {
 }
 
 /// What a training run shares with the viewer.
-#[derive(Default)]
 pub struct Live {
     state: Mutex<State>,
     resumed: Condvar,
     /// The latest record, for the pages' connections to forward.
-    latest: Option<tokio::sync::watch::Sender<Value>>,
+    latest: tokio::sync::watch::Sender<Value>,
+}
+
+impl Default for Live {
+    /// A run with no record yet.
+    fn default() -> Live {
+        Live {
+            state: Mutex::default(),
+            resumed: Condvar::new(),
+            latest: tokio::sync::watch::channel(Value::Null).0,
+        }
+    }
 }
 
 impl Live {
     /// A run with no record yet.
     pub fn new() -> Live {
-        Live {
-            latest: Some(tokio::sync::watch::channel(Value::Null).0),
-            ..Live::default()
-        }
+        Live::default()
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -53,9 +60,7 @@ impl Live {
         let mut state = self.lock();
         if let Some(record) = record {
             state.history.push(record.clone());
-            if let Some(latest) = &self.latest {
-                latest.send_replace(record);
-            }
+            self.latest.send_replace(record);
         }
         let stale = state
             .params
@@ -113,8 +118,8 @@ impl Live {
     }
 
     /// A receiver of the latest record.
-    pub fn subscribe(&self) -> Option<tokio::sync::watch::Receiver<Value>> {
-        self.latest.as_ref().map(|l| l.subscribe())
+    pub fn subscribe(&self) -> tokio::sync::watch::Receiver<Value> {
+        self.latest.subscribe()
     }
 }
 

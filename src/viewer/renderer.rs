@@ -106,6 +106,10 @@ impl Renderer<'_> {
             .map_err(|_| Gone)
     }
 
+    fn send_failure(&self, failure: &Failure) -> Result<(), Gone> {
+        self.send(json!({"type": "error", "message": failure.to_string().trim()}))
+    }
+
     /// Compiles `text`; sends its diagnostics (none when it compiles) and, when it compiles, the scene.
     /// A script that fails keeps the last scene on screen.
     fn compile(&mut self, text: &str) {
@@ -175,13 +179,11 @@ impl Renderer<'_> {
         match export::export(request.what, scene, &request.view, stem) {
             Ok(file) => {
                 let header = json!({"type": "file", "id": request.id, "name": file.name, "mime": file.mime});
-                let header = header.to_string();
-                let mut bytes = (header.len() as u32).to_le_bytes().to_vec();
-                bytes.extend_from_slice(header.as_bytes());
-                bytes.extend_from_slice(&file.bytes);
-                self.outbox.send(Outgoing::Frame(bytes)).map_err(|_| Gone)
+                self.outbox
+                    .send(Outgoing::Frame(framed(&header, &file.bytes)))
+                    .map_err(|_| Gone)
             }
-            Err(failure) => self.send(json!({"type": "error", "message": failure.to_string().trim()})),
+            Err(failure) => self.send_failure(&failure),
         }
     }
 
@@ -225,9 +227,7 @@ impl Renderer<'_> {
             let start = Instant::now();
             let image = match scene.render(&request.view, w, h, request.layer) {
                 Ok(image) => image,
-                Err(failure) => {
-                    return self.send(json!({"type": "error", "message": failure.to_string().trim()}));
-                }
+                Err(failure) => return self.send_failure(&failure),
             };
             let seconds = start.elapsed().as_secs_f64();
             self.ns_per_pixel = (1e9 * seconds / (f64::from(w) * f64::from(h))).max(1.0);
@@ -258,11 +258,17 @@ impl Renderer<'_> {
     }
 }
 
-/// A frame message: the header's length (u32, little-endian), the header, the image (PNG or JPEG).
-fn frame_message(header: &Value, image: &RgbImage, png: bool) -> Vec<u8> {
+/// A binary message: the header's length (u32, little-endian), the JSON header, the body.
+fn framed(header: &Value, body: &[u8]) -> Vec<u8> {
     let header = header.to_string();
     let mut bytes = (header.len() as u32).to_le_bytes().to_vec();
     bytes.extend_from_slice(header.as_bytes());
+    bytes.extend_from_slice(body);
+    bytes
+}
+
+/// A frame message: the header and the image (PNG or JPEG).
+fn frame_message(header: &Value, image: &RgbImage, png: bool) -> Vec<u8> {
     let mut encoded = Cursor::new(Vec::new());
     let written = if png {
         image.write_to(&mut encoded, ImageFormat::Png)
@@ -270,8 +276,7 @@ fn frame_message(header: &Value, image: &RgbImage, png: bool) -> Vec<u8> {
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut encoded, 85).encode_image(image)
     };
     written.expect("encoding into memory cannot fail");
-    bytes.extend_from_slice(encoded.get_ref());
-    bytes
+    framed(header, encoded.get_ref())
 }
 
 /// The diagnostics of a failed compile as the page shows them: 1-based line and column of start and end

@@ -17,7 +17,7 @@ use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
 use crate::field::{Compiler, JitFn, Kind, VolumeFields};
 use crate::render::{RenderPlan, ShadingChoice};
-use crate::views::{script_cameras, Rendering, ViewArgs};
+use crate::views::{script_cameras, Rendering};
 
 /// What a frame shows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -140,16 +140,7 @@ impl Scene {
         let renderer = if program.signature("sdf").is_some() {
             surface(&program, params, &cache)?
         } else {
-            let rendering = ViewArgs {
-                source: "",
-                size: 0,
-                near: None,
-                far: None,
-                samples: None,
-                background: None,
-                importance: None,
-            }
-            .resolve(&program);
+            let rendering = Rendering::of_script(&program);
             Renderer::Volume {
                 fields: VolumeFields::compile(&program, &cache, rendering.importance)?,
                 rendering,

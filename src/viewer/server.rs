@@ -119,7 +119,7 @@ async fn socket(
 async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Arc<Live>>) {
     let mailbox = Arc::new(Mailbox::default());
     let (outbox, mut outgoing) = tokio::sync::mpsc::unbounded_channel();
-    let mut progress = live.as_ref().and_then(|l| l.subscribe());
+    let mut progress = live.as_ref().map(|l| l.subscribe());
     let hello = json!({
         "type": "hello",
         "name": document.name,
