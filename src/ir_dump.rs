@@ -17,6 +17,8 @@ pub enum KernelKind {
     Vjp,
     /// The param gradient of c_f·f + c_g·∇ₓf (for the eikonal loss; scalar functions only).
     SecondOrder,
+    /// Interval bounds of the values over boxes of inputs (low corners, then high corners).
+    Bounds,
 }
 
 /// Prints the IR, node statistics and the Cranelift IR.
@@ -28,6 +30,7 @@ pub fn run(path: &str, function: &str, kind: KernelKind) -> Result<String> {
         KernelKind::Value => (kernels::value(&lowered), "values"),
         KernelKind::Grad => (kernels::with_gradient(&lowered), "values and input gradients"),
         KernelKind::Vjp => (kernels::vjp(&lowered, n_params), "vector-Jacobian product"),
+        KernelKind::Bounds => (kernels::interval(&lowered), "interval bounds over boxes"),
         KernelKind::SecondOrder => {
             if lowered.graph.outputs.len() != 1 {
                 return Err(Failure::Message(format!(

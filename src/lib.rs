@@ -29,6 +29,7 @@ pub mod data_check;
 pub mod eval;
 pub mod failure;
 pub mod field;
+pub mod import;
 pub mod interrupt;
 pub mod ir_dump;
 pub mod mesh;

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::{
-    bench, check, compare, data_check, emit, eval, failure, interrupt, ir_dump, mesh, run, script,
+    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, run, script,
     transmittance, viewer, views, WORK_STACK_BYTES,
 };
 
@@ -124,6 +124,10 @@ enum Command {
         /// Also write a turntable GIF of the mesh.
         #[arg(long)]
         gif: Option<PathBuf>,
+        /// Evaluate the function at every grid point instead of only in the blocks of cells whose interval
+        /// bounds may cross the level (the mesh is the same; for comparison).
+        #[arg(long)]
+        no_prune: bool,
     },
     /// Render a script's volume field (or a training checkpoint's) from every camera of a Blender-format
     /// camera file, of a camera path, or of the script's own render block, as PNGs, a GIF or an MP4.
@@ -194,6 +198,15 @@ enum Command {
         /// The port (0: any free one).
         #[arg(long, default_value_t = 7007)]
         port: u16,
+    },
+    /// Convert an f-rep model in the text format of fidget and MPR (`.vm`: one operation per line) into a
+    /// script defining `fn sdf(p: vec3) -> f32` and a turntable render.
+    Import {
+        /// The model file.
+        model: PathBuf,
+        /// The script to write (default: the model's name with `.sdf`).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Data sets: `nerfjit data check DIR|FILE`.
     Data {
@@ -364,6 +377,7 @@ fn run_command(cli: Cli) -> ExitCode {
             level,
             out,
             gif,
+            no_prune,
         } => mesh::parse_bounds(&bounds)
             .map_err(failure::Failure::Message)
             .and_then(|bounds| {
@@ -374,6 +388,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     level,
                     out: &out,
                     gif: gif.as_deref(),
+                    prune: !no_prune,
                 };
                 mesh::run(&script, &args)
             })
@@ -413,6 +428,9 @@ fn run_command(cli: Cli) -> ExitCode {
             host,
             port,
         }),
+        Command::Import { model, out } => {
+            import::run(&model, out.as_deref()).map(|text| emit(&format!("{text}\n")))
+        }
         Command::Data {
             action: DataCommand::Check { path },
         } => data_check::run(&path).map(|text| emit(&text)),

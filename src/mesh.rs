@@ -7,7 +7,7 @@ use std::time::Instant;
 use glam::{Vec2, Vec3};
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::marching::extract;
+use nerfjit_runtime::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::raster::render_mesh;
 use nerfjit_runtime::{chamfer_report, mean_center, read_points, Camera, Mesh};
 
@@ -30,6 +30,9 @@ pub struct MeshArgs<'a> {
     pub out: &'a Path,
     /// A turntable GIF of the mesh, if wanted.
     pub gif: Option<&'a Path>,
+    /// Evaluate the function only in the blocks of cells where its interval bounds may cross the level
+    /// (the same mesh, fewer evaluations); otherwise at every grid point.
+    pub prune: bool,
 }
 
 /// 36 cameras circling the box `bounds` 25° above its center, framing it.
@@ -107,9 +110,29 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
     let t = Instant::now();
     let value = compiler.function(args.function, &vec3, &Type::F32, Kind::Value)?;
     let gradient = compiler.function(args.function, &vec3, &Type::F32, Kind::Gradient)?;
+    let bounds_of = match args.prune {
+        true => compiler.bounds(args.function, &vec3, &Type::F32)?,
+        false => None,
+    };
     let compile_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let mesh = extract(&value, Some(&gradient), args.bounds, args.resolution, args.level)?;
+    let (mesh, pruning) = match &bounds_of {
+        Some(bounds_of) => {
+            let (mesh, pruning) = extract_pruned(
+                &value,
+                Some(&gradient),
+                bounds_of,
+                args.bounds,
+                args.resolution,
+                args.level,
+            )?;
+            (mesh, Some(pruning))
+        }
+        None => (
+            extract(&value, Some(&gradient), args.bounds, args.resolution, args.level)?,
+            None,
+        ),
+    };
     let extract_s = t.elapsed().as_secs_f64();
     if ext == "ply" {
         mesh.write_ply(args.out)?;
@@ -136,16 +159,32 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         crate::output::write_images(gif, frames, 50)?;
     }
     let summary = format!(
-        "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s): {} vertices, {} triangles, {} → {}",
+        "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s; {}): {} vertices, {} triangles, {} → {}",
         args.function,
         args.level,
         args.resolution,
+        pruning_summary(pruning.as_ref(), args.prune),
         mesh.vertices.len(),
         mesh.triangles.len(),
         if mesh.is_closed() { "closed" } else { "open (the surface leaves the grid or is not closed)" },
         args.out.display()
     );
     Ok((mesh, summary))
+}
+
+/// What interval pruning did, for the summary line.
+fn pruning_summary(pruning: Option<&Pruning>, asked: bool) -> String {
+    match pruning {
+        Some(p) => format!(
+            "field evaluations {:.1}% of the grid's points: interval bounds of {} boxes left {} of {} blocks near the surface",
+            100.0 * p.points_evaluated as f64 / p.points as f64,
+            p.boxes,
+            p.blocks_evaluated,
+            p.blocks
+        ),
+        None if asked => "every grid point evaluated: interval arithmetic bounds nothing through dense layers or grid reads".into(),
+        None => "every grid point evaluated".into(),
+    }
 }
 
 const KEYS: &[&str] = &[
@@ -218,6 +257,7 @@ impl MeshPlan {
             level: self.level,
             out: &self.out,
             gif: self.gif.as_deref(),
+            prune: true,
         };
         let (mesh, mut summary) = extract_and_write(program, params, &args)?;
         if let Some((file, key)) = &self.compare {

@@ -299,6 +299,54 @@ fn mesh_writes_a_closed_torus() {
     assert!(text(&out).1.contains("--bounds takes"));
 }
 
+/// A union of spheres and a box in the text format of fidget and MPR (with a comment and a smooth term).
+const VM_MODEL: &str = "# two spheres and a box\n\
+    x var-x\ny var-y\nz var-z\nh const 0.5\nr const 0.35\n\
+    xa sub x h\nxb add x h\nx2a square xa\nx2b square xb\ny2 square y\nz2 square z\n\
+    yz add y2 z2\nsa add x2a yz\nsb add x2b yz\nla sqrt sa\nlb sqrt sb\nda sub la r\ndb sub lb r\n\
+    ax abs x\nay abs y\naz abs z\nw const 0.2\nqx sub ax w\nqy sub ay h\nqz sub az w\n\
+    m1 max qx qy\nbox max m1 qz\nu min da db\nout min u box\n";
+
+#[test]
+fn imported_models_mesh_the_same_with_and_without_interval_pruning() {
+    let dir = scratch("import");
+    let model = dir.join("spheres.vm");
+    std::fs::write(&model, VM_MODEL).unwrap();
+    let out = nerfjit(&["import", model.to_str().unwrap()], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("imported 29 operations"), "{stdout}");
+    let script = dir.join("spheres.sdf");
+    let mut meshes = Vec::new();
+    for flag in [None, Some("--no-prune")] {
+        let ply = dir.join(format!("spheres{}.ply", flag.unwrap_or("")));
+        let mut args = vec!["mesh", script.to_str().unwrap(), "--res", "96", "--bounds", "1.2"];
+        args.extend(["--out", ply.to_str().unwrap()]);
+        args.extend(flag);
+        let out = nerfjit(&args, None);
+        let (stdout, stderr) = text(&out);
+        assert!(out.status.success(), "{stderr}");
+        assert!(stdout.contains("closed"), "{stdout}");
+        let pruned = stdout.contains("interval bounds of");
+        assert_eq!(pruned, flag.is_none(), "{stdout}");
+        meshes.push(std::fs::read(&ply).unwrap());
+    }
+    assert!(meshes[0].len() > 10_000);
+    assert_eq!(
+        meshes[0], meshes[1],
+        "the pruned mesh differs from the brute-force one"
+    );
+    // A mistake in the model names its line.
+    std::fs::write(&model, "x var-x\ny mul x q\n").unwrap();
+    let out = nerfjit(&["import", model.to_str().unwrap()], None);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).1.contains("spheres.vm:2: 'q' is not defined"),
+        "{}",
+        text(&out).1
+    );
+}
+
 #[test]
 fn set_overrides_consts_and_block_settings() {
     let dir = scratch("set");

@@ -10,6 +10,7 @@
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
 //!
+//! - [`interval`]: lower and upper bounds of the outputs over boxes of inputs.
 //! - [`loss_gradient`]: for a scalar function f, a per-point loss built from f and ∇ₓf in the IR itself;
 //!   outputs the loss terms; reductions their param gradient. One kernel instead of a forward pass, a
 //!   loss on the host and a backward pass (the eikonal and surface losses of neural SDFs).
@@ -59,6 +60,12 @@ fn gradients(g: &mut Graph, seeds: &[(V, V)], xs: &[V], n_params: usize) -> (Vec
 /// The function's values.
 pub fn value(f: &Lowered) -> Graph {
     f.graph.compact()
+}
+
+/// The interval extension of the function's values (see [`crate::interval`]): inputs the low corners of
+/// boxes, then their high corners; outputs lower bounds of every output over the box, then upper bounds.
+pub fn interval(f: &Lowered) -> Graph {
+    crate::interval::extend(&value(f))
 }
 
 /// The values, then the gradient of each output with respect to all inputs.

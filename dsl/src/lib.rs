@@ -22,6 +22,7 @@ pub mod elaborate;
 pub mod grid;
 pub mod init;
 pub mod interp;
+pub mod interval;
 pub mod ir;
 pub mod kernels;
 pub mod lexer;

@@ -42,6 +42,7 @@ pub mod optim;
 pub mod paths;
 mod ply;
 pub mod pointcloud;
+pub mod prune;
 pub mod raster;
 pub mod rays;
 pub mod rng;

@@ -113,6 +113,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         level,
         out: &scratch.0,
         gif: None,
+        prune: true,
     };
     extract_and_write(scene.program(), scene.params(), &args)?;
     Ok(File {
