@@ -33,6 +33,10 @@ pub enum Workload {
     /// Marching cubes of W7's 20-primitive scene at 512³ over [-4, 4]³: every grid point evaluated, and only
     /// the blocks that interval bounds leave near the surface (the same mesh, checked).
     Mesh,
+    /// A generated f-rep model of ~8,000 operations (a city of 288 boxes, imported from the `.vm` format):
+    /// JIT compile time of its value, gradient and bounds kernels, a 512³ interval-pruned mesh, one
+    /// sphere-traced 256² frame.
+    Large,
     /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
     /// tiles of points, on one thread and on all threads.
     Dense,
@@ -67,6 +71,7 @@ pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()
         Workload::W5 => w5(reps),
         Workload::W6 => w6(reps),
         Workload::Mesh => mesh(reps),
+        Workload::Large => large(reps),
         Workload::Dense => dense(reps, threads),
     }
 }
@@ -160,6 +165,73 @@ fn mesh(reps: usize) -> Result<()> {
             "the pruned mesh differs from the brute-force mesh".into(),
         ));
     }
+    Ok(())
+}
+
+fn large(reps: usize) -> Result<()> {
+    use nerfjit_dsl::Type;
+    let script = crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?;
+    let program = nerfjit_dsl::compile("city.sdf", &script)?;
+    let f = program.lower("sdf")?;
+    let ops = script.matches("    let v").count();
+    crate::emit(&format!(
+        "large: a city of 288 boxes, {ops} operations in the .vm format, median of {reps}\n"
+    ));
+    for (label, graph) in [
+        ("value", kernels::value(&f)),
+        ("value+gradient", kernels::with_gradient(&f)),
+        ("bounds", kernels::interval(&f)),
+    ] {
+        let seconds = time_reps(reps.min(3), || {
+            Kernel::compile(&graph, Options::default()).expect("the city compiles");
+        });
+        crate::emit(&format!(
+            "  JIT compile {label:<15} {:7.3} s ({} IR nodes)\n",
+            seconds,
+            graph.compact().len()
+        ));
+    }
+    let cache = nerfjit_jit::KernelCache::new();
+    let compiler = crate::field::Compiler {
+        program: &program,
+        params: &program.param_values,
+        cache: &cache,
+    };
+    let vec3 = [Type::Vec(3)];
+    let value = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Value)?;
+    let gradient = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Gradient)?;
+    let bounds_of = compiler
+        .bounds("sdf", &vec3, &Type::F32)?
+        .ok_or_else(|| Failure::Message("the city's interval bounds are constant".into()))?;
+    // One run: tens of seconds.
+    let t = Instant::now();
+    let grid = ([-1.0; 3], [1.0; 3]);
+    let (_, pruning) =
+        nerfjit_runtime::marching::extract_pruned(&value, Some(&gradient), &bounds_of, grid, 512, 0.0)?;
+    let mesh_s = t.elapsed().as_secs_f64();
+    crate::emit(&format!(
+        "  mesh at 512³, interval-pruned, one run {:7.3} s (field evaluations {:.2}% of the grid's points)\n",
+        mesh_s,
+        100.0 * pruning.points_evaluated as f64 / pruning.points as f64
+    ));
+    let plan = RenderPlan::new(first_block(&program, "render", ".")?)?;
+    let (sdf, _) = plan.compile_fields(&compiler)?;
+    let shading = Shading::Lambert {
+        gradient: &gradient,
+        light_dir: glam::Vec3::new(-0.5, 1.0, -0.8),
+        albedo: [0.85, 0.75, 0.6],
+    };
+    let (w, h) = plan.size;
+    let mut frame = nerfjit_runtime::Frame::empty();
+    let trace_s = time_reps(reps.min(3), || {
+        sphere_trace_into(&plan.cameras[0], w, h, &sdf, &shading, &plan.trace, &mut frame)
+            .expect("validated settings render");
+    });
+    crate::emit(&format!(
+        "  sphere trace one {w}×{h} frame {:7.3} s ({:.2} M rays/s)\n",
+        trace_s,
+        f64::from(w * h) / trace_s / 1e6
+    ));
     Ok(())
 }
 

@@ -32,6 +32,7 @@ pub mod field;
 pub mod import;
 pub mod interrupt;
 pub mod ir_dump;
+pub mod large_model;
 pub mod mesh;
 pub mod metrics_log;
 pub mod output;

@@ -108,12 +108,20 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
     };
     let vec3 = [Type::Vec(3)];
     let t = Instant::now();
-    let value = compiler.function(args.function, &vec3, &Type::F32, Kind::Value)?;
-    let gradient = compiler.function(args.function, &vec3, &Type::F32, Kind::Gradient)?;
-    let bounds_of = match args.prune {
-        true => compiler.bounds(args.function, &vec3, &Type::F32)?,
-        false => None,
-    };
+    // The three kernels compile on separate threads.
+    let ((value, gradient), bounds_of) = rayon::join(
+        || {
+            rayon::join(
+                || compiler.function(args.function, &vec3, &Type::F32, Kind::Value),
+                || compiler.function(args.function, &vec3, &Type::F32, Kind::Gradient),
+            )
+        },
+        || match args.prune {
+            true => compiler.bounds(args.function, &vec3, &Type::F32),
+            false => Ok(None),
+        },
+    );
+    let (value, gradient, bounds_of) = (value?, gradient?, bounds_of?);
     let compile_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let (mesh, pruning) = match &bounds_of {

@@ -67,7 +67,7 @@ impl Marcher {
                 sdf.outputs.len()
             )));
         }
-        let module = host_module()?;
+        let module = host_module(sdf.len())?;
         let mut ctx = module.make_context();
         let ptr = module.target_config().pointer_type();
         for ty in [ptr, ptr, ptr, types::I64, types::F32, types::I64] {
