@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""nerfjit beside its peers, one after the other in one sitting, on the same workloads.
+
+Runs the machine's FMA peak, then for each workload nerfjit's benchmark followed by each peer's
+(JAX, Dr.Jit, fidget from ../shared/bench), every run holding /tmp/bench.lock and waiting for a quiet
+machine (../shared/bench/peak/quiet.sh), and prints a Markdown table of the figures and the ratios
+nerfjit / peer (< 1: nerfjit faster).
+
+    python3 bench/peers.py [--workloads W1,W2,W7] [--peers jax,drjit,fidget] [--bench ../shared/bench]
+
+The peers must be installed as their run.sh files describe (jax 0.10.2, drjit 1.5.0 with libLLVM 19,
+tcmalloc); a peer that fails to run is reported as such and the others go on.
+"""
+
+import argparse
+import datetime
+import glob
+import json
+import os
+import re
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NERFJIT = os.path.join(ROOT, "target", "release", "nerfjit")
+
+# (workload, figure, unit, nerfjit output pattern)
+FIGURES = {
+    "W1": [("torus frame", "ms", r"^\s+([0-9.]+) ms/frame")],
+    "W2": [("box volume frame (exact)", "ms", r"^\s+([0-9.]+) ms/frame")],
+    "W7": [
+        ("distance, 2 threads", "ns/point", r"distance\s+2 threads:\s+([0-9.]+) ns/point"),
+        ("distance + gradient, 2 threads", "ns/point", r"distance\+gradient\s+2 threads:\s+([0-9.]+) ns/point"),
+    ],
+}
+
+
+def locked(bench, cmd, env=None):
+    """Runs cmd inside the benchmark lock on a quiet machine; returns its stdout (raises on failure)."""
+    full = ["flock", "/tmp/bench.lock", os.path.join(bench, "peak", "quiet.sh")] + cmd
+    out = subprocess.run(full, capture_output=True, text=True, env=env, check=True)
+    return out.stdout
+
+
+def json_lines(text):
+    return [json.loads(l) for l in text.splitlines() if l.startswith("{")]
+
+
+def peak(bench):
+    subprocess.run(["gcc", "-O3", "-march=native", "-fopenmp", os.path.join(bench, "peak", "peak.c"),
+                    "-o", "/tmp/peak_bin"], check=True)
+    lines = json_lines(locked(bench, ["/tmp/peak_bin", "7"]))
+    fma = {(r["test"], r["threads"]): r["gflops_median"] for r in lines if "gflops_median" in r}
+    return fma
+
+
+def nerfjit(bench, workload):
+    text = locked(bench, [NERFJIT, "bench", workload.lower(), "--reps", "9"])
+    values = []
+    for _, _, pattern in FIGURES[workload]:
+        m = re.search(pattern, text, re.M)
+        values.append(float(m.group(1)) if m else None)
+    return values
+
+
+def jax(bench, workload):
+    rec = json_lines(locked(bench, ["python3", os.path.join(bench, "jax", "peer.py"), workload,
+                                    "--reps", "10", "--wait-idle", "0"]))[-1]
+    if workload == "W7":
+        return [rec["dist_ns_per_point"], rec["dist_grad_ns_per_point"]]
+    return [rec["frame_s"] * 1e3]
+
+
+def drjit_env():
+    env = dict(os.environ)
+    llvm = sorted(glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM.so.19*"))
+    if llvm:
+        env["DRJIT_LIBLLVM_PATH"] = llvm[0]
+    return env
+
+
+def drjit(bench, workload):
+    rec = json_lines(locked(bench, ["python3", os.path.join(bench, "drjit", "peer.py"), "--only", workload,
+                                    "--threads", "2", "--reps", "7"], env=drjit_env()))[-1]
+    if workload == "W7":
+        return [rec["ns_per_point_dist"], rec["ns_per_point_distgrad"]]
+    return [rec["s_per_frame"] * 1e3]
+
+
+def fidget(bench, workload):
+    if workload != "W7":
+        return None
+    build = "/tmp/fidget-peer"
+    os.makedirs(os.path.join(build, "src"), exist_ok=True)
+    for f in ["Cargo.toml", "src/main.rs"]:
+        with open(os.path.join(bench, "fidget", f)) as src, open(os.path.join(build, f), "w") as dst:
+            dst.write(src.read())
+    subprocess.run(["cargo", "build", "--release", "-q"], cwd=build, check=True)
+    rec = json_lines(locked(bench, [os.path.join(build, "target", "release", "fidget-peer"), "15", "16384"]))[-1]
+    return [rec["ns_per_point_dist_2t"], rec["ns_per_point_distgrad_2t"]]
+
+
+PEERS = {"jax": jax, "drjit": drjit, "fidget": fidget}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workloads", default="W1,W2,W7")
+    ap.add_argument("--peers", default="jax,drjit,fidget")
+    ap.add_argument("--bench", default=os.path.join(ROOT, "..", "shared", "bench"))
+    args = ap.parse_args()
+    bench = os.path.abspath(args.bench)
+    subprocess.run(["cargo", "build", "--release", "-q"], cwd=ROOT, check=True)
+    peers = [p for p in args.peers.split(",") if p]
+    started = datetime.datetime.now(datetime.timezone.utc)
+    fma = peak(bench)
+    rows = []
+    for w in args.workloads.split(","):
+        ours = nerfjit(bench, w)
+        theirs = {}
+        for p in peers:
+            try:
+                theirs[p] = PEERS[p](bench, w)
+            except (subprocess.CalledProcessError, KeyError, IndexError, OSError) as e:
+                print(f"[peers] {p} {w} failed: {e}", file=sys.stderr)
+                theirs[p] = "failed"
+        for k, (figure, unit, _) in enumerate(FIGURES[w]):
+            rows.append((w, figure, unit, ours[k], {p: (v[k] if isinstance(v, list) else v)
+                                                    for p, v in theirs.items()}))
+        print(f"[peers] {w} done", file=sys.stderr)
+    peak_line = ", ".join(f"{bits}-bit {fma.get((f'fma{bits}', 1), '?')} / {fma.get((f'fma{bits}', 2), '?')}"
+                          for bits in (512, 256))
+    print(f"Side by side, {started:%Y-%m-%d %H:%M} UTC; FMA peak GFLOP/s (1 / 2 threads): {peak_line}")
+    print()
+    head = "| workload | figure | nerfjit | " + " | ".join(peers) + " | " + " | ".join(f"÷ {p}" for p in peers) + " |"
+    print(head)
+    print("|" + "---|" * (3 + 2 * len(peers)))
+    fmt = lambda v: "—" if v is None else (v if isinstance(v, str) else f"{v:.3g}")
+    for w, figure, unit, ours, theirs in rows:
+        ratios = [fmt(ours / theirs[p]) if isinstance(theirs.get(p), float) and ours else "—" for p in peers]
+        print(f"| {w} | {figure}, {unit} | {fmt(ours)} | " + " | ".join(fmt(theirs.get(p)) for p in peers)
+              + " | " + " | ".join(ratios) + " |")
+
+
+if __name__ == "__main__":
+    main()
