@@ -119,6 +119,30 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
     );
 }
 
+/// The JIT and the runtime write only their buffers in a training run: three steps of the box under valgrind's
+/// memcheck report no error. (Valgrind's virtual CPU has no AVX-512: the 128-bit paths run.) CI runs it:
+/// `cargo test --release --test training -- --ignored under_valgrind`.
+#[test]
+#[ignore = "needs valgrind and a few minutes; run by .ci/run"]
+fn training_steps_under_valgrind_make_no_memory_errors() {
+    let dir = scratch("valgrind");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(3)).unwrap();
+    let out = std::process::Command::new("valgrind")
+        .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
+        .arg(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(["run", "train.sdf"])
+        .current_dir(&dir)
+        .output()
+        .expect("valgrind runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "valgrind reported errors or the run failed:\n{stderr}"
+    );
+    assert!(dir.join("summary.json").exists());
+}
+
 #[test]
 fn diverging_training_stops_with_a_message() {
     let dir = scratch("nan");

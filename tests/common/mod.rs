@@ -48,9 +48,8 @@ pub fn make_views(dir: &Path) {
     assert!(dir.join("view_003.png").exists());
 }
 
-/// A script that trains the box for `steps`, with `extra` settings (the checkpoint is the default
-/// `train.ckpt.safetensors` unless they name one).
-/// A script that trains the box's center and sides for `steps` steps, with `extra` settings.
+/// A script that trains the box's center and sides for `steps` steps, with `extra` settings (the checkpoint
+/// is the default `train.ckpt.safetensors` unless they name one).
 pub fn trainer_with(steps: u32, extra: &str) -> String {
     format!(
         "param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1.0, 1.0, 1.0]\n{FIELD}\
