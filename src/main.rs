@@ -118,9 +118,13 @@ enum Command {
         /// The level set to extract.
         #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
         level: f32,
-        /// The mesh file, .ply or .obj.
+        /// The mesh file, .ply, .obj or .stl.
         #[arg(long)]
         out: PathBuf,
+        /// Color the vertices with this function (`fn(p: vec3) -> vec3`, or a radiance field's
+        /// `fn(p: vec3, d: vec3) -> vec3`, seen from outside along the normal); PLY and OBJ only.
+        #[arg(long)]
+        color: Option<String>,
         /// Also write a turntable GIF of the mesh.
         #[arg(long)]
         gif: Option<PathBuf>,
@@ -376,6 +380,7 @@ fn run_command(cli: Cli) -> ExitCode {
             bounds,
             level,
             out,
+            color,
             gif,
             no_prune,
         } => mesh::parse_bounds(&bounds)
@@ -389,6 +394,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     out: &out,
                     gif: gif.as_deref(),
                     prune: !no_prune,
+                    color: color.as_deref(),
                 };
                 mesh::run(&script, &args)
             })

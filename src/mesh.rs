@@ -1,5 +1,5 @@
-//! `nerfjit mesh`: the marching-cubes mesh of a script's scalar function, as PLY or OBJ, with an optional
-//! turntable GIF of the mesh.
+//! `nerfjit mesh`: the marching-cubes mesh of a script's scalar function, as PLY, OBJ or STL, with optional
+//! vertex colors from a color function and an optional turntable GIF of the mesh.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -9,11 +9,11 @@ use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::raster::render_mesh;
-use nerfjit_runtime::{chamfer_report, mean_center, read_points, Camera, Mesh};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::field::{Compiler, Kind};
+use crate::field::{check_signature, Compiler, Kind};
 use crate::settings::CallArgs;
 
 /// What to extract and where to write it.
@@ -26,8 +26,11 @@ pub struct MeshArgs<'a> {
     pub bounds: ([f32; 3], [f32; 3]),
     /// The level (0 for an SDF's surface).
     pub level: f32,
-    /// `.ply` or `.obj`.
+    /// `.ply`, `.obj` or `.stl`.
     pub out: &'a Path,
+    /// A function giving the vertices' colors (`fn(p: vec3) -> vec3`, or `fn(p: vec3, d: vec3) -> vec3` seen
+    /// from outside along the normal), written into PLY and OBJ files.
+    pub color: Option<&'a str>,
     /// A turntable GIF of the mesh, if wanted.
     pub gif: Option<&'a Path>,
     /// Evaluate the function only in the blocks of cells where its interval bounds may cross the level
@@ -81,9 +84,15 @@ pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
 /// Extracts the mesh with `params`, writes it (and the GIF); returns it and a summary line.
 pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> Result<(Mesh, String)> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
-    if !matches!(ext, "ply" | "obj") {
+    if !matches!(ext, "ply" | "obj" | "stl") {
         return Err(Failure::Message(format!(
-            "cannot write '{}': use a .ply or .obj file",
+            "cannot write '{}': use a .ply, .obj or .stl file",
+            args.out.display()
+        )));
+    }
+    if ext == "stl" && args.color.is_some() {
+        return Err(Failure::Message(format!(
+            "cannot write colors into '{}': STL has no vertex colors; use a .ply or .obj file",
             args.out.display()
         )));
     }
@@ -142,10 +151,14 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         ),
     };
     let extract_s = t.elapsed().as_secs_f64();
-    if ext == "ply" {
-        mesh.write_ply(args.out)?;
-    } else {
-        mesh.write_obj(args.out)?;
+    let mut mesh = mesh;
+    if let Some(color) = args.color {
+        mesh.colors = vertex_colors(&compiler, color, &mesh)?;
+    }
+    match ext {
+        "ply" => mesh.write_ply(args.out)?,
+        "obj" => mesh.write_obj(args.out)?,
+        _ => mesh.write_stl(args.out)?,
     }
     if let Some(gif) = args.gif {
         // Frame the mesh itself (the grid may be much larger), lit from above the camera's left shoulder.
@@ -167,17 +180,49 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         crate::output::write_images(gif, frames, 50)?;
     }
     let summary = format!(
-        "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s; {}): {} vertices, {} triangles, {} → {}",
+        "meshed '{}' at level {} on {}³ cells in {extract_s:.3} s (JIT compile {compile_s:.3} s; {}): {} vertices{}, {} triangles, {} → {}",
         args.function,
         args.level,
         args.resolution,
         pruning_summary(pruning.as_ref(), args.prune),
         mesh.vertices.len(),
+        args.color.map(|c| format!(" colored by '{c}'")).unwrap_or_default(),
         mesh.triangles.len(),
         if mesh.is_closed() { "closed" } else { "open (the surface leaves the grid or is not closed)" },
         args.out.display()
     );
     Ok((mesh, summary))
+}
+
+/// The colors of the mesh's vertices from `function`, clamped to [0, 1] (NaN as 0): `fn(p: vec3) -> vec3`, or
+/// `fn(p: vec3, d: vec3) -> vec3` (a radiance field's color) seen along the inward normal, as a camera
+/// outside the surface sees it.
+fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec<[f32; 3]>> {
+    let vec3 = Type::Vec(3);
+    let forms = [vec![vec3.clone()], vec![vec3.clone(), vec3.clone()]];
+    check_signature(compiler.program, function, &[&forms[0], &forms[1]], &vec3)?;
+    let inputs: Vec<Type> = compiler
+        .program
+        .signature(function)
+        .map(|sig| sig.inputs.iter().map(|(_, t)| t.clone()).collect())
+        .unwrap_or_default();
+    let f = compiler.function(function, &inputs, &vec3, Kind::Value)?;
+    // The mesh's normals face increasing values: outwards around an SDF's surface (positive volume), inwards
+    // around a density's (negative volume).
+    let inward = if mesh.volume() >= 0.0 { -1.0 } else { 1.0 };
+    let n = mesh.vertices.len();
+    let mut columns: Vec<Vec<f32>> = (0..3)
+        .map(|a| mesh.vertices.iter().map(|p| p[a]).collect())
+        .collect();
+    if inputs.len() == 2 {
+        columns.extend((0..3).map(|a| mesh.normals.iter().map(|normal| inward * normal[a]).collect()));
+    }
+    let ins: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
+    let mut rgb = vec![vec![0.0f32; n]; 3];
+    let mut outs: Vec<&mut [f32]> = rgb.iter_mut().map(Vec::as_mut_slice).collect();
+    f.eval(n, &ins, &mut outs);
+    let unit = |v: f32| if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+    Ok((0..n).map(|k| [0, 1, 2].map(|c| unit(rgb[c][k]))).collect())
 }
 
 /// What interval pruning did, for the summary line.
@@ -266,6 +311,7 @@ impl MeshPlan {
             out: &self.out,
             gif: self.gif.as_deref(),
             prune: true,
+            color: None,
         };
         let (mesh, mut summary) = extract_and_write(program, params, &args)?;
         if let Some((file, key)) = &self.compare {

@@ -289,14 +289,65 @@ fn mesh_writes_a_closed_torus() {
     assert!(stdout.contains("triangles, closed"), "{stdout}");
     assert!(std::fs::metadata(&ply).unwrap().len() > 10_000);
     assert!(std::fs::metadata(&gif).unwrap().len() > 1_000);
-    let out = nerfjit(&["mesh", "examples/torus.sdf", "--out", "x.stl"], None);
+    let out = nerfjit(&["mesh", "examples/torus.sdf", "--out", "x.off"], None);
     assert!(!out.status.success());
-    assert!(text(&out).1.contains("use a .ply or .obj file"));
+    assert!(text(&out).1.contains("use a .ply, .obj or .stl file"));
     let out = nerfjit(
         &["mesh", "examples/torus.sdf", "--bounds", "1,2", "--out", "x.ply"],
         None,
     );
     assert!(text(&out).1.contains("--bounds takes"));
+}
+
+#[test]
+fn meshes_take_vertex_colors_and_write_stl() {
+    let dir = scratch("mesh-colors");
+    let mesh = |out: &Path, extra: &[&str]| {
+        let mut args = vec!["mesh", "examples/torus.sdf", "--res", "32", "--bounds", "1.5"];
+        args.extend(["--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        nerfjit(&args, None)
+    };
+    // torus.sdf's color(p) = clamp(abs(p), 0.02, 0.98).
+    let ply = dir.join("torus.ply");
+    let out = mesh(&ply, &["--color", "color"]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("colored by 'color'"), "{stdout}");
+    let bytes = std::fs::read(&ply).unwrap();
+    let header_end = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let header = String::from_utf8_lossy(&bytes[..header_end]);
+    assert!(
+        header.contains("property uchar red\nproperty uchar green\nproperty uchar blue"),
+        "{header}"
+    );
+    // Each vertex: 6 floats and 3 color bytes; its color is the clamped |p| of its position.
+    let vertex = |k: usize| &bytes[header_end + 27 * k..header_end + 27 * (k + 1)];
+    for k in 0..10 {
+        let v = vertex(k);
+        for axis in 0..3 {
+            let p = f32::from_le_bytes(v[4 * axis..4 * axis + 4].try_into().unwrap());
+            let want = (p.abs().clamp(0.02, 0.98) * 255.0).round();
+            assert!(
+                (f32::from(v[24 + axis]) - want).abs() <= 1.0,
+                "vertex {k} axis {axis}: {p}"
+            );
+        }
+    }
+    let stl = dir.join("torus.stl");
+    let out = mesh(&stl, &[]);
+    assert!(out.status.success(), "{}", text(&out).1);
+    let bytes = std::fs::read(&stl).unwrap();
+    let count = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as usize;
+    assert!(count > 1000 && bytes.len() == 84 + 50 * count);
+    let out = mesh(&stl, &["--color", "color"]);
+    assert!(text(&out).1.contains("STL has no vertex colors"));
+    let out = mesh(&ply, &["--color", "sdf"]);
+    assert!(
+        text(&out).1.contains("'sdf' must be fn sdf(vec3) -> vec3"),
+        "{}",
+        text(&out).1
+    );
 }
 
 /// A union of spheres and a box in the text format of fidget and MPR (with a comment and a smooth term).

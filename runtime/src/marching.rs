@@ -620,6 +620,7 @@ fn merge(chunks: Vec<ChunkMesh>) -> Result<Mesh> {
         vertices: Vec::with_capacity(total),
         normals: Vec::with_capacity(total),
         triangles: Vec::with_capacity(chunks.iter().map(|c| c.triangles.len()).sum()),
+        colors: Vec::new(),
     };
     for (c, chunk) in chunks.iter().enumerate() {
         mesh.vertices.extend_from_slice(&chunk.vertices);

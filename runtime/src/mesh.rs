@@ -1,4 +1,4 @@
-//! Triangle meshes: [`Mesh`], its PLY and OBJ files, and checks of its shape and topology.
+//! Triangle meshes: [`Mesh`], its PLY, OBJ and STL files, and checks of its shape and topology.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -18,6 +18,8 @@ pub struct Mesh {
     /// Triangles as indices into `vertices`, counter-clockwise seen from outside: the normal
     /// `(b − a) × (c − a)` points outwards.
     pub triangles: Vec<[u32; 3]>,
+    /// RGB in [0, 1], one per vertex, or none at all (empty).
+    pub colors: Vec<[f32; 3]>,
 }
 
 /// The vertices of triangle `t`, or `None` if one of its indices is out of range.
@@ -55,17 +57,35 @@ impl Mesh {
             vertices,
             normals,
             triangles,
+            colors: Vec::new(),
         }
     }
 
-    /// Checks that the mesh is usable: one normal per vertex, finite coordinates, and
-    /// triangle indices in range.
+    /// Checks that the mesh is usable: one normal per vertex, no colors or one per vertex (in [0, 1]),
+    /// finite coordinates, and triangle indices in range.
     pub fn check(&self) -> Result<()> {
         if self.normals.len() != self.vertices.len() {
             return Err(Error::Invalid(format!(
                 "the mesh has {} vertices but {} normals",
                 self.vertices.len(),
                 self.normals.len()
+            )));
+        }
+        if !self.colors.is_empty() && self.colors.len() != self.vertices.len() {
+            return Err(Error::Invalid(format!(
+                "the mesh has {} vertices but {} colors",
+                self.vertices.len(),
+                self.colors.len()
+            )));
+        }
+        if let Some(k) = self
+            .colors
+            .iter()
+            .position(|c| !c.iter().all(|x| (0.0..=1.0).contains(x)))
+        {
+            return Err(Error::Invalid(format!(
+                "mesh vertex {k} has the color {:?}, outside [0, 1]",
+                self.colors[k]
             )));
         }
         let not_finite = |list: &[[f32; 3]]| list.iter().position(|p| !Vec3::from(*p).is_finite());
@@ -162,19 +182,28 @@ impl Mesh {
         if self.vertices.len() > i32::MAX as usize {
             return Err(Error::write(path, "too many vertices for int PLY indices"));
         }
+        let colored = !self.colors.is_empty();
         let header = format!(
             "ply\nformat binary_little_endian 1.0\ncomment written by nerfjit\n\
              element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
-             property float nx\nproperty float ny\nproperty float nz\n\
+             property float nx\nproperty float ny\nproperty float nz\n{}\
              element face {}\nproperty list uchar int vertex_indices\nend_header\n",
             self.vertices.len(),
+            if colored {
+                "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+            } else {
+                ""
+            },
             self.triangles.len()
         );
         let mut bytes = header.into_bytes();
-        bytes.reserve(self.vertices.len() * 24 + self.triangles.len() * 13);
-        for (p, n) in self.vertices.iter().zip(&self.normals) {
+        bytes.reserve(self.vertices.len() * 27 + self.triangles.len() * 13);
+        for (k, (p, n)) in self.vertices.iter().zip(&self.normals).enumerate() {
             for c in p.iter().chain(n) {
                 bytes.extend_from_slice(&c.to_le_bytes());
+            }
+            if colored {
+                bytes.extend(self.colors[k].map(|c| (c * 255.0).round() as u8));
             }
         }
         for t in &self.triangles {
@@ -198,8 +227,16 @@ impl Mesh {
             self.vertices.len(),
             self.triangles.len()
         );
-        for [x, y, z] in &self.vertices {
-            let _ = writeln!(text, "v {x} {y} {z}");
+        for (k, [x, y, z]) in self.vertices.iter().enumerate() {
+            // Vertex colors as three more numbers after the position (read by trimesh, MeshLab, Blender).
+            match self.colors.get(k) {
+                Some([r, g, b]) => {
+                    let _ = writeln!(text, "v {x} {y} {z} {r} {g} {b}");
+                }
+                None => {
+                    let _ = writeln!(text, "v {x} {y} {z}");
+                }
+            }
         }
         for [x, y, z] in &self.normals {
             let _ = writeln!(text, "vn {x} {y} {z}");
@@ -210,6 +247,32 @@ impl Mesh {
         }
         check_output_folder(path)?;
         std::fs::write(path, text).map_err(|e| Error::write(path, e))
+    }
+
+    /// Writes the mesh as binary STL (triangles with their facet normals; STL has no vertex colors).
+    pub fn write_stl(&self, path: &Path) -> Result<()> {
+        self.check()?;
+        let count = u32::try_from(self.triangles.len())
+            .map_err(|_| Error::write(path, "too many triangles for STL"))?;
+        let mut bytes = Vec::with_capacity(84 + 50 * self.triangles.len());
+        // 80 bytes that must not start with "solid" (the text format's first word).
+        let mut header = [b' '; 80];
+        let title = b"binary STL written by nerfjit";
+        header[..title.len()].copy_from_slice(title);
+        bytes.extend_from_slice(&header);
+        bytes.extend_from_slice(&count.to_le_bytes());
+        for &t in &self.triangles {
+            let [a, b, c] = corners(&self.vertices, t).expect("checked indices");
+            let normal = (b - a).cross(c - a).normalize_or_zero();
+            for v in [normal, a, b, c] {
+                for x in v.to_array() {
+                    bytes.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            bytes.extend_from_slice(&0u16.to_le_bytes());
+        }
+        check_output_folder(path)?;
+        std::fs::write(path, bytes).map_err(|e| Error::write(path, e))
     }
 
     /// Reads a PLY mesh (ASCII or binary little-endian): vertex `x y z`, normals from
@@ -261,7 +324,7 @@ impl Mesh {
                 }
             }
         }
-        match columns(["nx", "ny", "nz"]) {
+        let mut mesh = match columns(["nx", "ny", "nz"]) {
             [Some(nx), Some(ny), Some(nz)] => {
                 let normals: Vec<[f32; 3]> = (0..vertex.count)
                     .map(|k| [nx[k] as f32, ny[k] as f32, nz[k] as f32])
@@ -269,14 +332,22 @@ impl Mesh {
                 if let Some(k) = normals.iter().position(|n| !Vec3::from(*n).is_finite()) {
                     return Err(bad(format!("normal {k} {:?} is not finite", normals[k])));
                 }
-                Ok(Mesh {
+                Mesh {
                     vertices,
                     normals,
                     triangles,
-                })
+                    colors: Vec::new(),
+                }
             }
-            _ => Ok(Mesh::from_triangles(vertices, triangles)),
+            _ => Mesh::from_triangles(vertices, triangles),
+        };
+        // Vertex colors as 8-bit channels, the form PLY writers use.
+        if let [Some(r), Some(g), Some(b)] = columns(["red", "green", "blue"]) {
+            mesh.colors = (0..vertex.count)
+                .map(|k| [r[k], g[k], b[k]].map(|c| (c / 255.0).clamp(0.0, 1.0) as f32))
+                .collect();
         }
+        Ok(mesh)
     }
 }
 
@@ -373,6 +444,61 @@ mod tests {
             })
             .collect();
         assert_eq!(faces, mesh.triangles);
+    }
+
+    #[test]
+    fn vertex_colors_round_trip_through_ply_and_reach_obj() {
+        let mut mesh = cube();
+        mesh.colors = (0..8)
+            .map(|k| [k as f32 / 7.0, 0.5, 1.0 - k as f32 / 7.0])
+            .collect();
+        let path = temp_path("colored.ply");
+        mesh.write_ply(&path).unwrap();
+        let back = Mesh::read_ply(&path).unwrap();
+        assert_eq!(back.vertices, mesh.vertices);
+        for (a, b) in back.colors.iter().zip(&mesh.colors) {
+            assert!(
+                (0..3).all(|c| (a[c] - b[c]).abs() <= 0.5 / 255.0 + 1e-6),
+                "{a:?} vs {b:?}"
+            );
+        }
+        let path = temp_path("colored.obj");
+        mesh.write_obj(&path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let first = text.lines().find(|l| l.starts_with("v ")).unwrap();
+        assert_eq!(first, "v 0 0 0 0 0.5 1");
+        mesh.colors[2] = [1.5, 0.0, 0.0];
+        assert!(mesh
+            .write_ply(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("outside [0, 1]"));
+        mesh.colors.pop();
+        assert!(mesh
+            .check()
+            .unwrap_err()
+            .to_string()
+            .contains("8 vertices but 7 colors"));
+    }
+
+    #[test]
+    fn stl_holds_every_triangle_with_its_facet_normal() {
+        let mesh = cube();
+        let path = temp_path("cube.stl");
+        mesh.write_stl(&path).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert!(!bytes.starts_with(b"solid"));
+        assert_eq!(u32::from_le_bytes(bytes[80..84].try_into().unwrap()), 12);
+        assert_eq!(bytes.len(), 84 + 12 * 50);
+        let float = |at: usize| f32::from_le_bytes(bytes[at..at + 4].try_into().unwrap());
+        for (k, &t) in mesh.triangles.iter().enumerate() {
+            let at = 84 + 50 * k;
+            let [a, b, c] = corners(&mesh.vertices, t).unwrap();
+            let normal = (b - a).cross(c - a).normalize();
+            assert_eq!([float(at), float(at + 4), float(at + 8)], normal.to_array());
+            assert_eq!([float(at + 12), float(at + 16), float(at + 20)], a.to_array());
+            assert_eq!([float(at + 36), float(at + 40), float(at + 44)], c.to_array());
+        }
     }
 
     #[test]

@@ -330,6 +330,7 @@ mod tests {
                 [0.0, 0.0, 1.0],
             ],
             triangles: vec![[3, 4, 5], [0, 1, 2]],
+            colors: Vec::new(),
         };
         let cam = Camera::look_at(
             Vec3::new(0.0, 0.0, 3.0),
@@ -411,6 +412,7 @@ mod tests {
             vertices: vec![[0.0; 3]],
             normals: vec![[0.0; 3]],
             triangles: vec![[0, 0, 1]],
+            colors: Vec::new(),
         };
         assert!(e(render_mesh(&cam, 4, 4, &bad, Vec3::Z, [1.0; 3], [0.0; 3])).contains("triangle 0"));
         assert!(e(render_points(&cam, 4, 4, &[], -1.0, [1.0; 3], [0.0; 3])).contains("radius"));

@@ -114,6 +114,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         out: &scratch.0,
         gif: None,
         prune: true,
+        color: None,
     };
     extract_and_write(scene.program(), scene.params(), &args)?;
     Ok(File {
