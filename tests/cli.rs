@@ -348,6 +348,14 @@ fn meshes_take_vertex_colors_and_write_stl() {
         "{}",
         text(&out).1
     );
+    // A function the script lacks is named without pointing into the prelude.
+    let out = mesh(&ply, &["--color", "paint"]);
+    let stderr = text(&out).1;
+    assert!(stderr.contains("no function 'paint' in the script"), "{stderr}");
+    assert!(
+        stderr.contains("hint: the script defines: sdf, color") && !stderr.contains("prelude"),
+        "{stderr}"
+    );
 }
 
 /// A union of spheres and a box in the text format of fidget and MPR (with a comment and a smooth term).

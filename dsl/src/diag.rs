@@ -12,6 +12,13 @@ pub struct Span {
 }
 
 impl Span {
+    /// No place in the sources: for mistakes about the script as a whole, such as a function that a command
+    /// names and the script lacks.
+    pub const NOWHERE: Span = Span {
+        start: u32::MAX,
+        end: u32::MAX,
+    };
+
     /// The span `start..end`.
     pub fn new(start: usize, end: usize) -> Span {
         Span {
@@ -126,6 +133,12 @@ impl fmt::Display for Report {
                 writeln!(f)?;
             }
             match self.sources.file_at(d.span.start as usize) {
+                _ if d.span == Span::NOWHERE => {
+                    writeln!(f, "error: {}", d.message)?;
+                    if let Some(hint) = &d.hint {
+                        writeln!(f, "  = hint: {hint}")?;
+                    }
+                }
                 Some(file) => {
                     let local = Span::new(d.span.start as usize - file.base, d.span.end as usize - file.base);
                     render(f, &file.name, &file.text, local, d)?;

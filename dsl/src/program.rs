@@ -390,7 +390,7 @@ impl Program {
         };
         let Some(&f) = globals.functions.get(name) else {
             let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
-            let mut d = Diagnostic::new(Span::default(), format!("no function '{name}' in the script"));
+            let mut d = Diagnostic::new(Span::NOWHERE, format!("no function '{name}' in the script"));
             if let Some(c) = crate::diag::closest(name, names.iter().map(String::as_str)) {
                 d = d.with_hint(format!("did you mean '{c}'?"));
             } else {

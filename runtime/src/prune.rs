@@ -22,6 +22,10 @@ pub const BLOCK: usize = 8;
 /// Boxes per call of the bounds function (a parallel task).
 const BOXES_PER_TASK: usize = 1024;
 
+/// The most boxes bounded at one depth (about 100 MB with their inputs): where bounds decide too little to
+/// keep the octree small, the blocks below stay undecided and are evaluated.
+const MAX_FRONTIER: usize = 1 << 21;
+
 /// Where a block's field values lie with respect to the level.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Side {
@@ -91,6 +95,9 @@ impl Blocks {
                 } else if range.iter().any(|[lo, hi]| hi - lo > 1) {
                     next.extend(split(range));
                 }
+            }
+            if next.len() > MAX_FRONTIER {
+                break;
             }
             frontier = next;
         }
