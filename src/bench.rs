@@ -10,6 +10,7 @@ use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
+use crate::field::JitFn;
 use crate::render::RenderPlan;
 use crate::script;
 
@@ -116,8 +117,16 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
     Ok(())
 }
 
+/// The value, gradient and bounds kernels of a benchmark script's `sdf`.
+fn mesh_kernels(compiler: &crate::field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
+    let kernels = crate::mesh::MeshKernels::compile(compiler, "sdf", true)?;
+    let bounds = kernels
+        .bounds
+        .ok_or_else(|| Failure::Message("the script's interval bounds are constant".into()))?;
+    Ok((kernels.value, kernels.gradient, bounds))
+}
+
 fn mesh(reps: usize) -> Result<()> {
-    use nerfjit_dsl::Type;
     use nerfjit_runtime::marching::{extract, extract_pruned};
     const RESOLUTION: usize = 512;
     let program = script::load("examples/complex_scene.sdf")?;
@@ -127,14 +136,9 @@ fn mesh(reps: usize) -> Result<()> {
         params: &program.param_values,
         cache: &cache,
     };
-    let vec3 = [Type::Vec(3)];
-    let value = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Value)?;
-    let gradient = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Gradient)?;
     let t = Instant::now();
-    let bounds_of = compiler
-        .bounds("sdf", &vec3, &Type::F32)?
-        .ok_or_else(|| Failure::Message("the scene's interval bounds are constant".into()))?;
-    let bounds_compile_s = t.elapsed().as_secs_f64();
+    let (value, gradient, bounds_of) = mesh_kernels(&compiler)?;
+    let compile_s = t.elapsed().as_secs_f64();
     let grid = ([-4.0; 3], [4.0; 3]);
     let mut brute = None;
     let brute_s = time_reps(reps, || {
@@ -150,13 +154,13 @@ fn mesh(reps: usize) -> Result<()> {
     let (brute, (pruned, pruning)) = (brute.expect("timed"), pruned.expect("timed"));
     let same = brute.vertices == pruned.vertices && brute.triangles == pruned.triangles;
     crate::emit(&format!(
-        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; bounds kernel compiled in {:.1} ms)\n  {} triangles, {}\n",
+        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms)\n  {} triangles, {}\n",
         brute_s,
         pruned_s,
         pruned_s / brute_s,
         100.0 * pruning.points_evaluated as f64 / pruning.points as f64,
         pruning.boxes,
-        bounds_compile_s * 1e3,
+        compile_s * 1e3,
         brute.triangles.len(),
         if same { "the same mesh" } else { "MESHES DIFFER" }
     ));
@@ -169,7 +173,6 @@ fn mesh(reps: usize) -> Result<()> {
 }
 
 fn large(reps: usize) -> Result<()> {
-    use nerfjit_dsl::Type;
     let script = crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?;
     let program = nerfjit_dsl::compile("city.sdf", &script)?;
     let f = program.lower("sdf")?;
@@ -197,12 +200,7 @@ fn large(reps: usize) -> Result<()> {
         params: &program.param_values,
         cache: &cache,
     };
-    let vec3 = [Type::Vec(3)];
-    let value = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Value)?;
-    let gradient = compiler.function("sdf", &vec3, &Type::F32, crate::field::Kind::Gradient)?;
-    let bounds_of = compiler
-        .bounds("sdf", &vec3, &Type::F32)?
-        .ok_or_else(|| Failure::Message("the city's interval bounds are constant".into()))?;
+    let (value, gradient, bounds_of) = mesh_kernels(&compiler)?;
     // One run: tens of seconds.
     let t = Instant::now();
     let grid = ([-1.0; 3], [1.0; 3]);

@@ -61,8 +61,6 @@ pub enum Kind {
     Sdf,
     /// Its value and the gradient of each output with respect to the inputs.
     Gradient,
-    /// Lower and upper bounds of its outputs over boxes of inputs (see [`kernels::interval`]).
-    Bounds,
 }
 
 /// Compiles functions of a program, bound to param values, through a kernel cache.
@@ -83,7 +81,6 @@ impl Compiler<'_> {
         let graph = match kind {
             Kind::Value | Kind::Sdf => kernels::value(&lowered),
             Kind::Gradient => kernels::with_gradient(&lowered),
-            Kind::Bounds => kernels::interval(&lowered),
         };
         // The fused sphere tracer takes elementwise SDFs; one with dense layers is traced through its
         // tiled kernel, a batch of ray positions per step.
@@ -100,7 +97,7 @@ impl Compiler<'_> {
 }
 
 impl Compiler<'_> {
-    /// Compiles bounds of function `name` over boxes ([`Kind::Bounds`]), or gives `None` where interval
+    /// Compiles bounds of function `name` over boxes ([`kernels::interval`]), or gives `None` where interval
     /// arithmetic bounds nothing (every bound constant: a field of dense layers or grid reads).
     pub fn bounds(&self, name: &str, inputs: &[Type], output: &Type) -> Result<Option<JitFn>> {
         check_signature(self.program, name, &[inputs], output)?;
@@ -109,7 +106,11 @@ impl Compiler<'_> {
         if constant {
             return Ok(None);
         }
-        self.function(name, inputs, output, Kind::Bounds).map(Some)
+        Ok(Some(JitFn {
+            kernel: self.cache.get(&graph, Options::default())?,
+            marcher: None,
+            params: self.params.into(),
+        }))
     }
 }
 

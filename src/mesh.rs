@@ -13,7 +13,7 @@ use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera,
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::field::{check_signature, Compiler, Kind};
+use crate::field::{check_signature, Compiler, JitFn, Kind};
 use crate::settings::CallArgs;
 
 /// What to extract and where to write it.
@@ -115,22 +115,12 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         params,
         cache: &cache,
     };
-    let vec3 = [Type::Vec(3)];
     let t = Instant::now();
-    // The three kernels compile on separate threads.
-    let ((value, gradient), bounds_of) = rayon::join(
-        || {
-            rayon::join(
-                || compiler.function(args.function, &vec3, &Type::F32, Kind::Value),
-                || compiler.function(args.function, &vec3, &Type::F32, Kind::Gradient),
-            )
-        },
-        || match args.prune {
-            true => compiler.bounds(args.function, &vec3, &Type::F32),
-            false => Ok(None),
-        },
-    );
-    let (value, gradient, bounds_of) = (value?, gradient?, bounds_of?);
+    let MeshKernels {
+        value,
+        gradient,
+        bounds: bounds_of,
+    } = MeshKernels::compile(&compiler, args.function, args.prune)?;
     let compile_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let (mesh, pruning) = match &bounds_of {
@@ -192,6 +182,41 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
         args.out.display()
     );
     Ok((mesh, summary))
+}
+
+/// The kernels meshing a function needs.
+pub struct MeshKernels {
+    /// Its value.
+    pub value: JitFn,
+    /// Its value and gradient (for the normals).
+    pub gradient: JitFn,
+    /// Its interval bounds over boxes, when asked for and informative (see [`Compiler::bounds`]).
+    pub bounds: Option<JitFn>,
+}
+
+impl MeshKernels {
+    /// Compiles the kernels of `function` (`fn(p: vec3) -> f32`) on separate threads; the bounds only if
+    /// `prune`.
+    pub fn compile(compiler: &Compiler, function: &str, prune: bool) -> Result<MeshKernels> {
+        let vec3 = [Type::Vec(3)];
+        let ((value, gradient), bounds) = rayon::join(
+            || {
+                rayon::join(
+                    || compiler.function(function, &vec3, &Type::F32, Kind::Value),
+                    || compiler.function(function, &vec3, &Type::F32, Kind::Gradient),
+                )
+            },
+            || match prune {
+                true => compiler.bounds(function, &vec3, &Type::F32),
+                false => Ok(None),
+            },
+        );
+        Ok(MeshKernels {
+            value: value?,
+            gradient: gradient?,
+            bounds: bounds?,
+        })
+    }
 }
 
 /// The colors of the mesh's vertices from `function`, clamped to [0, 1] (NaN as 0): `fn(p: vec3) -> vec3`, or

@@ -217,6 +217,53 @@ struct Grid {
 }
 
 impl Grid {
+    /// The grid of `resolution` cells per axis over `bounds`, after checking the arguments.
+    fn new(
+        field: &dyn BatchFn,
+        gradient: Option<&dyn BatchFn>,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        level: f32,
+    ) -> Result<Grid> {
+        check_arity(field, "the field", 3, 1)?;
+        if let Some(g) = gradient {
+            check_arity(g, "the gradient function", 3, 4)?;
+        }
+        let (min, max) = bounds;
+        let ordered = (0..3).all(|a| min[a].is_finite() && max[a].is_finite() && min[a] < max[a]);
+        if !ordered {
+            return Err(Error::Invalid(format!(
+                "marching cubes bounds need finite min < max on every axis, got {min:?} and {max:?}"
+            )));
+        }
+        if !(1..=MAX_RESOLUTION).contains(&resolution) {
+            return Err(Error::Invalid(format!(
+                "marching cubes resolution {resolution} must be 1 to {MAX_RESOLUTION} cells per axis"
+            )));
+        }
+        if !level.is_finite() {
+            return Err(Error::Invalid(format!(
+                "marching cubes level {level} must be finite"
+            )));
+        }
+        let n = resolution;
+        let mut grid = Grid {
+            n,
+            min,
+            max,
+            level,
+            slice_x: Vec::with_capacity((n + 1) * (n + 1)),
+            slice_y: Vec::with_capacity((n + 1) * (n + 1)),
+        };
+        for j in 0..=n {
+            for i in 0..=n {
+                grid.slice_x.push(grid.coord(0, i));
+                grid.slice_y.push(grid.coord(1, j));
+            }
+        }
+        Ok(grid)
+    }
+
     /// Coordinate `axis` of grid plane `i` (exactly `min` and `max` at the ends).
     fn coord(&self, axis: usize, i: usize) -> f32 {
         let t = i as f32 / self.n as f32;
@@ -711,55 +758,6 @@ pub fn extract_pruned(
         points: (resolution + 1).pow(3),
     };
     Ok((mesh, pruning))
-}
-
-impl Grid {
-    /// The grid of `resolution` cells per axis over `bounds`, after checking the arguments.
-    fn new(
-        field: &dyn BatchFn,
-        gradient: Option<&dyn BatchFn>,
-        bounds: ([f32; 3], [f32; 3]),
-        resolution: usize,
-        level: f32,
-    ) -> Result<Grid> {
-        check_arity(field, "the field", 3, 1)?;
-        if let Some(g) = gradient {
-            check_arity(g, "the gradient function", 3, 4)?;
-        }
-        let (min, max) = bounds;
-        let ordered = (0..3).all(|a| min[a].is_finite() && max[a].is_finite() && min[a] < max[a]);
-        if !ordered {
-            return Err(Error::Invalid(format!(
-                "marching cubes bounds need finite min < max on every axis, got {min:?} and {max:?}"
-            )));
-        }
-        if !(1..=MAX_RESOLUTION).contains(&resolution) {
-            return Err(Error::Invalid(format!(
-                "marching cubes resolution {resolution} must be 1 to {MAX_RESOLUTION} cells per axis"
-            )));
-        }
-        if !level.is_finite() {
-            return Err(Error::Invalid(format!(
-                "marching cubes level {level} must be finite"
-            )));
-        }
-        let n = resolution;
-        let mut grid = Grid {
-            n,
-            min,
-            max,
-            level,
-            slice_x: Vec::with_capacity((n + 1) * (n + 1)),
-            slice_y: Vec::with_capacity((n + 1) * (n + 1)),
-        };
-        for j in 0..=n {
-            for i in 0..=n {
-                grid.slice_x.push(grid.coord(0, i));
-                grid.slice_y.push(grid.coord(1, j));
-            }
-        }
-        Ok(grid)
-    }
 }
 
 /// Polygonizes the grid in parallel chunks of z-layers; returns the mesh and the number of field
