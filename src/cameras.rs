@@ -1,12 +1,15 @@
 //! The `camera` setting of blocks: the course's orbit, a general orbit, one look-at camera, or a camera
-//! file (the course's box_cameras.json or Blender transforms).
+//! file (the course's box_cameras.json, Blender transforms, a nerfstudio transforms.json or a COLMAP model).
 
 use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::{load_blender_cameras, load_box_cameras, orbit, surround, Camera, CameraFormat, Up};
+use nerfjit_runtime::{
+    default_images_folder, is_colmap_model, is_nerfstudio, load_blender_cameras, load_box_cameras,
+    load_colmap, load_nerfstudio, orbit, surround, Camera, CameraFormat, Up,
+};
 
 use crate::settings::{triple, CallArgs};
 
@@ -50,15 +53,10 @@ pub fn cameras(
             )
         }
         "cameras" => {
-            let a = CallArgs::new(v, &["file"])?;
+            let a = CallArgs::new(v, &["file", "normalize"])?;
             let file = script_dir.join(a.string("file")?);
-            let text = std::fs::read_to_string(&file).unwrap_or_default();
-            let set = if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
-                load_blender_cameras(&file)
-            } else {
-                load_box_cameras(&file)
-            };
-            set.map(|s| s.cameras)
+            let normalize = a.choice("normalize", &["true", "false"], "true")? == "true";
+            camera_file(&file, normalize)
         }
         "look_at" => {
             let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
@@ -84,6 +82,33 @@ pub fn cameras(
         }
     };
     Ok(result.map_err(|e| e.to_string()))
+}
+
+/// The cameras of a camera file: the course's, Blender's, a nerfstudio `transforms.json` or a COLMAP
+/// model folder (captures normalized as for training unless `normalize` is false).
+fn camera_file(file: &Path, normalize: bool) -> nerfjit_runtime::Result<Vec<Camera>> {
+    let capture = if is_colmap_model(file) {
+        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
+        Some(load_colmap(file, &images)?)
+    } else {
+        let text = std::fs::read_to_string(file).unwrap_or_default();
+        if is_nerfstudio(&text) {
+            Some(load_nerfstudio(file)?)
+        } else if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
+            return Ok(load_blender_cameras(file)?.cameras);
+        } else {
+            None
+        }
+    };
+    match capture {
+        Some(mut capture) => {
+            if normalize {
+                capture.normalize()?;
+            }
+            capture.cameras(file, 1, None)
+        }
+        None => Ok(load_box_cameras(file)?.cameras),
+    }
 }
 
 /// The most frames a camera path may have.

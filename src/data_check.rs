@@ -1,10 +1,14 @@
 //! `nerfjit data check`: what a data set holds (its camera files, views, image sizes and formats,
-//! intrinsics, where the cameras are), or precisely what is wrong with it, before any training.
+//! intrinsics, where the cameras are), or precisely what is wrong with it, before any training. Reads
+//! Blender and course camera files, nerfstudio / instant-ngp `transforms.json` and COLMAP model folders.
 
 use std::path::{Path, PathBuf};
 
 use image::ImageDecoder;
-use nerfjit_runtime::{load_blender_cameras, load_box_cameras, CameraFormat, CameraSet};
+use nerfjit_runtime::{
+    default_images_folder, is_colmap_model, is_nerfstudio, load_blender_cameras, load_box_cameras,
+    load_colmap, load_nerfstudio, CameraFormat, CameraSet, Capture,
+};
 
 use crate::failure::{Failure, Result};
 
@@ -19,6 +23,9 @@ const CAMERA_FILES: &[&str] = &[
 
 /// Checks `path`, a camera file or a folder of them; a report, or what is wrong.
 pub fn run(path: &Path) -> Result<String> {
+    if path.is_dir() && is_colmap_model(path) {
+        return check_colmap(path);
+    }
     let files: Vec<PathBuf> = if path.is_dir() {
         let mut found: Vec<PathBuf> = CAMERA_FILES
             .iter()
@@ -71,6 +78,12 @@ fn format_of(file: &Path) -> Result<CameraFormat> {
 
 /// One camera file: its report, or the first problem found.
 fn check_file(file: &Path) -> Result<String> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
+    if is_nerfstudio(&text) {
+        let capture = load_nerfstudio(file)?;
+        return check_capture(file, "nerfstudio / instant-ngp", capture);
+    }
     let format = format_of(file)?;
     let set = match format {
         CameraFormat::Blender => load_blender_cameras(file)?,
@@ -145,17 +158,23 @@ fn image_summary(set: &CameraSet) -> Result<(String, u32)> {
             kinds.push(kind);
         }
     }
-    match kinds.as_slice() {
-        [(w, h, what)] => Ok((format!("images {w}×{h} {what}, all present"), *w)),
-        _ => Err(Failure::Message(format!(
-            "the images differ in size or format ({}): nerfjit trains on images of one size",
+    let sizes: Vec<(u32, u32)> = kinds.iter().map(|k| (k.0, k.1)).collect();
+    if sizes.iter().any(|s| *s != sizes[0]) {
+        return Err(Failure::Message(format!(
+            "the images differ in size ({}): nerfjit trains on images of one size",
             kinds
                 .iter()
                 .map(|(w, h, what)| format!("{w}×{h} {what}"))
                 .collect::<Vec<_>>()
                 .join(", ")
-        ))),
+        )));
     }
+    let formats: Vec<&str> = kinds.iter().map(|k| k.2.as_str()).collect();
+    let (w, h) = sizes[0];
+    Ok((
+        format!("images {w}×{h} {}, all present", formats.join(" and ")),
+        w,
+    ))
 }
 
 /// Width, height and format of an image, read from its header only (`.npy` images: from their shape).
@@ -176,4 +195,72 @@ fn image_kind(path: &Path) -> Result<(u32, u32, String)> {
     let decoder = reader.into_decoder().map_err(|e| bad(&e))?;
     let (w, h) = decoder.dimensions();
     Ok((w, h, format!("{format} ({:?})", decoder.color_type())))
+}
+
+/// A COLMAP model folder with its images beside it.
+fn check_colmap(folder: &Path) -> Result<String> {
+    let images = default_images_folder(folder).ok_or_else(|| {
+        Failure::Message(format!(
+            "'{}' is a COLMAP model, but there is no 'images' folder beside it or its parent",
+            folder.display()
+        ))
+    })?;
+    let capture = load_colmap(folder, &images)?;
+    check_capture(
+        folder,
+        &format!("COLMAP (images in {})", images.display()),
+        capture,
+    )
+}
+
+/// A capture's report: views, image sizes (from the headers, checked against the cameras), intrinsics,
+/// sparse points, and where normalization puts the cameras.
+fn check_capture(source: &Path, kind: &str, mut capture: Capture) -> Result<String> {
+    let n = capture.frames.len();
+    let mut out = format!("{}: {kind} cameras\n", source.display());
+    let set = CameraSet {
+        cameras: Vec::new(),
+        images: capture.frames.iter().map(|f| f.image.clone()).collect(),
+        image_size: None,
+    };
+    let (images, _) = image_summary(&set)?;
+    for frame in &capture.frames {
+        let (w, h, _) = image_kind(&frame.image)?;
+        if (w, h) != (frame.camera.width, frame.camera.height) {
+            return Err(Failure::Message(format!(
+                "'{}' is {w}×{h}, but its camera says {}×{}",
+                frame.image.display(),
+                frame.camera.width,
+                frame.camera.height
+            )));
+        }
+    }
+    out += &format!("  {n} view{}, {images}\n", if n == 1 { "" } else { "s" });
+    let focal: Vec<f32> = capture.frames.iter().map(|f| f.camera.intrinsics.fx).collect();
+    let (lo, hi) = (
+        focal.iter().copied().fold(f32::INFINITY, f32::min),
+        focal.iter().copied().fold(0.0, f32::max),
+    );
+    let distorted = capture
+        .frames
+        .iter()
+        .filter(|f| !f.camera.distortion.is_none())
+        .count();
+    out += &format!(
+        "  focal {lo:.1} to {hi:.1} px; {distorted} of {n} views with lens distortion (undistorted on load)\n"
+    );
+    if !capture.points.is_empty() {
+        out += &format!("  {} sparse points\n", capture.points.len());
+    }
+    if let Some(scale) = capture.aabb_scale {
+        out += &format!("  aabb_scale {scale}\n");
+    }
+    let normalization = capture.normalize()?;
+    let c = normalization.center;
+    out += &format!(
+        "  normalized (the default): z up, centered on what the cameras look at, scaled by {:.4} so the cameras \
+         are 4 units away on average (center [{:.3}, {:.3}, {:.3}] in the rotated capture)\n",
+        normalization.scale, c.x, c.y, c.z
+    );
+    Ok(out)
 }

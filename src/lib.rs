@@ -26,6 +26,7 @@ pub mod check;
 pub mod checkpoint;
 pub mod compare;
 pub mod data_check;
+pub mod data_source;
 pub mod eval;
 pub mod failure;
 pub mod field;

@@ -311,7 +311,7 @@ impl MeshPlan {
                     .map(|k| k.string().map(str::to_string))
                     .transpose()
                     .map_err(|d| b.error(d))?;
-                Some((crate::train::data_path(&file, b.script_dir()), key))
+                Some((crate::data_source::data_path(&file, b.script_dir()), key))
             }
         };
         b.finish(KEYS)?;

@@ -23,7 +23,7 @@ use crate::volume::VolumePlan;
 enum Plan {
     Trace(RenderPlan),
     Volume(VolumePlan),
-    Train(TrainPlan),
+    Train(Box<TrainPlan>),
     Viz(VizPlan),
     FitSdf(SdfTrainPlan),
     Mesh(MeshPlan),
@@ -63,7 +63,7 @@ pub fn run(
         match (kind.as_str(), name.as_deref()) {
             ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(b)?)),
             ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(b)?)),
-            ("train", None) => plans.push(Plan::Train(TrainPlan::new(b)?)),
+            ("train", None) => plans.push(Plan::Train(Box::new(TrainPlan::new(b)?))),
             ("viz", None) => plans.push(Plan::Viz(VizPlan::new(b)?)),
             ("train", Some("sdf")) => plans.push(Plan::FitSdf(SdfTrainPlan::new(b)?)),
             ("mesh", None) => plans.push(Plan::Mesh(MeshPlan::new(b)?)),

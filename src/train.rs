@@ -9,11 +9,12 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, load_box_views, rgb_image, save_png, volume_step_with, FinePass, OccupancyGrid,
-    Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
+    load_blender_views, rgb_image, save_png, volume_step_with, FinePass, OccupancyGrid, Quantize, Rng,
+    Schedule, StepOptions, Views, VolumeSettings,
 };
 
 use crate::block::Block;
+use crate::data_source::{data_path, data_set, DataSet};
 use crate::failure::{Failure, Result};
 use crate::field::{VolumeField, VolumeFields};
 use crate::interrupt::Watch;
@@ -76,9 +77,7 @@ const MAX_SAMPLES_PER_STEP: usize = 1 << 26;
 
 /// A checked `train` block.
 pub struct TrainPlan {
-    data: PathBuf,
-    /// For a Blender data set: how to load it.
-    blender: Option<BlenderData>,
+    data: DataSet,
     near: f32,
     far: f32,
     samples: usize,
@@ -122,21 +121,22 @@ struct TrainingGrid {
     warmup: u32,
 }
 
-/// The `val` settings: a Blender camera file whose views are rendered and scored every `every` steps, once
-/// the training time passes each of `at_seconds`, and at the end (the first `views` of them, all if None).
+/// Which views validation scores.
 #[derive(Clone, Debug)]
-struct Validation {
-    file: PathBuf,
-    every: u32,
-    at_seconds: Vec<f64>,
-    views: Option<usize>,
+enum HeldOut {
+    /// A Blender camera file of held-out views (with Blender data).
+    File(PathBuf),
+    /// Every n-th view of the data set (0, n, 2n, …), which training then does not see.
+    Every(usize),
 }
 
-/// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
-#[derive(Clone, Copy, Debug)]
-struct BlenderData {
-    size: u32,
-    background: [f32; 3],
+/// The `val` settings: held-out views rendered and scored every `every` steps, once the training time
+/// passes each of `at_seconds`, and at the end (the first `views` of them, all if None).
+#[derive(Clone, Debug)]
+struct Validation {
+    held_out: HeldOut,
+    every: u32,
+    at_seconds: Vec<f64>,
     views: Option<usize>,
 }
 
@@ -154,43 +154,34 @@ fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
     Ok(seconds)
 }
 
-/// The `data` setting: `views("box_cameras.json")` (the course's cameras with .npy/PNG images) or
-/// `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)` (NeRF-synthetic data,
-/// area-downscaled, alpha composited on the background, optionally only the first `views` frames).
-fn data_source(v: &Spanned) -> std::result::Result<(String, Option<BlenderData>), Diagnostic> {
-    let Value::Call(kind, _) = &v.value else {
+/// The `val` setting: `holdout(every: 8)` (every n-th view of the data, 0, n, 2n, …, kept from training) or
+/// a Blender camera file (with Blender data).
+fn held_out(v: &Spanned, data: &DataSet, script_dir: &Path) -> std::result::Result<HeldOut, Diagnostic> {
+    if let Value::Call(name, _) = &v.value {
+        if name == "holdout" {
+            let a = CallArgs::new(v, &["every"])?;
+            let every = a
+                .raw("every")
+                .map(|n| crate::settings::whole(n, 2, 1000))
+                .transpose()?;
+            return Ok(HeldOut::Every(every.unwrap_or(8) as usize));
+        }
+    }
+    let file = data_path(v.string()?, script_dir);
+    if data.blender().is_none() {
         return Err(Diagnostic::new(
             v.span,
-            format!("expected views(...) or blender(...), found {}", v.describe()),
-        ));
-    };
-    match kind.as_str() {
-        "views" => Ok((CallArgs::new(v, &["file"])?.string("file")?, None)),
-        "blender" => {
-            let a = CallArgs::new(v, &["file", "size", "background", "views"])?;
-            let size = a.number("size", Some(128.0))?;
-            if !(1.0..=4096.0).contains(&size) || size.fract() != 0.0 {
-                return Err(Diagnostic::new(v.span, "'size' is a whole number from 1 to 4096"));
-            }
-            let background = a
-                .raw("background")
-                .map(crate::settings::triple)
-                .transpose()?
-                .unwrap_or([0.0; 3]);
-            let views = match a.raw("views") {
-                Some(n) => Some(crate::settings::whole(n, 1, 100_000)? as usize),
-                None => None,
-            };
-            let data = BlenderData {
-                size: size as u32,
-                background,
-                views,
-            };
-            Ok((a.string("file")?, Some(data)))
-        }
-        other => Err(Diagnostic::new(v.span, format!("unknown data source '{other}'"))
-            .with_hint("use views(\"box_cameras.json\") or blender(\"transforms_train.json\", size: 128)")),
+            "a validation camera file scores held-out Blender views: it needs data: blender(...)",
+        )
+        .with_hint("for other data, hold out every n-th view: val: holdout(every: 8)"));
     }
+    if !file.is_file() {
+        return Err(Diagnostic::new(
+            v.span,
+            format!("validation file '{}' not found", file.display()),
+        ));
+    }
+    Ok(HeldOut::File(file))
 }
 
 /// The cameras of the data the first `train` block of `program` trains on (a script in `script_dir`), if
@@ -203,29 +194,7 @@ pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_
     let data = nerfjit_dsl::config::Settings::new(program, block)
         .ok()?
         .take("data")?;
-    let (file, blender) = data_source(&data).ok()?;
-    let path = data_path(&file, script_dir);
-    let set = match blender {
-        Some(_) => nerfjit_runtime::load_blender_cameras(&path),
-        None => nerfjit_runtime::load_box_cameras(&path),
-    };
-    set.ok().map(|s| s.cameras)
-}
-
-/// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
-/// script's folder.
-pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
-    let direct = PathBuf::from(written);
-    if direct.exists() || direct.is_absolute() {
-        direct
-    } else {
-        let beside = script_dir.join(written);
-        if beside.exists() {
-            beside
-        } else {
-            direct
-        }
-    }
+    data_set(&data, script_dir).ok()?.cameras().ok()
 }
 
 /// Adam's decay rates and ε: the `optimizer` setting.
@@ -330,14 +299,7 @@ impl TrainPlan {
     /// Reads and checks a `train` block.
     pub fn new(mut b: Block) -> Result<TrainPlan> {
         let data_v = b.required("data", "data: views(\"box_cameras.json\")")?;
-        let (file, blender) = data_source(&data_v).map_err(|d| b.error(d))?;
-        let data = data_path(&file, b.script_dir());
-        if !data.is_file() {
-            return Err(b.error(
-                Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))
-                    .with_hint("paths are relative to the working folder or to the script"),
-            ));
-        }
+        let data = data_set(&data_v, b.script_dir()).map_err(|d| b.error(d))?;
         let (near, far) = b.near_far(5.0)?;
         let lr = b.number("lr", 1e-12, 10.0, 5e-4)? as f32;
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
@@ -381,19 +343,7 @@ impl TrainPlan {
         let preview = b.output("preview")?;
         let validation = match b.take("val") {
             Some(v) => {
-                let file = data_path(v.string().map_err(|d| b.error(d))?, b.script_dir());
-                if blender.is_none() {
-                    return Err(b.error(Diagnostic::new(
-                        v.span,
-                        "'val' scores held-out Blender views: it needs data: blender(...)",
-                    )));
-                }
-                if !file.is_file() {
-                    return Err(b.error(Diagnostic::new(
-                        v.span,
-                        format!("validation file '{}' not found", file.display()),
-                    )));
-                }
+                let held_out = held_out(&v, &data, b.script_dir()).map_err(|d| b.error(d))?;
                 let every = b.whole("val_every", 1, u64::from(u32::MAX), 500)? as u32;
                 let views = match b.take("val_views") {
                     Some(n) => Some(crate::settings::whole(&n, 1, 100_000).map_err(|d| b.error(d))? as usize),
@@ -404,7 +354,7 @@ impl TrainPlan {
                     None => Vec::new(),
                 };
                 Some(Validation {
-                    file,
+                    held_out,
                     every,
                     at_seconds,
                     views,
@@ -425,7 +375,6 @@ impl TrainPlan {
         Ok(TrainPlan {
             early_termination: (early_termination > 0.0).then_some(early_termination),
             data,
-            blender,
             near,
             far,
             samples,
@@ -482,7 +431,6 @@ impl TrainPlan {
             summary: None,
             preview: None,
             data: self.data.clone(),
-            blender: self.blender,
             eikonal: self.eikonal.clone(),
             validation: None,
             ..*self
@@ -500,13 +448,20 @@ impl TrainPlan {
         resume: bool,
         live: Option<&Live>,
     ) -> Result<String> {
-        let views = match self.blender {
-            None => load_box_views(&self.data)?,
-            Some(b) => load_blender_views(&self.data, Some(b.size), b.background, b.views)?,
-        };
-        let val_views = match (&self.validation, self.blender) {
-            (Some(v), Some(b)) => Some(load_blender_views(&v.file, Some(b.size), b.background, v.views)?),
-            _ => None,
+        let mut views = self.data.views()?;
+        let val_views = match self.validation.as_ref().map(|v| (&v.held_out, v.views)) {
+            Some((HeldOut::Every(n), limit)) => {
+                let (train, mut held) = views.hold_out(*n)?;
+                views = train;
+                held.cameras.truncate(limit.unwrap_or(usize::MAX));
+                held.images.truncate(limit.unwrap_or(usize::MAX));
+                Some(held)
+            }
+            Some((HeldOut::File(file), limit)) => match self.data.blender() {
+                Some(b) => Some(load_blender_views(file, Some(b.size), b.background, limit)?),
+                None => None,
+            },
+            None => None,
         };
         let mut history: Vec<serde_json::Value> = Vec::new();
         let mut val_message = String::new();
@@ -748,7 +703,7 @@ impl TrainPlan {
         let values = describe_params(program, params);
         if let Some(path) = &self.summary {
             let json = serde_json::json!({
-                "data": self.data.display().to_string(),
+                "data": self.data.path.display().to_string(),
                 "steps": done,
                 "resumed_from": first,
                 "final_loss": loss,

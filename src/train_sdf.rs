@@ -93,7 +93,7 @@ impl SdfTrainPlan {
                 ))
             })
             .map_err(|d| b.error(d))?;
-        let data = crate::train::data_path(&file, b.script_dir());
+        let data = crate::data_source::data_path(&file, b.script_dir());
         if !data.is_file() {
             return Err(b.error(
                 Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))

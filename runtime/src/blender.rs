@@ -183,7 +183,7 @@ fn decode_view(file: &Path, request: &Request) -> Result<((u32, u32), ImageF32)>
 }
 
 /// Straight alpha composited onto `background`: rgb·a + background·(1 − a).
-fn composite(rgba: &image::Rgba32FImage, background: [f32; 3]) -> ImageF32 {
+pub(crate) fn composite(rgba: &image::Rgba32FImage, background: [f32; 3]) -> ImageF32 {
     ImageF32 {
         width: rgba.width(),
         height: rgba.height(),
@@ -228,7 +228,7 @@ fn weighted_sum((first, weights): &Footprint, pixel: impl Fn(usize) -> [f32; 3])
 
 /// Area (box-filter) resampling to `width`×`height`: each output pixel is the mean of the
 /// source over its exact footprint, partial source pixels weighted by the area they cover.
-fn area_resize(image: &ImageF32, width: u32, height: u32) -> ImageF32 {
+pub(crate) fn area_resize(image: &ImageF32, width: u32, height: u32) -> ImageF32 {
     let columns = footprints(image.width, width);
     let rows = footprints(image.height, height);
     let w = width as usize;

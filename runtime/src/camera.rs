@@ -1,6 +1,6 @@
 //! Perspective pinhole cameras with one internal representation and two exact constructors:
-//! PyTorch3D NDC cameras ([`Camera::look_at`]) and Blender / NeRF-synthetic cameras
-//! ([`Camera::from_blender`]).
+//! PyTorch3D NDC cameras ([`Camera::look_at`]), Blender / NeRF-synthetic cameras
+//! ([`Camera::from_blender`]) and cameras with pixel intrinsics ([`Camera::from_pixels`]).
 //!
 //! Internally a camera is a camera-to-world rotation whose columns are the camera axes in
 //! PyTorch3D's view convention (+X image left, +Y image up, +Z forward), the camera position,
@@ -42,6 +42,32 @@ pub(crate) fn check_field_of_view(camera_angle_x: f32) -> Result<()> {
         )));
     }
     Ok(())
+}
+
+/// Pinhole intrinsics in pixels: focal lengths and principal point (OpenCV's `fx, fy, cx, cy`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelIntrinsics {
+    /// Horizontal focal length in pixels.
+    pub fx: f32,
+    /// Vertical focal length in pixels.
+    pub fy: f32,
+    /// Principal point's column in pixels (the image center is width / 2).
+    pub cx: f32,
+    /// Principal point's row in pixels (the image center is height / 2).
+    pub cy: f32,
+}
+
+/// The rotation part of a camera-to-world matrix, which must be finite, orthonormal and
+/// right-handed.
+fn checked_rotation(c2w: Mat4) -> Result<Mat3> {
+    let rot = Mat3::from_mat4(c2w);
+    let orthonormal = (rot.transpose() * rot).abs_diff_eq(Mat3::IDENTITY, 1e-3);
+    if !c2w.is_finite() || !orthonormal || rot.determinant() < 0.0 {
+        return Err(Error::Invalid(format!(
+            "transform_matrix {c2w} must be finite with a rotation (orthonormal, right-handed) 3×3 part"
+        )));
+    }
+    Ok(rot)
 }
 
 /// A perspective pinhole camera. See the module docs for the conventions.
@@ -94,13 +120,7 @@ impl Camera {
     /// view in radians, so `focal_px = 0.5·W / tan(0.5·camera_angle_x)`.
     pub fn from_blender(c2w: Mat4, camera_angle_x: f32) -> Result<Camera> {
         check_field_of_view(camera_angle_x)?;
-        let rot = Mat3::from_mat4(c2w);
-        let orthonormal = (rot.transpose() * rot).abs_diff_eq(Mat3::IDENTITY, 1e-3);
-        if !c2w.is_finite() || !orthonormal || rot.determinant() < 0.0 {
-            return Err(Error::Invalid(format!(
-                "transform_matrix {c2w} must be finite with a rotation (orthonormal, right-handed) 3×3 part"
-            )));
-        }
+        let rot = checked_rotation(c2w)?;
         // Blender right/up/back axes → view left/up/forward.
         let rotation = Mat3::from_cols(-rot.x_axis, rot.y_axis, -rot.z_axis);
         let focal = Vec2::splat(1.0 / (0.5 * camera_angle_x).tan());
@@ -109,6 +129,31 @@ impl Camera {
             c2w.w_axis.truncate(),
             focal,
             Vec2::ZERO,
+            NdcScale::Width,
+        )
+    }
+
+    /// A camera with pixel intrinsics, as nerfstudio and COLMAP state them: `c2w` is the
+    /// camera-to-world transform in the OpenGL / Blender convention (camera looks down −Z, +Y up,
+    /// +X right) and a view-space point (x right, y down, z forward) projects to the continuous
+    /// pixel `(col, row) = (fx·x/z + cx, fy·y/z + cy)` of a `width`×`height` image (pixel centers
+    /// at +0.5). The camera keeps these intrinsics in NDC scaled by the width, so it fits other
+    /// images of the same aspect ratio too.
+    pub fn from_pixels(c2w: Mat4, pixels: PixelIntrinsics, width: u32, height: u32) -> Result<Camera> {
+        let rotation = checked_rotation(c2w)?;
+        let PixelIntrinsics { fx, fy, cx, cy } = pixels;
+        if !(fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite() && fx.is_finite() && fy.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "focal lengths ({fx}, {fy}) px must be positive and the principal point ({cx}, {cy}) finite"
+            )));
+        }
+        crate::error::check_size(width, height)?;
+        let (w, h) = (width as f32, height as f32);
+        Camera::new(
+            Mat3::from_cols(-rotation.x_axis, rotation.y_axis, -rotation.z_axis),
+            c2w.w_axis.truncate(),
+            Vec2::new(2.0 * fx / w, 2.0 * fy / w),
+            Vec2::new((w - 2.0 * cx) / w, (h - 2.0 * cy) / w),
             NdcScale::Width,
         )
     }
@@ -273,15 +318,20 @@ mod tests {
         assert!(d.abs_diff_eq(expected.normalize(), 1e-6), "{d}");
     }
 
-    #[test]
-    fn blender_matches_nerf_formula_on_a_lego_pose() {
+    /// The camera-to-world matrix of a lego training view.
+    fn lego_pose() -> Mat4 {
         let rows = [
             [-0.9305422, 0.11707554, -0.3469646, -1.3986591],
             [-0.36618456, -0.29751042, 0.88170075, 3.5542498],
             [7.450581e-9, 0.947513, 0.31971723, 1.2888215],
             [0.0, 0.0, 0.0, 1.0],
         ];
-        let c2w = Mat4::from_cols_array_2d(&rows).transpose();
+        Mat4::from_cols_array_2d(&rows).transpose()
+    }
+
+    #[test]
+    fn blender_matches_nerf_formula_on_a_lego_pose() {
+        let c2w = lego_pose();
         let fov = 0.691_111_2_f32;
         let cam = Camera::from_blender(c2w, fov).unwrap();
         let (w, h) = (800, 800);
@@ -295,6 +345,54 @@ mod tests {
             (col - u).abs() < 1e-2 && (row - v).abs() < 1e-2,
             "{row},{col} vs {v},{u}"
         );
+    }
+
+    #[test]
+    fn pixel_intrinsics_match_the_opencv_formula_on_a_rectangular_image() {
+        let c2w = lego_pose();
+        let k = PixelIntrinsics {
+            fx: 610.0,
+            fy: 590.0,
+            cx: 331.0,
+            cy: 228.5,
+        };
+        let (w, h) = (640, 480);
+        let cam = Camera::from_pixels(c2w, k, w, h).unwrap();
+        let p = Vec3::new(0.3, -0.2, 0.4);
+        let rot = Mat3::from_mat4(c2w);
+        // OpenGL view space (x right, y up, z back) → OpenCV (x right, y down, z forward).
+        let gl = rot.transpose() * (p - c2w.w_axis.truncate());
+        let cv = Vec3::new(gl.x, -gl.y, -gl.z);
+        let (u, v) = (k.fx * cv.x / cv.z + k.cx, k.fy * cv.y / cv.z + k.cy);
+        let (row, col) = cam.project(p, w, h).unwrap();
+        assert!(
+            (col - u).abs() < 1e-2 && (row - v).abs() < 1e-2,
+            "{row},{col} vs {v},{u}"
+        );
+        // The ray of that pixel passes through the point.
+        let (origin, dir) = cam.ray_at(v, u, w, h);
+        assert!((origin + dir * (p - origin).dot(dir) - p).length() < 1e-4);
+        // The Blender camera is the special case of centered intrinsics.
+        let fov = 0.691_111_2_f32;
+        let f = 0.5 * w as f32 / (0.5 * fov).tan();
+        let centered = PixelIntrinsics {
+            fx: f,
+            fy: f,
+            cx: 0.5 * w as f32,
+            cy: 0.5 * h as f32,
+        };
+        let from_pixels = Camera::from_pixels(c2w, centered, w, h).unwrap();
+        let blender = Camera::from_blender(c2w, fov).unwrap();
+        let (a, b) = (
+            from_pixels.project(p, w, h).unwrap(),
+            blender.project(p, w, h).unwrap(),
+        );
+        assert!(
+            (a.0 - b.0).abs() < 1e-3 && (a.1 - b.1).abs() < 1e-3,
+            "{a:?} {b:?}"
+        );
+        let bad = PixelIntrinsics { fx: 0.0, ..k };
+        assert!(Camera::from_pixels(c2w, bad, w, h).is_err());
     }
 
     #[test]

@@ -87,6 +87,33 @@ impl Views {
         self.cameras.is_empty()
     }
 
+    /// Splits off every `every`-th view (views 0, every, 2·every, …) as held-out views, as
+    /// mip-NeRF 360 and nerfstudio do for captures: (training views, held-out views). Both keep
+    /// at least one view.
+    pub fn hold_out(self, every: usize) -> Result<(Views, Views)> {
+        if every < 2 || self.len() < 2 {
+            return Err(Error::Invalid(format!(
+                "holding out every {every}th of {} views leaves nothing to train on or to score: \
+                 it needs at least 2 views and every ≥ 2",
+                self.len()
+            )));
+        }
+        let (width, height) = (self.width, self.height);
+        let empty = || Views {
+            cameras: Vec::new(),
+            images: Vec::new(),
+            width,
+            height,
+        };
+        let (mut train, mut held) = (empty(), empty());
+        for (i, (camera, image)) in self.cameras.into_iter().zip(self.images).enumerate() {
+            let to = if i % every == 0 { &mut held } else { &mut train };
+            to.cameras.push(camera);
+            to.images.push(image);
+        }
+        Ok((train, held))
+    }
+
     /// The rays of `count` distinct random pixels of view `view` (seeded by `seed`) and the
     /// colors of those pixels in its image.
     pub fn random_rays(&self, view: usize, count: usize, seed: u64) -> Result<(RayBatch, Vec<[f32; 3]>)> {
@@ -106,6 +133,49 @@ impl Views {
 mod tests {
     use super::*;
     use crate::npy::write_npy_rgb;
+
+    #[test]
+    fn every_nth_view_is_held_out() {
+        let camera = |x: f32| {
+            Camera::look_at(
+                glam::Vec3::new(x, 0.0, -3.0),
+                glam::Vec3::ZERO,
+                glam::Vec3::Y,
+                glam::Vec2::ONE,
+                glam::Vec2::ZERO,
+            )
+            .unwrap()
+        };
+        let image = |v: f32| ImageF32 {
+            width: 1,
+            height: 1,
+            pixels: vec![[v; 3]],
+        };
+        let views = Views {
+            cameras: (0..10).map(|i| camera(i as f32)).collect(),
+            images: (0..10).map(|i| image(i as f32)).collect(),
+            width: 1,
+            height: 1,
+        };
+        let (train, held) = views.clone().hold_out(4).unwrap();
+        let values = |v: &Views| {
+            v.images
+                .iter()
+                .map(|i| i.pixels[0][0] as usize)
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(values(&held), [0, 4, 8]);
+        assert_eq!(values(&train), [1, 2, 3, 5, 6, 7, 9]);
+        assert_eq!(held.cameras[1], views.cameras[4]);
+        assert!(views.clone().hold_out(1).is_err());
+        let one = Views {
+            cameras: vec![camera(0.0)],
+            images: vec![image(0.0)],
+            width: 1,
+            height: 1,
+        };
+        assert!(one.hold_out(8).is_err());
+    }
     use std::path::PathBuf;
 
     fn temp_dir(name: &str) -> PathBuf {

@@ -76,6 +76,14 @@ impl<'a> Node<'a> {
         }
     }
 
+    /// The value under `key`, if this object has it.
+    pub(crate) fn opt(&self, key: &str) -> Result<Option<Node<'a>>> {
+        let Value::Object(map) = self.value else {
+            return Err(self.error(format!("expected an object, found {}", self.kind())));
+        };
+        map.contains_key(key).then(|| self.get(key)).transpose()
+    }
+
     /// The elements of an array.
     pub(crate) fn items(&self) -> Result<Vec<Node<'a>>> {
         let Value::Array(items) = self.value else {

@@ -1,0 +1,243 @@
+//! The `data` setting of `train`: which images and cameras a radiance field is fitted to, and how
+//! they are loaded.
+//!
+//! - `views("box_cameras.json")`: the course's cameras with `.npy`/PNG images;
+//! - `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)`: NeRF-synthetic
+//!   data, area-downscaled to `size`², alpha composited on the background, the first `views` frames;
+//! - `nerfstudio("transforms.json", downscale: 2, background: [0, 0, 0], views: 20, normalize: true)`:
+//!   a nerfstudio / instant-ngp capture (per-frame intrinsics, distortion, any image size, PNG or JPEG);
+//! - `colmap("sparse/0", images: "images", downscale: 2, ...)`: a COLMAP model (text or binary).
+//!
+//! Captures are moved into nerfjit's frame (z up, centered on what the cameras look at, cameras 4 units
+//! away on average) unless `normalize: false`.
+
+use std::path::{Path, PathBuf};
+
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::Diagnostic;
+use nerfjit_runtime::{
+    default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
+    load_colmap, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
+};
+
+use crate::failure::Result;
+use crate::settings::{triple, whole, CallArgs};
+
+/// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
+#[derive(Clone, Copy, Debug)]
+pub struct BlenderData {
+    /// Side of the square images after downscaling.
+    pub size: u32,
+    /// The color under transparent pixels.
+    pub background: [f32; 3],
+    /// Only the first this many frames, if given.
+    pub views: Option<usize>,
+}
+
+/// How to load a capture (nerfstudio or COLMAP).
+#[derive(Clone, Copy, Debug)]
+pub struct CaptureData {
+    /// Divide both image sides by this.
+    pub downscale: u32,
+    /// The color under transparent pixels.
+    pub background: [f32; 3],
+    /// Only the first this many frames, if given.
+    pub views: Option<usize>,
+    /// Move the capture into nerfjit's frame.
+    pub normalize: bool,
+}
+
+/// The kinds of data set.
+#[derive(Clone, Debug)]
+pub enum DataKind {
+    /// The course's `box_cameras.json`.
+    Course,
+    /// A Blender / NeRF-synthetic `transforms_*.json`.
+    Blender(BlenderData),
+    /// A nerfstudio / instant-ngp `transforms.json`.
+    Nerfstudio(CaptureData),
+    /// A COLMAP model folder and the folder of its images.
+    Colmap(CaptureData, PathBuf),
+}
+
+/// A data set: where it is and how to load it.
+#[derive(Clone, Debug)]
+pub struct DataSet {
+    /// The camera file (or, for COLMAP, the model's folder).
+    pub path: PathBuf,
+    /// Its kind.
+    pub kind: DataKind,
+}
+
+const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.json\", size: 128), \
+                    nerfstudio(\"transforms.json\") or colmap(\"sparse/0\", images: \"images\")";
+
+/// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
+pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, Diagnostic> {
+    let Value::Call(kind, _) = &v.value else {
+        return Err(
+            Diagnostic::new(v.span, format!("expected a data source, found {}", v.describe()))
+                .with_hint(HINT),
+        );
+    };
+    let (slots, kind_name): (&'static [&'static str], &str) = match kind.as_str() {
+        "views" => (&["file"], "views"),
+        "blender" => (&["file", "size", "background", "views"], "blender"),
+        "nerfstudio" => (
+            &["file", "downscale", "background", "views", "normalize"],
+            "nerfstudio",
+        ),
+        "colmap" => (
+            &["model", "images", "downscale", "background", "views", "normalize"],
+            "colmap",
+        ),
+        other => {
+            return Err(Diagnostic::new(v.span, format!("unknown data source '{other}'")).with_hint(HINT));
+        }
+    };
+    let a = CallArgs::new(v, slots)?;
+    let first = if kind_name == "colmap" { "model" } else { "file" };
+    let path = data_path(&a.string(first)?, script_dir);
+    let exists = if kind_name == "colmap" {
+        nerfjit_runtime::is_colmap_model(&path)
+    } else {
+        path.is_file()
+    };
+    if !exists {
+        let what = if kind_name == "colmap" {
+            format!(
+                "'{}' holds no COLMAP model (cameras.txt or cameras.bin)",
+                path.display()
+            )
+        } else {
+            format!("data file '{}' not found", path.display())
+        };
+        return Err(Diagnostic::new(v.span, what)
+            .with_hint("paths are relative to the working folder or to the script"));
+    }
+    let background = || -> std::result::Result<[f32; 3], Diagnostic> {
+        a.raw("background")
+            .map(triple)
+            .transpose()
+            .map(|b| b.unwrap_or([0.0; 3]))
+    };
+    let views = || -> std::result::Result<Option<usize>, Diagnostic> {
+        a.raw("views")
+            .map(|n| whole(n, 1, 100_000).map(|n| n as usize))
+            .transpose()
+    };
+    let capture = || -> std::result::Result<CaptureData, Diagnostic> {
+        Ok(CaptureData {
+            downscale: a
+                .raw("downscale")
+                .map(|n| whole(n, 1, 64))
+                .transpose()?
+                .unwrap_or(1) as u32,
+            background: background()?,
+            views: views()?,
+            normalize: a.choice("normalize", &["true", "false"], "true")? == "true",
+        })
+    };
+    let kind = match kind_name {
+        "views" => DataKind::Course,
+        "blender" => {
+            let size = a.number("size", Some(128.0))?;
+            if !(1.0..=4096.0).contains(&size) || size.fract() != 0.0 {
+                return Err(Diagnostic::new(v.span, "'size' is a whole number from 1 to 4096"));
+            }
+            DataKind::Blender(BlenderData {
+                size: size as u32,
+                background: background()?,
+                views: views()?,
+            })
+        }
+        "nerfstudio" => DataKind::Nerfstudio(capture()?),
+        _ => {
+            let images = match a.raw("images") {
+                Some(_) => data_path(&a.string("images")?, script_dir),
+                None => default_images_folder(&path).ok_or_else(|| {
+                    Diagnostic::new(
+                        v.span,
+                        format!("no 'images' folder beside the model '{}'", path.display()),
+                    )
+                    .with_hint("name it: colmap(\"sparse/0\", images: \"path/to/images\")")
+                })?,
+            };
+            if !images.is_dir() {
+                let span = a.raw("images").map_or(v.span, |i| i.span);
+                return Err(Diagnostic::new(
+                    span,
+                    format!("image folder '{}' not found", images.display()),
+                ));
+            }
+            DataKind::Colmap(capture()?, images)
+        }
+    };
+    Ok(DataSet { path, kind })
+}
+
+/// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
+/// script's folder.
+pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
+    let direct = PathBuf::from(written);
+    if direct.exists() || direct.is_absolute() {
+        direct
+    } else {
+        let beside = script_dir.join(written);
+        if beside.exists() {
+            beside
+        } else {
+            direct
+        }
+    }
+}
+
+impl DataSet {
+    /// Whether the data set is a Blender one (which validation views require).
+    pub fn blender(&self) -> Option<BlenderData> {
+        match self.kind {
+            DataKind::Blender(b) => Some(b),
+            _ => None,
+        }
+    }
+
+    /// The capture of a nerfstudio or COLMAP data set, normalized when asked, and how to load it.
+    fn capture(&self) -> Result<Option<(Capture, CaptureData)>> {
+        let (mut capture, data) = match &self.kind {
+            DataKind::Nerfstudio(data) => (load_nerfstudio(&self.path)?, *data),
+            DataKind::Colmap(data, images) => (load_colmap(&self.path, images)?, *data),
+            _ => return Ok(None),
+        };
+        if data.normalize {
+            capture.normalize()?;
+        }
+        Ok(Some((capture, data)))
+    }
+
+    /// Loads the training views.
+    pub fn views(&self) -> Result<Views> {
+        if let Some((capture, data)) = self.capture()? {
+            let request = CaptureRequest {
+                downscale: data.downscale,
+                background: data.background,
+                limit: data.views,
+            };
+            return Ok(capture.views(&self.path, request)?);
+        }
+        Ok(match self.kind {
+            DataKind::Blender(b) => load_blender_views(&self.path, Some(b.size), b.background, b.views)?,
+            _ => load_box_views(&self.path)?,
+        })
+    }
+
+    /// The cameras of the training views, without their images.
+    pub fn cameras(&self) -> Result<Vec<Camera>> {
+        if let Some((capture, data)) = self.capture()? {
+            return Ok(capture.cameras(&self.path, data.downscale, data.views)?);
+        }
+        Ok(match self.kind {
+            DataKind::Blender(_) => load_blender_cameras(&self.path)?.cameras,
+            _ => load_box_cameras(&self.path)?.cameras,
+        })
+    }
+}
