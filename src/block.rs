@@ -270,19 +270,26 @@ impl<'p> Block<'p> {
     /// Setting `key` as an image output (`.gif` or `.mp4` for all frames, `.png` for one or numbered
     /// frames).
     pub fn image_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
+        self.output_as(key, &["gif", "mp4", "png"])
+    }
+
+    /// Setting `key` as a depth output, if given: an image (see [`Block::image_output`]) or float depths
+    /// in a NumPy `.npy` file.
+    pub fn depth_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
+        self.output_as(key, &["gif", "mp4", "png", "npy"])
+    }
+
+    /// Setting `key` as an output file whose extension is one of `formats`.
+    fn output_as(&mut self, key: &str, formats: &[&str]) -> Result<Option<PathBuf>> {
         let span = self.settings_span(key);
         let path = self.output(key)?;
         if let Some(p) = &path {
-            if !matches!(
-                p.extension().and_then(|e| e.to_str()),
-                Some("gif" | "png" | "mp4")
-            ) {
+            let extension = p.extension().and_then(|e| e.to_str()).unwrap_or("");
+            if !formats.contains(&extension) {
+                let listed: Vec<String> = formats.iter().map(|f| format!(".{f}")).collect();
                 return Err(self.error(
-                    Diagnostic::new(
-                        span,
-                        format!("cannot write '{}': unknown image format", p.display()),
-                    )
-                    .with_hint("use a file ending in .gif, .mp4 or .png"),
+                    Diagnostic::new(span, format!("cannot write '{}': unknown format", p.display()))
+                        .with_hint(format!("use a file ending in {}", listed.join(", "))),
                 ));
             }
         }

@@ -1,10 +1,10 @@
 //! Writing rendered frames: a GIF or an MP4 (H.264) of all frames, a PNG of one, or numbered PNGs
-//! (`name_000.png`, ...).
+//! (`name_000.png`, ...); depths as float32 NumPy arrays.
 
 use std::path::Path;
 
 use image::RgbImage;
-use nerfjit_runtime::{save_gif, save_mp4, save_png};
+use nerfjit_runtime::{save_gif, save_mp4, save_png, write_npy_f32};
 
 use crate::failure::Result;
 
@@ -22,5 +22,23 @@ pub fn write_images(path: &Path, images: Vec<RgbImage>, frame_ms: u32) -> Result
             save_png(&path.with_file_name(format!("{stem}_{i:03}.png")), img)?;
         }
     }
+    Ok(())
+}
+
+/// Whether `path` names a NumPy `.npy` file.
+pub fn is_npy(path: &Path) -> bool {
+    path.extension().is_some_and(|e| e == "npy")
+}
+
+/// Writes the depths of frames of `width`×`height` as one float32 `.npy` array: shape (H, W) for one
+/// frame, (frames, H, W) for more.
+pub fn write_depths(path: &Path, (width, height): (u32, u32), frames: Vec<Vec<f32>>) -> Result<()> {
+    let (w, h) = (width as usize, height as usize);
+    let shape = match frames.len() {
+        1 => vec![h, w],
+        n => vec![n, h, w],
+    };
+    let values: Vec<f32> = frames.into_iter().flatten().collect();
+    write_npy_f32(path, &shape, &values)?;
     Ok(())
 }

@@ -109,7 +109,7 @@ impl RenderPlan {
             ShadingChoice::Lambert { light, albedo }
         };
         let out = b.required_image_output("out", "out: \"scene.gif\"")?;
-        let depth = b.image_output("depth")?;
+        let depth = b.depth_output("depth")?;
         let normals = b.image_output("normals")?;
         let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
         b.finish(KEYS)?;
@@ -178,7 +178,11 @@ impl RenderPlan {
         write_frames(&self.out, &frames, self.frame_ms, |f| {
             rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)
         })?;
-        if let Some(path) = &self.depth {
+        if let Some(path) = self.depth.as_ref().filter(|p| crate::output::is_npy(p)) {
+            // The hit distance along the unit ray; +∞ where the ray missed.
+            let depths = frames.iter().map(|f| f.depth.clone()).collect();
+            crate::output::write_depths(path, (w, h), depths)?;
+        } else if let Some(path) = &self.depth {
             let (near, far) = (self.trace.near, self.trace.far);
             write_frames(path, &frames, self.frame_ms, |f| {
                 let gray = depth_image(f, near, far)?;

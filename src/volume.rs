@@ -86,7 +86,7 @@ impl VolumePlan {
             Some(v) => skip_empty(&v).map_err(|d| b.error(d))?,
         };
         let out = b.required_image_output("out", "out: \"volume.gif\"")?;
-        let depth = b.image_output("depth")?;
+        let depth = b.depth_output("depth")?;
         let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
         let importance = b.whole("importance", 0, 4096, 0)? as usize;
         if importance > 0 && skip_empty.is_some() {
@@ -154,7 +154,17 @@ impl VolumePlan {
         }
         let seconds = start.elapsed().as_secs_f64();
         write(&self.out, &frames, self.frame_ms, |f| f.rgb.clone())?;
-        if let Some(path) = &self.depth {
+        if let Some(path) = self.depth.as_ref().filter(|p| crate::output::is_npy(p)) {
+            // Expected depth along the unit ray, Σ wᵢtᵢ / Σ wᵢ; +∞ where (almost) nothing is hit.
+            let depths = frames.iter().map(|f| {
+                f.depth
+                    .iter()
+                    .zip(&f.opacity)
+                    .map(|(&d, &a)| if a > 1e-3 { d / a } else { f32::INFINITY })
+                    .collect()
+            });
+            crate::output::write_depths(path, (w, h), depths.collect())?;
+        } else if let Some(path) = &self.depth {
             // Depth in [near, far] as gray, scaled by the opacity (empty space stays black).
             let (near, far) = (self.near, self.far);
             write(path, &frames, self.frame_ms, |f| {

@@ -196,6 +196,70 @@ fn run_writes_the_torus_gif() {
     assert_eq!(first.get_pixel(0, 0).0[..3], [0, 0, 0]);
 }
 
+/// A float32 `.npy` file's shape (from its header) and values.
+fn read_npy_f32(path: &Path) -> (String, Vec<f32>) {
+    let bytes = std::fs::read(path).expect("npy written");
+    assert!(bytes.starts_with(b"\x93NUMPY\x01\x00"), "not a .npy file");
+    let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let header = std::str::from_utf8(&bytes[10..10 + header_len]).unwrap();
+    assert!(header.contains("'descr': '<f4'"), "{header}");
+    let shape = header
+        .split("'shape': ")
+        .nth(1)
+        .unwrap()
+        .split(')')
+        .next()
+        .unwrap()
+        .to_string()
+        + ")";
+    let values = bytes[10 + header_len..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (shape, values)
+}
+
+#[test]
+fn depth_is_written_as_float_npy_by_both_renderers() {
+    let dir = scratch("depth_npy");
+    // A unit sphere seen from 3 units away: the center pixel of a 33×21 image is on the axis, depth 2.
+    let script = write(
+        &dir,
+        "depth.sdf",
+        "fn sdf(p: vec3) -> f32 = length(p) - 1.0\n\
+         fn color(p: vec3) -> vec3 = [0.5, 0.5, 0.5]\n\
+         fn density(p: vec3) -> f32 = 200.0 * sigmoid(-50.0 * sdf(p))\n\
+         render sphere_trace { camera: look_at(eye: [0, 0, -3]), size: [33, 21], near: 0, far: 6, out: \"a.png\", depth: \"a.npy\" }\n\
+         render volume { camera: look_at(eye: [0, 0, -3]), size: [33, 21], near: 1, far: 5, samples: 256, out: \"b.png\", depth: \"b.npy\" }\n",
+    );
+    let out = nerfjit(&["run", &script, "--out", dir.to_str().unwrap()], None);
+    assert!(out.status.success(), "{}", text(&out).1);
+    let center = 10 * 33 + 16;
+    let (shape, traced) = read_npy_f32(&dir.join("a.npy"));
+    assert_eq!(shape, "(21, 33)");
+    assert!((traced[center] - 2.0).abs() < 1e-3, "{}", traced[center]);
+    assert!(traced[0].is_infinite(), "a corner misses: {}", traced[0]);
+    let (shape, volume) = read_npy_f32(&dir.join("b.npy"));
+    assert_eq!(shape, "(21, 33)");
+    // The soft density starts absorbing a little before the surface.
+    assert!((volume[center] - 2.0).abs() < 0.05, "{}", volume[center]);
+    assert!(volume[0].is_infinite(), "a corner sees nothing: {}", volume[0]);
+    // Depth images other than these formats are refused before any work.
+    let bad = write(
+        &dir,
+        "bad.sdf",
+        "fn sdf(p: vec3) -> f32 = length(p) - 1.0\n\
+         render sphere_trace { camera: look_at(eye: [0, 0, -3]), out: \"a.png\", depth: \"a.exr\" }\n",
+    );
+    let out = nerfjit(&["run", &bad, "--out", dir.to_str().unwrap()], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("a.exr': unknown format") && stderr.contains(".npy"),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn run_rejects_bad_scripts_before_any_work() {
     let dir = scratch("bad");

@@ -72,7 +72,7 @@ pub use mesh::Mesh;
 pub use mesh_metrics::{chamfer_report, point_to_mesh_distances, ChamferReport};
 pub use metrics::{mse, psnr, ssim};
 pub use nerfstudio::{is_nerfstudio, load_nerfstudio};
-pub use npy::{read_npy_rgb, write_npy_rgb, ImageF32};
+pub use npy::{read_npy_rgb, write_npy_f32, write_npy_rgb, ImageF32};
 pub use occupancy::OccupancyGrid;
 pub use optim::{Adam, Schedule};
 pub use paths::{orbit, surround, Up};

@@ -192,10 +192,13 @@ impl NpyArray<'_> {
     }
 }
 
-/// `shape` as text, e.g. `(2, 3)`.
+/// `shape` as a Python tuple, e.g. `(2, 3)` or `(5,)`.
 fn shape_text(shape: &[usize]) -> String {
     let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
-    format!("({})", dims.join(", "))
+    match dims.as_slice() {
+        [one] => format!("({one},)"),
+        _ => format!("({})", dims.join(", ")),
+    }
 }
 
 /// Parses the bytes of a `.npy` file: its header (a float32 or float64 dtype, the order and
@@ -325,31 +328,35 @@ pub(crate) fn parse_points(bytes: &[u8]) -> std::result::Result<Vec<[f32; 3]>, S
 /// Writes `image` as a float32 little-endian `.npy` file (version 1.0) of shape (H, W, 3).
 pub fn write_npy_rgb(path: &Path, image: &ImageF32) -> Result<()> {
     check_size(image.width, image.height)?;
-    if image.pixels.len() != image.width as usize * image.height as usize {
+    let values: Vec<f32> = image.pixels.iter().flatten().copied().collect();
+    write_npy_f32(path, &[image.height as usize, image.width as usize, 3], &values)
+}
+
+/// Writes `values` as a float32 little-endian `.npy` file (version 1.0) of the given C-order
+/// `shape`, which NumPy (`np.load`) and PyTorch read.
+pub fn write_npy_f32(path: &Path, shape: &[usize], values: &[f32]) -> Result<()> {
+    let count: usize = shape.iter().product();
+    if count != values.len() {
         return Err(Error::Invalid(format!(
-            "{} pixels do not fill a {}×{} image",
-            image.pixels.len(),
-            image.width,
-            image.height
+            "{} values do not fill an array of shape {shape:?}",
+            values.len()
         )));
     }
     let mut header = format!(
-        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}, 3), }}",
-        image.height, image.width
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': {}, }}",
+        shape_text(shape)
     );
     // Pad with spaces so that the data starts at a multiple of 64 bytes; end with a newline.
     let unpadded = MAGIC.len() + 4 + header.len() + 1;
     header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
     header.push('\n');
-    let mut bytes = Vec::with_capacity(10 + header.len() + image.pixels.len() * 12);
+    let mut bytes = Vec::with_capacity(10 + header.len() + values.len() * 4);
     bytes.extend_from_slice(MAGIC);
     bytes.extend_from_slice(&[1, 0]);
     bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
     bytes.extend_from_slice(header.as_bytes());
-    for px in &image.pixels {
-        for c in px {
-            bytes.extend_from_slice(&c.to_le_bytes());
-        }
+    for v in values {
+        bytes.extend_from_slice(&v.to_le_bytes());
     }
     check_output_folder(path)?;
     std::fs::write(path, bytes).map_err(|e| Error::write(path, e))
@@ -374,6 +381,21 @@ pub(crate) mod tests {
                 .map(|k| [k as f32, 0.5 * k as f32, -1.0 / (k + 1) as f32])
                 .collect(),
         }
+    }
+
+    #[test]
+    fn float_arrays_of_any_shape_read_back() {
+        for shape in [vec![5], vec![2, 3], vec![2, 3, 4]] {
+            let n: usize = shape.iter().product();
+            let values: Vec<f32> = (0..n).map(|k| k as f32 * 0.25 - 1.0).collect();
+            let path = temp_path("any.npy");
+            write_npy_f32(&path, &shape, &values).unwrap();
+            let bytes = std::fs::read(&path).unwrap();
+            let array = parse(&bytes).unwrap();
+            assert_eq!((array.shape.clone(), array.to_f32()), (shape.clone(), values));
+        }
+        let e = write_npy_f32(&temp_path("bad.npy"), &[2, 2], &[1.0]).unwrap_err();
+        assert_eq!(e.to_string(), "1 values do not fill an array of shape [2, 2]");
     }
 
     #[test]
@@ -520,7 +542,7 @@ pub(crate) mod tests {
             (
                 "{'descr': '<f4', 'fortran_order': False, 'shape': (3,), }",
                 12,
-                "shape is (3), expected (N, 3)",
+                "shape is (3,), expected (N, 3)",
             ),
             (
                 "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 4), }",
