@@ -543,6 +543,7 @@ fn w4(reps: usize) -> Result<()> {
         mode: field.mode,
         background: Some([0.0; 3]),
         early_termination: None,
+        spacing: nerfjit_runtime::DepthSpacing::Linear,
     };
     let set = nerfjit_runtime::load_blender_cameras(std::path::Path::new(
         "../shared/data/lego/transforms_val.json",

@@ -115,6 +115,18 @@ impl<'p> Block<'p> {
         Ok((near, far))
     }
 
+    /// The `spacing` setting for sampling [near, far] (linear by default), checked against the interval.
+    pub fn spacing(&mut self, near: f32, far: f32) -> Result<nerfjit_runtime::DepthSpacing> {
+        let Some(v) = self.take("spacing") else {
+            return Ok(nerfjit_runtime::DepthSpacing::Linear);
+        };
+        let spacing = crate::volume::depth_spacing(&v).map_err(|d| self.error(d))?;
+        spacing.check(near, far).map_err(|e| {
+            self.error(Diagnostic::new(v.span, e.to_string()).with_hint("raise near above 0 or the split"))
+        })?;
+        Ok(spacing)
+    }
+
     /// Setting `key` as three numbers (one number is repeated), if given.
     pub fn triple(&mut self, key: &str) -> Result<Option<[f32; 3]>> {
         self.take(key)

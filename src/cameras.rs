@@ -7,8 +7,9 @@ use glam::{Vec2, Vec3};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_runtime::{
-    default_images_folder, is_colmap_model, is_nerfstudio, load_blender_cameras, load_box_cameras,
-    load_colmap, load_nerfstudio, orbit, surround, Camera, CameraFormat, Up,
+    default_images_folder, is_camera_path, is_colmap_model, is_nerfstudio, load_blender_cameras,
+    load_box_cameras, load_camera_path, load_colmap, load_nerfstudio, orbit, surround, Camera, CameraFormat,
+    Up,
 };
 
 use crate::settings::{triple, CallArgs};
@@ -56,7 +57,7 @@ pub fn cameras(
             let a = CallArgs::new(v, &["file", "normalize"])?;
             let file = script_dir.join(a.string("file")?);
             let normalize = a.choice("normalize", &["true", "false"], "true")? == "true";
-            camera_file(&file, normalize)
+            camera_file(&file, normalize).map(|(cameras, _)| cameras)
         }
         "look_at" => {
             let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
@@ -84,18 +85,28 @@ pub fn cameras(
     Ok(result.map_err(|e| e.to_string()))
 }
 
-/// The cameras of a camera file: the course's, Blender's, a nerfstudio `transforms.json` or a COLMAP
-/// model folder (captures normalized as for training unless `normalize` is false).
-fn camera_file(file: &Path, normalize: bool) -> nerfjit_runtime::Result<Vec<Camera>> {
+/// The (width, height) of a camera file's images.
+pub type FrameSize = (u32, u32);
+
+/// The cameras of a camera file — the course's, Blender's, a nerfstudio `transforms.json` or
+/// `camera_path.json`, or a COLMAP model folder (captures normalized as for training unless `normalize` is
+/// false) — and the (width, height) of its images when the file says.
+pub fn camera_file(
+    file: &Path,
+    normalize: bool,
+) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
     let capture = if is_colmap_model(file) {
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         Some(load_colmap(file, &images)?)
     } else {
         let text = std::fs::read_to_string(file).unwrap_or_default();
-        if is_nerfstudio(&text) {
+        if is_camera_path(&text) {
+            let path = load_camera_path(file)?;
+            return Ok((path.cameras, Some((path.width, path.height))));
+        } else if is_nerfstudio(&text) {
             Some(load_nerfstudio(file)?)
         } else if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
-            return Ok(load_blender_cameras(file)?.cameras);
+            return Ok((load_blender_cameras(file)?.cameras, None));
         } else {
             None
         }
@@ -105,9 +116,13 @@ fn camera_file(file: &Path, normalize: bool) -> nerfjit_runtime::Result<Vec<Came
             if normalize {
                 capture.normalize()?;
             }
-            capture.cameras(file, 1, None)
+            let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
+            Ok((capture.cameras(file, 1, None)?, size))
         }
-        None => Ok(load_box_cameras(file)?.cameras),
+        None => {
+            let set = load_box_cameras(file)?;
+            Ok((set.cameras, set.image_size))
+        }
     }
 }
 

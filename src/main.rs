@@ -133,12 +133,13 @@ enum Command {
         #[arg(long)]
         no_prune: bool,
     },
-    /// Render a script's volume field (or a training checkpoint's) from every camera of a Blender-format
-    /// camera file, of a camera path, or of the script's own render block, as PNGs, a GIF or an MP4.
+    /// Render a script's volume field (or a training checkpoint's) from every camera of a camera file, of a
+    /// camera path, or of the script's own render block, as PNGs, a GIF or an MP4.
     Render {
         /// A script, or a checkpoint written by a train block (it holds its script).
         source: String,
-        /// A camera file (Blender `transforms_*.json`).
+        /// A camera file: Blender or nerfstudio `transforms.json`, a nerfstudio `camera_path.json`, a COLMAP
+        /// model folder (captures normalized as for training) or the course's `box_cameras.json`.
         #[arg(long)]
         cameras: Option<PathBuf>,
         /// A camera path as in a script, e.g. 'orbit(radius: 4, frames: 60, up: z, focal: 2)' or
@@ -244,7 +245,8 @@ enum DataCommand {
 /// train block trains with (a checkpoint holds its script), else near 2, far 6, 128 samples, black.
 #[derive(clap::Args)]
 struct ViewOptions {
-    /// Image side in pixels (1 to 4096).
+    /// Image side in pixels (1 to 4096); with `render --cameras` the width, the height following the
+    /// camera file's aspect ratio.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(1..=4096))]
     size: u32,
     /// Start of the sampled interval along each ray [default: the script's, else 2].

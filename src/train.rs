@@ -9,8 +9,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, rgb_image, save_png, volume_step_with, FinePass, OccupancyGrid, Quantize, Rng,
-    Schedule, StepOptions, Views, VolumeSettings,
+    load_blender_views, rgb_image, save_png, volume_step_with, DepthSpacing, FinePass, OccupancyGrid,
+    Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -55,6 +55,7 @@ const KEYS: &[&str] = &[
     "grid_warmup",
     "minutes",
     "early_termination",
+    "spacing",
     "optimizer",
     "log",
 ];
@@ -81,6 +82,7 @@ pub struct TrainPlan {
     near: f32,
     far: f32,
     samples: usize,
+    spacing: DepthSpacing,
     background: Option<[f32; 3]>,
     steps: u32,
     /// Stop once the steps alone have taken this many seconds (validation and previews excluded).
@@ -303,6 +305,7 @@ impl TrainPlan {
         let (near, far) = b.near_far(5.0)?;
         let lr = b.number("lr", 1e-12, 10.0, 5e-4)? as f32;
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
+        let spacing = b.spacing(near, far)?;
         let steps = b.whole("steps", 1, 100_000_000, 1000)? as u32;
         let minutes = b.number("minutes", 0.0, 1e6, 0.0)?;
         let time_limit = (minutes > 0.0).then_some(60.0 * minutes);
@@ -378,6 +381,7 @@ impl TrainPlan {
             near,
             far,
             samples,
+            spacing,
             background,
             steps,
             time_limit,
@@ -408,6 +412,7 @@ impl TrainPlan {
             mode: field.mode,
             background: self.background,
             early_termination: None,
+            spacing: self.spacing,
         }
     }
 

@@ -10,7 +10,7 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_cameras, load_blender_views, psnr, rgb_image, ssim, Camera, ImageF32, Quantize, Views,
+    load_blender_views, psnr, rgb_image, ssim, Camera, DepthSpacing, ImageF32, Quantize, Views,
     VolumeSettings,
 };
 
@@ -52,6 +52,8 @@ pub struct Rendering {
     pub background: [f32; 3],
     /// Importance samples per ray (0: none).
     pub importance: usize,
+    /// How the samples are spread between near and far.
+    pub spacing: DepthSpacing,
 }
 
 impl ViewArgs<'_> {
@@ -66,6 +68,7 @@ impl ViewArgs<'_> {
             samples: self.samples.unwrap_or(script.samples),
             background: self.background.unwrap_or(script.background),
             importance: self.importance.unwrap_or(script.importance),
+            spacing: script.spacing,
         }
     }
 }
@@ -81,6 +84,7 @@ impl Rendering {
             samples: trained.samples.unwrap_or(128),
             background: trained.background.unwrap_or([0.0; 3]),
             importance: trained.importance.unwrap_or(0),
+            spacing: trained.spacing.unwrap_or_default(),
         }
     }
 }
@@ -94,6 +98,7 @@ struct TrainedWith {
     samples: Option<usize>,
     background: Option<[f32; 3]>,
     importance: Option<usize>,
+    spacing: Option<DepthSpacing>,
 }
 
 impl TrainedWith {
@@ -117,12 +122,16 @@ impl TrainedWith {
             _ => None,
         });
         let background = settings.take("background").and_then(|v| triple(&v).ok());
+        let spacing = settings
+            .take("spacing")
+            .and_then(|v| crate::volume::depth_spacing(&v).ok());
         TrainedWith {
             near: near.map(|x| x as f32),
             far: far.map(|x| x as f32),
             samples: count(samples),
             background: background.or(data_background),
             importance: count(importance),
+            spacing,
         }
     }
 }
@@ -137,6 +146,7 @@ impl Rendering {
             mode,
             background: Some(self.background),
             early_termination: None,
+            spacing: self.spacing,
         }
     }
 }
@@ -159,7 +169,8 @@ pub(crate) fn is_checkpoint(source: &str) -> bool {
 
 /// Where `nerfjit render` takes its cameras from.
 pub enum CameraSource<'a> {
-    /// A Blender `transforms_*.json`.
+    /// A camera file: Blender or nerfstudio transforms, a nerfstudio `camera_path.json`, a COLMAP model
+    /// folder or the course's `box_cameras.json`.
     File(&'a Path),
     /// A camera path written as in a script, e.g. `orbit(radius: 4, frames: 60, up: z, focal: 2)`.
     Path(&'a str),
@@ -171,21 +182,28 @@ pub enum CameraSource<'a> {
 /// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
     let (program, params) = load(args.source)?;
-    let cameras = match cameras {
-        CameraSource::File(file) => load_blender_cameras(file)?.cameras,
-        CameraSource::Path(text) => path_cameras(text)?,
-        CameraSource::Script => script_cameras(&program)?.ok_or_else(|| {
-            Failure::Message(format!(
-                "{} has no render block with a camera: give --cameras FILE or --path 'orbit(radius: 4, frames: 60, up: z, focal: 2)'",
-                args.source
-            ))
-        })?,
+    let (cameras, frame) = match cameras {
+        CameraSource::File(file) => crate::cameras::camera_file(file, true)?,
+        CameraSource::Path(text) => (path_cameras(text)?, None),
+        CameraSource::Script => (
+            script_cameras(&program)?.ok_or_else(|| {
+                Failure::Message(format!(
+                    "{} has no render block with a camera: give --cameras FILE or --path 'orbit(radius: 4, frames: 60, up: z, focal: 2)'",
+                    args.source
+                ))
+            })?,
+            None,
+        ),
     };
-    let (n, size) = (cameras.len(), args.size);
-    let pixels = n as u64 * u64::from(size) * u64::from(size);
+    // --size is the width; the height keeps the aspect ratio of the file's frames.
+    let (n, width) = (cameras.len(), args.size);
+    let height = frame.map_or(width, |(w, h)| {
+        ((f64::from(width) * f64::from(h) / f64::from(w)).round() as u32).clamp(1, 16384)
+    });
+    let pixels = n as u64 * u64::from(width) * u64::from(height);
     if pixels > MAX_PIXELS {
         return Err(Failure::Message(format!(
-            "{n} views of {size}×{size} are {pixels} pixels, more than the {MAX_PIXELS} kept in memory at once"
+            "{n} views of {width}×{height} are {pixels} pixels, more than the {MAX_PIXELS} kept in memory at once"
         )));
     }
     let animation = matches!(out.extension().and_then(|e| e.to_str()), Some("gif" | "mp4"));
@@ -204,7 +222,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let images = cameras
         .iter()
         .map(|camera| {
-            let f = fields.render(camera, size, size, &params, &settings)?;
+            let f = fields.render(camera, width, height, &params, &settings)?;
             Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
         })
         .collect::<Result<Vec<_>>>()?;
@@ -213,7 +231,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let per_view = seconds / n.max(1) as f64;
     let written = if animation || gif { &target } else { out };
     Ok(format!(
-        "rendered {n} views of {size}×{size} in {seconds:.2} s ({per_view:.2} s/view; near {}, far {}, {} samples) → {}",
+        "rendered {n} views of {width}×{height} in {seconds:.2} s ({per_view:.2} s/view; near {}, far {}, {} samples) → {}",
         rendering.near,
         rendering.far,
         rendering.samples,

@@ -8,7 +8,7 @@ use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    render_volume_with, rgb_image, Camera, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
+    render_volume_with, rgb_image, Camera, DepthSpacing, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -25,6 +25,7 @@ const KEYS: &[&str] = &[
     "samples",
     "background",
     "early_termination",
+    "spacing",
     "skip_empty",
     "importance",
     "out",
@@ -59,6 +60,8 @@ pub struct VolumePlan {
     pub background: Option<[f32; 3]>,
     /// Transmittance below which a ray stops.
     pub early_termination: Option<f32>,
+    /// How the samples are spread between near and far.
+    pub spacing: DepthSpacing,
     /// Empty-space skipping, if asked for.
     pub skip_empty: Option<SkipEmpty>,
     /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
@@ -80,6 +83,7 @@ impl VolumePlan {
         let (near, far) = b.near_far(5.0)?;
         let samples = b.whole("samples", 2, 4096, 64)? as usize;
         let early = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
+        let spacing = b.spacing(near, far)?;
         let background = b.triple("background")?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
@@ -103,6 +107,7 @@ impl VolumePlan {
             samples,
             background,
             early_termination: (early > 0.0).then_some(early),
+            spacing,
             skip_empty,
             importance,
             out,
@@ -120,6 +125,7 @@ impl VolumePlan {
             mode: field.mode,
             background: self.background,
             early_termination: self.early_termination,
+            spacing: self.spacing,
         }
     }
 
@@ -205,6 +211,30 @@ fn write(
         .map(|f| rgb_image(f.width, f.height, &pixels(f), Quantize::Truncate))
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     write_images(path, images, frame_ms)
+}
+
+/// The `spacing` setting: `linear`, or `lindisp(split: 6)` (half the samples evenly in depth up to `split`,
+/// half evenly in disparity beyond it).
+pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnostic> {
+    match &v.value {
+        Value::Name(n) if n == "linear" => Ok(DepthSpacing::Linear),
+        Value::Call(n, _) if n == "lindisp" => {
+            let a = CallArgs::new(v, &["split"])?;
+            let split = a.number("split", None)?;
+            if !(split.is_finite() && split > 0.0 && split < 1e9) {
+                return Err(Diagnostic::new(
+                    v.span,
+                    format!("split {split} must be a positive depth"),
+                ));
+            }
+            Ok(DepthSpacing::LinDisp { split: split as f32 })
+        }
+        _ => Err(Diagnostic::new(
+            v.span,
+            format!("expected a depth spacing, found {}", v.describe()),
+        )
+        .with_hint("write linear or lindisp(split: 6)")),
+    }
 }
 
 /// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`, or `none`

@@ -35,6 +35,7 @@ const CASES: &[&str] = &[
     "laplace_cdf(x, 0.5) + volsdf_density(y, 2.0, 0.3) + neus_density(z, 4.0)",
     "sigmoid_density(x, 2.0, 0.5) + step_density(y) + linear_density(z, 2.0, 0.5) + exp_density(x, 1.0, 0.5)",
     "opacity_laplace(x, 1.0, 0.5) + opacity_laplace(y)",
+    "contract(vec3(x, y, z)).x + contract(vec3(2.0 * x, y + z, z)).z * y",
     "mlp(net, vec3(x, y, z))[2] * x + sum(mlp(net, vec3(z, x, y)))",
 ];
 
@@ -131,6 +132,14 @@ fn derivatives_match_closed_forms() {
         ("softplus(x)", |x| 1.0 / (1.0 + (-x).exp())),
         ("sqrt(x + 3.0)", |x| 0.5 / (x + 3.0).sqrt()),
         ("pow(x + 3.0, 2.5)", |x| 2.5 * (x + 3.0).powf(1.5)),
+        // The contraction: the identity inside the unit ball (also at its center), 1/x² beyond.
+        ("contract(vec3(x, 0.0, 0.0)).x", |x| {
+            if x.abs() <= 1.0 {
+                1.0
+            } else {
+                1.0 / (x * x)
+            }
+        }),
     ];
     for (expr, df) in cases {
         let p = program(expr);

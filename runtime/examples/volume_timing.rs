@@ -96,6 +96,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = std::env::args().nth(1).unwrap_or_else(|| "box_volume.gif".into());
     let cameras = surround(3.0, 20, Up::Y, 1.0)?;
     let settings = VolumeSettings {
+        spacing: nerfjit_runtime::DepthSpacing::Linear,
         near: 0.0,
         far: 5.0,
         samples: 64,

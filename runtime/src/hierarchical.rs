@@ -12,7 +12,6 @@ use crate::error::{Error, Result};
 use crate::field::BatchFn;
 use crate::importance;
 use crate::rays::RayBatch;
-use crate::sampler::linspace;
 use crate::volume::{check_field, VolumeFrame, VolumeSettings};
 
 /// Rays per parallel tile.
@@ -70,7 +69,7 @@ pub fn render_hierarchical(
     let m = settings.samples;
     let total = m + importance;
     let mut t = vec![0.0; m];
-    linspace(settings.near, settings.far, &mut t);
+    settings.fixed_depths(&mut t);
     let mut u = Vec::new();
     importance::quantiles(importance, None, &mut u);
     let compositor = settings.compositor();
@@ -164,6 +163,7 @@ mod tests {
         )
         .unwrap();
         let settings = |samples| VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples,

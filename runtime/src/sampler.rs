@@ -21,6 +21,72 @@ pub enum Spacing {
     Jittered,
 }
 
+/// How depths are distributed between `near` and `far` along a ray.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum DepthSpacing {
+    /// Evenly in depth.
+    #[default]
+    Linear,
+    /// Half the samples evenly in depth from `near` to `split`, half evenly in disparity (1/depth)
+    /// from `split` to `far` (all in disparity when `split` ≤ `near`), as nerfstudio's
+    /// piecewise sampler places them for unbounded scenes: dense near the object, sparse out to
+    /// a far background.
+    LinDisp {
+        /// Depth where linear spacing gives way to disparity spacing.
+        split: f32,
+    },
+}
+
+impl DepthSpacing {
+    /// Checks the spacing for the interval [near, far]: disparity spacing needs a positive start.
+    pub fn check(self, near: f32, far: f32) -> Result<()> {
+        match self {
+            DepthSpacing::Linear => Ok(()),
+            DepthSpacing::LinDisp { split } => {
+                let start = split.max(near);
+                if split.is_finite() && (start > 0.0 || split >= far) {
+                    Ok(())
+                } else {
+                    Err(Error::Invalid(format!(
+                        "disparity spacing from {start} to {far} needs a finite split and a start above 0"
+                    )))
+                }
+            }
+        }
+    }
+
+    /// The depth that replaces `t`, a depth of linear spacing in [near, far]: the identity for
+    /// [`DepthSpacing::Linear`]; monotone and fixing near and far otherwise.
+    pub fn warp(self, near: f32, far: f32, t: f32) -> f32 {
+        let DepthSpacing::LinDisp { split } = self else {
+            return t;
+        };
+        if split >= far {
+            return t;
+        }
+        let u = ((t - near) / (far - near)).clamp(0.0, 1.0);
+        // Disparities interpolated as (1 − v)/from + v/far, exact at both ends.
+        let disparity = |from: f32, v: f32| 1.0 / ((1.0 - v) / from + v / far);
+        let depth = if split <= near {
+            disparity(near, u)
+        } else if u <= 0.5 {
+            near + 2.0 * u * (split - near)
+        } else {
+            disparity(split, 2.0 * u - 1.0)
+        };
+        depth.clamp(near, far)
+    }
+
+    /// [`DepthSpacing::warp`] applied to every depth of `depths`.
+    pub fn warp_all(self, near: f32, far: f32, depths: &mut [f32]) {
+        if self != DepthSpacing::Linear {
+            for t in depths {
+                *t = self.warp(near, far, *t);
+            }
+        }
+    }
+}
+
 /// The interval [near, far] sampled on each ray.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DepthRange<'a> {
@@ -242,6 +308,46 @@ mod tests {
                 / 2000.0;
             assert!((mean - 0.5).abs() < 0.03, "bin {i}: mean offset {mean}");
         }
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn lindisp_spacing_is_monotone_and_keeps_the_ends(
+            near in 0.0f32..3.0,
+            length in 0.1f32..1000.0,
+            split_at in -0.5f32..1.5,
+            n in 2usize..200,
+        ) {
+            let far = near + length;
+            let spacing = DepthSpacing::LinDisp { split: near + split_at * length };
+            proptest::prop_assume!(spacing.check(near, far).is_ok());
+            let mut t = vec![0.0; n];
+            linspace(near, far, &mut t);
+            spacing.warp_all(near, far, &mut t);
+            proptest::prop_assert!((t[0] - near).abs() <= 1e-5 * far && (t[n - 1] - far).abs() <= 1e-4 * far);
+            for w in t.windows(2) {
+                proptest::prop_assert!(w[0] <= w[1], "{t:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn lindisp_spacing_is_linear_then_even_in_disparity() {
+        let spacing = DepthSpacing::LinDisp { split: 4.0 };
+        let mut t = vec![0.0; 9];
+        linspace(2.0, 100.0, &mut t);
+        spacing.warp_all(2.0, 100.0, &mut t);
+        for (i, want) in [2.0, 2.5, 3.0, 3.5, 4.0].iter().enumerate() {
+            assert!((t[i] - want).abs() < 1e-5, "{t:?}");
+        }
+        // Disparities from 1/4 to 1/100 in equal steps.
+        for (i, t) in t[4..].iter().enumerate() {
+            let want = 1.0 / (0.25 + i as f32 / 4.0 * (0.01 - 0.25));
+            assert!((t - want).abs() < 1e-3 * want, "{i}: {t} vs {want}");
+        }
+        assert_eq!(DepthSpacing::Linear.warp(0.0, 5.0, 1.25), 1.25);
+        assert!(DepthSpacing::LinDisp { split: 0.0 }.check(0.0, 5.0).is_err());
+        assert!(DepthSpacing::LinDisp { split: 0.0 }.check(0.5, 5.0).is_ok());
     }
 
     #[test]

@@ -19,7 +19,7 @@ use crate::metrics::psnr;
 use crate::occupancy::OccupancyGrid;
 use crate::rays::RayBatch;
 use crate::rng::Rng;
-use crate::sampler::{jittered_depth, linspace};
+use crate::sampler::jittered_depth;
 use crate::volume::{check_field, with_scratch, Scratch, VolumeSettings, CHUNK_SAMPLES};
 
 /// Sample points per chunk of tiles sharing one gradient accumulator.
@@ -91,11 +91,13 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
             }
         }
         None => {
-            let VolumeSettings { near, far, .. } = *job.settings;
+            let VolumeSettings {
+                near, far, spacing, ..
+            } = *job.settings;
             let bin = (far - near) / samples as f32;
             for k in 0..n {
                 for j in 0..samples {
-                    depths[j * n + k] = jittered_depth(near, bin, j, rng.next_f32());
+                    depths[j * n + k] = spacing.warp(near, far, jittered_depth(near, bin, j, rng.next_f32()));
                 }
             }
         }
@@ -408,7 +410,7 @@ pub fn volume_step_with(
         Some(rng) => (None, (0..n_tiles).map(|_| rng.next_u64()).collect()),
         None => {
             let mut depths = vec![0.0; settings.samples];
-            linspace(settings.near, settings.far, &mut depths);
+            settings.fixed_depths(&mut depths);
             (Some(depths), vec![0; n_tiles])
         }
     };
@@ -515,6 +517,7 @@ mod tests {
     /// 96 samples in [1, 5] of a density on a colored background.
     fn blob_settings(early_termination: Option<f32>) -> VolumeSettings {
         VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples: 96,
@@ -542,6 +545,7 @@ mod tests {
                 Mode::Opacity => [0.05, theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]],
             };
             let settings = VolumeSettings {
+                spacing: crate::sampler::DepthSpacing::Linear,
                 near: 1.0,
                 far: 5.0,
                 // Small tiles: several tiles and chunks per step.
@@ -641,7 +645,7 @@ mod tests {
         // The reference: every sample evaluated, composited ray by ray, every sample back-propagated.
         let compositor = settings.compositor();
         let mut t = vec![0.0; settings.samples];
-        linspace(settings.near, settings.far, &mut t);
+        settings.fixed_depths(&mut t);
         let (mut squared_error, mut grads) = (0.0f64, vec![0.0f32; 7]);
         for (k, target) in targets.iter().enumerate() {
             let (o, d) = rays.ray(k).unwrap();
@@ -689,6 +693,7 @@ mod tests {
     fn jitter_is_seeded_and_changes_the_samples() {
         let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
         let settings = VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples: 32,
@@ -718,6 +723,7 @@ mod tests {
         let field = ClosureFn::new(3, 4, |_, out| out.fill(0.5));
         let vjp = ClosureVjp::new(3, 4, 1, |_, _, _| {});
         let settings = VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
             near: 0.0,
             far: 5.0,
             samples: 8,

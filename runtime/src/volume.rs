@@ -36,7 +36,7 @@ use crate::composite::{Compositor, Lanes, Mode, RayOutput, LAST_DELTA};
 use crate::error::{check_size, Error, Result};
 use crate::field::BatchFn;
 use crate::occupancy::OccupancyGrid;
-use crate::sampler::linspace;
+use crate::sampler::{linspace, DepthSpacing};
 
 /// About this many sample points are evaluated per field call.
 pub const TILE_POINTS: usize = 8192;
@@ -59,6 +59,8 @@ pub struct VolumeSettings {
     pub background: Option<[f32; 3]>,
     /// Stop a ray once its transmittance falls below this (in (0, 1]); `None` is exact.
     pub early_termination: Option<f32>,
+    /// How the samples are spread between near and far.
+    pub spacing: DepthSpacing,
 }
 
 impl VolumeSettings {
@@ -71,7 +73,14 @@ impl VolumeSettings {
                 self.near, self.far, self.samples
             )));
         }
+        self.spacing.check(self.near, self.far)?;
         self.compositor().check()
+    }
+
+    /// The fixed sample depths of a ray: `linspace(near, far, out.len())` spread by the spacing.
+    pub(crate) fn fixed_depths(&self, out: &mut [f32]) {
+        linspace(self.near, self.far, out);
+        self.spacing.warp_all(self.near, self.far, out);
     }
 
     /// The compositor of these settings.
@@ -509,7 +518,7 @@ pub fn render_volume_with(
     settings.check()?;
     let view_dependent = check_field(field)?;
     let mut depths = vec![0.0; settings.samples];
-    linspace(settings.near, settings.far, &mut depths);
+    settings.fixed_depths(&mut depths);
     let job = Job {
         camera,
         width: width as usize,
@@ -575,6 +584,7 @@ mod tests {
 
     fn settings(mode: Mode) -> VolumeSettings {
         VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples: 96,

@@ -169,6 +169,7 @@ fn views(truth: Params, settings: &VolumeSettings) -> (RayBatch, Vec<[f32; 3]>) 
 #[test]
 fn recovers_box_center_and_sides_from_small_views() {
     let settings = VolumeSettings {
+        spacing: nerfjit_runtime::DepthSpacing::Linear,
         near: 1.0,
         far: 4.0,
         samples: 32,
@@ -228,6 +229,7 @@ fn course_reference_images_are_reproduced_when_present() {
     // "rendering" entry).
     let truth: Params = [0.25, 0.25, 0.0, 2.0, 1.5, 1.5];
     let settings = VolumeSettings {
+        spacing: nerfjit_runtime::DepthSpacing::Linear,
         near: 0.0,
         far: 5.0,
         samples: 64,
