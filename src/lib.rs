@@ -37,6 +37,7 @@ pub mod large_model;
 pub mod mesh;
 pub mod metrics_log;
 pub mod output;
+pub mod points;
 pub mod regularizers;
 pub mod render;
 pub mod run;

@@ -5,8 +5,8 @@ use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::{
-    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, run, script,
-    transmittance, viewer, views, WORK_STACK_BYTES,
+    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, points, run,
+    script, transmittance, viewer, views, WORK_STACK_BYTES,
 };
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
@@ -138,15 +138,9 @@ enum Command {
     Render {
         /// A script, or a checkpoint written by a train block (it holds its script).
         source: String,
-        /// A camera file: Blender or nerfstudio `transforms.json`, a nerfstudio `camera_path.json`, a COLMAP
-        /// model folder (captures normalized as for training) or the course's `box_cameras.json`.
-        #[arg(long)]
-        cameras: Option<PathBuf>,
-        /// A camera path as in a script, e.g. 'orbit(radius: 4, frames: 60, up: z, focal: 2)' or
-        /// 'surround(radius: 4, frames: 20, up: z, focal: 2)'. Without --cameras or --path: the script's
-        /// render block's camera.
-        #[arg(long, conflicts_with = "cameras")]
-        path: Option<String>,
+        /// Without --cameras or --path: the script's render block's camera.
+        #[command(flatten)]
+        cameras: CameraChoice,
         #[command(flatten)]
         view: ViewOptions,
         /// A .mp4 (H.264) or .gif file of all views, or an output folder (view_000.png, ...).
@@ -155,6 +149,23 @@ enum Command {
         /// With a folder: write one GIF of all views (views.gif) instead of PNGs.
         #[arg(long)]
         gif: bool,
+    },
+    /// A colored point cloud (PLY) of a script's volume field (or a checkpoint's): every view rendered,
+    /// each pixel of enough opacity placed at its expected depth with its color.
+    Points {
+        /// A script, or a checkpoint written by a train block.
+        source: String,
+        /// Without --cameras or --path: the cameras of the data the script trains on.
+        #[command(flatten)]
+        cameras: CameraChoice,
+        #[command(flatten)]
+        view: ViewOptions,
+        /// Pixels below this opacity give no point.
+        #[arg(long, default_value_t = 0.5)]
+        min_opacity: f32,
+        /// The PLY file to write.
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Score a script's volume field (or a checkpoint's) on the views of a Blender-format camera file:
     /// PSNR and SSIM per view and their means.
@@ -243,6 +254,29 @@ enum DataCommand {
 
 /// How `render`, `eval-views` and `compare` render views. Settings not given are those the script's
 /// train block trains with (a checkpoint holds its script), else near 2, far 6, 128 samples, black.
+/// Where a command takes its cameras from.
+#[derive(clap::Args)]
+struct CameraChoice {
+    /// A camera file: Blender or nerfstudio `transforms.json`, a nerfstudio `camera_path.json`, a COLMAP
+    /// model folder (captures normalized as for training) or the course's `box_cameras.json`.
+    #[arg(long)]
+    cameras: Option<PathBuf>,
+    /// A camera path as in a script, e.g. 'orbit(radius: 4, frames: 60, up: z, focal: 2)' or
+    /// 'surround(radius: 4, frames: 20, up: z, focal: 2)'.
+    #[arg(long, conflicts_with = "cameras")]
+    path: Option<String>,
+}
+
+impl CameraChoice {
+    fn source(&self) -> views::CameraSource<'_> {
+        match (&self.cameras, &self.path) {
+            (Some(file), _) => views::CameraSource::File(file),
+            (None, Some(text)) => views::CameraSource::Path(text),
+            (None, None) => views::CameraSource::Default,
+        }
+    }
+}
+
 #[derive(clap::Args)]
 struct ViewOptions {
     /// Image side in pixels (1 to 4096); with `render --cameras` the width, the height following the
@@ -404,18 +438,24 @@ fn run_command(cli: Cli) -> ExitCode {
         Command::Render {
             source,
             cameras,
-            path,
             view,
             out,
             gif,
-        } => {
-            let cameras = match (&cameras, &path) {
-                (Some(file), _) => views::CameraSource::File(file),
-                (None, Some(text)) => views::CameraSource::Path(text),
-                (None, None) => views::CameraSource::Script,
-            };
-            views::render(&view.args(&source), cameras, &out, gif).map(|text| emit(&format!("{text}\n")))
-        }
+        } => views::render(&view.args(&source), cameras.source(), &out, gif)
+            .map(|text| emit(&format!("{text}\n"))),
+        Command::Points {
+            source,
+            cameras,
+            view,
+            min_opacity,
+            out,
+        } => points::run(&points::PointsArgs {
+            view: view.args(&source),
+            cameras: cameras.source(),
+            min_opacity,
+            out: &out,
+        })
+        .map(|text| emit(&format!("{text}\n"))),
         Command::EvalViews {
             source,
             cameras,

@@ -15,6 +15,7 @@ use nerfjit_runtime::{
 };
 
 use crate::block::MAX_PIXELS;
+use crate::cameras::FrameSize;
 use crate::failure::{at, Failure, Result};
 use crate::field::VolumeFields;
 use crate::output::write_images;
@@ -174,18 +175,29 @@ pub enum CameraSource<'a> {
     File(&'a Path),
     /// A camera path written as in a script, e.g. `orbit(radius: 4, frames: 60, up: z, focal: 2)`.
     Path(&'a str),
-    /// The first `render` block of the script (a checkpoint's script included) that sets a camera.
-    Script,
+    /// The command's default: for `render`, the first `render` block of the script (a checkpoint's
+    /// script included) that sets a camera.
+    Default,
+}
+
+impl CameraSource<'_> {
+    /// The cameras of a file or a path with the file's frame size if it states one; `None` for the default.
+    pub(crate) fn cameras(&self) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
+        Ok(match self {
+            CameraSource::File(file) => Some(crate::cameras::camera_file(file, true)?),
+            CameraSource::Path(text) => Some((path_cameras(text)?, None)),
+            CameraSource::Default => None,
+        })
+    }
 }
 
 /// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
 /// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
     let (program, params) = load(args.source)?;
-    let (cameras, frame) = match cameras {
-        CameraSource::File(file) => crate::cameras::camera_file(file, true)?,
-        CameraSource::Path(text) => (path_cameras(text)?, None),
-        CameraSource::Script => (
+    let (cameras, frame) = match cameras.cameras()? {
+        Some(found) => found,
+        None => (
             script_cameras(&program)?.ok_or_else(|| {
                 Failure::Message(format!(
                     "{} has no render block with a camera: give --cameras FILE or --path 'orbit(radius: 4, frames: 60, up: z, focal: 2)'",

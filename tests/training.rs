@@ -144,6 +144,61 @@ fn training_steps_under_valgrind_make_no_memory_errors() {
 }
 
 #[test]
+fn a_point_cloud_of_the_field_lies_on_the_box_with_its_colors() {
+    let dir = scratch("points");
+    make_views(&dir);
+    let (ok, out, err) = run(
+        &dir,
+        &[
+            "points",
+            "truth.sdf",
+            "--cameras",
+            "cams.json",
+            "--size",
+            "40",
+            "--near",
+            "0",
+            "--far",
+            "5",
+            "--samples",
+            "48",
+            "--out",
+            "cloud.ply",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(out.contains("points from 4 views of 40×40"), "{out}");
+    let cloud = nerfjit_runtime::Mesh::read_ply(&dir.join("cloud.ply")).expect("a PLY");
+    assert!(
+        cloud.triangles.is_empty() && cloud.vertices.len() > 300,
+        "{} points",
+        cloud.vertices.len()
+    );
+    // The truth box: center [0.2, -0.1, 0.1], sides [1.2, 0.8, 1.0]; its color is |p − center|.
+    let center = [0.2f32, -0.1, 0.1];
+    let half = [0.6f32, 0.4, 0.5];
+    let (mut worst, mut color_error) = (0.0f32, 0.0f32);
+    for (p, color) in cloud.vertices.iter().zip(&cloud.colors) {
+        let q: Vec<f32> = (0..3).map(|i| (p[i] - center[i]).abs() - half[i]).collect();
+        let outside = q.iter().map(|x| x.max(0.0).powi(2)).sum::<f32>().sqrt();
+        let distance = outside + q.iter().fold(f32::MIN, |a, &b| a.max(b)).min(0.0);
+        worst = worst.max(distance.abs());
+        color_error += (0..3)
+            .map(|i| (color[i] - (p[i] - center[i]).abs().clamp(0.02, 0.98)).abs())
+            .sum::<f32>()
+            / 3.0;
+    }
+    assert!(worst < 0.1, "a point lies {worst} from the box");
+    // A pixel's color averages the colors along its ray where it enters the box, so it differs a little
+    // from the color at the point.
+    let mean_color_error = color_error / cloud.vertices.len() as f32;
+    assert!(
+        mean_color_error < 0.03,
+        "colors differ by {mean_color_error} on average"
+    );
+}
+
+#[test]
 fn diverging_training_stops_with_a_message() {
     let dir = scratch("nan");
     make_views(&dir);
