@@ -43,6 +43,7 @@ pub mod render;
 pub mod run;
 pub mod script;
 pub mod settings;
+pub mod tensorboard;
 pub mod train;
 pub mod train_sdf;
 pub mod transmittance;

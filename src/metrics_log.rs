@@ -1,12 +1,53 @@
 //! A training run's metrics log: one record per line, as JSON Lines, or as CSV when the file name ends in
 //! `.csv`. A fresh run replaces the file; a resumed run appends to it. Each record is written at once, so
-//! the file can be followed while training runs.
+//! the file can be followed while training runs. [`RunLog`] also sends the records to TensorBoard.
 
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use crate::failure::{Failure, Result};
+use crate::tensorboard::EventWriter;
+
+/// Where a run's records go: the metrics file and TensorBoard, each if asked for. The first column is the
+/// step; TensorBoard gets every other column as a scalar of that name.
+pub struct RunLog {
+    file: Option<MetricsLog>,
+    board: Option<EventWriter>,
+    columns: &'static [&'static str],
+}
+
+impl RunLog {
+    /// Opens the metrics file `file` (see [`MetricsLog::open`]) and a new event file in the TensorBoard
+    /// folder `board`, each if given.
+    pub fn open(
+        file: Option<&Path>,
+        board: Option<&Path>,
+        columns: &'static [&'static str],
+        append: bool,
+    ) -> Result<RunLog> {
+        Ok(RunLog {
+            file: file.map(|f| MetricsLog::open(f, columns, append)).transpose()?,
+            board: board.map(EventWriter::create).transpose()?,
+            columns,
+        })
+    }
+
+    /// Writes one record: a value (or nothing) per column, the step first.
+    pub fn record(&mut self, values: &[Option<f64>]) -> Result<()> {
+        if let Some(file) = &mut self.file {
+            file.record(values)?;
+        }
+        if let (Some(board), Some(Some(step))) = (&mut self.board, values.first()) {
+            for (tag, value) in self.columns.iter().zip(values).skip(1) {
+                if let Some(x) = value {
+                    board.scalar(tag, *step as u64, *x as f32)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
 
 /// An open metrics log with a fixed set of columns.
 pub struct MetricsLog {

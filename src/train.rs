@@ -18,7 +18,7 @@ use crate::data_source::{data_path, data_set, DataSet};
 use crate::failure::{Failure, Result};
 use crate::field::{VolumeField, VolumeFields};
 use crate::interrupt::Watch;
-use crate::metrics_log::MetricsLog;
+use crate::metrics_log::RunLog;
 use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 use crate::viewer::Live;
@@ -58,6 +58,7 @@ const KEYS: &[&str] = &[
     "spacing",
     "optimizer",
     "log",
+    "tensorboard",
 ];
 
 /// The columns of a volume training run's metrics log.
@@ -98,6 +99,8 @@ pub struct TrainPlan {
     checkpoint_every: u32,
     /// The metrics log (JSON Lines, or CSV).
     log: Option<PathBuf>,
+    /// A TensorBoard folder the metrics also go to.
+    tensorboard: Option<PathBuf>,
     summary: Option<PathBuf>,
     preview: Option<PathBuf>,
     preview_every: u32,
@@ -342,6 +345,7 @@ impl TrainPlan {
         let jitter = b.choice("jitter", &["true", "false"], "false")? == "true";
         let checkpoint = b.default_output("checkpoint", "ckpt.safetensors")?;
         let log = b.default_output("log", "metrics.jsonl")?;
+        let tensorboard = b.output("tensorboard")?;
         let summary = b.output("summary")?;
         let preview = b.output("preview")?;
         let validation = match b.take("val") {
@@ -394,6 +398,7 @@ impl TrainPlan {
             checkpoint,
             checkpoint_every,
             log,
+            tensorboard,
             summary,
             preview,
             preview_every,
@@ -433,6 +438,7 @@ impl TrainPlan {
             steps,
             checkpoint: None,
             log: None,
+            tensorboard: None,
             summary: None,
             preview: None,
             data: self.data.clone(),
@@ -496,11 +502,12 @@ impl TrainPlan {
             self.optimizer,
             |k| self.schedule.lr(k),
         )?;
-        let mut log = self
-            .log
-            .as_deref()
-            .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
-            .transpose()?;
+        let mut log = RunLog::open(
+            self.log.as_deref(),
+            self.tensorboard.as_deref(),
+            LOG_COLUMNS,
+            first > 0,
+        )?;
         let watch = Watch::start();
         let bar = step_bar(self.steps, "training");
         bar.set_position(u64::from(first));
@@ -628,10 +635,8 @@ impl TrainPlan {
                     history.push(serde_json::json!({
                         "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
                     }));
-                    if let Some(log) = &mut log {
-                        let (step, seconds) = (Some(f64::from(done)), Some(train_seconds));
-                        log.record(&[step, seconds, None, None, None, None, Some(p), Some(s)])?;
-                    }
+                    let (step, seconds) = (Some(f64::from(done)), Some(train_seconds));
+                    log.record(&[step, seconds, None, None, None, None, Some(p), Some(s)])?;
                 }
             }
             let mut record = None;
@@ -644,19 +649,17 @@ impl TrainPlan {
                     "train_seconds": train_seconds, "steps_per_s": steps_per_s,
                     "eta_seconds": f64::from(self.steps - done) / steps_per_s,
                 }));
-                if let Some(log) = &mut log {
-                    let eikonal = self.eikonal.is_some().then_some(f64::from(eikonal_loss));
-                    log.record(&[
-                        Some(f64::from(done)),
-                        Some(train_seconds),
-                        Some(f64::from(adam.lr)),
-                        Some(f64::from(loss)),
-                        Some(f64::from(psnr)),
-                        eikonal,
-                        None,
-                        None,
-                    ])?;
-                }
+                let eikonal = self.eikonal.is_some().then_some(f64::from(eikonal_loss));
+                log.record(&[
+                    Some(f64::from(done)),
+                    Some(train_seconds),
+                    Some(f64::from(adam.lr)),
+                    Some(f64::from(loss)),
+                    Some(f64::from(psnr)),
+                    eikonal,
+                    None,
+                    None,
+                ])?;
                 let rays_per_s = steps_per_s * self.batch as f64;
                 bar.set_message(format!(
                     "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",

@@ -16,7 +16,7 @@ use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
-use crate::metrics_log::MetricsLog;
+use crate::metrics_log::RunLog;
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
@@ -39,6 +39,7 @@ const KEYS: &[&str] = &[
     "checkpoint",
     "checkpoint_every",
     "log",
+    "tensorboard",
     "summary",
 ];
 
@@ -68,6 +69,8 @@ pub struct SdfTrainPlan {
     checkpoint_every: u32,
     /// The metrics log (JSON Lines, or CSV).
     log: Option<PathBuf>,
+    /// A TensorBoard folder the metrics also go to.
+    tensorboard: Option<PathBuf>,
     summary: Option<PathBuf>,
     points_gif: Option<PathBuf>,
 }
@@ -126,6 +129,7 @@ impl SdfTrainPlan {
             checkpoint: b.default_output("checkpoint", "ckpt.safetensors")?,
             checkpoint_every: b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32,
             log: b.default_output("log", "metrics.jsonl")?,
+            tensorboard: b.output("tensorboard")?,
             summary: b.output("summary")?,
             points_gif: b.image_output("points_gif")?,
         };
@@ -207,11 +211,12 @@ impl SdfTrainPlan {
         let threads = rayon::current_num_threads();
         let mut rng = Rng::new(self.seed ^ 0xB0_77);
         let total = self.pretrain_steps + self.steps;
-        let mut log = self
-            .log
-            .as_deref()
-            .map(|path| MetricsLog::open(path, LOG_COLUMNS, first > 0))
-            .transpose()?;
+        let mut log = RunLog::open(
+            self.log.as_deref(),
+            self.tensorboard.as_deref(),
+            LOG_COLUMNS,
+            first > 0,
+        )?;
         let watch = Watch::start();
         let bar = crate::train::step_bar(total, "fitting");
         bar.set_position(u64::from(first));
@@ -243,16 +248,14 @@ impl SdfTrainPlan {
             done = step + 1;
             let last = done == total || watch.requested();
             if done % 10 == 0 || last {
-                if let Some(log) = &mut log {
-                    let mut record = vec![
-                        Some(f64::from(done)),
-                        Some(start.elapsed().as_secs_f64()),
-                        Some(f64::from(adam.lr)),
-                        Some(f64::from(loss)),
-                    ];
-                    record.extend(terms.map(|t| Some(f64::from(t))));
-                    log.record(&record)?;
-                }
+                let mut record = vec![
+                    Some(f64::from(done)),
+                    Some(start.elapsed().as_secs_f64()),
+                    Some(f64::from(adam.lr)),
+                    Some(f64::from(loss)),
+                ];
+                record.extend(terms.map(|t| Some(f64::from(t))));
+                log.record(&record)?;
                 bar.set_message(format!(
                     "surface {:.5} near {:.5} eikonal {:.5}{}",
                     terms[0],

@@ -198,6 +198,52 @@ fn a_point_cloud_of_the_field_lies_on_the_box_with_its_colors() {
     );
 }
 
+/// The TFRecord payloads of a TensorBoard event file (each record's length and CRC framing skipped).
+fn event_records(path: &Path) -> Vec<Vec<u8>> {
+    let bytes = std::fs::read(path).expect("event file");
+    let (mut at, mut records) = (0, Vec::new());
+    while at + 12 <= bytes.len() {
+        let len = u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap()) as usize;
+        records.push(bytes[at + 12..at + 12 + len].to_vec());
+        at += 16 + len;
+    }
+    assert_eq!(at, bytes.len(), "records end with the file");
+    records
+}
+
+#[test]
+fn metrics_go_to_tensorboard_when_asked() {
+    let dir = scratch("tensorboard");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer_with(30, ", tensorboard: \"tb\"")).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let files: Vec<PathBuf> = std::fs::read_dir(dir.join("tb"))
+        .expect("the folder is made")
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    assert!(files[0]
+        .file_name()
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .starts_with("events.out.tfevents."));
+    let records = event_records(&files[0]);
+    assert!(records[0].ends_with(b"brain.Event:2"));
+    // Steps 10, 20, 30: train_seconds, lr, loss and psnr each.
+    let with = |tag: &[u8]| {
+        records
+            .iter()
+            .filter(|r| r.windows(tag.len()).any(|w| w == tag))
+            .count()
+    };
+    assert_eq!(
+        (with(b"\x0a\x04loss"), with(b"\x0a\x04psnr"), with(b"\x0a\x02lr")),
+        (3, 3, 3)
+    );
+}
+
 #[test]
 fn diverging_training_stops_with_a_message() {
     let dir = scratch("nan");
