@@ -3,12 +3,11 @@
 
 use std::time::Instant;
 
-use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::kernels;
 use nerfjit_jit::{Kernel, Options};
 use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
-use crate::block::Block;
+use crate::block::first_block;
 use crate::failure::{Failure, Result};
 use crate::field::JitFn;
 use crate::render::RenderPlan;
@@ -326,23 +325,6 @@ fn w1(reps: usize) -> Result<()> {
 }
 
 /// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
-fn first_block<'p>(program: &'p nerfjit_dsl::Program, kind: &str, script_dir: &str) -> Result<Block<'p>> {
-    let block = program
-        .blocks()
-        .into_iter()
-        .find(|b| b.kind.name == kind)
-        .ok_or_else(|| Failure::Message(format!("the benchmark script has no '{kind}' block")))?;
-    let settings = Settings::new(program, block).map_err(|d| crate::failure::at(program, d))?;
-    let temp = std::env::temp_dir();
-    Ok(Block::new(
-        program,
-        settings,
-        std::path::Path::new(script_dir),
-        Some(&temp),
-        std::rc::Rc::default(),
-    ))
-}
-
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
     let plan = crate::volume::VolumePlan::new(first_block(&program, "render", ".")?)?;

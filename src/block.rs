@@ -29,6 +29,25 @@ pub struct Block<'p> {
     outputs: Rc<Outputs>,
 }
 
+/// The first block of `kind` in `program` (a script in `script_dir`), read with its outputs redirected to
+/// the OS temp folder: for commands that use a block's settings without running it.
+pub fn first_block<'p>(program: &'p Program, kind: &str, script_dir: &str) -> Result<Block<'p>> {
+    let block = program
+        .blocks()
+        .into_iter()
+        .find(|b| b.kind.name == kind)
+        .ok_or_else(|| Failure::Message(format!("the script has no '{kind}' block")))?;
+    let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
+    let temp = std::env::temp_dir();
+    Ok(Block::new(
+        program,
+        settings,
+        Path::new(script_dir),
+        Some(&temp),
+        Rc::default(),
+    ))
+}
+
 impl<'p> Block<'p> {
     /// The settings of one block of `program`; relative input files are looked up next to the script,
     /// outputs go to `out_dir` when given and are recorded in `outputs` (shared by the run's blocks).

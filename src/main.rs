@@ -172,9 +172,11 @@ enum Command {
     EvalViews {
         /// A script, or a checkpoint written by a train block.
         source: String,
-        /// The camera file with the views' images (Blender `transforms_*.json`).
+        /// The camera file with the views' images (Blender `transforms_*.json`) [default: the views the
+        /// script's train block holds out for validation, loaded as it trains: its `val` file or
+        /// `holdout(every: n)` views of its data, at its size].
         #[arg(long)]
-        cameras: PathBuf,
+        cameras: Option<PathBuf>,
         #[command(flatten)]
         view: ViewOptions,
         /// Also write the scores as JSON: per view and mean PSNR and SSIM, the settings and render time.
@@ -461,7 +463,7 @@ fn run_command(cli: Cli) -> ExitCode {
             cameras,
             view,
             json,
-        } => views::eval(&view.args(&source), &cameras, json.as_deref()).map(|text| emit(&text)),
+        } => views::eval(&view.args(&source), cameras.as_deref(), json.as_deref()).map(|text| emit(&text)),
         Command::Compare {
             cameras,
             view,

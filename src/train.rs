@@ -450,15 +450,8 @@ impl TrainPlan {
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
-    /// Trains `params` in place (resuming from the checkpoint when asked), publishing its progress and
-    /// params to a live viewer when given; returns a summary line.
-    pub fn run(
-        &self,
-        program: &Program,
-        params: &mut Vec<f32>,
-        resume: bool,
-        live: Option<&Live>,
-    ) -> Result<String> {
+    /// The training views and the held-out views validation scores (if the block asks for validation).
+    pub fn load_views(&self) -> Result<(Views, Option<Views>)> {
         let mut views = self.data.views()?;
         let val_views = match self.validation.as_ref().map(|v| (&v.held_out, v.views)) {
             Some((HeldOut::Every(n), limit)) => {
@@ -474,6 +467,19 @@ impl TrainPlan {
             },
             None => None,
         };
+        Ok((views, val_views))
+    }
+
+    /// Trains `params` in place (resuming from the checkpoint when asked), publishing its progress and
+    /// params to a live viewer when given; returns a summary line.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &mut Vec<f32>,
+        resume: bool,
+        live: Option<&Live>,
+    ) -> Result<String> {
+        let (views, val_views) = self.load_views()?;
         let mut history: Vec<serde_json::Value> = Vec::new();
         let mut val_message = String::new();
         let mut train_seconds = 0.0f64;

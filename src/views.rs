@@ -152,6 +152,18 @@ impl Rendering {
     }
 }
 
+/// The held-out views the first `train` block of `program` (from `source`) validates on, loaded as in
+/// training.
+fn held_out_views(source: &str, program: &Program) -> Result<Views> {
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let plan = crate::train::TrainPlan::new(crate::block::first_block(program, "train", folder)?)?;
+    plan.load_views()?.1.ok_or_else(|| {
+        Failure::Message(format!(
+            "{source}'s train block holds no views out (no 'val' setting): give --cameras FILE"
+        ))
+    })
+}
+
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
 pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     if is_checkpoint(source) {
@@ -304,10 +316,13 @@ pub fn means(scores: &[(f32, f32)]) -> (f64, f64) {
 }
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
-pub fn eval(args: &ViewArgs, cameras: &Path, json: Option<&Path>) -> Result<String> {
+pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Result<String> {
     let (program, params) = load(args.source)?;
     let rendering = args.resolve(&program);
-    let views = load_blender_views(cameras, Some(args.size), rendering.background, None)?;
+    let views = match cameras {
+        Some(file) => load_blender_views(file, Some(args.size), rendering.background, None)?,
+        None => held_out_views(args.source, &program)?,
+    };
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
     let start = Instant::now();
@@ -322,8 +337,9 @@ pub fn eval(args: &ViewArgs, cameras: &Path, json: Option<&Path>) -> Result<Stri
     if let Some(path) = json {
         let report = serde_json::json!({
             "source": args.source,
-            "cameras": cameras.display().to_string(),
-            "size": args.size,
+            "cameras": cameras.map_or("the training data's held-out views".to_string(), |c| c.display().to_string()),
+            "width": views.width,
+            "height": views.height,
             "near": rendering.near,
             "far": rendering.far,
             "samples": rendering.samples,

@@ -110,7 +110,7 @@ fn train_and_check(dir: &Path, data: &str, extra: &str) -> serde_json::Value {
     let script = format!(
         "param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1.0, 1.0, 1.0]\n{FIELD}\
          train {{ data: {data}, near: 2, far: 6, samples: 48, steps: 300, batch: 800, lr: 0.01, \
-         schedule: exponential(gamma: 0.1, every: 400), checkpoint: none, summary: \"summary.json\" {extra}}}\n"
+         schedule: exponential(gamma: 0.1, every: 400), summary: \"summary.json\" {extra}}}\n"
     );
     std::fs::write(dir.join("train.sdf"), script).unwrap();
     let (ok, out, err) = run(dir, &["run", "train.sdf"]);
@@ -282,6 +282,24 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     let scores = summary["validation"].as_array().unwrap();
     let psnr = scores.last().unwrap()["val_psnr"].as_f64().unwrap();
     assert!(psnr > 40.0, "held-out PSNR {psnr}: {summary}");
+    // The checkpoint alone scores the same held-out views again.
+    let (ok, out, err) = run(
+        &dir,
+        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
+    );
+    assert!(ok, "{err}");
+    let scores: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
+    assert_eq!(scores["views"].as_array().unwrap().len(), 2, "{out}");
+    assert_eq!(
+        (scores["width"].as_u64(), scores["height"].as_u64()),
+        (Some(48), Some(32))
+    );
+    let again = scores["mean_psnr"].as_f64().unwrap();
+    assert!(
+        (again - psnr).abs() < 0.5,
+        "eval-views {again} dB, validation {psnr} dB"
+    );
 }
 
 /// An unbounded scene: a red ball at the center inside a colored shell 30 units away, seen from 36
