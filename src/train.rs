@@ -599,8 +599,10 @@ impl TrainPlan {
             if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {
                 bar.abandon();
                 return Err(crate::checkpoint::diverged(
+                    program,
                     step,
                     result.loss,
+                    &result.param_grads,
                     self.checkpoint.as_deref(),
                 ));
             }

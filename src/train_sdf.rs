@@ -238,8 +238,10 @@ impl SdfTrainPlan {
             if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
                 bar.abandon();
                 return Err(crate::checkpoint::diverged(
+                    program,
                     step,
                     loss,
+                    &grads,
                     self.checkpoint.as_deref(),
                 ));
             }

@@ -257,6 +257,10 @@ fn diverging_training_stops_with_a_message() {
     let (ok, _, err) = run(&dir, &["run", "nan.sdf"]);
     assert!(!ok);
     assert!(err.contains("training diverged at step 0"), "{err}");
+    assert!(
+        err.contains("the gradient of 's' (1 of 1 elements, the first 0 = NaN) is not finite"),
+        "{err}"
+    );
     assert!(err.contains("no checkpoint was written"), "{err}");
 }
 

@@ -178,12 +178,47 @@ fn configured(mut adam: Adam, settings: AdamSettings) -> Adam {
 
 /// The error of a training run that produced a non-finite loss or gradient at `step`, saying whether a
 /// good checkpoint was kept.
-pub fn diverged(step: u32, loss: f32, checkpoint: Option<&Path>) -> Failure {
+pub fn diverged(
+    program: &Program,
+    step: u32,
+    loss: f32,
+    grads: &[f32],
+    checkpoint: Option<&Path>,
+) -> Failure {
     let kept = match checkpoint {
         Some(p) if p.exists() => format!("the last good checkpoint is kept in '{}'", p.display()),
         _ => "no checkpoint was written".to_string(),
     };
     Failure::Message(format!(
-        "training diverged at step {step}: the loss or a gradient is not finite (loss {loss}); {kept}"
+        "training diverged at step {step}: {}; {kept}",
+        non_finite(program, loss, grads)
     ))
+}
+
+/// What is not finite: the params whose gradients are (each with its first bad element and value), or the
+/// loss alone.
+fn non_finite(program: &Program, loss: f32, grads: &[f32]) -> String {
+    let bad: Vec<String> = program
+        .params
+        .iter()
+        .filter_map(|p| {
+            let values = grads.get(p.offset..p.offset + p.ty.scalars())?;
+            let (i, g) = values.iter().enumerate().find(|(_, g)| !g.is_finite())?;
+            let count = values.iter().filter(|g| !g.is_finite()).count();
+            Some(format!(
+                "'{}' ({count} of {} elements, the first {i} = {g})",
+                p.name,
+                values.len()
+            ))
+        })
+        .collect();
+    if bad.is_empty() {
+        format!("the loss is {loss} while every gradient is finite")
+    } else {
+        format!(
+            "the gradient of {} is not finite (loss {loss}); look for sqrt, log or division of values \
+             that can reach 0 or below in the functions reading them",
+            bad.join(", ")
+        )
+    }
 }
