@@ -80,7 +80,14 @@ pub fn compare(
             };
             let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
             let settings = rendering.settings(fields.fine.mode);
-            let f = fields.render(camera, views.width, views.height, &params, &settings)?;
+            let grid = rendering.occupancy(&fields, &params)?;
+            let f = fields.render_with(
+                camera,
+                (views.width, views.height),
+                &params,
+                &settings,
+                grid.as_ref(),
+            )?;
             let image = ImageF32 {
                 width: f.width,
                 height: f.height,

@@ -292,6 +292,32 @@ impl VolumeFields {
         Ok(VolumeFields { fine, coarse })
     }
 
+    /// [`VolumeFields::render`], skipping the cells `grid` marks empty when given (with a single field;
+    /// hierarchical sampling does not skip yet).
+    pub fn render_with(
+        &self,
+        camera: &nerfjit_runtime::Camera,
+        (width, height): (u32, u32),
+        params: &[f32],
+        settings: &nerfjit_runtime::VolumeSettings,
+        grid: Option<&nerfjit_runtime::OccupancyGrid>,
+    ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
+        match (grid, &self.coarse) {
+            (Some(grid), None) => {
+                let (fine, _) = self.fine.bind(params);
+                Ok(nerfjit_runtime::render_volume_with(
+                    camera,
+                    width,
+                    height,
+                    &fine,
+                    settings,
+                    Some(grid),
+                )?)
+            }
+            _ => self.render(camera, width, height, params, settings),
+        }
+    }
+
     /// Renders one view (`settings.samples` coarse samples, plus the importance samples).
     pub fn render(
         &self,

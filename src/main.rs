@@ -303,6 +303,10 @@ struct ViewOptions {
     /// script's, else 0].
     #[arg(long, value_parser = clap::value_parser!(u32).range(0..=4096))]
     importance: Option<u32>,
+    /// Evaluate every sample: no occupancy grid or early ray termination even where the script's train
+    /// block uses them (by default renders skip what training skips).
+    #[arg(long)]
+    exact: bool,
 }
 
 impl ViewOptions {
@@ -318,6 +322,7 @@ impl ViewOptions {
                 .as_ref()
                 .map(|b| [if b == "white" { 1.0 } else { 0.0 }; 3]),
             importance: self.importance.map(|n| n as usize),
+            exact: self.exact,
         }
     }
 }

@@ -69,8 +69,9 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         triangles: Vec::new(),
         colors: Vec::new(),
     };
+    let grid = rendering.occupancy(&fields, &params)?;
     for camera in &cameras {
-        let frame = fields.render(camera, size, size, &params, &settings)?;
+        let frame = fields.render_with(camera, (size, size), &params, &settings, grid.as_ref())?;
         add_points(
             &mut cloud,
             camera,

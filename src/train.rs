@@ -114,7 +114,7 @@ pub struct TrainPlan {
     /// `every` steps from step `warmup` on.
     grid: Option<TrainingGrid>,
     /// Training rays stop once their transmittance is below this (later samples are neither evaluated
-    /// nor back-propagated); validation and previews stay exact.
+    /// nor back-propagated); validation stops rays the same way, previews are exact.
     early_termination: Option<f32>,
 }
 
@@ -633,7 +633,13 @@ impl TrainPlan {
                 let time_mark = next_val_time > marks_before;
                 // An interrupted run stops at once: it is not validated.
                 if done % v.every == 0 || time_mark || (last && !interrupted) {
-                    let (p, s) = crate::views::means(&crate::views::score(val, &fields, params, &settings)?);
+                    let (p, s) = crate::views::means(&crate::views::score(
+                        val,
+                        &fields,
+                        params,
+                        &step_settings,
+                        grid.as_ref(),
+                    )?);
                     val_message = format!(" val {p:.2} dB");
                     let line = format!(
                         "step {done}: val PSNR {p:.2} dB, SSIM {s:.4} ({} views) after {train_seconds:.0} s of training",

@@ -10,8 +10,8 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_views, psnr, rgb_image, ssim, Camera, DepthSpacing, ImageF32, Quantize, Views,
-    VolumeSettings,
+    load_blender_views, psnr, rgb_image, ssim, Camera, DepthSpacing, ImageF32, OccupancyGrid, Quantize,
+    Views, VolumeSettings,
 };
 
 use crate::block::MAX_PIXELS;
@@ -20,6 +20,7 @@ use crate::failure::{at, Failure, Result};
 use crate::field::VolumeFields;
 use crate::output::write_images;
 use crate::settings::triple;
+use crate::volume::SkipEmpty;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
 /// block (a checkpoint's script included): see [`ViewArgs::resolve`].
@@ -38,6 +39,8 @@ pub struct ViewArgs<'a> {
     pub background: Option<[f32; 3]>,
     /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
     pub importance: Option<usize>,
+    /// Evaluate every sample even where the script trains with an occupancy grid or early termination.
+    pub exact: bool,
 }
 
 /// How a field is rendered, every setting decided.
@@ -55,6 +58,10 @@ pub struct Rendering {
     pub importance: usize,
     /// How the samples are spread between near and far.
     pub spacing: DepthSpacing,
+    /// The occupancy grid the script trains with (rebuilt from the trained field), if any.
+    pub skip_empty: Option<SkipEmpty>,
+    /// Transmittance below which a ray stops, as the script trains.
+    pub early_termination: Option<f32>,
 }
 
 impl ViewArgs<'_> {
@@ -70,6 +77,8 @@ impl ViewArgs<'_> {
             background: self.background.unwrap_or(script.background),
             importance: self.importance.unwrap_or(script.importance),
             spacing: script.spacing,
+            skip_empty: script.skip_empty.filter(|_| !self.exact),
+            early_termination: script.early_termination.filter(|_| !self.exact),
         }
     }
 }
@@ -86,6 +95,8 @@ impl Rendering {
             background: trained.background.unwrap_or([0.0; 3]),
             importance: trained.importance.unwrap_or(0),
             spacing: trained.spacing.unwrap_or_default(),
+            skip_empty: trained.skip_empty,
+            early_termination: trained.early_termination,
         }
     }
 }
@@ -100,6 +111,8 @@ struct TrainedWith {
     background: Option<[f32; 3]>,
     importance: Option<usize>,
     spacing: Option<DepthSpacing>,
+    skip_empty: Option<SkipEmpty>,
+    early_termination: Option<f32>,
 }
 
 impl TrainedWith {
@@ -114,6 +127,9 @@ impl TrainedWith {
         let mut number = |key: &str| settings.take(key).and_then(|v| v.number().ok());
         let (near, far) = (number("near"), number("far"));
         let (samples, importance) = (number("samples"), number("importance"));
+        let early_termination = number("early_termination")
+            .filter(|&t| t > 0.0 && t <= 1.0)
+            .map(|t| t as f32);
         let count = |x: Option<f64>| x.filter(|n| *n >= 0.0 && n.fract() == 0.0).map(|n| n as usize);
         let data_background = settings.take("data").and_then(|data| match data.value {
             Value::Call(_, args) => args
@@ -126,6 +142,10 @@ impl TrainedWith {
         let spacing = settings
             .take("spacing")
             .and_then(|v| crate::volume::depth_spacing(&v).ok());
+        let skip_empty = settings
+            .take("skip_empty")
+            .and_then(|v| crate::volume::skip_empty(&v).ok().flatten());
+
         TrainedWith {
             near: near.map(|x| x as f32),
             far: far.map(|x| x as f32),
@@ -133,6 +153,8 @@ impl TrainedWith {
             background: background.or(data_background),
             importance: count(importance),
             spacing,
+            skip_empty,
+            early_termination,
         }
     }
 }
@@ -146,9 +168,26 @@ impl Rendering {
             samples: self.samples,
             mode,
             background: Some(self.background),
-            early_termination: None,
+            early_termination: self.early_termination,
             spacing: self.spacing,
         }
+    }
+
+    /// The occupancy grid to render with: the script's `skip_empty` grid built from the field with `params`
+    /// as training builds it (none with hierarchical sampling, which does not skip yet).
+    pub fn occupancy(&self, fields: &VolumeFields, params: &[f32]) -> Result<Option<OccupancyGrid>> {
+        let Some(s) = self.skip_empty.filter(|_| fields.coarse.is_none()) else {
+            return Ok(None);
+        };
+        let (forward, _) = fields.fine.bind(params);
+        let mode = fields.fine.mode;
+        Ok(Some(OccupancyGrid::build_for_training(
+            &forward,
+            s.bounds,
+            s.resolution,
+            mode,
+            s.threshold,
+        )?))
     }
 }
 
@@ -242,11 +281,12 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
     let settings = rendering.settings(fields.fine.mode);
+    let grid = rendering.occupancy(&fields, &params)?;
     let start = Instant::now();
     let images = cameras
         .iter()
         .map(|camera| {
-            let f = fields.render(camera, width, height, &params, &settings)?;
+            let f = fields.render_with(camera, (width, height), &params, &settings, grid.as_ref())?;
             Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
         })
         .collect::<Result<Vec<_>>>()?;
@@ -290,13 +330,14 @@ pub fn score(
     fields: &VolumeFields,
     params: &[f32],
     settings: &VolumeSettings,
+    grid: Option<&OccupancyGrid>,
 ) -> Result<Vec<(f32, f32)>> {
     views
         .cameras
         .iter()
         .zip(&views.images)
         .map(|(camera, target)| {
-            let f = fields.render(camera, views.width, views.height, params, settings)?;
+            let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
             let rendered = ImageF32 {
                 width: f.width,
                 height: f.height,
@@ -326,7 +367,14 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
     let start = Instant::now();
-    let scores = score(&views, &fields, &params, &rendering.settings(fields.fine.mode))?;
+    let grid = rendering.occupancy(&fields, &params)?;
+    let scores = score(
+        &views,
+        &fields,
+        &params,
+        &rendering.settings(fields.fine.mode),
+        grid.as_ref(),
+    )?;
     let seconds = start.elapsed().as_secs_f64();
     let mut lines = String::from("view  PSNR (dB)  SSIM\n");
     for (i, (p, s)) in scores.iter().enumerate() {
@@ -344,6 +392,8 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
             "far": rendering.far,
             "samples": rendering.samples,
             "importance": rendering.importance,
+            "occupancy_grid": grid.is_some(),
+            "early_termination": rendering.early_termination,
             "background": rendering.background,
             "views": scores.iter().map(|(p, s)| serde_json::json!({"psnr": p, "ssim": s})).collect::<Vec<_>>(),
             "mean_psnr": p,

@@ -34,7 +34,7 @@ const KEYS: &[&str] = &[
 ];
 
 /// Empty-space skipping: an occupancy grid of the field, built once before rendering.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SkipEmpty {
     /// The grid's corners: nothing outside is rendered.
     pub bounds: ([f32; 3], [f32; 3]),
