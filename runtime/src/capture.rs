@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 
-use glam::{Mat3, Mat4, Quat, Vec3};
+use glam::{Mat3, Mat4, Vec3};
 use image::ImageDecoder;
 use rayon::prelude::*;
 
@@ -171,7 +171,7 @@ impl Capture {
     pub fn normalize(&mut self) -> Result<Normalization> {
         let up: Vec3 = self.frames.iter().map(|f| f.camera.c2w.y_axis.truncate()).sum();
         let rotation = if up.length() > 1e-6 {
-            Mat3::from_quat(Quat::from_rotation_arc(up.normalize(), Vec3::Z))
+            rotation_onto_z(up.normalize())
         } else {
             Mat3::IDENTITY
         };
@@ -277,6 +277,21 @@ impl Capture {
             width,
             height,
         })
+    }
+}
+
+/// The shortest rotation taking the unit vector `from` onto +Z. (glam's `from_rotation_arc` returns the
+/// identity for angles below about 7·10⁻⁴ rad; this keeps them.)
+fn rotation_onto_z(from: Vec3) -> Mat3 {
+    let axis = from.cross(Vec3::Z);
+    let (sin, cos) = (axis.length(), from.z);
+    if sin > 1e-12 {
+        Mat3::from_axis_angle(axis / sin, sin.atan2(cos))
+    } else if cos > 0.0 {
+        Mat3::IDENTITY
+    } else {
+        // Upside down: half a turn about x.
+        Mat3::from_axis_angle(Vec3::X, std::f32::consts::PI)
     }
 }
 
@@ -475,6 +490,15 @@ mod tests {
                     "{} vs {}", got.camera.c2w, want.camera.c2w);
             }
             prop_assert!(capture.points[0].abs_diff_eq(original.points[0], 2e-3));
+        }
+    }
+
+    #[test]
+    fn tiny_and_upside_down_tilts_are_undone() {
+        for tilt in [6.664e-4f32, 1e-5, std::f32::consts::PI] {
+            let r = Mat3::from_axis_angle(Vec3::X, tilt);
+            let up = r * Vec3::Z;
+            assert!((rotation_onto_z(up) * up).abs_diff_eq(Vec3::Z, 1e-6), "{tilt}");
         }
     }
 
