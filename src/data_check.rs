@@ -98,7 +98,7 @@ fn check_file(file: &Path) -> Result<String> {
             CameraFormat::Box => "course (PyTorch3D look-at)",
         }
     );
-    let (images, width) = image_summary(&set)?;
+    let (images, (width, _)) = image_summary(&set)?;
     out += &format!("  {n} view{}, {images}\n", if n == 1 { "" } else { "s" });
     if format == CameraFormat::Blender {
         let scale = set.cameras[0].ndc_scale().pixels(width, width);
@@ -124,8 +124,8 @@ fn check_file(file: &Path) -> Result<String> {
 }
 
 /// Whether every image exists and all have one size: e.g. "images 800×800 PNG (RGBA), all present", and
-/// their width.
-fn image_summary(set: &CameraSet) -> Result<(String, u32)> {
+/// that (width, height).
+fn image_summary(set: &CameraSet) -> Result<(String, (u32, u32))> {
     let missing: Vec<&PathBuf> = set.images.iter().filter(|p| !p.is_file()).collect();
     if !missing.is_empty() {
         let shown: Vec<String> = missing
@@ -173,7 +173,7 @@ fn image_summary(set: &CameraSet) -> Result<(String, u32)> {
     let (w, h) = sizes[0];
     Ok((
         format!("images {w}×{h} {}, all present", formats.join(" and ")),
-        w,
+        (w, h),
     ))
 }
 
@@ -223,9 +223,9 @@ fn check_capture(source: &Path, kind: &str, mut capture: Capture) -> Result<Stri
         images: capture.frames.iter().map(|f| f.image.clone()).collect(),
         image_size: None,
     };
-    let (images, _) = image_summary(&set)?;
+    // The images all have one size (or image_summary said otherwise): each camera must state it.
+    let (images, (w, h)) = image_summary(&set)?;
     for frame in &capture.frames {
-        let (w, h, _) = image_kind(&frame.image)?;
         if (w, h) != (frame.camera.width, frame.camera.height) {
             return Err(Failure::Message(format!(
                 "'{}' is {w}×{h}, but its camera says {}×{}",

@@ -80,17 +80,12 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
                 .with_hint(HINT),
         );
     };
-    let (slots, kind_name): (&'static [&'static str], &str) = match kind.as_str() {
-        "views" => (&["file"], "views"),
-        "blender" => (&["file", "size", "background", "views"], "blender"),
-        "nerfstudio" => (
-            &["file", "downscale", "background", "views", "normalize"],
-            "nerfstudio",
-        ),
-        "colmap" => (
-            &["model", "images", "downscale", "background", "views", "normalize"],
-            "colmap",
-        ),
+    let kind_name = kind.as_str();
+    let slots: &'static [&'static str] = match kind_name {
+        "views" => &["file"],
+        "blender" => &["file", "size", "background", "views"],
+        "nerfstudio" => &["file", "downscale", "background", "views", "normalize"],
+        "colmap" => &["model", "images", "downscale", "background", "views", "normalize"],
         other => {
             return Err(Diagnostic::new(v.span, format!("unknown data source '{other}'")).with_hint(HINT));
         }

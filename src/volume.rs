@@ -8,7 +8,7 @@ use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    render_volume_with, rgb_image, Camera, DepthSpacing, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
+    rgb_image, Camera, DepthSpacing, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -152,10 +152,7 @@ impl VolumePlan {
         };
         let mut frames = Vec::with_capacity(self.cameras.len());
         for (i, camera) in self.cameras.iter().enumerate() {
-            frames.push(match &grid {
-                Some(grid) => render_volume_with(camera, w, h, &forward, &settings, Some(grid))?,
-                None => fields.render(camera, w, h, params, &settings)?,
-            });
+            frames.push(fields.render_with(camera, (w, h), params, &settings, grid.as_ref())?);
             progress(i + 1);
         }
         let seconds = start.elapsed().as_secs_f64();

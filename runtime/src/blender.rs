@@ -155,10 +155,7 @@ fn decode_all(files: &[PathBuf], request: &Request) -> Result<Vec<ImageF32>> {
 
 /// Decodes one RGBA PNG into its source (width, height) and the composited, resized image.
 fn decode_view(file: &Path, request: &Request) -> Result<((u32, u32), ImageF32)> {
-    let bytes = std::fs::read(file).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => Error::read(file, "file not found"),
-        _ => Error::read(file, e),
-    })?;
+    let bytes = std::fs::read(file).map_err(|e| Error::reading(file, e))?;
     if !bytes.starts_with(PNG_SIGNATURE) {
         return Err(Error::format(file, "not a PNG file"));
     }

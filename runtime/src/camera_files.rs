@@ -48,6 +48,16 @@ fn beside(file: &Path, path: &str) -> PathBuf {
     file.parent().unwrap_or(Path::new("")).join(path)
 }
 
+/// A transforms file's `file_path` beside the file; without an extension it gets `.png`, as in the
+/// original NeRF loader.
+pub(crate) fn frame_image(file: &Path, path: &str) -> PathBuf {
+    let mut image = beside(file, path);
+    if image.extension().is_none() {
+        image.set_extension("png");
+    }
+    image
+}
+
 /// Reads the course format (`box_cameras.json`): `image_size` [H, W] and a list `cameras` of
 /// `{image, focal, principal_point, eye, scene_center, up}` PyTorch3D look-at cameras
 /// (`focal` is a number or [fx, fy], in NDC).
@@ -110,10 +120,7 @@ pub fn load_blender_cameras(path: &Path) -> Result<CameraSet> {
         let matrix = frame.get("transform_matrix")?;
         let camera =
             Camera::from_blender(matrix.mat4_rows()?, camera_angle_x).map_err(|e| matrix.invalid(e))?;
-        let mut image = beside(path, frame.get("file_path")?.str()?);
-        if image.extension().is_none() {
-            image.set_extension("png");
-        }
+        let image = frame_image(path, frame.get("file_path")?.str()?);
         set.cameras.push(camera);
         set.images.push(image);
     }

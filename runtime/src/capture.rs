@@ -209,7 +209,7 @@ impl Capture {
     }
 
     /// The first `limit` frames (all if `None`), or an error if there are fewer.
-    fn frames(&self, source: &Path, limit: Option<usize>) -> Result<&[Frame]> {
+    fn first_frames(&self, source: &Path, limit: Option<usize>) -> Result<&[Frame]> {
         match limit {
             None => Ok(&self.frames),
             Some(n) if n >= 1 && n <= self.frames.len() => Ok(&self.frames[..n]),
@@ -245,7 +245,7 @@ impl Capture {
 
     /// The cameras of the first `limit` frames for their images divided by `downscale`.
     pub fn cameras(&self, source: &Path, downscale: u32, limit: Option<usize>) -> Result<Vec<Camera>> {
-        let frames = self.frames(source, limit)?;
+        let frames = self.first_frames(source, limit)?;
         let (width, height) = Capture::common_size(frames, downscale.max(1))?;
         frames.iter().map(|f| f.camera.camera(width, height)).collect()
     }
@@ -261,7 +261,7 @@ impl Capture {
             )));
         }
         let downscale = request.downscale.max(1);
-        let frames = self.frames(source, request.limit)?;
+        let frames = self.first_frames(source, request.limit)?;
         let (width, height) = Capture::common_size(frames, downscale)?;
         let images = frames
             .par_iter()
@@ -318,10 +318,7 @@ fn nearest_to_axes(positions: &[Vec3], axes: &[Vec3]) -> Vec3 {
 pub fn decode_checked(path: &Path) -> Result<image::DynamicImage> {
     let bad = |e: &dyn std::fmt::Display| Error::format(path, format!("invalid image: {e}"));
     let reader = image::ImageReader::open(path)
-        .map_err(|e| match e.kind() {
-            std::io::ErrorKind::NotFound => Error::read(path, "file not found"),
-            _ => Error::read(path, e),
-        })?
+        .map_err(|e| Error::reading(path, e))?
         .with_guessed_format()
         .map_err(|e| Error::read(path, e))?;
     if reader.format().is_none() {

@@ -39,6 +39,14 @@ impl Error {
         }
     }
 
+    /// An error reading `path`, saying "file not found" when it does not exist.
+    pub(crate) fn reading(path: &Path, e: std::io::Error) -> Error {
+        match e.kind() {
+            std::io::ErrorKind::NotFound => Error::read(path, "file not found"),
+            _ => Error::read(path, e),
+        }
+    }
+
     /// An error writing `path`.
     pub(crate) fn write(path: &Path, reason: impl fmt::Display) -> Error {
         Error::Io {

@@ -8,9 +8,10 @@
 //! unnamed); fisheye and equirectangular cameras are refused. `transform_matrix` is
 //! camera-to-world in the OpenGL convention; `aabb_scale` is kept for reports.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::camera::PixelIntrinsics;
+use crate::camera_files::frame_image;
 use crate::capture::{Capture, Distortion, Frame, FrameCamera};
 use crate::error::{Error, Result};
 use crate::json::{self, Node};
@@ -54,14 +55,7 @@ fn number(root: &Node, frame: &Node, key: &str) -> Result<Option<f32>> {
 }
 
 fn read_frame(path: &Path, root: &Node, frame: &Node) -> Result<Frame> {
-    let file = frame.get("file_path")?.str()?;
-    let mut image = path
-        .parent()
-        .unwrap_or(Path::new(""))
-        .join(file.strip_prefix("./").unwrap_or(file));
-    if image.extension().is_none() {
-        image.set_extension("png");
-    }
+    let image = frame_image(path, frame.get("file_path")?.str()?);
     let model = match frame.opt("camera_model")? {
         Some(n) => Some(n),
         None => root.opt("camera_model")?,
@@ -133,7 +127,7 @@ fn pixels(frame: &Node, key: &str, value: f32) -> Result<u32> {
 }
 
 /// The size an image's header states (the image is not decoded).
-fn header_size(image: &PathBuf) -> Result<(u32, u32)> {
+fn header_size(image: &Path) -> Result<(u32, u32)> {
     image::image_dimensions(image).map_err(|e| match e {
         image::ImageError::IoError(e) if e.kind() == std::io::ErrorKind::NotFound => Error::read(
             image,
@@ -147,6 +141,7 @@ fn header_size(image: &PathBuf) -> Result<(u32, u32)> {
 mod tests {
     use super::*;
     use glam::Vec3;
+    use std::path::PathBuf;
 
     fn temp_file(name: &str, text: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("nerfjit-nerfstudio-{}", std::process::id()));

@@ -69,8 +69,8 @@ struct Job<'a> {
     /// The fine pass and its settings (samples = coarse + importance), if sampling is hierarchical.
     fine: Option<(&'a FinePass<'a>, VolumeSettings)>,
     grid: Option<&'a OccupancyGrid>,
-    /// `Some(linspace(near, far, samples))` when the depths are not jittered.
-    linspace: Option<Vec<f32>>,
+    /// The depths of every ray when they are not jittered.
+    fixed_depths: Option<Vec<f32>>,
     /// ∂loss/∂color = scale·(color − target).
     scale: f32,
 }
@@ -84,9 +84,9 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
     s.reserve(len, n);
     let mut rng = Rng::new(seed);
     let depths = &mut s.depths[..len];
-    match &job.linspace {
-        Some(linspace) => {
-            for (row, &t) in depths.chunks_exact_mut(n).zip(linspace) {
+    match &job.fixed_depths {
+        Some(fixed) => {
+            for (row, &t) in depths.chunks_exact_mut(n).zip(fixed) {
                 row.fill(t);
             }
         }
@@ -106,7 +106,7 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
     let Some((fine, fine_settings)) = &job.fine else {
         return [coarse, 0.0];
     };
-    let jitter = job.linspace.is_none().then_some(&mut rng);
+    let jitter = job.fixed_depths.is_none().then_some(&mut rng);
     let fine_depths = importance_depths(job.settings, fine.importance, s, n, jitter);
     s.reserve(fine_depths.len(), n);
     s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
@@ -338,7 +338,7 @@ fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
-/// between `settings.near` and `settings.far` (`linspace`, or stratified with uniform jitter
+/// between `settings.near` and `settings.far` (`linspace` spread by the settings' spacing, or stratified with uniform jitter
 /// drawn from `jitter` when given), evaluates `field`, composites, takes the mean squared
 /// error over rays and channels, and back-propagates it through the compositor and `vjp`
 /// (the field's backward pass) to the field's parameters.
@@ -406,7 +406,7 @@ pub fn volume_step_with(
     let tile = settings.rays_per_tile();
     let n_tiles = rays.len().div_ceil(tile);
     // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
-    let (linspace, seeds) = match jitter {
+    let (fixed_depths, seeds) = match jitter {
         Some(rng) => (None, (0..n_tiles).map(|_| rng.next_u64()).collect()),
         None => {
             let mut depths = vec![0.0; settings.samples];
@@ -422,7 +422,7 @@ pub fn volume_step_with(
         settings,
         fine,
         grid: options.grid,
-        linspace,
+        fixed_depths,
         scale: 2.0 / (3.0 * rays.len() as f32),
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
