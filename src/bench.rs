@@ -30,6 +30,10 @@ pub enum Workload {
     W5,
     /// W6: training steps of the course's VolSDF on lego (needs ../shared/data/lego).
     W6,
+    /// W8: hash-grid training steps of `instant_lego.sdf` (needs ../shared/data/lego): its recipe (2^14
+    /// entries per hashed level, 1024 rays a step, the occupancy grid from step 50), and instant-ngp's
+    /// table of 2^19 entries with 4096 rays a step.
+    W8,
     /// Marching cubes of W7's 20-primitive scene at 512³ over [-4, 4]³: every grid point evaluated, and only
     /// the blocks that interval bounds leave near the surface (the same mesh, checked).
     Mesh,
@@ -70,6 +74,7 @@ pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()
         Workload::W4 => w4(reps),
         Workload::W5 => w5(reps),
         Workload::W6 => w6(reps),
+        Workload::W8 => w8(reps),
         Workload::Mesh => mesh(reps),
         Workload::Large => large(reps),
         Workload::Dense => dense(reps, threads),
@@ -538,6 +543,23 @@ fn w4(reps: usize) -> Result<()> {
     crate::emit(&format!(
         "W4 render: one 128×128 view, 128 samples per ray: {seconds:.2} s/view\n"
     ));
+    Ok(())
+}
+
+fn w8(reps: usize) -> Result<()> {
+    let steps = 200 * reps.max(1) as u32;
+    let (name, source) = script::read("examples/instant_lego.sdf")?;
+    for (label, table, batch) in [("the example's", 14, 1024), ("instant-ngp's", 19, 4096)] {
+        let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
+        let overrides = [format!("train.batch={batch}")];
+        let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
+        let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
+        let mut params = program.param_values.clone();
+        let summary = plan.run_steps(&program, &mut params, steps)?;
+        crate::emit(&format!(
+            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {summary}\n"
+        ));
+    }
     Ok(())
 }
 

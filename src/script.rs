@@ -20,7 +20,8 @@ pub fn load_with(path: &str, overrides: &[String]) -> Result<Program> {
     compile_with(&name, &source, overrides).map_err(Failure::Script)
 }
 
-fn read(path: &str) -> Result<(String, String)> {
+/// The name and source text of the script at `path` (or of the embedded example it names), unchecked.
+pub fn read(path: &str) -> Result<(String, String)> {
     match std::fs::read_to_string(path) {
         Ok(source) => Ok((path.to_string(), source)),
         Err(e) => {

@@ -500,6 +500,8 @@ impl TrainPlan {
             early_termination: self.early_termination,
             ..settings
         };
+        // The params before a step, to restore if the step makes one non-finite (kept between steps).
+        let mut before = Vec::with_capacity(params.len());
         let (mut adam, first) = crate::checkpoint::resume_or_start(
             program,
             self.checkpoint.as_deref(),
@@ -607,15 +609,17 @@ impl TrainPlan {
                 ));
             }
             adam.lr = self.schedule.lr(step);
-            let before = params.clone();
+            before.clear();
+            before.extend_from_slice(params);
             adam.step(params, &result.param_grads)?;
             if params.iter().any(|p| !p.is_finite()) {
-                *params = before;
+                params.copy_from_slice(&before);
                 return Err(Failure::Message(format!(
                     "training diverged at step {step}: a param became non-finite"
                 )));
             }
             (loss, psnr) = (result.loss, result.psnr);
+            nerfjit_runtime::train::recycle(result.param_grads);
             train_seconds += step_start.elapsed().as_secs_f64();
             done = step + 1;
             let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);

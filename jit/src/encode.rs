@@ -3,6 +3,9 @@
 //!
 //! The layout, the hash and the weights are those of [`nerfjit_dsl::grid`] (the interpreter's oracle);
 //! here they run in f32 over the columns of a tile, with the levels' layouts computed once per kernel.
+//! On AVX-512 machines 16 points go through a level at once (the corners hashed in vector registers,
+//! the table read by gathers); the arithmetic is the scalar path's, operation for operation, so both give
+//! the same bits.
 
 use nerfjit_dsl::grid::Level;
 use nerfjit_dsl::ir::{GridRead, GridSpec};
@@ -18,6 +21,9 @@ pub(crate) struct GridPlan {
     /// Twice the half extent's inverse: maps p + extent into [0, 1].
     inv_size: f32,
     extent: f32,
+    /// Whether the 16-point path runs: AVX-512 (with conflict detection) is there and every table index
+    /// fits its 32-bit lanes.
+    wide: bool,
 }
 
 /// The 8 corners of one point's cell in one level: entries and weights.
@@ -39,6 +45,8 @@ impl GridPlan {
             end: spec.table as usize + spec.n_params() as usize,
             inv_size: 1.0 / (2.0 * extent),
             extent,
+            wide: crate::gemm::has_avx512_cd()
+                && spec.table as usize + spec.n_params() as usize <= i32::MAX as usize,
         }
     }
 
@@ -91,6 +99,11 @@ impl GridPlan {
     pub(crate) unsafe fn read(&self, p: [*const f32; 3], out: &[*mut f32], params: &[f32], count: usize) {
         assert!(params.len() >= self.end, "the grid's table is outside the params");
         assert_eq!(out.len(), self.levels.len() * self.features);
+        #[cfg(target_arch = "x86_64")]
+        if self.wide {
+            // SAFETY: AVX-512 is there (`wide`); the caller's guarantees are passed on.
+            return unsafe { avx512::read(self, p, out, params, count) };
+        }
         for (l, level) in self.levels.iter().enumerate() {
             for t in 0..count {
                 // SAFETY: t < count, as the caller guarantees for every column.
@@ -126,6 +139,11 @@ impl GridPlan {
             "the grid's table is outside the gradients"
         );
         assert_eq!(cot.len(), self.levels.len() * self.features);
+        #[cfg(target_arch = "x86_64")]
+        if self.wide {
+            // SAFETY: AVX-512 and its CD extension are there (`wide`); the caller's guarantees are passed on.
+            return unsafe { avx512::scatter(self, p, cot, grads, count) };
+        }
         for (l, level) in self.levels.iter().enumerate() {
             for t in 0..count {
                 // SAFETY: t < count, as the caller guarantees for every column.
@@ -142,6 +160,294 @@ impl GridPlan {
                         unsafe { *grads.get_unchecked_mut(corners.entry[k] + f) += corners.weight[k] * c };
                     }
                 }
+            }
+        }
+    }
+}
+
+/// The 16-point paths: [`GridPlan::read`] and [`GridPlan::scatter`] on AVX-512.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    use nerfjit_dsl::grid::Level;
+
+    use super::GridPlan;
+
+    /// Points per vector.
+    const LANES: usize = 16;
+
+    /// The 8 corners of 16 points' cells in one level: table indices (of the first feature) and weights.
+    struct Corners16 {
+        index: [__m512i; 8],
+        weight: [__m512; 8],
+    }
+
+    /// The lanes of the points `start..start + 16` that are below `count`.
+    fn lanes(start: usize, count: usize) -> __mmask16 {
+        let n = (count - start).min(LANES);
+        ((1u32 << n) - 1) as __mmask16
+    }
+
+    /// `GridPlan::corners` for 16 points, operation for operation.
+    #[target_feature(enable = "avx512f")]
+    fn corners(plan: &GridPlan, level: &Level, p: [__m512; 3]) -> Corners16 {
+        let res = level.res as f32;
+        let zero = _mm512_setzero_ps();
+        let one = _mm512_set1_ps(1.0);
+        let extent = _mm512_set1_ps(plan.extent);
+        let inv_size = _mm512_set1_ps(plan.inv_size);
+        let top = _mm512_set1_epi32(level.res.saturating_sub(1) as i32);
+        let mut lower = [_mm512_setzero_si512(); 3];
+        let mut factor = [[zero; 2]; 3];
+        for a in 0..3 {
+            let unit = _mm512_mul_ps(_mm512_add_ps(p[a], extent), inv_size);
+            let inside =
+                _mm512_cmp_ps_mask::<_CMP_GT_OQ>(unit, zero) & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(unit, one);
+            // max first: it maps NaN to 0 as the scalar path's clamp-then-max does.
+            let u = _mm512_mul_ps(_mm512_min_ps(_mm512_max_ps(unit, zero), one), _mm512_set1_ps(res));
+            let c = _mm512_min_epu32(_mm512_cvttps_epu32(u), top);
+            let f = _mm512_sub_ps(u, _mm512_cvtepu32_ps(c));
+            lower[a] = c;
+            factor[a] = if plan.deriv >> a & 1 == 1 {
+                let s = _mm512_maskz_mov_ps(inside, _mm512_set1_ps(res * plan.inv_size));
+                let negated = _mm512_castsi512_ps(_mm512_xor_si512(
+                    _mm512_castps_si512(s),
+                    _mm512_set1_epi32(i32::MIN),
+                ));
+                [negated, s]
+            } else {
+                [_mm512_sub_ps(one, f), f]
+            };
+        }
+        let features = _mm512_set1_epi32(plan.features as i32);
+        let first = _mm512_set1_epi32(plan.table as i32);
+        let offset = _mm512_set1_epi32(level.offset as i32);
+        let mut corners = Corners16 {
+            index: [_mm512_setzero_si512(); 8],
+            weight: [zero; 8],
+        };
+        for k in 0..8usize {
+            let bit = |a: usize| k >> a & 1;
+            let v = [0, 1, 2].map(|a| _mm512_add_epi32(lower[a], _mm512_set1_epi32(bit(a) as i32)));
+            let local = match level.hash_mask {
+                Some(mask) => {
+                    let h = _mm512_xor_si512(
+                        _mm512_xor_si512(
+                            v[0],
+                            _mm512_mullo_epi32(v[1], _mm512_set1_epi32(2_654_435_761u32 as i32)),
+                        ),
+                        _mm512_mullo_epi32(v[2], _mm512_set1_epi32(805_459_861)),
+                    );
+                    _mm512_and_si512(h, _mm512_set1_epi32(mask as i32))
+                }
+                None => {
+                    let n = _mm512_set1_epi32(level.res as i32 + 1);
+                    let row = _mm512_add_epi32(_mm512_mullo_epi32(v[2], n), v[1]);
+                    _mm512_add_epi32(_mm512_mullo_epi32(row, n), v[0])
+                }
+            };
+            corners.index[k] = _mm512_add_epi32(
+                first,
+                _mm512_mullo_epi32(_mm512_add_epi32(offset, local), features),
+            );
+            corners.weight[k] = _mm512_mul_ps(
+                _mm512_mul_ps(factor[0][bit(0)], factor[1][bit(1)]),
+                factor[2][bit(2)],
+            );
+        }
+        corners
+    }
+
+    /// The point columns' lanes `start..start + 16` (0 beyond `count`).
+    ///
+    /// # Safety
+    /// The columns must address `count` readable floats.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn load_points(p: [*const f32; 3], start: usize, m: __mmask16) -> [__m512; 3] {
+        // SAFETY: the masked lanes are below count.
+        p.map(|c| unsafe { _mm512_maskz_loadu_ps(m, c.add(start)) })
+    }
+
+    /// [`GridPlan::read`] on AVX-512.
+    ///
+    /// # Safety
+    /// As [`GridPlan::read`]'s, with `params.len() ≥ plan.end` and every index below 2^31.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn read(
+        plan: &GridPlan,
+        p: [*const f32; 3],
+        out: &[*mut f32],
+        params: &[f32],
+        count: usize,
+    ) {
+        for (l, level) in plan.levels.iter().enumerate() {
+            for start in (0..count).step_by(LANES) {
+                let m = lanes(start, count);
+                // SAFETY: the caller's columns hold count floats.
+                let corners = corners(plan, level, unsafe { load_points(p, start, m) });
+                for f in 0..plan.features {
+                    let shift = _mm512_set1_epi32(f as i32);
+                    let mut sum = _mm512_setzero_ps();
+                    for k in 0..8 {
+                        // SAFETY: an index + f is below plan.end ≤ params.len(), as in the scalar path.
+                        let value = unsafe {
+                            _mm512_mask_i32gather_ps::<4>(
+                                _mm512_setzero_ps(),
+                                m,
+                                _mm512_add_epi32(corners.index[k], shift),
+                                params.as_ptr(),
+                            )
+                        };
+                        sum = _mm512_add_ps(sum, _mm512_mul_ps(corners.weight[k], value));
+                    }
+                    // SAFETY: the output columns hold count floats.
+                    unsafe { _mm512_mask_storeu_ps(out[l * plan.features + f].add(start), m, sum) };
+                }
+            }
+        }
+    }
+
+    /// [`GridPlan::scatter`] on AVX-512: the corners 16 points at a time; for each corner and feature the
+    /// 16 sums are one gather, add and scatter when the points' entries are distinct (AVX-512 CD's conflict
+    /// detection), and go point by point when some points share an entry (as in coarse levels).
+    ///
+    /// # Safety
+    /// As [`GridPlan::scatter`]'s, with `grads.len() ≥ plan.end` and every index below 2^31.
+    #[target_feature(enable = "avx512f,avx512cd")]
+    pub(super) unsafe fn scatter(
+        plan: &GridPlan,
+        p: [*const f32; 3],
+        cot: &[*const f32],
+        grads: &mut [f32],
+        count: usize,
+    ) {
+        let zero = _mm512_setzero_ps();
+        let mut index = [0u32; LANES];
+        let mut value = [0.0f32; LANES];
+        for (l, level) in plan.levels.iter().enumerate() {
+            for start in (0..count).step_by(LANES) {
+                let m = lanes(start, count);
+                // SAFETY: the caller's columns hold count floats.
+                let corners = corners(plan, level, unsafe { load_points(p, start, m) });
+                for f in 0..plan.features {
+                    // SAFETY: as for the points.
+                    let c = unsafe { _mm512_maskz_loadu_ps(m, cot[l * plan.features + f].add(start)) };
+                    // Points whose cotangent is 0 add nothing (NaN is kept, as in the scalar path).
+                    let live = m & _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(c, zero);
+                    if live == 0 {
+                        continue;
+                    }
+                    for k in 0..8 {
+                        let at = _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(f as i32));
+                        let add = _mm512_mul_ps(corners.weight[k], c);
+                        // Bit j of lane i: lane j < i has the same entry; only live lanes count.
+                        let shared =
+                            _mm512_and_si512(_mm512_conflict_epi32(at), _mm512_set1_epi32(i32::from(live)));
+                        if _mm512_mask_test_epi32_mask(live, shared, shared) == 0 {
+                            // SAFETY: an index + f is below plan.end ≤ grads.len(), as in the scalar path.
+                            unsafe {
+                                let sum = _mm512_add_ps(
+                                    _mm512_mask_i32gather_ps::<4>(zero, live, at, grads.as_ptr()),
+                                    add,
+                                );
+                                _mm512_mask_i32scatter_ps::<4>(grads.as_mut_ptr(), live, at, sum);
+                            }
+                            continue;
+                        }
+                        // SAFETY: 16 lanes into arrays of 16.
+                        unsafe {
+                            _mm512_storeu_si512(index.as_mut_ptr().cast(), at);
+                            _mm512_storeu_ps(value.as_mut_ptr(), add);
+                        }
+                        for lane in (0..LANES).filter(|&lane| live >> lane & 1 == 1) {
+                            // SAFETY: as above.
+                            unsafe { *grads.get_unchecked_mut(index[lane] as usize) += value[lane] };
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nerfjit_dsl::ir::{GridRead, GridSpec, V};
+    use proptest::prelude::*;
+
+    use super::GridPlan;
+
+    /// A grid of dense and hashed levels, its table at param 3.
+    fn read(deriv: u8, extent: f32) -> GridRead {
+        GridRead {
+            spec: GridSpec {
+                table: 3,
+                levels: 5,
+                features: 2,
+                log2_size: 9,
+                base: 3,
+                finest: 40,
+                extent: extent.to_bits(),
+            },
+            p: [V(0), V(1), V(2)],
+            deriv,
+        }
+    }
+
+    /// A point coordinate: mostly inside the bounds, sometimes outside, on a face, or NaN.
+    fn coordinate() -> impl Strategy<Value = f32> {
+        prop_oneof![
+            8 => -1.2f32..1.2,
+            1 => Just(1.0f32),
+            1 => Just(-1.0f32),
+            1 => Just(f32::NAN),
+            1 => -1e30f32..1e30,
+        ]
+    }
+
+    proptest! {
+        /// The 16-point path (when this machine has AVX-512) gives the scalar path's bits, for reads,
+        /// their derivatives and scatters, at any count.
+        #[test]
+        fn wide_and_scalar_paths_agree(
+            points in proptest::collection::vec([coordinate(), coordinate(), coordinate()], 0..=128),
+            deriv in 0u8..8,
+            seed in any::<u32>(),
+        ) {
+            let wide = GridPlan::new(&read(deriv, 1.0));
+            let scalar = GridPlan { wide: false, ..GridPlan::new(&read(deriv, 1.0)) };
+            prop_assert_eq!(wide.wide, crate::gemm::has_avx512_cd());
+            let count = points.len();
+            let columns: Vec<Vec<f32>> = (0..3).map(|a| points.iter().map(|p| p[a]).collect()).collect();
+            let p = [0, 1, 2].map(|a| columns[a].as_ptr());
+            let params: Vec<f32> = (0..wide.params_end())
+                .map(|i| ((i as u32).wrapping_mul(2_654_435_761) ^ seed) as f32 / u32::MAX as f32 - 0.5)
+                .collect();
+            let outputs = |plan: &GridPlan| {
+                let mut out = vec![vec![0.0f32; count]; 10];
+                let pointers: Vec<*mut f32> = out.iter_mut().map(|c| c.as_mut_ptr()).collect();
+                // SAFETY: every column holds count floats.
+                unsafe { plan.read(p, &pointers, &params, count) };
+                out
+            };
+            let bits = |c: Vec<Vec<f32>>| c.concat().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            prop_assert_eq!(bits(outputs(&wide)), bits(outputs(&scalar)));
+
+            let cotangent: Vec<Vec<f32>> = (0..10)
+                .map(|j| (0..count).map(|t| if (t + j) % 5 == 0 { 0.0 } else { (t * 10 + j) as f32 * 0.01 }).collect())
+                .collect();
+            let cot: Vec<*const f32> = cotangent.iter().map(|c| c.as_ptr()).collect();
+            let scattered = |plan: &GridPlan| {
+                let mut grads = vec![0.0f32; plan.params_end()];
+                // SAFETY: every column holds count floats.
+                unsafe { plan.scatter(p, &cot, &mut grads, count) };
+                grads
+            };
+            // The same terms, summed in another order (corner by corner rather than point by point); the
+            // derivative's terms reach ±25 and cancel, so the sums agree to a few f32 roundings of that.
+            for (w, s) in scattered(&wide).iter().zip(scattered(&scalar)) {
+                prop_assert!((w - s).abs() <= 2e-4 * (1.0 + s.abs()) || (w.is_nan() && s.is_nan()), "{} vs {}", w, s);
             }
         }
     }

@@ -17,12 +17,28 @@ use std::sync::OnceLock;
 /// The points of one tile (a multiple of 64, the width of the micro-kernels' point blocks).
 pub const TILE: usize = 128;
 
-fn has_avx512() -> bool {
+/// Whether this CPU runs AVX-512 (checked once).
+pub(crate) fn has_avx512() -> bool {
     static HAS: OnceLock<bool> = OnceLock::new();
     *HAS.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
             std::arch::is_x86_feature_detected!("avx512f")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    })
+}
+
+/// Whether this CPU runs AVX-512 with its conflict-detection extension (checked once).
+pub(crate) fn has_avx512_cd() -> bool {
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            has_avx512() && std::arch::is_x86_feature_detected!("avx512cd")
         }
         #[cfg(not(target_arch = "x86_64"))]
         {

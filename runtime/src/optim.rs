@@ -1,5 +1,7 @@
 //! Optimization: the Adam optimizer and learning-rate schedules.
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 
 /// Adam (Kingma & Ba) with bias correction, as `torch.optim.Adam` without weight decay:
@@ -54,14 +56,23 @@ impl Adam {
         let (b1, b2) = (self.beta1, self.beta2);
         let correction1 = 1.0 - b1.powi(t);
         let correction2 = 1.0 - b2.powi(t);
-        let state = self.m.iter_mut().zip(&mut self.v);
-        for ((p, g), (m, v)) in params.iter_mut().zip(grads).zip(state) {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            let m_hat = *m / correction1;
-            let v_hat = *v / correction2;
-            *p -= self.lr * m_hat / (v_hat.sqrt() + self.eps);
-        }
+        let lr = self.lr;
+        let eps = self.eps;
+        // Element by element (the same result on any number of threads), in parallel blocks.
+        const BLOCK: usize = 1 << 14;
+        params
+            .par_chunks_mut(BLOCK)
+            .zip(grads.par_chunks(BLOCK))
+            .zip(self.m.par_chunks_mut(BLOCK).zip(self.v.par_chunks_mut(BLOCK)))
+            .for_each(|((params, grads), (m, v))| {
+                for ((p, g), (m, v)) in params.iter_mut().zip(grads).zip(m.iter_mut().zip(v)) {
+                    *m = b1 * *m + (1.0 - b1) * g;
+                    *v = b2 * *v + (1.0 - b2) * g * g;
+                    let m_hat = *m / correction1;
+                    let v_hat = *v / correction2;
+                    *p -= lr * m_hat / (v_hat.sqrt() + eps);
+                }
+            });
         Ok(())
     }
 

@@ -5,9 +5,13 @@
 //! points laid out sample-major (sample j of ray k at `j·rays + k`), evaluated in one field
 //! call, composited and back-propagated across rays (loops that vectorize), then passed to
 //! one call of the field's backward pass with their cotangents. Tiles are grouped into
-//! chunks of about [`CHUNK_POINTS`] points processed in parallel, each with its own gradient
-//! accumulator; the chunks' gradients are summed in order, so a step's result does not depend
-//! on the number of threads.
+//! chunks of about [`CHUNK_POINTS`] points; chunk c adds its gradients to accumulator
+//! c mod [`ACCUMULATORS`], whose chunks run in order in one parallel task, and the accumulators are
+//! summed in order, so a step's result does not depend on the number of threads. Accumulators
+//! are kept between steps (a hash grid's gradient has millions of entries: fresh memory every step
+//! would be faulted in page by page).
+
+use std::sync::Mutex;
 
 use rayon::prelude::*;
 
@@ -22,8 +26,36 @@ use crate::rng::Rng;
 use crate::sampler::jittered_depth;
 use crate::volume::{check_field, with_scratch, Scratch, VolumeSettings, CHUNK_SAMPLES};
 
-/// Sample points per chunk of tiles sharing one gradient accumulator.
+/// Sample points per chunk of tiles.
 pub const CHUNK_POINTS: usize = 32768;
+
+/// Gradient accumulators of a step at most (its parallel tasks).
+pub const ACCUMULATORS: usize = 4;
+
+/// Accumulators given back by earlier steps, for the next ones.
+static SPARE_ACCUMULATORS: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+
+/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length.
+fn accumulator(n: usize) -> Vec<f32> {
+    let spare = SPARE_ACCUMULATORS.lock().map(|mut s| s.pop()).unwrap_or(None);
+    match spare {
+        Some(mut grads) if grads.len() == n => {
+            grads.fill(0.0);
+            grads
+        }
+        _ => vec![0.0; n],
+    }
+}
+
+/// Gives a step's gradient (its [`StepResult::param_grads`], once used) back as an accumulator for
+/// the next steps; optional, it saves faulting in fresh memory for large tables.
+pub fn recycle(grads: Vec<f32>) {
+    if let Ok(mut spare) = SPARE_ACCUMULATORS.lock() {
+        if spare.len() < 2 * ACCUMULATORS {
+            spare.push(grads);
+        }
+    }
+}
 
 /// The outcome of [`volume_step`].
 #[derive(Debug, Clone, PartialEq)]
@@ -426,34 +458,50 @@ pub fn volume_step_with(
         scale: 2.0 / (3.0 * rays.len() as f32),
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
+    let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
+    let n_tasks = n_chunks.min(ACCUMULATORS);
     let n_params = vjp.n_params();
-    let chunks: Vec<([f64; 2], Vec<f32>)> = seeds
-        .par_chunks(tiles_per_chunk)
-        .enumerate()
-        .map(|(c, seeds)| {
-            let mut grads = vec![0.0; n_params];
+    let tasks: Vec<([f64; 2], Vec<f32>)> = (0..n_tasks)
+        .into_par_iter()
+        .map(|task| {
+            let mut grads = accumulator(n_params);
             let mut squared_error = [0.0; 2];
             with_scratch(|s| {
-                for (j, &seed) in seeds.iter().enumerate() {
-                    let first = (c * tiles_per_chunk + j) * tile;
-                    let n = tile.min(rays.len() - first);
-                    let [coarse, fine] = train_tile(&job, s, first, n, seed, &mut grads);
-                    squared_error[0] += coarse;
-                    squared_error[1] += fine;
+                for c in (task..n_chunks).step_by(n_tasks) {
+                    let tiles = c * tiles_per_chunk..((c + 1) * tiles_per_chunk).min(n_tiles);
+                    for t in tiles {
+                        let first = t * tile;
+                        let n = tile.min(rays.len() - first);
+                        let [coarse, fine] = train_tile(&job, s, first, n, seeds[t], &mut grads);
+                        squared_error[0] += coarse;
+                        squared_error[1] += fine;
+                    }
                 }
             });
             (squared_error, grads)
         })
         .collect();
-    let mut param_grads = vec![0.0; n_params];
     let mut squared_error = [0.0; 2];
-    for (e, grads) in chunks {
+    for (e, _) in &tasks {
         squared_error[0] += e[0];
         squared_error[1] += e[1];
-        for (total, g) in param_grads.iter_mut().zip(grads) {
-            *total += g;
-        }
     }
+    let mut accumulators = tasks.into_iter().map(|(_, grads)| grads);
+    let mut param_grads = accumulators.next().unwrap_or_else(|| vec![0.0; n_params]);
+    let rest: Vec<Vec<f32>> = accumulators.collect();
+    // Element by element in task order: the same sums on any number of threads.
+    param_grads
+        .par_chunks_mut(1 << 16)
+        .enumerate()
+        .for_each(|(i, total)| {
+            for grads in &rest {
+                let part = &grads[i << 16..(i << 16) + total.len()];
+                for (t, g) in total.iter_mut().zip(part) {
+                    *t += g;
+                }
+            }
+        });
+    rest.into_iter().for_each(recycle);
     let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
     let (loss, coarse_loss) = match job.fine {
         Some(_) => (mse(squared_error[1]), Some(mse(squared_error[0]))),
@@ -569,6 +617,35 @@ mod tests {
                     "{mode:?} θ{i}: {got} vs {fd}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn a_step_gives_the_same_bits_on_any_number_of_threads() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        // 1000 samples a ray: tiles of a few rays, more chunks than accumulators.
+        let settings = VolumeSettings {
+            samples: 1000,
+            ..blob_settings(None)
+        };
+        let tile = settings.rays_per_tile();
+        let chunks = rays()
+            .len()
+            .div_ceil(tile * (CHUNK_POINTS / (tile * 1000)).max(1));
+        assert!(chunks > ACCUMULATORS, "{chunks} chunks");
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| step(&theta, &settings, Some(&mut Rng::new(7))))
+        };
+        let one = on(1);
+        for threads in [2, 3] {
+            let many = on(threads);
+            assert_eq!(one.loss.to_bits(), many.loss.to_bits());
+            let bits = |r: &StepResult| r.param_grads.iter().map(|g| g.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&one), bits(&many), "{threads} threads");
         }
     }
 
