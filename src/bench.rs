@@ -363,8 +363,13 @@ fn w2(reps: usize) -> Result<()> {
     );
     // Empty-space skipping: an occupancy grid over the box (half-side 0.875) and its falloff.
     let t = Instant::now();
-    let grid =
-        nerfjit_runtime::OccupancyGrid::build(&forward, ([-1.25; 3], [1.25; 3]), 64, settings.mode, 1e-4)?;
+    let grid = nerfjit_runtime::OccupancyGrid::build(
+        &field.bind_density(&program.param_values),
+        ([-1.25; 3], [1.25; 3]),
+        64,
+        settings.mode,
+        1e-4,
+    )?;
     let grid_ms = t.elapsed().as_secs_f64() * 1e3;
     let render_grid =
         |camera| nerfjit_runtime::render_volume_with(camera, w, h, &forward, &settings, Some(&grid));

@@ -167,6 +167,8 @@ impl BatchVjp for BoundVjp<'_> {
 pub struct VolumeField {
     forward: Arc<Kernel>,
     backward: Arc<Kernel>,
+    /// The density (or opacity) alone, for occupancy grids: no color network.
+    density: Arc<Kernel>,
     /// Whether the first output is a density or the course's per-sample opacity.
     pub mode: Mode,
 }
@@ -211,11 +213,22 @@ impl VolumeField {
             &kernels::param_vjp(&lowered, program.n_params()),
             Options::default(),
         )?;
+        let density = cache.get(&kernels::value(&program.lower(&first)?), Options::default())?;
         Ok(VolumeField {
             forward,
             backward,
+            density,
             mode,
         })
+    }
+
+    /// The density (or opacity) kernel alone bound to `params` (3 inputs, 1 output): what occupancy
+    /// grids probe, without the color network's work.
+    pub fn bind_density<'a>(&'a self, params: &'a [f32]) -> Bound<'a> {
+        Bound {
+            kernel: &self.density,
+            params,
+        }
     }
 
     /// The forward and backward kernels bound to `params`.

@@ -9,8 +9,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, rgb_image, save_png, volume_step_with, DepthSpacing, FinePass, OccupancyGrid,
-    Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
+    load_blender_views, rgb_image, save_png, volume_step_with, DensityEma, DepthSpacing, FinePass,
+    OccupancyGrid, Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -53,6 +53,7 @@ const KEYS: &[&str] = &[
     "skip_empty",
     "grid_every",
     "grid_warmup",
+    "grid_update",
     "minutes",
     "early_termination",
     "spacing",
@@ -118,12 +119,58 @@ pub struct TrainPlan {
     early_termination: Option<f32>,
 }
 
-/// The `skip_empty`, `grid_every` and `grid_warmup` settings.
+/// The `skip_empty`, `grid_every`, `grid_warmup` and `grid_update` settings.
 #[derive(Clone, Copy, Debug)]
 struct TrainingGrid {
     grid: crate::volume::SkipEmpty,
     every: u32,
     warmup: u32,
+    update: GridUpdate,
+}
+
+/// How a training grid follows the field: rebuilt from probes of every cell, or instant-ngp's running
+/// maximum refreshed at random points (`grid_update: ema(decay: 0.95, fraction: 0.125)`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum GridUpdate {
+    /// Probes of every cell, dilated by a cell.
+    Rebuild,
+    /// The running maximum, its decay per update and the fraction of the cells each update probes.
+    Ema { decay: f32, fraction: f32 },
+}
+
+/// The `grid_update` setting: `rebuild` (the default) or `ema(decay: 0.95, fraction: 0.125)` (both
+/// arguments optional).
+pub(crate) fn grid_update(v: Option<Spanned>) -> std::result::Result<GridUpdate, Diagnostic> {
+    let Some(v) = v else {
+        return Ok(GridUpdate::Rebuild);
+    };
+    let hint = "write rebuild or ema(decay: 0.95, fraction: 0.125)";
+    match &v.value {
+        Value::Name(name) if name == "rebuild" => return Ok(GridUpdate::Rebuild),
+        Value::Name(name) if name == "ema" => {}
+        Value::Call(name, _) if name == "ema" => {}
+        _ => {
+            return Err(
+                Diagnostic::new(v.span, format!("expected a grid update, found {}", v.describe()))
+                    .with_hint(hint),
+            )
+        }
+    }
+    let (decay, fraction) = match &v.value {
+        Value::Call(..) => {
+            let a = CallArgs::new(&v, &["decay", "fraction"])?;
+            let arg = |slot: &str, lo: f64, default: f64| match a.raw(slot) {
+                None => Ok(default),
+                Some(x) => crate::settings::ranged(x, lo, 1.0),
+            };
+            (arg("decay", 0.0, 0.95)?, arg("fraction", 1e-6, 0.125)?)
+        }
+        _ => (0.95, 0.125),
+    };
+    Ok(GridUpdate::Ema {
+        decay: decay as f32,
+        fraction: fraction as f32,
+    })
 }
 
 /// Which views validation scores.
@@ -376,7 +423,13 @@ impl TrainPlan {
         };
         let every = b.whole("grid_every", 1, u64::from(u32::MAX), 500)? as u32;
         let warmup = b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32;
-        let grid = skip_empty.map(|grid| TrainingGrid { grid, every, warmup });
+        let update = grid_update(b.take("grid_update")).map_err(|d| b.error(d))?;
+        let grid = skip_empty.map(|grid| TrainingGrid {
+            grid,
+            every,
+            warmup,
+            update,
+        });
         let early_termination = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
         b.finish(KEYS)?;
         Ok(TrainPlan {
@@ -522,6 +575,9 @@ impl TrainPlan {
         let mut rng = Rng::new(self.seed ^ 0x5eed);
         let start = Instant::now();
         let mut grid: Option<OccupancyGrid> = None;
+        // The running occupancy of `grid_update: ema` and the random points of its updates.
+        let mut ema: Option<DensityEma> = None;
+        let mut ema_rng = Rng::new(self.seed ^ 0x0cc0);
         let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
         let mut done = first;
         let mut next_val_time = 0;
@@ -539,19 +595,38 @@ impl TrainPlan {
                 // Rebuilt on schedule, and at once when a resumed run starts past the warm-up.
                 if step >= g.warmup && (grid.is_none() || (step - g.warmup) % g.every == 0) {
                     let t = Instant::now();
-                    let built = OccupancyGrid::build_for_training(
-                        &forward,
-                        g.grid.bounds,
-                        g.grid.resolution,
-                        settings.mode,
-                        g.grid.threshold,
-                    )?;
-                    let line = format!(
-                        "step {step}: occupancy grid rebuilt in {:.1} s, {:.1}% of the cells occupied",
-                        t.elapsed().as_secs_f64(),
-                        100.0 * built.occupancy()
-                    );
-                    report(&bar, line);
+                    let density = field.bind_density(params);
+                    let (bounds, resolution) = (g.grid.bounds, g.grid.resolution);
+                    let built = match (g.update, &mut ema) {
+                        (GridUpdate::Rebuild, _) => OccupancyGrid::build_for_training(
+                            &density,
+                            bounds,
+                            resolution,
+                            settings.mode,
+                            g.grid.threshold,
+                        )?,
+                        (GridUpdate::Ema { decay, fraction }, Some(state)) => {
+                            state.update(&density, decay, fraction, &mut ema_rng)?;
+                            state.grid(settings.mode, g.grid.threshold)?
+                        }
+                        (GridUpdate::Ema { .. }, state @ None) => state
+                            .insert(DensityEma::probe(&density, bounds, resolution)?)
+                            .grid(settings.mode, g.grid.threshold)?,
+                    };
+                    // Every rebuild is reported; running updates every 16th time.
+                    let updates = (step - g.warmup) / g.every;
+                    if g.update == GridUpdate::Rebuild || updates % 16 == 0 {
+                        let verb = match g.update {
+                            GridUpdate::Rebuild => "rebuilt",
+                            GridUpdate::Ema { .. } => "updated",
+                        };
+                        let line = format!(
+                            "step {step}: occupancy grid {verb} in {:.2} s, {:.1}% of the cells occupied",
+                            t.elapsed().as_secs_f64(),
+                            100.0 * built.occupancy()
+                        );
+                        report(&bar, line);
+                    }
                     grid = Some(built);
                 }
             }

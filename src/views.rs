@@ -10,8 +10,8 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_views, psnr, rgb_image, ssim, Camera, DepthSpacing, ImageF32, OccupancyGrid, Quantize,
-    Views, VolumeSettings,
+    load_blender_views, psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid,
+    Quantize, Views, VolumeSettings,
 };
 
 use crate::block::MAX_PIXELS;
@@ -60,6 +60,8 @@ pub struct Rendering {
     pub spacing: DepthSpacing,
     /// The occupancy grid the script trains with (rebuilt from the trained field), if any.
     pub skip_empty: Option<SkipEmpty>,
+    /// Whether that grid is a running one (`grid_update: ema`): rebuilt undilated, as its first state.
+    pub running_grid: bool,
     /// Transmittance below which a ray stops, as the script trains.
     pub early_termination: Option<f32>,
 }
@@ -78,6 +80,7 @@ impl ViewArgs<'_> {
             importance: self.importance.unwrap_or(script.importance),
             spacing: script.spacing,
             skip_empty: script.skip_empty.filter(|_| !self.exact),
+            running_grid: script.running_grid,
             early_termination: script.early_termination.filter(|_| !self.exact),
         }
     }
@@ -96,6 +99,7 @@ impl Rendering {
             importance: trained.importance.unwrap_or(0),
             spacing: trained.spacing.unwrap_or_default(),
             skip_empty: trained.skip_empty,
+            running_grid: trained.running_grid,
             early_termination: trained.early_termination,
         }
     }
@@ -112,6 +116,7 @@ struct TrainedWith {
     importance: Option<usize>,
     spacing: Option<DepthSpacing>,
     skip_empty: Option<SkipEmpty>,
+    running_grid: bool,
     early_termination: Option<f32>,
 }
 
@@ -145,6 +150,8 @@ impl TrainedWith {
         let skip_empty = settings
             .take("skip_empty")
             .and_then(|v| crate::volume::skip_empty(&v).ok().flatten());
+        let running_grid = crate::train::grid_update(settings.take("grid_update"))
+            .is_ok_and(|u| u != crate::train::GridUpdate::Rebuild);
 
         TrainedWith {
             near: near.map(|x| x as f32),
@@ -154,6 +161,7 @@ impl TrainedWith {
             importance: count(importance),
             spacing,
             skip_empty,
+            running_grid,
             early_termination,
         }
     }
@@ -174,20 +182,18 @@ impl Rendering {
     }
 
     /// The occupancy grid to render with: the script's `skip_empty` grid built from the field with `params`
-    /// as training builds it (none with hierarchical sampling, which does not skip yet).
+    /// as training builds it (a running grid as its first state), none with hierarchical sampling (which
+    /// does not skip yet).
     pub fn occupancy(&self, fields: &VolumeFields, params: &[f32]) -> Result<Option<OccupancyGrid>> {
         let Some(s) = self.skip_empty.filter(|_| fields.coarse.is_none()) else {
             return Ok(None);
         };
-        let (forward, _) = fields.fine.bind(params);
-        let mode = fields.fine.mode;
-        Ok(Some(OccupancyGrid::build_for_training(
-            &forward,
-            s.bounds,
-            s.resolution,
-            mode,
-            s.threshold,
-        )?))
+        let (mode, density) = (fields.fine.mode, fields.fine.bind_density(params));
+        Ok(Some(if self.running_grid {
+            DensityEma::probe(&density, s.bounds, s.resolution)?.grid(mode, s.threshold)?
+        } else {
+            OccupancyGrid::build_for_training(&density, s.bounds, s.resolution, mode, s.threshold)?
+        }))
     }
 }
 

@@ -136,13 +136,12 @@ impl VolumePlan {
         let fields = VolumeFields::compile(program, &cache, self.importance)?;
         let field = &fields.fine;
         let compile_s = t.elapsed().as_secs_f64();
-        let (forward, _) = field.bind(params);
         let settings = self.settings(field);
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
             Some(s) => Some(OccupancyGrid::build(
-                &forward,
+                &field.bind_density(params),
                 s.bounds,
                 s.resolution,
                 settings.mode,

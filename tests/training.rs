@@ -117,6 +117,79 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
         trained > 24.0 && trained > start + 10.0,
         "PSNR {start:.2} dB after 1 step, {trained:.2} dB after 300"
     );
+    // The same with instant-ngp's running occupancy grid, updated every 8 steps from step 20 on: the
+    // empty space around the box is skipped and the box still learned.
+    let script = script.replace(
+        "summary:",
+        "skip_empty: grid(bounds: 2, resolution: 32, threshold: 0.01), grid_update: ema(decay: 0.9, fraction: 0.25), \
+         grid_every: 8, grid_warmup: 20, summary:",
+    );
+    std::fs::write(dir.join("grid.sdf"), script.replace("STEPS", "300")).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "grid.sdf"]);
+    assert!(ok, "{err}");
+    let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
+    let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    let with_grid = json["final_psnr"].as_f64().expect("a final PSNR");
+    let occupied: Vec<f64> = format!("{out}{err}")
+        .lines()
+        .filter_map(|l| {
+            l.split("updated in ")
+                .nth(1)?
+                .split(", ")
+                .nth(1)?
+                .split('%')
+                .next()?
+                .parse()
+                .ok()
+        })
+        .collect();
+    assert!(
+        !occupied.is_empty() && occupied.iter().all(|&o| o < 60.0),
+        "{err}"
+    );
+    assert!(with_grid > 24.0, "PSNR {with_grid:.2} dB with the running grid");
+}
+
+#[test]
+fn grid_update_settings_are_checked_where_they_are_written() {
+    let dir = scratch("grid_update");
+    make_views(&dir);
+    // Each bad setting and the text its diagnostic's caret points at.
+    for (update, culprit, message) in [
+        ("ema(decay: 2)", "2)", "out of range"),
+        ("ema(decy: 0.9)", "0.9", "its arguments are: decay, fraction"),
+        ("sometimes", "sometimes", "expected a grid update"),
+        ("ema(fraction: 0)", "0)", "out of range"),
+    ] {
+        let extra = format!(", skip_empty: grid(bounds: 1.5, threshold: 0.01), grid_update: {update} ");
+        let script = trainer_with(1, &extra);
+        std::fs::write(dir.join("train.sdf"), &script).unwrap();
+        let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+        assert!(!ok, "{update}");
+        let (line, text) = script
+            .lines()
+            .enumerate()
+            .find(|(_, l)| l.contains("grid_update"))
+            .unwrap();
+        let column = text.find(&format!("grid_update: {update}")).unwrap()
+            + "grid_update: ".len()
+            + update.find(culprit).unwrap()
+            + 1;
+        assert!(
+            err.contains(&format!("train.sdf:{}:{column}", line + 1)) && err.contains(message),
+            "{update}: {err}"
+        );
+    }
+    let (ok, _, err) = run(
+        &dir,
+        &[
+            "run",
+            "train.sdf",
+            "--set",
+            "train.grid_update=ema(fraction: 0.5)",
+        ],
+    );
+    assert!(ok, "{err}");
 }
 
 /// The JIT and the runtime write only their buffers in a training run: three steps of the box under valgrind's

@@ -12,6 +12,7 @@
 //!   depths along rays, [`composite`] (the compositor and its backward pass) and [`volume`]
 //!   ([`render_volume`], producing [`VolumeFrame`]s).
 //! - [`occupancy`]: [`OccupancyGrid`], for empty-space skipping with [`render_volume_with`].
+//! - [`occupancy_ema`]: [`DensityEma`], instant-ngp's running occupancy for training.
 //! - Training: [`BatchVjp`] (a kernel's backward pass), [`train`] ([`volume_step`]),
 //!   [`optim`] (Adam, learning-rate schedules), [`metrics`] (PSNR, SSIM) and [`dataset`]
 //!   (the course's views).
@@ -42,6 +43,7 @@ pub mod metrics;
 pub mod nerfstudio;
 pub mod npy;
 pub mod occupancy;
+pub mod occupancy_ema;
 pub mod optim;
 pub mod paths;
 mod ply;
@@ -76,6 +78,7 @@ pub use metrics::{mse, psnr, ssim};
 pub use nerfstudio::{is_nerfstudio, load_nerfstudio};
 pub use npy::{read_npy_rgb, write_npy_f32, write_npy_rgb, ImageF32};
 pub use occupancy::OccupancyGrid;
+pub use occupancy_ema::DensityEma;
 pub use optim::{Adam, Schedule};
 pub use paths::{orbit, surround, Up};
 pub use pointcloud::{bounding_box, mean_center, read_points};

@@ -96,107 +96,42 @@ impl OccupancyGrid {
         threshold: f32,
         capped_by_mean: bool,
     ) -> Result<OccupancyGrid> {
-        let (lo, hi) = bounds;
-        if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
-            return Err(Error::Invalid(format!(
-                "occupancy grid bounds {lo:?}..{hi:?} must be finite with lo < hi on every axis"
-            )));
-        }
-        if !(1..=MAX_RESOLUTION).contains(&resolution) {
-            return Err(Error::Invalid(format!(
-                "occupancy grid resolution {resolution} must be in 1..={MAX_RESOLUTION}"
-            )));
-        }
-        let threshold_ok = match mode {
-            Mode::Density => threshold.is_finite() && threshold >= 0.0,
-            Mode::Opacity => (0.0..1.0).contains(&threshold),
-        };
-        if !threshold_ok {
-            return Err(Error::Invalid(format!(
-                "occupancy threshold {threshold} must be >= 0 and finite (density) or in [0, 1) (opacity)"
-            )));
-        }
-        let n_inputs = field.n_inputs();
-        if !(n_inputs == 3 || n_inputs == 6) || field.n_outputs() == 0 {
-            return Err(Error::Invalid(format!(
-                "an occupancy grid needs a field of a point (3 inputs) or a point and a view \
-                 direction (6 inputs) with at least 1 output, but it maps {n_inputs} inputs to {} outputs",
-                field.n_outputs()
-            )));
-        }
-
-        // 1. Probe the lattice of m³ points, a few layers of cells at a time (sharing their
-        //    boundary planes of probes), and 2. take each cell's peak over the probes of its
-        //    closed box: a max filter of width SUBDIVISIONS + 1 and stride SUBDIVISIONS along
-        //    each axis. NaN probes count as +∞.
-        let res = resolution;
-        let (s, m) = (SUBDIVISIONS, res * SUBDIVISIONS + 1);
-        let step = [0, 1, 2].map(|i| (hi[i] - lo[i]) / (m - 1) as f32);
-        let coord = |i: usize, k: usize| {
-            if k + 1 == m {
-                hi[i]
-            } else {
-                lo[i] + step[i] * k as f32
-            }
-        };
-        let mut peaks = vec![0.0f32; res * res * res];
-        peaks
-            .par_chunks_mut(res * res * LAYERS_PER_TASK)
-            .enumerate()
-            .for_each(|(task, cells)| {
-                let (layers, z0) = (cells.len() / (res * res), task * LAYERS_PER_TASK * s);
-                let mut probes = vec![0.0f32; (layers * s + 1) * m * m];
-                let batch = BUILD_BATCH.min(probes.len());
-                let mut inputs = vec![vec![0.0f32; batch]; n_inputs];
-                if n_inputs == 6 {
-                    inputs[5].fill(1.0);
-                }
-                let mut outputs = vec![vec![0.0f32; batch]; field.n_outputs()];
-                for (c, probes) in probes.chunks_mut(batch).enumerate() {
-                    let n = probes.len();
-                    for (k, i) in (c * batch..c * batch + n).enumerate() {
-                        let (x, y, z) = (i % m, i / m % m, z0 + i / (m * m));
-                        (inputs[0][k], inputs[1][k], inputs[2][k]) = (coord(0, x), coord(1, y), coord(2, z));
-                    }
-                    let inputs: Vec<&[f32]> = inputs.iter().map(|v| &v[..n]).collect();
-                    let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(|v| &mut v[..n]).collect();
-                    field.eval(n, &inputs, &mut outs);
-                    for (probe, &v) in probes.iter_mut().zip(&outputs[0]) {
-                        *probe = if v.is_nan() { f32::INFINITY } else { v };
-                    }
-                }
-                let window = |c: usize| c * s..=c * s + s;
-                cells.copy_from_slice(&max_filter(
-                    &probes,
-                    [m, m, layers * s + 1],
-                    window,
-                    [res, res, layers],
-                ));
-            });
-
+        check_threshold(mode, threshold)?;
+        let peaks = cell_peaks(field, bounds, resolution)?;
         // 3. The cells above the threshold, 4. dilated: a max filter of width 3 and stride 1
         //    along each axis.
         let threshold = if capped_by_mean {
-            let mean = peaks.iter().map(|&p| f64::from(p)).sum::<f64>() / peaks.len() as f64;
-            threshold.min(mean as f32)
+            threshold.min(mean(&peaks))
         } else {
             threshold
         };
+        let res = resolution;
         let hot: Vec<f32> = peaks
             .iter()
             .map(|&p| if p > threshold { 1.0 } else { 0.0 })
             .collect();
         let dilate = |c: usize| c.saturating_sub(1)..=(c + 1).min(res - 1);
         let dilated = max_filter(&hot, [res, res, res], dilate, [res, res, res]);
+        Ok(OccupancyGrid::from_cells(bounds, res, |i| dilated[i] > 0.0))
+    }
 
+    /// The grid over `bounds` with `resolution`³ cells of which those with `occupied(i)` (cell
+    /// x + y·res + z·res² for i) are occupied; the bounds and resolution must be valid (as
+    /// [`cell_peaks`] checks).
+    pub(crate) fn from_cells(
+        (lo, hi): ([f32; 3], [f32; 3]),
+        resolution: usize,
+        occupied: impl Fn(usize) -> bool,
+    ) -> OccupancyGrid {
+        let res = resolution;
         let shift = res.next_power_of_two().trailing_zeros();
         let mut bits = vec![0u64; (1usize << (3 * shift)).div_ceil(64) + 1];
-        for (i, _) in dilated.iter().enumerate().filter(|(_, &b)| b > 0.0) {
+        for i in (0..res * res * res).filter(|&i| occupied(i)) {
             let bit = bit_of(shift, [i % res, i / res % res, i / (res * res)].map(|c| c as u32)) as usize;
             bits[bit / 64] |= 1 << (bit % 64);
         }
         let center = [0, 1, 2].map(|i| 0.5 * (lo[i] + hi[i]));
-        Ok(OccupancyGrid {
+        OccupancyGrid {
             lo,
             hi,
             resolution,
@@ -204,7 +139,7 @@ impl OccupancyGrid {
             scale: [0, 1, 2].map(|i| res as f32 / (hi[i] - lo[i])),
             outer: [lo, hi].map(|side| [0, 1, 2].map(|i| side[i] + (side[i] - center[i]) * 2e-4)),
             bits,
-        })
+        }
     }
 
     /// The box (lo, hi) covered by the grid.
@@ -355,6 +290,105 @@ impl OccupancyGrid {
 #[inline(always)]
 fn bit_of(shift: u32, [x, y, z]: [u32; 3]) -> u32 {
     (z << (2 * shift)) | (y << shift) | x
+}
+
+/// Checks a threshold: finite and ≥ 0 for densities, in [0, 1) for opacities.
+pub(crate) fn check_threshold(mode: Mode, threshold: f32) -> Result<()> {
+    let threshold_ok = match mode {
+        Mode::Density => threshold.is_finite() && threshold >= 0.0,
+        Mode::Opacity => (0.0..1.0).contains(&threshold),
+    };
+    if !threshold_ok {
+        return Err(Error::Invalid(format!(
+            "occupancy threshold {threshold} must be >= 0 and finite (density) or in [0, 1) (opacity)"
+        )));
+    }
+    Ok(())
+}
+
+/// The mean of `values` (in f64).
+pub(crate) fn mean(values: &[f32]) -> f32 {
+    (values.iter().map(|&v| f64::from(v)).sum::<f64>() / values.len().max(1) as f64) as f32
+}
+
+/// Each cell's peak over its probes (see the module docs): the field's first output on the lattice
+/// of [`SUBDIVISIONS`] steps per cell, NaN counted as +∞; cell x + y·res + z·res² at index
+/// x + y·res + z·res². Checks the bounds, the resolution and the field's shape.
+pub(crate) fn cell_peaks(
+    field: &dyn BatchFn,
+    bounds: ([f32; 3], [f32; 3]),
+    resolution: usize,
+) -> Result<Vec<f32>> {
+    let (lo, hi) = bounds;
+    if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+        return Err(Error::Invalid(format!(
+            "occupancy grid bounds {lo:?}..{hi:?} must be finite with lo < hi on every axis"
+        )));
+    }
+    if !(1..=MAX_RESOLUTION).contains(&resolution) {
+        return Err(Error::Invalid(format!(
+            "occupancy grid resolution {resolution} must be in 1..={MAX_RESOLUTION}"
+        )));
+    }
+    let n_inputs = field.n_inputs();
+    if !(n_inputs == 3 || n_inputs == 6) || field.n_outputs() == 0 {
+        return Err(Error::Invalid(format!(
+            "an occupancy grid needs a field of a point (3 inputs) or a point and a view \
+                 direction (6 inputs) with at least 1 output, but it maps {n_inputs} inputs to {} outputs",
+            field.n_outputs()
+        )));
+    }
+
+    // 1. Probe the lattice of m³ points, a few layers of cells at a time (sharing their
+    //    boundary planes of probes), and 2. take each cell's peak over the probes of its
+    //    closed box: a max filter of width SUBDIVISIONS + 1 and stride SUBDIVISIONS along
+    //    each axis. NaN probes count as +∞.
+    let res = resolution;
+    let (s, m) = (SUBDIVISIONS, res * SUBDIVISIONS + 1);
+    let step = [0, 1, 2].map(|i| (hi[i] - lo[i]) / (m - 1) as f32);
+    let coord = |i: usize, k: usize| {
+        if k + 1 == m {
+            hi[i]
+        } else {
+            lo[i] + step[i] * k as f32
+        }
+    };
+    let mut peaks = vec![0.0f32; res * res * res];
+    peaks
+        .par_chunks_mut(res * res * LAYERS_PER_TASK)
+        .enumerate()
+        .for_each(|(task, cells)| {
+            let (layers, z0) = (cells.len() / (res * res), task * LAYERS_PER_TASK * s);
+            let mut probes = vec![0.0f32; (layers * s + 1) * m * m];
+            let batch = BUILD_BATCH.min(probes.len());
+            let mut inputs = vec![vec![0.0f32; batch]; n_inputs];
+            if n_inputs == 6 {
+                inputs[5].fill(1.0);
+            }
+            let mut outputs = vec![vec![0.0f32; batch]; field.n_outputs()];
+            for (c, probes) in probes.chunks_mut(batch).enumerate() {
+                let n = probes.len();
+                for (k, i) in (c * batch..c * batch + n).enumerate() {
+                    let (x, y, z) = (i % m, i / m % m, z0 + i / (m * m));
+                    (inputs[0][k], inputs[1][k], inputs[2][k]) = (coord(0, x), coord(1, y), coord(2, z));
+                }
+                let inputs: Vec<&[f32]> = inputs.iter().map(|v| &v[..n]).collect();
+                let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(|v| &mut v[..n]).collect();
+                field.eval(n, &inputs, &mut outs);
+                for (probe, &v) in probes.iter_mut().zip(&outputs[0]) {
+                    *probe = if v.is_nan() { f32::INFINITY } else { v };
+                }
+            }
+            let window = |c: usize| c * s..=c * s + s;
+            cells.copy_from_slice(&max_filter(
+                &probes,
+                [m, m, layers * s + 1],
+                window,
+                [res, res, layers],
+            ));
+        });
+
+    Ok(peaks)
 }
 
 /// A max (or) filter of the `dims` = [x, y, z] volume `v` (x fastest) along each axis in
