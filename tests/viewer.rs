@@ -452,7 +452,7 @@ fn a_training_run_streams_its_progress_and_frames_of_its_params_and_pauses() {
 }
 
 #[test]
-fn the_export_buttons_get_an_orbit_video_and_a_mesh() {
+fn the_export_buttons_get_an_orbit_video_a_mesh_and_a_checkpoint() {
     let viewer = view("examples/torus.sdf");
     let mut socket = connect(&viewer, &viewer.token).unwrap();
     let (_, scene) = opening(&mut socket);
@@ -477,7 +477,31 @@ fn the_export_buttons_get_an_orbit_video_and_a_mesh() {
         mesh.starts_with(b"ply\nformat binary_little_endian"),
         "a binary PLY file"
     );
-    send(&mut socket, export("gltf", 3));
+    // A checkpoint of the shown params, with the script, that the CLI meshes.
+    send(&mut socket, export("checkpoint", 3));
+    let Reply::File(header, checkpoint) = receive(&mut socket) else {
+        panic!("expected a file")
+    };
+    assert_eq!(header["name"], "torus.ckpt.safetensors");
+    let dir = scratch("export");
+    std::fs::write(dir.join("torus.ckpt.safetensors"), checkpoint).unwrap();
+    let (ok, _, err) = common::run(
+        &dir,
+        &[
+            "mesh",
+            "torus.ckpt.safetensors",
+            "--res",
+            "32",
+            "--bounds",
+            "1.5",
+            "--out",
+            "torus.ply",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(std::fs::metadata(dir.join("torus.ply")).unwrap().len() > 1000);
+    std::fs::remove_dir_all(dir).unwrap();
+    send(&mut socket, export("gltf", 4));
     let error = json_message(&mut socket);
     assert!(
         error["message"]

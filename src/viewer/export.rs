@@ -1,5 +1,6 @@
 //! Files the page asks for: an orbit video around the current view and a mesh of the scene, made with the
-//! same renderer and mesher as the CLI commands the page shows beside them.
+//! same renderer and mesher as the CLI commands the page shows beside them, and a checkpoint of the params
+//! shown with the script as edited.
 
 use std::path::PathBuf;
 
@@ -17,14 +18,19 @@ pub enum Export {
     Video,
     /// A PLY mesh of the scene's surface (or of a density level).
     Mesh,
+    /// A checkpoint (safetensors) of the params shown, holding the script as edited, that `render`,
+    /// `mesh`, `eval-views` and `view` read. It has no optimizer state: Adam starts afresh if a run
+    /// resumes from it.
+    Checkpoint,
 }
 
 impl Export {
-    /// The export named `name` (`video` or `mesh`).
+    /// The export named `name` (`video`, `mesh` or `checkpoint`).
     pub fn parse(name: &str) -> Option<Export> {
         match name {
             "video" => Some(Export::Video),
             "mesh" => Some(Export::Mesh),
+            "checkpoint" => Some(Export::Checkpoint),
             _ => None,
         }
     }
@@ -43,11 +49,13 @@ pub struct File {
     pub bytes: Vec<u8>,
 }
 
-/// Makes `what` for `scene` from `view`; `stem` names the file.
-pub fn export(what: Export, scene: &Scene, view: &ViewCamera, stem: &str) -> Result<File> {
+/// Makes `what` for `scene` from `view`; `stem` names the file and `step` is the training step of the
+/// params shown (0 outside a training run).
+pub fn export(what: Export, scene: &Scene, view: &ViewCamera, stem: &str, step: u32) -> Result<File> {
     match what {
         Export::Video => video(scene, view, stem),
         Export::Mesh => mesh(scene, stem),
+        Export::Checkpoint => checkpoint(scene, stem, step),
     }
 }
 
@@ -124,9 +132,22 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
     })
 }
 
+fn checkpoint(scene: &Scene, stem: &str, step: u32) -> Result<File> {
+    let scratch = Scratch::new("ckpt.safetensors");
+    let params = scene.params();
+    let fresh = nerfjit_runtime::Adam::new(params.len(), 0.0);
+    crate::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh)?;
+    Ok(File {
+        name: format!("{stem}.ckpt.safetensors"),
+        mime: "application/octet-stream",
+        bytes: scratch.read()?,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::checkpoint::Script;
     use std::path::Path;
 
     #[test]
@@ -153,14 +174,31 @@ mod tests {
         let program = nerfjit_dsl::compile("ball.sdf", "fn sdf(p: vec3) -> f32 = length(p) - 1").unwrap();
         let params = program.param_values.clone();
         let scene = Scene::compile(program, &params, Path::new(".")).unwrap();
-        let mesh = export(Export::Mesh, &scene, &ViewCamera::default(), "ball").unwrap();
+        let mesh = export(Export::Mesh, &scene, &ViewCamera::default(), "ball", 0).unwrap();
         assert_eq!(mesh.name, "ball.ply");
         assert!(mesh.bytes.starts_with(b"ply\n"));
         let view = ViewCamera {
             eye: Vec3::new(0.0, 0.0, -4.0),
             ..ViewCamera::default()
         };
-        let video = export(Export::Video, &scene, &view, "ball").unwrap();
+        let video = export(Export::Video, &scene, &view, "ball", 0).unwrap();
         assert_eq!(&video.bytes[4..8], b"ftyp", "an MP4 file");
+    }
+
+    #[test]
+    fn a_checkpoint_holds_the_edited_script_and_the_params_shown() {
+        let text = "param r: f32 = 1\nconst k = 2\nfn sdf(p: vec3) -> f32 = length(p) - r * k";
+        let program = nerfjit_dsl::compile("ball.sdf", text).unwrap();
+        let scene = Scene::compile(program, &[0.75], Path::new(".")).unwrap();
+        let file = export(Export::Checkpoint, &scene, &ViewCamera::default(), "ball", 120).unwrap();
+        assert_eq!(file.name, "ball.ckpt.safetensors");
+        let dir = std::env::temp_dir().join(format!("nerfjit-export-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(&file.name);
+        std::fs::write(&path, &file.bytes).unwrap();
+        let (program, params) = crate::checkpoint::load_trained(&path).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(params, [0.75]);
+        assert_eq!(Script::of(&program).source, text);
     }
 }

@@ -176,7 +176,8 @@ impl Renderer<'_> {
             .file_stem()
             .and_then(|s| s.to_str())
             .unwrap_or("scene");
-        match export::export(request.what, scene, &request.view, stem) {
+        let step = self.params_step.unwrap_or(0);
+        match export::export(request.what, scene, &request.view, stem, step) {
             Ok(file) => {
                 let header = json!({"type": "file", "id": request.id, "name": file.name, "mime": file.mime});
                 self.outbox

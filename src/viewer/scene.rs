@@ -296,7 +296,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
                 Path::new("."),
                 None,
                 Rc::new(Outputs::default()),
-            );
+            )?;
             let plan = RenderPlan::new(b)?;
             (plan.shading, plan.trace)
         }

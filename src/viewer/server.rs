@@ -231,7 +231,8 @@ fn post(text: &str, mailbox: &Mailbox, live: Option<&Live>) -> std::result::Resu
         Some("camera") => mailbox.post_frame(frame_request(id, &request)?),
         Some("export") => {
             let name = request["what"].as_str().unwrap_or_default();
-            let what = Export::parse(name).ok_or_else(|| format!("cannot export '{name}': video or mesh"))?;
+            let what = Export::parse(name)
+                .ok_or_else(|| format!("cannot export '{name}': video, mesh or checkpoint"))?;
             let view = view_camera(&request)?;
             mailbox.post_export(ExportRequest { id, what, view });
         }

@@ -553,6 +553,10 @@ function updateCommands() {
       `# a mesh of the density`,
       `nerfjit mesh ${name} --function density --level 10 --bounds 1.5 --res 160 --out mesh.ply`,
     ];
+  const base = name.replace(/\.sdf$/, "");
+  lines.push(viewer.training
+    ? `# a checkpoint: the run itself writes ${base}.ckpt.safetensors (every checkpoint_every steps, at the end\n# and on Ctrl-C); the exported one holds the params shown and the script, without Adam's moments`
+    : `# a checkpoint: the params shown with the script as edited, for render, mesh, eval-views and view\n# (written by the page; a train block's run writes ${base}.ckpt.safetensors itself)`);
   $("command-text").textContent = lines.join("\n");
 }
 
@@ -568,7 +572,7 @@ $("export-png").addEventListener("click", () => {
     download(viewer.lastFinal.blob, `${baseName()}.png`);
   }
 });
-for (const what of ["video", "mesh"]) {
+for (const what of ["video", "mesh", "checkpoint"]) {
   $(`export-${what}`).addEventListener("click", () => {
     if (viewer.camera) {
       send({ type: "export", id: viewer.nextId++, what, ...viewer.camera });
