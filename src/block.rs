@@ -10,6 +10,7 @@ use nerfjit_dsl::{Diagnostic, Program, Span};
 use nerfjit_runtime::Camera;
 
 use crate::failure::{at, Failure, Result};
+use crate::schema::BlockSchema;
 use crate::settings::{name_among, ranged, triple, whole};
 
 /// The most pixels a render block may produce (all frames).
@@ -23,6 +24,7 @@ pub struct Outputs(RefCell<Vec<(PathBuf, Span)>>);
 /// A block's settings with what resolving them needs.
 pub struct Block<'p> {
     program: &'p Program,
+    schema: &'static BlockSchema,
     settings: Settings,
     script_dir: PathBuf,
     out_dir: Option<PathBuf>,
@@ -39,32 +41,40 @@ pub fn first_block<'p>(program: &'p Program, kind: &str, script_dir: &str) -> Re
         .ok_or_else(|| Failure::Message(format!("the script has no '{kind}' block")))?;
     let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
     let temp = std::env::temp_dir();
-    Ok(Block::new(
+    Block::new(
         program,
         settings,
         Path::new(script_dir),
         Some(&temp),
         Rc::default(),
-    ))
+    )
 }
 
 impl<'p> Block<'p> {
-    /// The settings of one block of `program`; relative input files are looked up next to the script,
-    /// outputs go to `out_dir` when given and are recorded in `outputs` (shared by the run's blocks).
+    /// The settings of one block of `program`, of a kind the [schema](crate::schema) knows; relative
+    /// input files are looked up next to the script, outputs go to `out_dir` when given and are recorded
+    /// in `outputs` (shared by the run's blocks).
     pub fn new(
         program: &'p Program,
         settings: Settings,
         script_dir: &Path,
         out_dir: Option<&Path>,
         outputs: Rc<Outputs>,
-    ) -> Block<'p> {
-        Block {
+    ) -> Result<Block<'p>> {
+        let schema = crate::schema::of(&settings).map_err(|d| at(program, d))?;
+        Ok(Block {
             program,
+            schema,
             settings,
             script_dir: script_dir.to_path_buf(),
             out_dir: out_dir.map(Path::to_path_buf),
             outputs,
-        }
+        })
+    }
+
+    /// The kind of block and the settings it takes.
+    pub fn schema(&self) -> &'static BlockSchema {
+        self.schema
     }
 
     /// The program the block belongs to.
@@ -92,8 +102,13 @@ impl<'p> Block<'p> {
         self.settings.span
     }
 
-    /// Takes setting `key`, if given.
+    /// Takes setting `key`, if given; `key` must be one of the schema's settings of the block.
     pub fn take(&mut self, key: &str) -> Option<Spanned> {
+        assert!(
+            self.schema.settings.contains(&key),
+            "'{key}' is missing from the schema of '{}' blocks",
+            self.schema.title()
+        );
         self.settings.take(key)
     }
 
@@ -339,8 +354,10 @@ impl<'p> Block<'p> {
         self.settings.span_of(key).unwrap_or(self.settings.span)
     }
 
-    /// Fails on the first setting not taken, suggesting the closest of `known`.
-    pub fn finish(self, known: &[&str]) -> Result<()> {
-        self.settings.finish(known).map_err(|d| at(self.program, d))
+    /// Fails on the first setting not taken, suggesting the closest the block takes.
+    pub fn finish(self) -> Result<()> {
+        self.settings
+            .finish(self.schema.settings)
+            .map_err(|d| at(self.program, d))
     }
 }

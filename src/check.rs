@@ -6,13 +6,18 @@ use nerfjit_dsl::Report;
 use crate::failure::{Failure, Result};
 use crate::script;
 
-/// Checks the script (its blocks' setting values included) and describes what it defines.
+/// Checks the script (its blocks' kinds and setting names against the schema, and the setting values
+/// that need no files) and describes what it defines.
 pub fn run(path: &str) -> Result<String> {
     let program = script::load(path)?;
     let diagnostics: Vec<_> = program
         .blocks()
         .into_iter()
-        .filter_map(|b| Settings::new(&program, b).err())
+        .filter_map(|b| {
+            Settings::new(&program, b)
+                .and_then(|settings| crate::schema::check(&settings))
+                .err()
+        })
         .collect();
     if !diagnostics.is_empty() {
         return Err(Failure::Script(Report {

@@ -41,6 +41,7 @@ pub mod points;
 pub mod regularizers;
 pub mod render;
 pub mod run;
+pub mod schema;
 pub mod script;
 pub mod settings;
 pub mod tensorboard;

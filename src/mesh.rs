@@ -265,16 +265,6 @@ fn pruning_summary(pruning: Option<&Pruning>, asked: bool) -> String {
     }
 }
 
-const KEYS: &[&str] = &[
-    "function",
-    "resolution",
-    "bounds",
-    "level",
-    "out",
-    "gif",
-    "compare",
-];
-
 /// A checked `mesh { ... }` block: meshes a function with the params as they are at that point of the
 /// script (after training), and optionally compares the mesh with a point cloud.
 pub struct MeshPlan {
@@ -314,7 +304,7 @@ impl MeshPlan {
                 Some((crate::data_source::data_path(&file, b.script_dir()), key))
             }
         };
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(MeshPlan {
             function,
             resolution,

@@ -17,24 +17,6 @@ use crate::field::{Compiler, JitFn, Kind};
 use crate::output::write_images;
 use crate::settings::{triple, CallArgs};
 
-const KEYS: &[&str] = &[
-    "camera",
-    "size",
-    "near",
-    "far",
-    "eps",
-    "max_steps",
-    "background",
-    "shading",
-    "light",
-    "albedo",
-    "bounds",
-    "out",
-    "depth",
-    "normals",
-    "frame_ms",
-];
-
 /// How hit points are shaded.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ShadingChoice {
@@ -112,7 +94,7 @@ impl RenderPlan {
         let depth = b.depth_output("depth")?;
         let normals = b.image_output("normals")?;
         let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(RenderPlan {
             cameras,
             size,

@@ -6,7 +6,6 @@ use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::Settings;
-use nerfjit_dsl::Diagnostic;
 
 use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
@@ -58,26 +57,17 @@ pub fn run(
     let outputs = Rc::new(Outputs::default());
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
-        let (kind, name) = (settings.kind.clone(), settings.name.clone());
-        let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs));
-        match (kind.as_str(), name.as_deref()) {
-            ("render", Some("sphere_trace")) => plans.push(Plan::Trace(RenderPlan::new(b)?)),
-            ("render", Some("volume")) => plans.push(Plan::Volume(VolumePlan::new(b)?)),
-            ("train", None) => plans.push(Plan::Train(Box::new(TrainPlan::new(b)?))),
-            ("viz", None) => plans.push(Plan::Viz(VizPlan::new(b)?)),
-            ("train", Some("sdf")) => plans.push(Plan::FitSdf(SdfTrainPlan::new(b)?)),
-            ("mesh", None) => plans.push(Plan::Mesh(MeshPlan::new(b)?)),
-            (kind, name) => {
-                let what = name.map_or(kind.to_string(), |n| format!("{kind} {n}"));
-                return Err(at(
-                    &program,
-                    Diagnostic::new(block.kind.span, format!("'{what}' blocks are not supported yet"))
-                        .with_hint(
-                            "blocks are 'render sphere_trace { }', 'render volume { }' and 'train { }'",
-                        ),
-                ));
-            }
-        }
+        let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs))?;
+        let schema = b.schema();
+        plans.push(match (schema.kind, schema.variant) {
+            ("render", Some("sphere_trace")) => Plan::Trace(RenderPlan::new(b)?),
+            ("render", Some("volume")) => Plan::Volume(VolumePlan::new(b)?),
+            ("train", None) => Plan::Train(Box::new(TrainPlan::new(b)?)),
+            ("viz", None) => Plan::Viz(VizPlan::new(b)?),
+            ("train", Some("sdf")) => Plan::FitSdf(SdfTrainPlan::new(b)?),
+            ("mesh", None) => Plan::Mesh(MeshPlan::new(b)?),
+            _ => unreachable!("every block kind of the schema has a plan"),
+        });
     }
     if plans.is_empty() {
         return Err(Failure::Message(format!(

@@ -23,45 +23,6 @@ use crate::regularizers::{RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 use crate::viewer::Live;
 
-const KEYS: &[&str] = &[
-    "data",
-    "near",
-    "far",
-    "samples",
-    "background",
-    "steps",
-    "batch",
-    "lr",
-    "schedule",
-    "views",
-    "jitter",
-    "seed",
-    "checkpoint",
-    "checkpoint_every",
-    "summary",
-    "preview",
-    "preview_every",
-    "sdf",
-    "eikonal_weight",
-    "eikonal_points",
-    "eikonal_bounds",
-    "val",
-    "val_every",
-    "val_views",
-    "val_minutes",
-    "importance",
-    "skip_empty",
-    "grid_every",
-    "grid_warmup",
-    "grid_update",
-    "minutes",
-    "early_termination",
-    "spacing",
-    "optimizer",
-    "log",
-    "tensorboard",
-];
-
 /// The columns of a volume training run's metrics log.
 const LOG_COLUMNS: &[&str] = &[
     "step",
@@ -431,7 +392,7 @@ impl TrainPlan {
             update,
         });
         let early_termination = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(TrainPlan {
             early_termination: (early_termination > 0.0).then_some(early_termination),
             data,

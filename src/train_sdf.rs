@@ -20,29 +20,6 @@ use crate::metrics_log::RunLog;
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 
-const KEYS: &[&str] = &[
-    "data",
-    "function",
-    "steps",
-    "batch",
-    "random",
-    "bounds",
-    "lr",
-    "schedule",
-    "optimizer",
-    "near_weight",
-    "near_sharpness",
-    "eikonal_weight",
-    "pretrain_steps",
-    "pretrain_radius",
-    "seed",
-    "checkpoint",
-    "checkpoint_every",
-    "log",
-    "tensorboard",
-    "summary",
-];
-
 /// The columns of a point-cloud fit's metrics log.
 const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near", "eikonal"];
 
@@ -133,7 +110,7 @@ impl SdfTrainPlan {
             summary: b.output("summary")?,
             points_gif: b.image_output("points_gif")?,
         };
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(plan)
     }
 

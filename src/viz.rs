@@ -10,19 +10,6 @@ use nerfjit_runtime::{save_png, Camera};
 use crate::block::Block;
 use crate::failure::Result;
 
-const KEYS: &[&str] = &[
-    "camera",
-    "view",
-    "size",
-    "near",
-    "far",
-    "samples",
-    "rays",
-    "grid",
-    "directions",
-    "points",
-];
-
 /// A checked `viz` block.
 pub struct VizPlan {
     camera: Camera,
@@ -55,7 +42,7 @@ impl VizPlan {
                     .with_hint("add e.g. view: look_at(eye: [4, 2, -4], at: [0, 0, 0], up: [0, 1, 0])"),
             ));
         }
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(VizPlan {
             camera,
             view,

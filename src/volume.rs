@@ -17,22 +17,6 @@ use crate::field::{VolumeField, VolumeFields};
 use crate::output::write_images;
 use crate::settings::CallArgs;
 
-const KEYS: &[&str] = &[
-    "camera",
-    "size",
-    "near",
-    "far",
-    "samples",
-    "background",
-    "early_termination",
-    "spacing",
-    "skip_empty",
-    "importance",
-    "out",
-    "depth",
-    "frame_ms",
-];
-
 /// Empty-space skipping: an occupancy grid of the field, built once before rendering.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SkipEmpty {
@@ -98,7 +82,7 @@ impl VolumePlan {
                 b.block_error("'importance' and 'skip_empty' do not combine yet: choose one".to_string())
             );
         }
-        b.finish(KEYS)?;
+        b.finish()?;
         Ok(VolumePlan {
             cameras,
             size,

@@ -129,8 +129,11 @@ impl Settings {
         match self.entries.first() {
             None => Ok(()),
             Some((key, span, _)) => {
-                let mut d =
-                    Diagnostic::new(*span, format!("unknown setting '{key}' in '{}' block", self.kind));
+                let block = match &self.name {
+                    Some(name) => format!("{} {name}", self.kind),
+                    None => self.kind.clone(),
+                };
+                let mut d = Diagnostic::new(*span, format!("unknown setting '{key}' in '{block}' block"));
                 d = match closest(key, known.iter().copied()) {
                     Some(c) => d.with_hint(format!("did you mean '{c}'?")),
                     None => d.with_hint(format!("known settings: {}", known.join(", "))),
