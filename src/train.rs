@@ -571,7 +571,7 @@ impl TrainPlan {
                             state.grid(settings.mode, g.grid.threshold)?
                         }
                         (GridUpdate::Ema { .. }, state @ None) => state
-                            .insert(DensityEma::probe(&density, bounds, resolution)?)
+                            .insert(DensityEma::sampled(&density, bounds, resolution, &mut ema_rng)?)
                             .grid(settings.mode, g.grid.threshold)?,
                     };
                     // Every rebuild is reported; running updates every 16th time.

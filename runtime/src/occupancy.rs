@@ -311,14 +311,9 @@ pub(crate) fn mean(values: &[f32]) -> f32 {
     (values.iter().map(|&v| f64::from(v)).sum::<f64>() / values.len().max(1) as f64) as f32
 }
 
-/// Each cell's peak over its probes (see the module docs): the field's first output on the lattice
-/// of [`SUBDIVISIONS`] steps per cell, NaN counted as +∞; cell x + y·res + z·res² at index
-/// x + y·res + z·res². Checks the bounds, the resolution and the field's shape.
-pub(crate) fn cell_peaks(
-    field: &dyn BatchFn,
-    bounds: ([f32; 3], [f32; 3]),
-    resolution: usize,
-) -> Result<Vec<f32>> {
+/// Checks an occupancy grid's bounds and resolution and that `field` is a density of a point (and
+/// optionally a view direction).
+pub(crate) fn check_grid(field: &dyn BatchFn, bounds: ([f32; 3], [f32; 3]), resolution: usize) -> Result<()> {
     let (lo, hi) = bounds;
     if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
         return Err(Error::Invalid(format!(
@@ -338,6 +333,20 @@ pub(crate) fn cell_peaks(
             field.n_outputs()
         )));
     }
+    Ok(())
+}
+
+/// Each cell's peak over its probes (see the module docs): the field's first output on the lattice
+/// of [`SUBDIVISIONS`] steps per cell, NaN counted as +∞; cell x + y·res + z·res² at index
+/// x + y·res + z·res². Checks the bounds, the resolution and the field's shape.
+pub(crate) fn cell_peaks(
+    field: &dyn BatchFn,
+    bounds: ([f32; 3], [f32; 3]),
+    resolution: usize,
+) -> Result<Vec<f32>> {
+    check_grid(field, bounds, resolution)?;
+    let (lo, hi) = bounds;
+    let n_inputs = field.n_inputs();
 
     // 1. Probe the lattice of m³ points, a few layers of cells at a time (sharing their
     //    boundary planes of probes), and 2. take each cell's peak over the probes of its

@@ -2,9 +2,12 @@
 //! random points in it, refreshed every few steps, so that the grid follows the field as it trains
 //! without probing every cell each time.
 //!
-//! The state starts as [`OccupancyGrid::build`]'s probe peaks. Each [`DensityEma::update`] multiplies
-//! every cell's value by `decay` and raises each of a random `fraction` of the cells (drawn with
-//! replacement) to the field's first output at a uniform random point inside it (NaN counts as +∞).
+//! The state starts as the field's density at one random point in every cell, as instant-ngp's first
+//! updates sample every cell ([`DensityEma::sampled`], for training), or as [`OccupancyGrid::build`]'s
+//! probe peaks ([`DensityEma::probe`], 27 points a cell, for a grid rendered once). Each
+//! [`DensityEma::update`] multiplies every cell's value by `decay` and raises each of a random
+//! `fraction` of the cells (drawn with replacement) to the field's first output at a uniform random
+//! point inside it (NaN counts as +∞).
 //! [`DensityEma::grid`] marks the cells whose value is above the threshold, or above the mean value
 //! where that is lower (a faint field keeps its larger values occupied); unlike a rebuilt grid it is
 //! not dilated: a cell empties only after no random point in it has been dense for many updates.
@@ -14,7 +17,7 @@ use rayon::prelude::*;
 use crate::composite::Mode;
 use crate::error::{Error, Result};
 use crate::field::BatchFn;
-use crate::occupancy::{cell_peaks, check_threshold, mean, OccupancyGrid};
+use crate::occupancy::{cell_peaks, check_grid, check_threshold, mean, OccupancyGrid};
 use crate::rng::Rng;
 
 /// Points per field call in an update.
@@ -39,6 +42,25 @@ impl DensityEma {
         })
     }
 
+    /// The first state from one uniform random point in every cell: 27 times cheaper than
+    /// [`DensityEma::probe`], and what the updates refresh anyway.
+    pub fn sampled(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        rng: &mut Rng,
+    ) -> Result<DensityEma> {
+        check_grid(field, bounds, resolution)?;
+        let n_cells = resolution.pow(3);
+        let mut state = DensityEma {
+            bounds,
+            resolution,
+            values: vec![0.0; n_cells],
+        };
+        state.raise(field, (0..n_cells).collect(), rng);
+        Ok(state)
+    }
+
     /// One update: every value decays by `decay` (in [0, 1]), then ⌈`fraction` · cells⌉ random cells
     /// (`fraction` in (0, 1]) take the maximum with `field` at a random point inside them.
     pub fn update(&mut self, field: &dyn BatchFn, decay: f32, fraction: f32, rng: &mut Rng) -> Result<()> {
@@ -47,20 +69,26 @@ impl DensityEma {
                 "an occupancy update needs a decay in [0, 1] and a fraction in (0, 1], got {decay} and {fraction}"
             )));
         }
-        let res = self.resolution;
         let n_cells = self.values.len();
         let n = ((fraction as f64 * n_cells as f64).ceil() as usize).min(n_cells);
+        let cells = (0..n).map(|_| rng.below(n_cells as u64) as usize).collect();
+        self.values.par_iter_mut().for_each(|v| *v *= decay);
+        self.raise(field, cells, rng);
+        Ok(())
+    }
+
+    /// Raises each of `cells` to the maximum of its value and `field` at a uniform random point in it.
+    fn raise(&mut self, field: &dyn BatchFn, cells: Vec<usize>, rng: &mut Rng) {
+        let res = self.resolution;
+        let n = cells.len();
         let (lo, hi) = self.bounds;
         let size = [0, 1, 2].map(|a| (hi[a] - lo[a]) / res as f32);
-        let mut cells = Vec::with_capacity(n);
         let mut points: [Vec<f32>; 3] = Default::default();
-        for _ in 0..n {
-            let cell = rng.below(n_cells as u64) as usize;
+        for &cell in &cells {
             let at = [cell % res, cell / res % res, cell / (res * res)];
             for (a, column) in points.iter_mut().enumerate() {
                 column.push(lo[a] + (at[a] as f32 + rng.next_f32()) * size[a]);
             }
-            cells.push(cell);
         }
         let n_inputs = field.n_inputs();
         let mut seen = vec![0.0f32; n];
@@ -81,11 +109,9 @@ impl DensityEma {
                     *s = if v.is_nan() { f32::INFINITY } else { v };
                 }
             });
-        self.values.par_iter_mut().for_each(|v| *v *= decay);
         for (&cell, &v) in cells.iter().zip(&seen) {
             self.values[cell] = self.values[cell].max(v);
         }
-        Ok(())
     }
 
     /// The grid of the cells whose value exceeds `threshold`, or the mean value where that is lower.
@@ -132,6 +158,34 @@ mod tests {
         let (kept, dilated) = (cells(&grid), cells(&rebuilt));
         assert!(kept.iter().all(|c| dilated.contains(c)));
         assert!(kept.len() < dilated.len(), "{} vs {}", kept.len(), dilated.len());
+    }
+
+    #[test]
+    fn a_sampled_first_state_keeps_the_cells_inside_and_drops_those_outside() {
+        let field = ball(0.5);
+        let ema = DensityEma::sampled(&field, UNIT, 16, &mut Rng::new(5)).unwrap();
+        let grid = ema.grid(Mode::Density, 1.0).unwrap();
+        let probed = DensityEma::probe(&field, UNIT, 16).unwrap();
+        let probed = probed.grid(Mode::Density, 1.0).unwrap();
+        let h = 1.0 / 16.0;
+        for i in 0..16 * 16 * 16 {
+            let at = [i % 16, i / 16 % 16, i / 256];
+            let center = at.map(|c| -1.0 + (2 * c + 1) as f32 * h);
+            // The cell's nearest and farthest distances from the origin.
+            let near = center.map(|c| (c.abs() - h).max(0.0));
+            let far = center.map(|c| c.abs() + h);
+            let length = |v: [f32; 3]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            let sampled = grid.cell(at[0], at[1], at[2]);
+            if length(far) < 0.5 {
+                assert!(sampled, "cell {at:?} lies inside the ball");
+            }
+            if length(near) > 0.5 {
+                assert!(!sampled, "cell {at:?} lies outside the ball");
+            }
+            // Where one point finds density, the 27 probes' peak does too.
+            assert!(!sampled || probed.cell(at[0], at[1], at[2]), "cell {at:?}");
+        }
+        assert!(DensityEma::sampled(&field, UNIT, 0, &mut Rng::new(5)).is_err());
     }
 
     #[test]
