@@ -85,9 +85,22 @@ impl Regularizers {
         rng: &mut Rng,
         threads: usize,
     ) -> [f32; 2] {
+        let ys = uniform_points(rng, self.points, self.bound);
+        self.add_at(k, &ys, params, grads, threads)
+    }
+
+    /// As [`Regularizers::add`], at the given `points` (columns of `self.points` values) instead of
+    /// uniform ones.
+    pub fn add_at(
+        &self,
+        k: &RegularizerKernels,
+        points: &[Vec<f32>; 3],
+        params: &[f32],
+        grads: &mut [f32],
+        threads: usize,
+    ) -> [f32; 2] {
         let m = self.points;
-        let ys = uniform_points(rng, m, self.bound);
-        let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
+        let ins: Vec<&[f32]> = points.iter().map(Vec::as_slice).collect();
         let mut terms = vec![vec![0.0f32; m]; 2];
         let mut refs: Vec<&mut [f32]> = terms.iter_mut().map(Vec::as_mut_slice).collect();
         k.loss.eval_parallel(m, &ins, &mut refs, params, grads, threads);

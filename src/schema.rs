@@ -133,6 +133,7 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
         "near_weight",
         "near_sharpness",
         "eikonal_weight",
+        "eikonal_jitter",
         "pretrain_steps",
         "pretrain_radius",
         "seed",

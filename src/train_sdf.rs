@@ -39,6 +39,8 @@ pub struct SdfTrainPlan {
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
+    /// σ of the noise that moves cloud points into eikonal points (0: none).
+    eikonal_jitter: f32,
     pretrain_steps: u32,
     pretrain_radius: f32,
     seed: u64,
@@ -59,6 +61,8 @@ struct Kernels {
     /// |d(x)| / n on cloud points.
     surface: Kernel,
     regularizers: RegularizerKernels,
+    /// The eikonal term alone at the batch's cloud points moved by Gaussian noise, when asked for.
+    jittered: Option<RegularizerKernels>,
 }
 
 impl SdfTrainPlan {
@@ -100,6 +104,7 @@ impl SdfTrainPlan {
             near_weight: b.number("near_weight", 0.0, 1e6, 0.1)? as f32,
             near_sharpness: b.number("near_sharpness", 0.0, 1e6, 100.0)? as f32,
             eikonal_weight: b.number("eikonal_weight", 0.0, 1e6, 0.02)? as f32,
+            eikonal_jitter: b.number("eikonal_jitter", 0.0, 1e3, 0.0)? as f32,
             pretrain_steps: b.whole("pretrain_steps", 0, 1_000_000, 0)? as u32,
             pretrain_radius: b.number("pretrain_radius", 1e-3, 1e6, 1.0)? as f32,
             seed: b.whole("seed", 0, u64::MAX >> 1, 0)?,
@@ -143,6 +148,10 @@ impl SdfTrainPlan {
             sphere: Kernel::compile(&sphere, opts)?,
             surface: Kernel::compile(&surface, opts)?,
             regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers())?,
+            jittered: match self.jittered() {
+                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg)?),
+                None => None,
+            },
         })
     }
 
@@ -345,10 +354,28 @@ impl SdfTrainPlan {
         let surface = terms.iter().map(|&x| f64::from(x)).sum::<f64>();
 
         // Random points: the near-surface penalty on d and the eikonal term on ∇d.
-        let [near, eikonal] = self
+        let [near, mut eikonal] = self
             .regularizers()
             .add(&k.regularizers, params, grads, rng, threads);
+        // And the eikonal term about the surface (IGR's sampling): the same cloud points, jittered.
+        if let (Some(kernels), Some(reg)) = (&k.jittered, self.jittered()) {
+            for column in &mut xs {
+                for x in column.iter_mut() {
+                    *x += self.eikonal_jitter * rng.normal();
+                }
+            }
+            eikonal += reg.add_at(kernels, &xs, params, grads, threads)[1];
+        }
         [surface as f32, near, eikonal]
+    }
+
+    /// The eikonal term at the batch's jittered cloud points, when `eikonal_jitter` asks for it.
+    fn jittered(&self) -> Option<Regularizers> {
+        (self.eikonal_jitter > 0.0 && self.eikonal_weight > 0.0).then_some(Regularizers {
+            points: self.batch,
+            near_weight: 0.0,
+            ..self.regularizers()
+        })
     }
 
     fn regularizers(&self) -> Regularizers {

@@ -412,6 +412,28 @@ fn fits_an_sdf_to_points_with_the_eikonal_term() {
 }
 
 #[test]
+fn eikonal_jitter_adds_the_eikonal_term_at_the_jittered_cloud_points() {
+    // |∇(s·(|p| − r))| = s everywhere: each set of points contributes w·(s − 1)² = 0.5 at s = 2.
+    let dir = scratch("jitter");
+    write_sphere_points(&dir);
+    let eikonal = |jitter: &str| {
+        let src = format!(
+            "param r: f32 = 0.8\nparam s: f32 = 2.0\nfn sdf(p: vec3) -> f32 = s * (length(p) - r)\n\
+             train sdf {{ data: points(\"sphere.xyz\"), steps: 1, batch: 64, random: 64, lr: 1e-12, \
+             eikonal_weight: 0.5, eikonal_jitter: {jitter}, checkpoint: none, summary: \"fit.json\" }}\n"
+        );
+        std::fs::write(dir.join("fit.sdf"), src).unwrap();
+        let (ok, _, err) = run(&dir, &["run", "fit.sdf"]);
+        assert!(ok, "{err}");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("fit.json")).unwrap()).unwrap();
+        summary["eikonal_loss"].as_f64().unwrap()
+    };
+    assert!((eikonal("0") - 0.5).abs() < 1e-4);
+    assert!((eikonal("0.05") - 1.0).abs() < 1e-4);
+}
+
+#[test]
 fn checkpoints_hold_their_script_and_overrides() {
     let dir = scratch("ckpt");
     make_views(&dir);

@@ -26,6 +26,14 @@ impl Rng {
         (self.next_u64() >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
     }
 
+    /// A standard normal number (Box–Muller).
+    pub fn normal(&mut self) -> f32 {
+        // 1 − u lies in (0, 1]: its logarithm is finite.
+        let u = 1.0 - self.next_f32();
+        let v = self.next_f32();
+        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
+    }
+
     /// A uniform integer in [0, n) (0 when n is 0).
     pub fn below(&mut self, n: u64) -> u64 {
         ((u128::from(self.next_u64()) * u128::from(n)) >> 64) as u64
@@ -35,6 +43,19 @@ impl Rng {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn normal_numbers_have_mean_0_and_variance_1() {
+        let mut rng = Rng::new(9);
+        let xs: Vec<f64> = (0..100_000).map(|_| f64::from(rng.normal())).collect();
+        let mean = xs.iter().sum::<f64>() / xs.len() as f64;
+        let variance = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / xs.len() as f64;
+        assert!(
+            mean.abs() < 0.01 && (variance - 1.0).abs() < 0.02,
+            "{mean} {variance}"
+        );
+        assert!(xs.iter().all(|x| x.is_finite()));
+    }
 
     #[test]
     fn sequences_are_seeded_and_in_range() {
