@@ -96,6 +96,11 @@ impl Live {
         self.lock().paused
     }
 
+    /// Whether the run has taken its last step.
+    pub fn finished(&self) -> bool {
+        self.lock().finished
+    }
+
     /// Whether the run is still training (not finished, not paused): the viewer then renders sparingly.
     pub fn busy(&self) -> bool {
         let state = self.lock();

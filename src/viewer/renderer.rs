@@ -43,6 +43,10 @@ const TRAINING_FRAME_BUDGET_MS: f64 = 200.0;
 /// The share of the time the viewer renders while a run trains (it rests the remainder).
 const TRAINING_SHARE: f64 = 0.05;
 
+/// The longest a refined frame may be expected to take while a run is paused: a larger one would still
+/// hold the cores when the run resumes (a frame cannot be stopped midway).
+const PAUSED_FRAME_LIMIT_MS: f64 = 500.0;
+
 /// How long the camera must rest before a frame is refined.
 const REST: Duration = Duration::from_millis(40);
 
@@ -253,6 +257,14 @@ impl Renderer<'_> {
             // A camera being dragged sends a request every few milliseconds: refine only once it rests.
             if last || mailbox.news_within(REST) {
                 return Ok(());
+            }
+            // A paused run may resume at any moment: refine only while the next frame is short, and
+            // not at all once it trains again.
+            if let Some(live) = self.live.filter(|l| !l.finished()) {
+                let next_ms = 4.0 * f64::from(w) * f64::from(h) * self.ns_per_pixel / 1e6;
+                if live.busy() || next_ms > PAUSED_FRAME_LIMIT_MS {
+                    return Ok(());
+                }
             }
             divisor /= 2;
         }

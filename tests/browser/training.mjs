@@ -101,6 +101,6 @@ results.ms_per_step_alone = (aloneBefore + results.ms_per_step_alone_before_afte
 results.ms_per_step_watched = msPerStep(watched);
 results.speed_watched_vs_alone = results.ms_per_step_alone / results.ms_per_step_watched;
 results.target = 0.9;
+console.log(JSON.stringify(results));
 // Far below the target means the viewer takes the cores from training, not merely noise.
 if (!(results.speed_watched_vs_alone > 0.7)) fail(`training with a viewer ran at ${results.speed_watched_vs_alone}×`);
-console.log(JSON.stringify(results));
