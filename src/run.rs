@@ -11,6 +11,7 @@ use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
 use crate::mesh::MeshPlan;
 use crate::render::RenderPlan;
+use crate::schema::Kind;
 use crate::script;
 use crate::train::TrainPlan;
 use crate::train_sdf::SdfTrainPlan;
@@ -58,15 +59,13 @@ pub fn run(
     for block in program.blocks() {
         let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
         let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs))?;
-        let schema = b.schema();
-        plans.push(match (schema.kind, schema.variant) {
-            ("render", Some("sphere_trace")) => Plan::Trace(RenderPlan::new(b)?),
-            ("render", Some("volume")) => Plan::Volume(VolumePlan::new(b)?),
-            ("train", None) => Plan::Train(Box::new(TrainPlan::new(b)?)),
-            ("viz", None) => Plan::Viz(VizPlan::new(b)?),
-            ("train", Some("sdf")) => Plan::FitSdf(SdfTrainPlan::new(b)?),
-            ("mesh", None) => Plan::Mesh(MeshPlan::new(b)?),
-            _ => unreachable!("every block kind of the schema has a plan"),
+        plans.push(match b.schema().id {
+            Kind::SphereTrace => Plan::Trace(RenderPlan::new(b)?),
+            Kind::Volume => Plan::Volume(VolumePlan::new(b)?),
+            Kind::Train => Plan::Train(Box::new(TrainPlan::new(b)?)),
+            Kind::Viz => Plan::Viz(VizPlan::new(b)?),
+            Kind::TrainSdf => Plan::FitSdf(SdfTrainPlan::new(b)?),
+            Kind::Mesh => Plan::Mesh(MeshPlan::new(b)?),
         });
     }
     if plans.is_empty() {

@@ -7,9 +7,28 @@
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::Diagnostic;
 
+/// The kinds of block, one per schema.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// `render sphere_trace { }`.
+    SphereTrace,
+    /// `render volume { }`.
+    Volume,
+    /// `train { }`.
+    Train,
+    /// `train sdf { }`.
+    TrainSdf,
+    /// `mesh { }`.
+    Mesh,
+    /// `viz { }`.
+    Viz,
+}
+
 /// A block kind and the names of its settings.
 #[derive(Debug)]
 pub struct BlockSchema {
+    /// Which kind it is.
+    pub id: Kind,
     /// The keyword that opens the block (`render`).
     pub kind: &'static str,
     /// The word after it, for kinds that have one (`sphere_trace` in `render sphere_trace { }`).
@@ -30,6 +49,7 @@ impl BlockSchema {
 
 /// `render sphere_trace { }`.
 pub const RENDER_SPHERE_TRACE: BlockSchema = BlockSchema {
+    id: Kind::SphereTrace,
     kind: "render",
     variant: Some("sphere_trace"),
     settings: &[
@@ -53,6 +73,7 @@ pub const RENDER_SPHERE_TRACE: BlockSchema = BlockSchema {
 
 /// `render volume { }`.
 pub const RENDER_VOLUME: BlockSchema = BlockSchema {
+    id: Kind::Volume,
     kind: "render",
     variant: Some("volume"),
     settings: &[
@@ -74,6 +95,7 @@ pub const RENDER_VOLUME: BlockSchema = BlockSchema {
 
 /// `train { }`: fitting a field to images.
 pub const TRAIN: BlockSchema = BlockSchema {
+    id: Kind::Train,
     kind: "train",
     variant: None,
     settings: &[
@@ -118,6 +140,7 @@ pub const TRAIN: BlockSchema = BlockSchema {
 
 /// `train sdf { }`: fitting a function to a point cloud.
 pub const TRAIN_SDF: BlockSchema = BlockSchema {
+    id: Kind::TrainSdf,
     kind: "train",
     variant: Some("sdf"),
     settings: &[
@@ -148,6 +171,7 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
 
 /// `mesh { }`.
 pub const MESH: BlockSchema = BlockSchema {
+    id: Kind::Mesh,
     kind: "mesh",
     variant: None,
     settings: &[
@@ -163,6 +187,7 @@ pub const MESH: BlockSchema = BlockSchema {
 
 /// `viz { }`: the course's teaching images.
 pub const VIZ: BlockSchema = BlockSchema {
+    id: Kind::Viz,
     kind: "viz",
     variant: None,
     settings: &[
