@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-use nerfjit_dsl::{Diagnostic, Program, Report};
+use nerfjit_dsl::{budget, Diagnostic, Program, Report};
 
 /// Why a command failed.
 #[derive(Debug)]
@@ -36,6 +36,12 @@ impl From<nerfjit_runtime::Error> for Failure {
 impl From<nerfjit_jit::JitError> for Failure {
     fn from(e: nerfjit_jit::JitError) -> Self {
         Failure::Message(e.to_string())
+    }
+}
+
+impl From<budget::OverBudget> for Failure {
+    fn from(e: budget::OverBudget) -> Self {
+        Failure::Message(format!("{e}\n  = hint: {}", budget::HINT))
     }
 }
 

@@ -8,6 +8,7 @@ use nerfjit::{
     bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, points, run,
     script, transmittance, viewer, views, WORK_STACK_BYTES,
 };
+use nerfjit_dsl::budget;
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
@@ -16,6 +17,10 @@ struct Cli {
     /// Worker threads (default: all cores; at most 8 per core).
     #[arg(long, global = true)]
     threads: Option<usize>,
+    /// The most memory a run may plan to hold: params, training state (16 bytes per param) and the other
+    /// sizes checked before they are allocated (default: 3/4 of physical memory; e.g. 512M, 20G).
+    #[arg(long, global = true, value_name = "SIZE", value_parser = budget::parse_size)]
+    max_memory: Option<u64>,
     #[command(subcommand)]
     command: Command,
 }
@@ -333,6 +338,9 @@ const MAX_THREADS_PER_CORE: usize = 8;
 fn main() -> ExitCode {
     let cli = Cli::parse();
     interrupt::install();
+    if let Some(bytes) = cli.max_memory {
+        budget::set_max_memory(bytes);
+    }
     let mut pool = rayon::ThreadPoolBuilder::new().start_handler(|_| nerfjit_runtime::flush_denormals());
     if let Some(n) = cli.threads {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());

@@ -126,25 +126,31 @@ pub struct Report {
     pub diagnostics: Vec<Diagnostic>,
 }
 
+/// Most diagnostics a report shows; the rest are counted.
+const MAX_SHOWN_DIAGNOSTICS: usize = 20;
+
 impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        for (i, d) in self.diagnostics.iter().enumerate() {
+        for (i, d) in self.diagnostics.iter().take(MAX_SHOWN_DIAGNOSTICS).enumerate() {
             if i > 0 {
                 writeln!(f)?;
             }
             match self.sources.file_at(d.span.start as usize) {
-                _ if d.span == Span::NOWHERE => {
-                    writeln!(f, "error: {}", d.message)?;
-                    if let Some(hint) = &d.hint {
-                        writeln!(f, "  = hint: {hint}")?;
-                    }
-                }
-                Some(file) => {
+                Some(file) if d.span != Span::NOWHERE => {
                     let local = Span::new(d.span.start as usize - file.base, d.span.end as usize - file.base);
                     render(f, &file.name, &file.text, local, d)?;
                 }
-                None => writeln!(f, "error: {}", d.message)?,
+                _ => {
+                    writeln!(f, "error: {}", abbreviated(&d.message))?;
+                    if let Some(hint) = &d.hint {
+                        writeln!(f, "  = hint: {}", abbreviated(hint))?;
+                    }
+                }
             }
+        }
+        let hidden = self.diagnostics.len().saturating_sub(MAX_SHOWN_DIAGNOSTICS);
+        if hidden > 0 {
+            writeln!(f, "\n... and {hidden} more errors")?;
         }
         Ok(())
     }
@@ -164,29 +170,88 @@ impl std::error::Error for Report {}
 fn render(f: &mut fmt::Formatter<'_>, file: &str, source: &str, span: Span, d: &Diagnostic) -> fmt::Result {
     let start = (span.start as usize).min(source.len());
     let (line, col) = line_col(source, start);
-    writeln!(f, "error: {}", d.message)?;
+    writeln!(f, "error: {}", abbreviated(&d.message))?;
     let gutter = line.to_string().len();
     writeln!(f, "{:gutter$}--> {file}:{line}:{col}", "")?;
     let text = source.lines().nth(line - 1).unwrap_or("");
     let text = text.trim_end_matches('\r');
     writeln!(f, "{:gutter$} |", "")?;
-    writeln!(f, "{line} | {text}")?;
     let span_chars = {
         let end = floor_char_boundary(source, (span.end as usize).min(source.len()));
         let begin = floor_char_boundary(source, start);
         let line_end = begin + source[begin..].find('\n').unwrap_or(source.len() - begin);
         source[begin..end.min(line_end)].chars().count().max(1)
     };
-    let pad: String = text
+    let shown = Excerpt::of(text, col - 1, span_chars);
+    writeln!(f, "{line} | {}", shown.text)?;
+    let pad: String = shown
+        .text
         .chars()
-        .take(col - 1)
+        .take(shown.caret_at)
         .map(|c| if c == '\t' { '\t' } else { ' ' })
         .collect();
-    writeln!(f, "{:gutter$} | {pad}{}", "", "^".repeat(span_chars))?;
+    writeln!(f, "{:gutter$} | {pad}{}", "", "^".repeat(shown.carets))?;
     if let Some(hint) = &d.hint {
-        writeln!(f, "{:gutter$} = hint: {hint}", "")?;
+        writeln!(f, "{:gutter$} = hint: {}", "", abbreviated(hint))?;
     }
     Ok(())
+}
+
+/// Most characters of a source line shown in a diagnostic; longer lines are cut around the span.
+const MAX_SHOWN_CHARS: usize = 120;
+
+/// Most characters of a message or hint shown; longer ones (quoting a huge name from the script) lose
+/// their middle.
+const MAX_MESSAGE_CHARS: usize = 400;
+
+/// `text`, or its first and last characters around a `…` if it is longer than `MAX_MESSAGE_CHARS`.
+fn abbreviated(text: &str) -> String {
+    let count = text.chars().count();
+    if count <= MAX_MESSAGE_CHARS {
+        return text.to_string();
+    }
+    let head: String = text.chars().take(MAX_MESSAGE_CHARS - 100).collect();
+    let tail: String = text.chars().skip(count - 100).collect();
+    format!("{head} … {tail}")
+}
+
+/// The part of a source line a diagnostic shows, and where its caret goes.
+struct Excerpt {
+    /// The line, or a window of it with `…` where it was cut.
+    text: String,
+    /// Characters of `text` before the first caret.
+    caret_at: usize,
+    /// Carets to draw.
+    carets: usize,
+}
+
+impl Excerpt {
+    /// The excerpt of `line` for a span of `span_chars` characters from character `col` (0-based).
+    fn of(line: &str, col: usize, span_chars: usize) -> Excerpt {
+        let chars: Vec<char> = line.chars().collect();
+        if chars.len() <= MAX_SHOWN_CHARS {
+            return Excerpt {
+                text: line.to_string(),
+                caret_at: col,
+                carets: span_chars,
+            };
+        }
+        let col = col.min(chars.len());
+        let first = col
+            .saturating_sub(MAX_SHOWN_CHARS / 3)
+            .min(chars.len() - MAX_SHOWN_CHARS);
+        let last = first + MAX_SHOWN_CHARS;
+        let (before, after) = (
+            if first > 0 { "…" } else { "" },
+            if last < chars.len() { "…" } else { "" },
+        );
+        let window: String = chars[first..last].iter().collect();
+        Excerpt {
+            text: format!("{before}{window}{after}"),
+            caret_at: col - first + before.chars().count(),
+            carets: span_chars.min(last - col).max(1),
+        }
+    }
 }
 
 /// Edit distance counting insertions, deletions, substitutions and swaps of neighbours (optimal string
@@ -212,11 +277,19 @@ pub fn edit_distance(a: &str, b: &str) -> usize {
     d[a.len()][b.len()]
 }
 
+/// Names longer than this get no "did you mean" (whose cost grows with the product of the lengths).
+const MAX_SUGGESTED_CHARS: usize = 64;
+
 /// The candidate closest to `name`, if it is close enough to be a likely typo.
 pub fn closest<'a>(name: &str, candidates: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
-    let limit = (name.chars().count() / 3).max(1);
+    let length = name.chars().count();
+    if length > MAX_SUGGESTED_CHARS {
+        return None;
+    }
+    let limit = (length / 3).max(1);
     candidates
         .into_iter()
+        .filter(|c| c.chars().count().abs_diff(length) <= limit)
         .map(|c| (edit_distance(name, c), c))
         .filter(|&(d, _)| d <= limit)
         .min()
@@ -248,8 +321,45 @@ mod tests {
     }
 
     #[test]
+    fn long_lines_are_cut_around_the_span() {
+        let line = format!("{}lenght(p){}", "a + ".repeat(100), " + b".repeat(100));
+        let source = format!("fn f() -> f32 = 1\n{line}\n");
+        let mut sources = SourceMap::default();
+        let base = sources.add("long.sdf", &source);
+        let at = base + 18 + 400;
+        let report = Report {
+            sources,
+            diagnostics: vec![Diagnostic::new(
+                Span::new(at, at + 6),
+                "unknown function 'lenght'",
+            )],
+        };
+        let text = report.to_string();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[1], " --> long.sdf:2:401");
+        let shown = lines[3].strip_prefix("2 | ").unwrap();
+        assert!(shown.starts_with('…') && shown.ends_with('…'), "{shown}");
+        assert_eq!(shown.chars().count(), MAX_SHOWN_CHARS + 2);
+        let caret = lines[4].strip_prefix("  | ").unwrap();
+        let under: String = shown.chars().skip(caret.find('^').unwrap()).take(6).collect();
+        assert_eq!(under, "lenght");
+        assert_eq!(caret.trim(), "^^^^^^");
+        // A message quoting a huge name loses its middle.
+        let long = format!("unknown function '{}'", "x".repeat(10_000));
+        let shown = abbreviated(&long);
+        assert_eq!(shown.chars().count(), MAX_MESSAGE_CHARS + 3);
+        assert!(shown.starts_with("unknown function 'xxx") && shown.ends_with("xxx'"));
+        assert_eq!(abbreviated("short"), "short");
+        // A span at the very end of a long line stays in the window.
+        assert_eq!(Excerpt::of(&"x".repeat(1000), 999, 5).carets, 1);
+        assert!(Excerpt::of(&"x".repeat(1000), 999, 5).text.starts_with('…'));
+    }
+
+    #[test]
     fn closest_finds_typos_only() {
         assert_eq!(closest("lenght", ["length", "dot", "cross"]), Some("length"));
         assert_eq!(closest("banana", ["length", "dot"]), None);
+        let long = "x".repeat(100_000);
+        assert_eq!(closest(&long, [long.as_str()]), None);
     }
 }

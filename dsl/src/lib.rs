@@ -15,6 +15,7 @@
 
 pub mod ast;
 pub mod autodiff;
+pub mod budget;
 pub mod builtins;
 pub mod config;
 pub mod diag;

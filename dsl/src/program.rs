@@ -4,6 +4,7 @@
 use std::collections::HashMap;
 
 use crate::ast::*;
+use crate::budget;
 use crate::builtins;
 use crate::diag::{Diagnostic, Report, SourceMap, Span};
 use crate::elaborate::{Elaborator, Globals, ParamSlot};
@@ -116,6 +117,10 @@ pub fn compile_with(file: &str, source: &str, overrides: &[String]) -> Result<Pr
     }
 }
 
+/// Checking a script's functions stops after this many errors (each may search every name for a "did you
+/// mean", so a script of thousands of broken functions would take quadratic time to report them all).
+const MAX_FUNCTION_ERRORS: usize = 100;
+
 impl Program {
     fn user_items(&self) -> impl Iterator<Item = &Item> {
         self.script.items.iter()
@@ -208,7 +213,14 @@ impl Program {
             })
             .collect();
         let mut diagnostics = Vec::new();
+        let mut floats = 0u64;
         for (index, decl) in decls.iter().enumerate() {
+            floats = floats.saturating_add(decl.ty.ty.scalars() as u64);
+            let what = || format!("the params up to '{}' ({floats} floats)", decl.name.name);
+            if let Err(e) = budget::check(what, budget::bytes_of(floats, 4)) {
+                diagnostics.push(Diagnostic::new(decl.ty.span, e.to_string()).with_hint(budget::HINT));
+                break;
+            }
             let offset = self.param_values.len();
             match self.initial_value(decl, index) {
                 Ok(values) => {
@@ -339,10 +351,14 @@ impl Program {
         Ok(init.sample(ty.scalars(), seed))
     }
 
+    /// The functions' type errors, up to `MAX_FUNCTION_ERRORS` (checking stops there).
     fn check_functions(&self) -> Vec<Diagnostic> {
         let globals = self.globals();
         let mut diagnostics = Vec::new();
         for f in self.fn_defs() {
+            if diagnostics.len() == MAX_FUNCTION_ERRORS {
+                break;
+            }
             let mut g = Graph::new();
             if let Err(d) = Elaborator::new(&globals, &mut g).check_fn(f) {
                 diagnostics.push(d);

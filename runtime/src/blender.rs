@@ -155,7 +155,7 @@ fn decode_all(files: &[PathBuf], request: &Request) -> Result<Vec<ImageF32>> {
 
 /// Decodes one RGBA PNG into its source (width, height) and the composited, resized image.
 fn decode_view(file: &Path, request: &Request) -> Result<((u32, u32), ImageF32)> {
-    let bytes = std::fs::read(file).map_err(|e| Error::reading(file, e))?;
+    let bytes = crate::input::read_capped(file).map_err(|e| Error::reading(file, e))?;
     if !bytes.starts_with(PNG_SIGNATURE) {
         return Err(Error::format(file, "not a PNG file"));
     }
@@ -297,7 +297,7 @@ impl CacheEntry {
 
     /// The cached images if the entry exists, is intact and no existing image changed.
     fn read(&self, stamps: &[Option<u64>]) -> Option<Vec<ImageF32>> {
-        let bytes = std::fs::read(&self.file).ok()?;
+        let bytes = crate::input::read_capped(&self.file).ok()?;
         let mut r = ByteReader(&bytes);
         let key_len = u32::try_from(self.key.len()).ok()?;
         let header_ok = r.take(CACHE_MAGIC.len())? == CACHE_MAGIC

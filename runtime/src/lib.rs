@@ -33,6 +33,7 @@ pub mod field;
 pub mod hierarchical;
 pub mod image_out;
 pub mod importance;
+pub mod input;
 mod json;
 pub mod label;
 pub mod march;

@@ -1,7 +1,6 @@
 //! Point clouds: reading them from `.npz`, `.npy`, `.ply` and XYZ text files, centering them
 //! and bounding them.
 
-use std::io::Read;
 use std::path::Path;
 
 use crate::error::{Error, Result};
@@ -35,7 +34,7 @@ pub fn read_points(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
     let points = match extension.as_str() {
         "npz" => read_npz(path, key)?,
         "npy" => {
-            let bytes = std::fs::read(path).map_err(|e| Error::read(path, e))?;
+            let bytes = crate::input::read_capped(path).map_err(|e| Error::read(path, e))?;
             parse_points(&bytes).map_err(|e| Error::format(path, e))?
         }
         "ply" => read_ply_points(path)?,
@@ -86,10 +85,10 @@ fn read_npz(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
             }
         },
     };
-    let mut bytes = Vec::new();
-    archive
+    let bytes = archive
         .by_name(&format!("{name}.npy"))
-        .and_then(|mut entry| entry.read_to_end(&mut bytes).map_err(Into::into))
+        .map_err(std::io::Error::from)
+        .and_then(crate::input::read_stream_capped)
         .map_err(|e| Error::format(path, format!("array '{name}': {e}")))?;
     parse_points(&bytes).map_err(|e| Error::format(path, format!("array '{name}': {e}")))
 }
@@ -118,7 +117,7 @@ fn read_ply_points(path: &Path) -> Result<Vec<[f32; 3]>> {
 }
 
 fn read_xyz(path: &Path) -> Result<Vec<[f32; 3]>> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::read(path, e))?;
+    let text = crate::input::read_text_capped(path).map_err(|e| Error::read(path, e))?;
     let mut points = Vec::new();
     for (k, line) in text.lines().enumerate() {
         let line = line.trim();

@@ -8,7 +8,7 @@ mod json;
 
 use std::path::Path;
 
-use nerfjit_dsl::Program;
+use nerfjit_dsl::{budget, Program};
 use nerfjit_runtime::Adam;
 
 use crate::failure::{Failure, Result};
@@ -99,7 +99,7 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     if start[0] != b'{' {
         return binary::read(path, &bad);
     }
-    let text = std::fs::read_to_string(path).map_err(|e| bad(&e.to_string()))?;
+    let text = nerfjit_runtime::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
     let saved = json::decode(&text, &bad)?;
     let program = saved.script.compile()?;
     let n_params = program.n_params();
@@ -125,6 +125,8 @@ pub fn resume_or_start(
     lr: impl Fn(u32) -> f32,
 ) -> Result<(Adam, u32)> {
     let n = params.len();
+    let what = || format!("training {n} params (values, gradients and Adam's two moments)");
+    budget::check(what, budget::bytes_of(n as u64, 16))?;
     let fresh = || Ok((configured(Adam::new(n, lr(0)), settings), 0));
     let path = match checkpoint {
         Some(path) if resume && path.exists() => path,

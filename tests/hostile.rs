@@ -1,0 +1,449 @@
+//! Issue 16's hostile-input suite: generated scripts, data files and command lines of the classes the
+//! issue lists (long and deep expressions, sizes that would exhaust memory, non-finite values, endless or
+//! lying files, absurd flags), each run by the real binary under an address-space cap (`ulimit -v`) and a
+//! time limit. Every case must end in seconds with a clear error: exit status 1 or 2, a message holding
+//! the expected words and no longer than a screenful or two, and no panic, abort or signal.
+
+use std::fmt::Write as _;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// The address-space cap of every run, in KiB (`ulimit -v`): 4 GiB.
+const ADDRESS_SPACE_KIB: u64 = 4 << 20;
+/// The most time a case may take.
+const TIME_LIMIT: Duration = Duration::from_secs(10);
+/// The most standard error a case may print (a long line must not be echoed whole).
+const MAX_STDERR_BYTES: usize = 16 << 10;
+
+/// One hostile input: the files it needs, the arguments, and words its error must hold.
+struct Case {
+    class: &'static str,
+    name: &'static str,
+    files: Vec<(&'static str, Vec<u8>)>,
+    args: Vec<String>,
+    expect: &'static str,
+}
+
+fn case(class: &'static str, name: &'static str, args: &[&str], expect: &'static str) -> Case {
+    Case {
+        class,
+        name,
+        files: Vec::new(),
+        args: args.iter().map(|a| a.to_string()).collect(),
+        expect,
+    }
+}
+
+impl Case {
+    fn file(mut self, name: &'static str, bytes: impl Into<Vec<u8>>) -> Case {
+        self.files.push((name, bytes.into()));
+        self
+    }
+
+    /// A case that checks `script` (written as `s.sdf`).
+    fn script(class: &'static str, name: &'static str, script: String, expect: &'static str) -> Case {
+        case(class, name, &["check", "s.sdf"], expect).file("s.sdf", script)
+    }
+}
+
+/// A sphere whose radius adds `expr` (an f32 expression in `p`).
+fn sphere_plus(expr: &str) -> String {
+    format!("fn sdf(p: vec3) -> f32 = length(p) - 1.0 + {expr}\n")
+}
+
+fn script_cases() -> Vec<Case> {
+    let s = "scripts";
+    vec![
+        Case::script(
+            s,
+            "params beyond the memory limit",
+            "param w: mat<65536, 65536> = kaiming(seed: 1)\nparam u: mat<65536, 65536> = kaiming(seed: 2)\n\
+             fn sdf(p: vec3) -> f32 = length(p) - 1.0 + w[0][0] + u[0][0]\n"
+                .into(),
+            "more than the memory limit",
+        ),
+        Case::script(
+            s,
+            "a hash table beyond its limit",
+            "param g: hashgrid<3, levels: 16, features: 2, log2_size: 40, base: 16, finest: 2048> = uniform(-1e-4, 1e-4, seed: 1)\n"
+                .into(),
+            "log2_size",
+        ),
+        Case::script(
+            s,
+            "a dense grid of 2 TiB",
+            "param v: grid<3, res: 4096, features: 8> = uniform(-1e-4, 1e-4, seed: 1)\n".into(),
+            "needs 549755813888 floats",
+        ),
+        Case::script(s, "a matrix dimension of 10^6", "param w: mat<1000000, 3> = 0\n".into(), "dimension"),
+        Case::script(
+            s,
+            "a sum of 100,000 terms",
+            sphere_plus(&vec!["p.x"; 100_000].join(" + ")),
+            "chained operations",
+        ),
+        Case::script(
+            s,
+            "100,000 nested parentheses",
+            sphere_plus(&format!("{}p.x{}", "(".repeat(100_000), ")".repeat(100_000))),
+            "nest",
+        ),
+        Case::script(
+            s,
+            "a chain of 100,000 swizzles",
+            sphere_plus(&format!("p{}.x", ".xyz".repeat(100_000))),
+            "chained operations",
+        ),
+        Case::script(
+            s,
+            "a chain of 100,000 indexings",
+            sphere_plus(&format!("p{}", "[0]".repeat(100_000))),
+            "chained operations",
+        ),
+        Case::script(s, "100,000 unary minuses", sphere_plus(&format!("{}p.x", "-".repeat(100_000))), "nest"),
+        Case::script(
+            s,
+            "100 functions calling each other",
+            (1..100)
+                .map(|i| format!("fn f{i}(x: f32) -> f32 = f{}(x) + 1.0\n", i - 1))
+                .chain(["fn f0(x: f32) -> f32 = x\nfn sdf(p: vec3) -> f32 = f99(p.x)\n".to_string()])
+                .collect(),
+            "64",
+        ),
+        Case::script(s, "a literal beyond f32", sphere_plus("1e39"), "3.4028235e38"),
+        Case::script(s, "a NaN const", format!("const a = 0 / 0\n{}", sphere_plus("a")), "finite"),
+        Case::script(
+            s,
+            "an infinite param value",
+            format!("param a: f32 = 1e38 * 10\n{}", sphere_plus("a")),
+            "finite",
+        ),
+        Case::script(
+            s,
+            "a NaN block setting",
+            format!("{}render sphere_trace {{ size: 0 / 0, out: \"a.png\" }}\n", sphere_plus("0.0")),
+            "finite",
+        ),
+        Case::script(
+            s,
+            "a 200,000-character unknown name",
+            sphere_plus(&format!("lenght{}(p)", "x".repeat(200_000))),
+            "unknown function",
+        ),
+        Case::script(
+            s,
+            "an error at the end of a 1 MB line",
+            sphere_plus(&format!("{}0.0 + lenght(p)", " ".repeat(1 << 20))),
+            "unknown function 'lenght'",
+        ),
+        Case::script(
+            s,
+            "10,000 functions with an error each",
+            (0..10_000).map(|i| format!("fn f{i}(x: f32) -> f32 = lenght(x)\n")).collect(),
+            "more errors",
+        ),
+        case(s, "a script that never ends", &["check", "/dev/zero"], "longer than the 4194304 bytes"),
+        case(s, "a 5 MB script", &["check", "big.sdf"], "longer than the 4194304 bytes")
+            .file("big.sdf", format!("{}\n{}", sphere_plus("0.0"), "//".repeat(5 << 19))),
+        case(
+            s,
+            "--set of 50,000 terms",
+            &["run", "s.sdf", "--set", &format!("k={}", vec!["1"; 50_000].join("+"))],
+            "chained operations",
+        )
+        .file("s.sdf", format!("const k = 1\n{}", sphere_plus("k"))),
+        case(s, "--set of NaN", &["run", "s.sdf", "--set", "k=0/0"], "finite")
+            .file("s.sdf", format!("const k = 1\n{}", sphere_plus("k"))),
+    ]
+}
+
+/// A PNG header declaring a `side`×`side` RGBA image, followed by a few bytes of data.
+fn png_bomb(side: u32) -> Vec<u8> {
+    fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+        out.extend((data.len() as u32).to_be_bytes());
+        out.extend(kind);
+        out.extend(data);
+        out.extend(crc32(&[kind.as_slice(), data].concat()).to_be_bytes());
+    }
+    let mut header = Vec::new();
+    header.extend(side.to_be_bytes());
+    header.extend(side.to_be_bytes());
+    header.extend([8, 6, 0, 0, 0]);
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    chunk(&mut png, b"IHDR", &header);
+    chunk(&mut png, b"IDAT", &[0x78, 0x9c, 0x63, 0, 0, 0, 1, 0, 1]);
+    chunk(&mut png, b"IEND", &[]);
+    png
+}
+
+/// The CRC-32 of PNG chunks.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xedb8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// A `.npy` header for float32 data of `shape`, followed by `data_bytes` zero bytes.
+fn npy(shape: &str, data_bytes: usize) -> Vec<u8> {
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend((header.len() as u16).to_le_bytes());
+    out.extend(header.as_bytes());
+    out.extend(vec![0u8; data_bytes]);
+    out
+}
+
+/// A script fitting an SDF to the point cloud `file`.
+fn fit(file: &str) -> String {
+    format!(
+        "param r: vec<1> = [0.5]\nfn sdf(p: vec3) -> f32 = length(p) - r[0]\n\
+         train sdf {{ data: points(\"{file}\"), steps: 5, batch: 6, random: 6, checkpoint: none }}\n"
+    )
+}
+
+fn data_cases() -> Vec<Case> {
+    let d = "data";
+    let blender = r#"{"camera_angle_x": 0.69, "frames": [{"file_path": "./r_0",
+        "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}]}"#;
+    let nerf = "param c: vec3 = [0, 0, 0]\n\
+                fn opacity(p: vec3) -> f32 = opacity_laplace(length(p - c) - 1.0, alpha: 1.0, beta: 0.05)\n\
+                fn color(p: vec3) -> vec3 = [0.5, 0.5, 0.5]\n\
+                train { data: blender(\"t.json\"), near: 2, far: 6, samples: 8, steps: 5, batch: 64, checkpoint: none }\n";
+    let deep_json = format!("{}{}", "[".repeat(100_000), "]".repeat(100_000));
+    vec![
+        case(
+            d,
+            "a PNG declaring 60000×60000 pixels",
+            &["run", "s.sdf"],
+            "r_0.png",
+        )
+        .file("s.sdf", nerf)
+        .file("t.json", blender)
+        .file("r_0.png", png_bomb(60_000)),
+        case(d, "camera JSON nested 100,000 deep", &["run", "s.sdf"], "t.json")
+            .file("s.sdf", nerf)
+            .file("t.json", deep_json.clone()),
+        case(d, "a .npy declaring 10^15 points", &["run", "s.sdf"], "cloud.npy")
+            .file("s.sdf", fit("cloud.npy"))
+            .file("cloud.npy", npy("(1000000000000000, 3)", 64)),
+        case(d, "a .npy shape that overflows", &["run", "s.sdf"], "too large")
+            .file("s.sdf", fit("cloud.npy"))
+            .file(
+                "cloud.npy",
+                npy("(4611686018427387904, 4611686018427387904, 3)", 64),
+            ),
+        case(
+            d,
+            "a PLY declaring 10^12 vertices",
+            &["run", "s.sdf"],
+            "cloud.ply",
+        )
+        .file("s.sdf", fit("cloud.ply"))
+        .file(
+            "cloud.ply",
+            "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\n\
+                 property float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0",
+        ),
+        case(d, "an .xyz point that is NaN", &["run", "s.sdf"], "cloud.xyz")
+            .file("s.sdf", fit("cloud.xyz"))
+            .file("cloud.xyz", "0 0 1\n1 0 0\nnan 0 0\n"),
+        case(d, "a point file that never ends", &["run", "s.sdf"], "/dev/zero")
+            .file("s.sdf", fit("/dev/zero")),
+        case(
+            d,
+            "a checkpoint whose header claims 2^60 bytes",
+            &["mesh", "c.safetensors", "--out", "m.ply"],
+            "c.safetensors",
+        )
+        .file(
+            "c.safetensors",
+            [(1u64 << 60).to_le_bytes().as_slice(), b"{}"].concat(),
+        ),
+        case(
+            d,
+            "a checkpoint of JSON nested 100,000 deep",
+            &["mesh", "c.ckpt.json", "--out", "m.ply"],
+            "c.ckpt.json",
+        )
+        .file("c.ckpt.json", deep_json),
+        case(d, "a .vm model of garbage", &["import", "m.vm"], "m.vm")
+            .file("m.vm", "_0 var-x\n_1 frobnicate _0\n"),
+    ]
+}
+
+fn command_line_cases() -> Vec<Case> {
+    let c = "command line";
+    let torus = "examples/torus.sdf";
+    // 1M params: 4 MiB of values fit in 8 MiB, their training state (16 bytes each) does not.
+    let million = "param v: grid<3, res: 100, features: 1> = uniform(-1e-4, 1e-4, seed: 1)\n\
+                   fn sdf(p: vec3) -> f32 = length(p) - 1.0 + grid(v, p)[0]\n\
+                   train sdf { data: points(\"c.xyz\"), steps: 5, batch: 6, random: 6, checkpoint: none }\n";
+    vec![
+        case(
+            c,
+            "--threads 1000000",
+            &["--threads", "1000000", "check", torus],
+            "threads per core",
+        ),
+        case(
+            c,
+            "--max-memory 12X",
+            &["--max-memory", "12X", "check", torus],
+            "unknown unit",
+        ),
+        case(
+            c,
+            "--max-memory 0",
+            &["--max-memory", "0", "check", torus],
+            "1 byte",
+        ),
+        case(
+            c,
+            "params beyond --max-memory 1M",
+            &["--max-memory", "1M", "check", "examples/instant_lego.sdf"],
+            "'encoding'",
+        ),
+        case(
+            c,
+            "training state beyond --max-memory 8M",
+            &["--max-memory", "8M", "run", "s.sdf"],
+            "training 1000000 params",
+        )
+        .file("s.sdf", million)
+        .file("c.xyz", "0 0 1\n1 0 0\n0 1 0\n0 0 -1\n-1 0 0\n0 -1 0\n"),
+        case(
+            c,
+            "mesh --res 100000",
+            &["mesh", torus, "--res", "100000", "--out", "m.ply"],
+            "2048",
+        ),
+        case(
+            c,
+            "render --size 60000",
+            &["render", torus, "--size", "60000", "--out", "r.png"],
+            "1..=4096",
+        ),
+        case(
+            c,
+            "a camera path of 10^9 frames",
+            &[
+                "render",
+                torus,
+                "--path",
+                "orbit(frames: 1000000000)",
+                "--out",
+                "r.gif",
+            ],
+            "frames",
+        ),
+        case(
+            c,
+            "a script that does not exist",
+            &["run", "nowhere.sdf"],
+            "nowhere.sdf",
+        ),
+    ]
+}
+
+/// Runs `case` in `dir` under the caps; the problem found, if any.
+fn run(case: &Case, dir: &Path) -> Option<String> {
+    for (name, bytes) in &case.files {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+    let repo = env!("CARGO_MANIFEST_DIR");
+    let args: Vec<String> = case
+        .args
+        .iter()
+        .map(|a| a.replace("examples/", &format!("{repo}/examples/")))
+        .collect();
+    let start = Instant::now();
+    let mut child = Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {ADDRESS_SPACE_KIB} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(&args)
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("starts");
+    let stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if start.elapsed() > TIME_LIMIT {
+            child.kill().ok();
+            child.wait().ok();
+            return Some(format!("still running after {} s", TIME_LIMIT.as_secs()));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let seconds = start.elapsed().as_secs_f64();
+    let err = reader.join().unwrap();
+    let head: String = err.chars().take(600).collect();
+    let problem = match status.code() {
+        None => Some(format!("killed by a signal ({status})")),
+        Some(0) => Some("succeeded".to_string()),
+        Some(1 | 2)
+            if ["panicked", "overflowed its stack", "memory allocation of"]
+                .iter()
+                .any(|w| err.contains(w)) =>
+        {
+            Some("crashed".to_string())
+        }
+        Some(1 | 2) if err.len() > MAX_STDERR_BYTES => Some(format!("printed {} bytes of errors", err.len())),
+        Some(1 | 2) if !err.contains(case.expect) => Some(format!("the message lacks '{}'", case.expect)),
+        Some(1 | 2) => None,
+        Some(code) => Some(format!("exit status {code}")),
+    };
+    problem.map(|p| format!("{p} after {seconds:.2} s: {head}"))
+}
+
+#[test]
+fn hostile_inputs_end_in_clear_errors_within_the_caps() {
+    let root = std::env::temp_dir().join(format!("nerfjit-hostile-{}", std::process::id()));
+    let classes = [
+        ("scripts", script_cases()),
+        ("data", data_cases()),
+        ("command line", command_line_cases()),
+    ];
+    let mut failures = String::new();
+    let mut counts = Vec::new();
+    for (class, cases) in &classes {
+        for (i, case) in cases.iter().enumerate() {
+            assert_eq!(&case.class, class);
+            let dir = root.join(format!("{}-{i}", class.replace(' ', "-")));
+            std::fs::create_dir_all(&dir).unwrap();
+            if let Some(problem) = run(case, &dir) {
+                writeln!(failures, "[{class}] {}: {problem}\n", case.name).unwrap();
+            }
+        }
+        counts.push(format!("{} {class}", cases.len()));
+    }
+    std::fs::remove_dir_all(&root).ok();
+    let total: usize = classes.iter().map(|(_, c)| c.len()).sum();
+    println!(
+        "hostile inputs: {total} cases ({}), each under ulimit -v {ADDRESS_SPACE_KIB} KiB",
+        counts.join(", ")
+    );
+    assert!(
+        failures.is_empty(),
+        "hostile inputs that did not end in a clear error:\n{failures}"
+    );
+}
