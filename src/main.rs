@@ -369,7 +369,11 @@ fn main() -> ExitCode {
         // A panic has printed its message already.
         Ok(Err(_)) => ExitCode::FAILURE,
         Err(e) => {
-            eprintln!("error: cannot start the worker thread: {e}");
+            eprintln!(
+                "error: cannot start the worker thread with its {} MiB stack: {e}\n  = hint: the stack is \
+                 reserved, not used, but must fit in the address space: raise `ulimit -v` to at least 1.5 GB",
+                WORK_STACK_BYTES >> 20
+            );
             ExitCode::FAILURE
         }
     }

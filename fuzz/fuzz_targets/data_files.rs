@@ -1,0 +1,85 @@
+//! Fuzz target for every data parser: the first byte picks a format, the rest is the file's content,
+//! written to a scratch folder and read by the loader a user's command would call. Any content must give
+//! data or an error, never a panic, a hang or an allocation beyond what the file holds.
+#![no_main]
+
+use std::path::{Path, PathBuf};
+
+use libfuzzer_sys::fuzz_target;
+use nerfjit_runtime::{camera_files, camera_path, colmap, nerfstudio, pointcloud};
+
+/// The formats, by the first byte modulo their count.
+const FORMATS: [&str; 13] = [
+    "points.npy",
+    "points.npz",
+    "points.ply",
+    "points.xyz",
+    "box_cameras.json",
+    "transforms.json",
+    "nerfstudio.json",
+    "camera_path.json",
+    "colmap.bin",
+    "colmap.txt",
+    "checkpoint.safetensors",
+    "checkpoint.ckpt.json",
+    "model.vm",
+];
+
+/// A scratch folder of this process.
+fn scratch() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("nerfjit-fuzz-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("colmap")).unwrap();
+    dir
+}
+
+fuzz_target!(|data: &[u8]| {
+    let Some((&pick, content)) = data.split_first() else {
+        return;
+    };
+    let dir = scratch();
+    let name = FORMATS[usize::from(pick) % FORMATS.len()];
+    let file = dir.join(name);
+    std::fs::write(&file, content).unwrap();
+    read(name, &file, &dir);
+    std::fs::remove_file(&file).ok();
+});
+
+/// Three binary files from one input: two little-endian u16 lengths, then the files' bytes.
+fn split_binary(content: &[u8]) -> Vec<&[u8]> {
+    if content.len() < 4 {
+        return vec![content];
+    }
+    let (lengths, rest) = content.split_at(4);
+    let a = usize::from(u16::from_le_bytes([lengths[0], lengths[1]])).min(rest.len());
+    let b = usize::from(u16::from_le_bytes([lengths[2], lengths[3]])).min(rest.len() - a);
+    vec![&rest[..a], &rest[a..a + b], &rest[a + b..]]
+}
+
+/// Reads `file` as the format `name` says; the result is dropped.
+fn read(name: &str, file: &Path, dir: &Path) {
+    match name {
+        "points.npz" => drop(pointcloud::read_points(file, Some("verts"))),
+        "points.npy" | "points.ply" | "points.xyz" => drop(pointcloud::read_points(file, None)),
+        "box_cameras.json" => drop(camera_files::load_box_cameras(file)),
+        "transforms.json" => drop(camera_files::load_blender_cameras(file)),
+        "nerfstudio.json" => drop(nerfstudio::load_nerfstudio(file)),
+        "camera_path.json" => drop(camera_path::load_camera_path(file)),
+        "colmap.bin" | "colmap.txt" => {
+            let model = dir.join("colmap");
+            let content = std::fs::read(file).unwrap();
+            let (parts, extension) = if name == "colmap.bin" {
+                (split_binary(&content), "bin")
+            } else {
+                (content.split(|&b| b == b'%').take(3).collect(), "txt")
+            };
+            for (part, stem) in parts.iter().zip(["cameras", "images", "points3D"]) {
+                std::fs::write(model.join(format!("{stem}.{extension}")), part).unwrap();
+            }
+            drop(colmap::load_colmap(&model, &dir.join("images")));
+            std::fs::remove_dir_all(&model).ok();
+            std::fs::create_dir_all(&model).unwrap();
+        }
+        "checkpoint.safetensors" | "checkpoint.ckpt.json" => drop(nerfjit::checkpoint::load_trained(file)),
+        _ => drop(nerfjit::import::run(file, Some(&dir.join("model.sdf")))),
+    }
+}

@@ -1,0 +1,75 @@
+//! Fuzz target for the JIT: a script that compiles gives kernels for each of its functions (value and
+//! gradient) that Cranelift compiles and that run on a few points, in buffers of exactly the sizes the
+//! kernels declare (AddressSanitizer catches a read or write outside them), without panicking. Programs
+//! with networks of more than `MAX_DENSE_PARAMS` weights are skipped (their kernels take seconds to
+//! build under the sanitizer and exercise nothing a small network does not).
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use nerfjit_dsl::{kernels, Type};
+use nerfjit_jit::{Kernel, Options};
+
+/// Most weights (params outside grid tables) of a program that is compiled.
+const MAX_DENSE_PARAMS: usize = 20_000;
+
+/// Points per evaluation: one full group of four and an unaligned tail.
+const POINTS: usize = 7;
+
+fuzz_target!(|data: &[u8]| {
+    let Ok(source) = std::str::from_utf8(data) else {
+        return;
+    };
+    let Ok(program) = nerfjit_dsl::compile("fuzz.sdf", source) else {
+        return;
+    };
+    let grid = |ty: &Type| matches!(ty, Type::Grid(_));
+    let dense: usize = program
+        .params
+        .iter()
+        .filter(|p| !grid(&p.ty))
+        .map(|p| p.ty.scalars())
+        .sum();
+    if dense > MAX_DENSE_PARAMS {
+        return;
+    }
+    let params = program.param_values.clone();
+    for sig in program.functions() {
+        let Ok(f) = program.lower(&sig.name) else {
+            continue;
+        };
+        for graph in [kernels::value(&f), kernels::with_gradient(&f)] {
+            if graph.len() > 20_000 {
+                continue;
+            }
+            let Ok(kernel) = Kernel::compile(&graph, Options::default()) else {
+                continue;
+            };
+            run(&kernel, &params);
+        }
+    }
+});
+
+/// Evaluates `kernel` at `POINTS` points spread over [-2, 2] in buffers of exactly the sizes it declares.
+fn run(kernel: &Kernel, params: &[f32]) {
+    if params.len() < kernel.n_params {
+        return;
+    }
+    let inputs: Vec<Vec<f32>> = (0..kernel.n_inputs)
+        .map(|i| {
+            (0..POINTS)
+                .map(|p| ((p * 7 + i * 3) % 9) as f32 * 0.5 - 2.0)
+                .collect()
+        })
+        .collect();
+    let mut outputs = vec![vec![0.0f32; POINTS]; kernel.n_outputs];
+    let mut reductions = vec![0.0f32; kernel.n_reductions];
+    let ins: Vec<&[f32]> = inputs.iter().map(Vec::as_slice).collect();
+    let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
+    kernel.eval(
+        POINTS,
+        &ins,
+        &mut outs,
+        &params[..kernel.n_params],
+        &mut reductions,
+    );
+}
