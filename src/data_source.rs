@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 
 use nerfjit_dsl::config::{Spanned, Value};
-use nerfjit_dsl::Diagnostic;
+use nerfjit_dsl::{budget, Diagnostic};
 use nerfjit_runtime::{
     default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
     load_colmap, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
@@ -209,9 +209,11 @@ impl DataSet {
         Ok(Some((capture, data)))
     }
 
-    /// Loads the training views.
+    /// Loads the training views, having checked that they fit in the memory limit.
     pub fn views(&self) -> Result<Views> {
         if let Some((capture, data)) = self.capture()? {
+            let (n, width, height) = capture.view_sizes(&self.path, data.downscale, data.views)?;
+            self.check_memory(n, width, height)?;
             let request = CaptureRequest {
                 downscale: data.downscale,
                 background: data.background,
@@ -220,9 +222,27 @@ impl DataSet {
             return Ok(capture.views(&self.path, request)?);
         }
         Ok(match self.kind {
-            DataKind::Blender(b) => load_blender_views(&self.path, Some(b.size), b.background, b.views)?,
-            _ => load_box_views(&self.path)?,
+            DataKind::Blender(b) => {
+                let frames = load_blender_cameras(&self.path)?.images.len();
+                self.check_memory(b.views.unwrap_or(frames).min(frames), b.size, b.size)?;
+                load_blender_views(&self.path, Some(b.size), b.background, b.views)?
+            }
+            _ => {
+                let cameras = load_box_cameras(&self.path)?;
+                if let Some((width, height)) = cameras.image_size {
+                    self.check_memory(cameras.images.len(), width, height)?;
+                }
+                load_box_views(&self.path)?
+            }
         })
+    }
+
+    /// Checks that `n` decoded views of `width`×`height` (RGB, f32) fit in the memory limit.
+    fn check_memory(&self, n: usize, width: u32, height: u32) -> Result<()> {
+        let pixels = n as u64 * u64::from(width) * u64::from(height);
+        let views = if n == 1 { "view" } else { "views" };
+        let what = || format!("{n} {views} of {width}×{height} from '{}'", self.path.display());
+        Ok(budget::check(what, budget::bytes_of(pixels, 12))?)
     }
 
     /// The cameras of the training views, without their images.

@@ -232,6 +232,11 @@ fn data_cases() -> Vec<Case> {
                 fn opacity(p: vec3) -> f32 = opacity_laplace(length(p - c) - 1.0, alpha: 1.0, beta: 0.05)\n\
                 fn color(p: vec3) -> vec3 = [0.5, 0.5, 0.5]\n\
                 train { data: blender(\"t.json\"), near: 2, far: 6, samples: 8, steps: 5, batch: 64, checkpoint: none }\n";
+    let frame = r#"{"file_path": "./r_0", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}"#;
+    let hundred_frames = format!(
+        r#"{{"camera_angle_x": 0.69, "frames": [{}]}}"#,
+        vec![frame; 100].join(", ")
+    );
     let deep_json = format!("{}{}", "[".repeat(100_000), "]".repeat(100_000));
     vec![
         case(
@@ -243,6 +248,33 @@ fn data_cases() -> Vec<Case> {
         .file("s.sdf", nerf)
         .file("t.json", blender)
         .file("r_0.png", png_bomb(60_000)),
+        case(
+            d,
+            "a capture of 100000×100000 images",
+            &["run", "s.sdf"],
+            "would need 111.8 GiB",
+        )
+        .file(
+            "s.sdf",
+            nerf.replace("blender(\"t.json\")", "nerfstudio(\"t.json\", normalize: false)"),
+        )
+        .file(
+            "t.json",
+            r#"{"camera_model": "PINHOLE", "fl_x": 5e4, "fl_y": 5e4, "cx": 5e4, "cy": 5e4, "w": 100000,
+                    "h": 100000, "frames": [{"file_path": "a.png",
+                    "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}]}"#,
+        ),
+        case(
+            d,
+            "100 views beyond --max-memory 1M",
+            &["--max-memory", "1M", "run", "s.sdf"],
+            "100 views of 128×128",
+        )
+        .file(
+            "s.sdf",
+            nerf.replace("blender(\"t.json\")", "blender(\"t.json\", size: 128)"),
+        )
+        .file("t.json", hundred_frames),
         case(d, "camera JSON nested 100,000 deep", &["run", "s.sdf"], "t.json")
             .file("s.sdf", nerf)
             .file("t.json", deep_json.clone()),

@@ -250,6 +250,19 @@ impl Capture {
         frames.iter().map(|f| f.camera.camera(width, height)).collect()
     }
 
+    /// How many views [`Capture::views`] would load with `downscale` and `limit`, and their width and
+    /// height: known from the frames' intrinsics before any image is decoded.
+    pub fn view_sizes(
+        &self,
+        source: &Path,
+        downscale: u32,
+        limit: Option<usize>,
+    ) -> Result<(usize, u32, u32)> {
+        let frames = self.first_frames(source, limit)?;
+        let (width, height) = Capture::common_size(frames, downscale.max(1))?;
+        Ok((frames.len(), width, height))
+    }
+
     /// Loads the images of the capture (read from `source`) as views: decoded in parallel,
     /// undistorted, composited onto the background and downscaled. Every image must have the
     /// size its frame states; after downscaling all must have one size.
