@@ -11,6 +11,7 @@ use crate::block::first_block;
 use crate::failure::{Failure, Result};
 use crate::field::JitFn;
 use crate::render::RenderPlan;
+use crate::schema::Kind;
 use crate::script;
 
 /// A benchmark workload.
@@ -216,7 +217,7 @@ fn large(reps: usize) -> Result<()> {
         mesh_s,
         100.0 * pruning.points_evaluated as f64 / pruning.points as f64
     ));
-    let plan = RenderPlan::new(first_block(&program, "render", ".")?)?;
+    let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let (sdf, _) = plan.compile_fields(&compiler)?;
     let shading = Shading::Lambert {
         gradient: &gradient,
@@ -270,7 +271,7 @@ fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
 
 fn w1(reps: usize) -> Result<()> {
     let program = script::load("examples/torus.sdf")?;
-    let plan = RenderPlan::new(first_block(&program, "render", ".")?)?;
+    let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
     let compiler = crate::field::Compiler {
@@ -332,7 +333,7 @@ fn w1(reps: usize) -> Result<()> {
 /// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
-    let plan = crate::volume::VolumePlan::new(first_block(&program, "render", ".")?)?;
+    let plan = crate::volume::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
     let field = crate::field::VolumeField::compile(&program, &cache)?;
@@ -402,7 +403,7 @@ fn w2(reps: usize) -> Result<()> {
 
 fn w3(reps: usize) -> Result<()> {
     let program = script::load("examples/train_box.sdf")?;
-    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
+    let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
     let steps = 50 * reps.max(1);
     let mut params = program.param_values.clone();
     let t = Instant::now();
@@ -513,7 +514,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
 /// line.
 fn volume_training(script: &str, steps: u32) -> Result<String> {
     let program = script::load(script)?;
-    let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?.exact();
+    let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
     plan.run_steps(&program, &mut params, steps)
 }
@@ -558,7 +559,7 @@ fn w8(reps: usize) -> Result<()> {
         let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
         let overrides = [format!("train.batch={batch}")];
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
-        let plan = crate::train::TrainPlan::new(first_block(&program, "train", "examples")?)?;
+        let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
         let summary = plan.run_steps(&program, &mut params, steps)?;
         crate::emit(&format!(
@@ -570,7 +571,7 @@ fn w8(reps: usize) -> Result<()> {
 
 fn w5(reps: usize) -> Result<()> {
     let program = script::load("examples/neural_sdf_bunny.sdf")?;
-    let plan = crate::train_sdf::SdfTrainPlan::new(first_block(&program, "train", "examples")?)?;
+    let plan = crate::train_sdf::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
     let summary = plan.run_steps(&program, &mut params, steps)?;

@@ -5,12 +5,13 @@ use std::cell::RefCell;
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
+use nerfjit_dsl::ast::ConfigBlock;
 use nerfjit_dsl::config::{Settings, Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program, Span};
 use nerfjit_runtime::Camera;
 
 use crate::failure::{at, Failure, Result};
-use crate::schema::BlockSchema;
+use crate::schema::{self, BlockSchema, Kind};
 use crate::settings::{name_among, ranged, triple, whole};
 
 /// The most pixels a render block may produce (all frames).
@@ -32,13 +33,16 @@ pub struct Block<'p> {
 }
 
 /// The first block of `kind` in `program` (a script in `script_dir`), read with its outputs redirected to
-/// the OS temp folder: for commands that use a block's settings without running it.
-pub fn first_block<'p>(program: &'p Program, kind: &str, script_dir: &str) -> Result<Block<'p>> {
-    let block = program
-        .blocks()
-        .into_iter()
-        .find(|b| b.kind.name == kind)
-        .ok_or_else(|| Failure::Message(format!("the script has no '{kind}' block")))?;
+/// the OS temp folder: for commands that use a block's settings without running it. (`Kind::Train` finds
+/// a `train { }` block, never a `train sdf { }` one.)
+pub fn first_block<'p>(program: &'p Program, kind: Kind, script_dir: &str) -> Result<Block<'p>> {
+    let is_kind = |b: &&ConfigBlock| schema::kind_of(b) == Some(kind);
+    let block = program.blocks().into_iter().find(is_kind).ok_or_else(|| {
+        Failure::Message(format!(
+            "the script has no '{}' block",
+            schema::of_kind(kind).title()
+        ))
+    })?;
     let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
     let temp = std::env::temp_dir();
     Block::new(

@@ -4,6 +4,7 @@
 //! with it; a block that reads a setting missing here fails loudly in every test that runs it. The
 //! settings' types, ranges and defaults are still checked where each block reads them.
 
+use nerfjit_dsl::ast::ConfigBlock;
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::Diagnostic;
 
@@ -216,19 +217,38 @@ pub const BLOCKS: &[&BlockSchema] = &[
 
 /// The schema of the block `settings` were read from, or a diagnostic at the block naming the kinds.
 pub fn of(settings: &Settings) -> Result<&'static BlockSchema, Diagnostic> {
+    find(&settings.kind, settings.name.as_deref()).ok_or_else(|| {
+        let what = match &settings.name {
+            Some(n) => format!("{} {n}", settings.kind),
+            None => settings.kind.clone(),
+        };
+        let kinds: Vec<String> = BLOCKS.iter().map(|s| format!("'{} {{ }}'", s.title())).collect();
+        Diagnostic::new(settings.span, format!("there are no '{what}' blocks"))
+            .with_hint(format!("blocks are {}", kinds.join(", ")))
+    })
+}
+
+/// The schema of blocks opened by `keyword` and `variant` (`render`, `Some("volume")`), if any.
+pub fn find(keyword: &str, variant: Option<&str>) -> Option<&'static BlockSchema> {
     BLOCKS
         .iter()
         .copied()
-        .find(|s| s.kind == settings.kind && s.variant == settings.name.as_deref())
-        .ok_or_else(|| {
-            let what = match &settings.name {
-                Some(n) => format!("{} {n}", settings.kind),
-                None => settings.kind.clone(),
-            };
-            let kinds: Vec<String> = BLOCKS.iter().map(|s| format!("'{} {{ }}'", s.title())).collect();
-            Diagnostic::new(settings.span, format!("there are no '{what}' blocks"))
-                .with_hint(format!("blocks are {}", kinds.join(", ")))
-        })
+        .find(|s| s.kind == keyword && s.variant == variant)
+}
+
+/// The kind of a script's block, if the schema knows it.
+pub fn kind_of(block: &ConfigBlock) -> Option<Kind> {
+    let variant = block.name.as_ref().map(|n| n.name.as_str());
+    find(&block.kind.name, variant).map(|s| s.id)
+}
+
+/// The schema of `kind`.
+pub fn of_kind(kind: Kind) -> &'static BlockSchema {
+    BLOCKS
+        .iter()
+        .copied()
+        .find(|s| s.id == kind)
+        .expect("every kind has a schema")
 }
 
 /// Checks that `settings` belong to a known block kind and that each is one it takes (a misspelt one
@@ -249,6 +269,25 @@ mod tests {
     fn settings_of(script: &str) -> Settings {
         let program = nerfjit_dsl::compile("s.sdf", script).unwrap();
         Settings::new(&program, program.blocks()[0]).unwrap()
+    }
+
+    #[test]
+    fn blocks_are_told_apart_by_keyword_and_variant() {
+        let script = "fn sdf(p: vec3) -> f32 = length(p) - 1\ntrain sdf { steps: 1 }\ntrain { steps: 1 }\n\
+                      render volume { size: 8 }\nrender sphere_trace { size: 8 }\nrender ray_march { size: 8 }";
+        let program = nerfjit_dsl::compile("s.sdf", script).unwrap();
+        let kinds: Vec<Option<Kind>> = program.blocks().into_iter().map(kind_of).collect();
+        let want = [
+            Some(Kind::TrainSdf),
+            Some(Kind::Train),
+            Some(Kind::Volume),
+            Some(Kind::SphereTrace),
+            None,
+        ];
+        assert_eq!(kinds, want);
+        for schema in BLOCKS {
+            assert_eq!(of_kind(schema.id).title(), schema.title());
+        }
     }
 
     #[test]

@@ -203,7 +203,7 @@ pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_
     let block = program
         .blocks()
         .into_iter()
-        .find(|b| b.kind.name == "train" && b.name.is_none())?;
+        .find(|b| crate::schema::kind_of(b) == Some(crate::schema::Kind::Train))?;
     let data = nerfjit_dsl::config::Settings::new(program, block)
         .ok()?
         .take("data")?;

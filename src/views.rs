@@ -125,7 +125,7 @@ impl TrainedWith {
         let block = program
             .blocks()
             .into_iter()
-            .find(|b| b.kind.name == "train" && b.name.is_none());
+            .find(|b| crate::schema::kind_of(b) == Some(crate::schema::Kind::Train));
         let Some(mut settings) = block.and_then(|b| Settings::new(program, b).ok()) else {
             return TrainedWith::default();
         };
@@ -201,7 +201,11 @@ impl Rendering {
 /// training.
 fn held_out_views(source: &str, program: &Program) -> Result<Views> {
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
-    let plan = crate::train::TrainPlan::new(crate::block::first_block(program, "train", folder)?)?;
+    let plan = crate::train::TrainPlan::new(crate::block::first_block(
+        program,
+        crate::schema::Kind::Train,
+        folder,
+    )?)?;
     plan.load_views()?.1.ok_or_else(|| {
         Failure::Message(format!(
             "{source}'s train block holds no views out (no 'val' setting): give --cameras FILE"

@@ -286,7 +286,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
     let block = program
         .blocks()
         .into_iter()
-        .find(|b| b.kind.name == "render" && b.name.as_ref().is_some_and(|n| n.name == "sphere_trace"));
+        .find(|b| crate::schema::kind_of(b) == Some(crate::schema::Kind::SphereTrace));
     let (shading, trace) = match block {
         Some(block) => {
             let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
