@@ -36,6 +36,7 @@ pub mod ir_dump;
 pub mod large_model;
 pub mod mesh;
 pub mod metrics_log;
+pub mod nonfinite;
 pub mod output;
 pub mod points;
 pub mod regularizers;

@@ -14,6 +14,7 @@ use nerfjit_runtime::{
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::field::{Compiler, JitFn, Kind};
+use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
 use crate::settings::{triple, CallArgs};
 
@@ -157,6 +158,21 @@ impl RenderPlan {
         let (w, h) = self.size;
         let frames = render_frames(&self.cameras, w, h, &sdf, &shading, &self.trace, Some(progress))?;
         let seconds = start.elapsed().as_secs_f64();
+        if let Some(camera) = self.cameras.first() {
+            let rays = ProbeRays {
+                camera,
+                size: (w, h),
+                near: self.trace.near,
+                far: self.trace.far,
+            };
+            let color = color.as_ref().and_then(|c| nonfinite::warning("color", c, rays));
+            for line in [nonfinite::warning("sdf", &sdf, rays), color]
+                .into_iter()
+                .flatten()
+            {
+                eprintln!("{line}");
+            }
+        }
         write_frames(&self.out, &frames, self.frame_ms, |f| {
             rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)
         })?;

@@ -8,12 +8,13 @@ use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    rgb_image, Camera, DepthSpacing, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
+    rgb_image, Camera, DepthSpacing, Mode, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
 };
 
 use crate::block::Block;
 use crate::failure::Result;
 use crate::field::{VolumeField, VolumeFields};
+use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
 use crate::settings::CallArgs;
 
@@ -139,6 +140,23 @@ impl VolumePlan {
             progress(i + 1);
         }
         let seconds = start.elapsed().as_secs_f64();
+        if let Some(camera) = self.cameras.first() {
+            let rays = ProbeRays {
+                camera,
+                size: (w, h),
+                near: self.near,
+                far: self.far,
+            };
+            let name = match field.mode {
+                Mode::Density => "density",
+                Mode::Opacity => "opacity",
+            };
+            let warning = nonfinite::warning(name, &field.bind_density(params), rays)
+                .or_else(|| nonfinite::warning("color", &field.bind(params).0, rays));
+            if let Some(line) = warning {
+                eprintln!("{line}");
+            }
+        }
         write(&self.out, &frames, self.frame_ms, |f| f.rgb.clone())?;
         if let Some(path) = self.depth.as_ref().filter(|p| crate::output::is_npy(p)) {
             // Expected depth along the unit ray, Σ wᵢtᵢ / Σ wᵢ; +∞ where (almost) nothing is hit.

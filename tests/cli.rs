@@ -932,3 +932,40 @@ fn data_check_reports_a_data_set_or_names_what_is_wrong() {
         "{err}"
     );
 }
+
+#[test]
+fn renders_of_a_field_that_is_nan_somewhere_name_the_function_and_a_point() {
+    let dir = scratch("nan-field");
+    let camera = "camera: surround(radius: 4, frames: 2, up: z, focal: 1), size: 24";
+    let cases = [
+        (
+            format!("fn sdf(p: vec3) -> f32 = length(p) - 1.0 + sqrt(p.x - 0.5)\nrender sphere_trace {{ {camera}, out: \"a.png\" }}\n"),
+            "warning: 'sdf' is NaN at [",
+        ),
+        (
+            format!("fn density(p: vec3) -> f32 = 10.0 * log(p.x)\nfn color(p: vec3) -> vec3 = [0.5, 0.5, 0.5]\n\
+                     render volume {{ {camera}, near: 2, far: 6, samples: 16, out: \"b.png\" }}\n"),
+            "warning: 'density' is NaN at [",
+        ),
+        (
+            format!("fn density(p: vec3) -> f32 = 1.0\nfn color(p: vec3) -> vec3 = [0.5, 1.0 / (p.y - p.y), 0.5]\n\
+                     render volume {{ {camera}, near: 2, far: 6, samples: 16, out: \"c.png\" }}\n"),
+            "warning: 'color' is inf at [",
+        ),
+        (
+            format!("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace {{ {camera}, out: \"d.png\" }}\n"),
+            "",
+        ),
+    ];
+    for (i, (source, want)) in cases.iter().enumerate() {
+        let script = write(&dir, &format!("s{i}.sdf"), source);
+        let out = nerfjit(&["run", &script, "--out", &dir.display().to_string()], None);
+        let (_, err) = text(&out);
+        assert!(out.status.success(), "{err}");
+        if want.is_empty() {
+            assert!(!err.contains("warning"), "{err}");
+        } else {
+            assert!(err.contains(want), "case {i}: {err}");
+        }
+    }
+}
