@@ -1,11 +1,10 @@
 //! Loading scripts: from a file, or one of the examples embedded in the binary by `build.rs`.
 
-use std::fs::File;
-use std::io::Read;
 use std::path::Path;
 
 use nerfjit_dsl::parser::MAX_SOURCE_BYTES;
 use nerfjit_dsl::{compile_with, Program};
+use nerfjit_runtime::input::read_text_at_most;
 
 use crate::failure::{Failure, Result};
 
@@ -25,11 +24,9 @@ pub fn load_with(path: &str, overrides: &[String]) -> Result<Program> {
 
 /// The name and source text of the script at `path` (or of the embedded example it names), unchecked.
 pub fn read(path: &str) -> Result<(String, String)> {
-    match read_bounded(path) {
-        Ok(Some(source)) => Ok((path.to_string(), source)),
-        Ok(None) => Err(Failure::Message(format!(
-            "cannot read script '{path}': it is longer than the {MAX_SOURCE_BYTES} bytes a script may hold"
-        ))),
+    // At most one byte more than a script may hold is read, so a stream such as /dev/zero is refused.
+    match read_text_at_most(Path::new(path), MAX_SOURCE_BYTES as u64) {
+        Ok(source) => Ok((path.to_string(), source)),
         Err(e) => {
             let file = Path::new(path)
                 .file_name()
@@ -48,16 +45,6 @@ pub fn read(path: &str) -> Result<(String, String)> {
             }
         }
     }
-}
-
-/// The text of the file at `path`, reading at most one byte more than a script may hold (so that a
-/// stream such as `/dev/zero` is not read to the end); `None` if it is longer.
-fn read_bounded(path: &str) -> std::io::Result<Option<String>> {
-    let mut text = String::new();
-    File::open(path)?
-        .take(MAX_SOURCE_BYTES as u64 + 1)
-        .read_to_string(&mut text)?;
-    Ok((text.len() <= MAX_SOURCE_BYTES).then_some(text))
 }
 
 /// The list of embedded examples, or the source of one.

@@ -1,16 +1,14 @@
 //! Fuzz target for the JIT: a script that compiles gives kernels for each of its functions (value and
 //! gradient) that Cranelift compiles and that run on a few points, in buffers of exactly the sizes the
 //! kernels declare (AddressSanitizer catches a read or write outside them), without panicking. Programs
-//! with networks of more than `MAX_DENSE_PARAMS` weights are skipped (their kernels take seconds to
-//! build under the sanitizer and exercise nothing a small network does not).
+//! with large networks are skipped (see `size`).
 #![no_main]
 
-use libfuzzer_sys::fuzz_target;
-use nerfjit_dsl::{kernels, Type};
-use nerfjit_jit::{Kernel, Options};
+mod size;
 
-/// Most weights (params outside grid tables) of a program that is compiled.
-const MAX_DENSE_PARAMS: usize = 20_000;
+use libfuzzer_sys::fuzz_target;
+use nerfjit_dsl::kernels;
+use nerfjit_jit::{Kernel, Options};
 
 /// Points per evaluation: one full group of four and an unaligned tail.
 const POINTS: usize = 7;
@@ -22,14 +20,7 @@ fuzz_target!(|data: &[u8]| {
     let Ok(program) = nerfjit_dsl::compile("fuzz.sdf", source) else {
         return;
     };
-    let grid = |ty: &Type| matches!(ty, Type::Grid(_));
-    let dense: usize = program
-        .params
-        .iter()
-        .filter(|p| !grid(&p.ty))
-        .map(|p| p.ty.scalars())
-        .sum();
-    if dense > MAX_DENSE_PARAMS {
+    if !size::small_enough(&program) {
         return;
     }
     let params = program.param_values.clone();

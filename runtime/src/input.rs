@@ -16,7 +16,12 @@ pub fn read_capped(path: &Path) -> io::Result<Vec<u8>> {
 
 /// The text of the file at `path` (UTF-8), capped as [`read_capped`].
 pub fn read_text_capped(path: &Path) -> io::Result<String> {
-    String::from_utf8(read_capped(path)?)
+    read_text_at_most(path, MAX_INPUT_BYTES)
+}
+
+/// The text of the file at `path` (UTF-8), or an `InvalidData` error if it holds more than `cap` bytes.
+pub fn read_text_at_most(path: &Path, cap: u64) -> io::Result<String> {
+    String::from_utf8(read_at_most(path, cap)?)
         .map_err(|_| io::Error::new(io::ErrorKind::InvalidData, "not UTF-8 text"))
 }
 
