@@ -11,8 +11,8 @@ use nerfjit_dsl::{Diagnostic, Program, Span};
 use nerfjit_runtime::Camera;
 
 use crate::failure::{at, Failure, Result};
-use crate::schema::{self, BlockSchema, Kind};
-use crate::settings::{name_among, ranged, triple, whole};
+use crate::schema::{self, BlockSchema, Form, Kind, Setting};
+use crate::settings::{self as read, triple};
 
 /// The most pixels a render block may produce (all frames).
 pub const MAX_PIXELS: u64 = 1 << 27;
@@ -106,47 +106,72 @@ impl<'p> Block<'p> {
         self.settings.span
     }
 
-    /// Takes setting `key`, if given; `key` must be one of the schema's settings of the block.
-    pub fn take(&mut self, key: &str) -> Option<Spanned> {
-        assert!(
-            self.schema.settings.contains(&key),
-            "'{key}' is missing from the schema of '{}' blocks",
-            self.schema.title()
-        );
-        self.settings.take(key)
-    }
-
-    /// Takes setting `key`, which must be given (`example` shows how).
-    pub fn required(&mut self, key: &str, example: &str) -> Result<Spanned> {
-        let kind = self.settings.kind.clone();
-        self.take(key).ok_or_else(|| {
-            self.error(
-                Diagnostic::new(self.span(), format!("the {kind} block needs '{key}'"))
-                    .with_hint(format!("add e.g. {example}")),
+    /// The schema's setting `key`; the block must take it.
+    fn setting(&self, key: &str) -> &'static Setting {
+        self.schema.setting(key).unwrap_or_else(|| {
+            panic!(
+                "'{key}' is missing from the schema of '{}' blocks",
+                self.schema.title()
             )
         })
     }
 
-    /// Setting `key` as a number in `lo..=hi`, or `default`.
-    pub fn number(&mut self, key: &str, lo: f64, hi: f64, default: f64) -> Result<f64> {
-        match self.take(key) {
-            Some(v) => ranged(&v, lo, hi).map_err(|d| self.error(d)),
+    /// Takes setting `key`, if given; `key` must be one of the schema's settings of the block.
+    pub fn take(&mut self, key: &str) -> Option<Spanned> {
+        self.setting(key);
+        self.settings.take(key)
+    }
+
+    /// Takes setting `key`, if given, checked against its form in the schema.
+    fn take_checked(&mut self, key: &str) -> Result<Option<Spanned>> {
+        let setting = self.setting(key);
+        let Some(v) = self.settings.take(key) else {
+            return Ok(None);
+        };
+        schema::validate(setting, &v).map_err(|d| self.error(d))?;
+        Ok(Some(v))
+    }
+
+    /// Takes setting `key`, which must be given (the schema says how).
+    pub fn required(&mut self, key: &str) -> Result<Spanned> {
+        let setting = self.setting(key);
+        self.take(key)
+            .ok_or_else(|| self.error(schema::missing(self.schema, setting, self.span())))
+    }
+
+    /// Number setting `key`, or its default.
+    pub fn number(&mut self, key: &str) -> Result<f64> {
+        let Form::Number { default, .. } = self.setting(key).form else {
+            panic!("'{key}' is not a number in the schema")
+        };
+        match self.take_checked(key)? {
+            Some(v) => v.number().map_err(|d| self.error(d)),
             None => Ok(default),
         }
     }
 
-    /// Setting `key` as a whole number in `lo..=hi`, or `default`.
-    pub fn whole(&mut self, key: &str, lo: u64, hi: u64, default: u64) -> Result<u64> {
-        match self.take(key) {
-            Some(v) => whole(&v, lo, hi).map_err(|d| self.error(d)),
+    /// Whole-number setting `key`, or its default, if it has one.
+    pub fn whole_or_none(&mut self, key: &str) -> Result<Option<u64>> {
+        let Form::Whole { default, .. } = self.setting(key).form else {
+            panic!("'{key}' is not a whole number in the schema")
+        };
+        match self.take_checked(key)? {
+            Some(v) => v.number().map(|x| Some(x as u64)).map_err(|d| self.error(d)),
             None => Ok(default),
         }
     }
 
-    /// Settings `near` and `far` (defaults 0 and `default_far`), far beyond near.
-    pub fn near_far(&mut self, default_far: f64) -> Result<(f32, f32)> {
-        let near = self.number("near", 0.0, 1e6, 0.0)? as f32;
-        let far = self.number("far", 0.0, 1e9, default_far)? as f32;
+    /// Whole-number setting `key`, or its default.
+    pub fn whole(&mut self, key: &str) -> Result<u64> {
+        Ok(self
+            .whole_or_none(key)?
+            .unwrap_or_else(|| panic!("'{key}' has no default in the schema")))
+    }
+
+    /// Settings `near` and `far`, far beyond near.
+    pub fn near_far(&mut self) -> Result<(f32, f32)> {
+        let near = self.number("near")? as f32;
+        let far = self.number("far")? as f32;
         if far <= near {
             return Err(self.block_error(format!("far ({far}) must exceed near ({near})")));
         }
@@ -155,7 +180,7 @@ impl<'p> Block<'p> {
 
     /// The `spacing` setting for sampling [near, far] (linear by default), checked against the interval.
     pub fn spacing(&mut self, near: f32, far: f32) -> Result<nerfjit_runtime::DepthSpacing> {
-        let Some(v) = self.take("spacing") else {
+        let Some(v) = self.take_checked("spacing")? else {
             return Ok(nerfjit_runtime::DepthSpacing::Linear);
         };
         let spacing = crate::volume::depth_spacing(&v).map_err(|d| self.error(d))?;
@@ -165,28 +190,47 @@ impl<'p> Block<'p> {
         Ok(spacing)
     }
 
-    /// Setting `key` as three numbers (one number is repeated), if given.
+    /// Three-number setting `key`, or its default, if it has one.
     pub fn triple(&mut self, key: &str) -> Result<Option<[f32; 3]>> {
-        self.take(key)
-            .map(|v| triple(&v))
-            .transpose()
-            .map_err(|d| self.error(d))
+        let Form::Triple { default } = self.setting(key).form else {
+            panic!("'{key}' is not three numbers in the schema")
+        };
+        match self.take_checked(key)? {
+            Some(v) => triple(&v).map(Some).map_err(|d| self.error(d)),
+            None => Ok(default),
+        }
     }
 
-    /// Setting `key` as one of the bare names `choices`, or `default`.
-    pub fn choice(&mut self, key: &str, choices: &[&str], default: &str) -> Result<String> {
+    /// Setting `key`, one of the bare names the schema lists, or its default, if it has one.
+    pub fn choice(&mut self, key: &str) -> Result<Option<String>> {
+        let Form::Choice { choices, default } = self.setting(key).form else {
+            panic!("'{key}' is not a choice in the schema")
+        };
         match self.take(key) {
-            Some(v) => name_among(&v, choices).map_err(|d| self.error(d)),
+            Some(v) => read::name_among(&v, choices).map(Some).map_err(|d| self.error(d)),
+            None => Ok(default.map(str::to_string)),
+        }
+    }
+
+    /// Setting `key`, `true` or `false`, or its default.
+    pub fn flag(&mut self, key: &str) -> Result<bool> {
+        Ok(self.choice(key)?.as_deref() == Some("true"))
+    }
+
+    /// Setting `key`, the name of a function (a string), or its default.
+    pub fn function(&mut self, key: &str) -> Result<String> {
+        let Form::Function { default } = self.setting(key).form else {
+            panic!("'{key}' is not a function name in the schema")
+        };
+        match self.take_checked(key)? {
+            Some(v) => v.string().map(str::to_string).map_err(|d| self.error(d)),
             None => Ok(default.to_string()),
         }
     }
 
     /// Setting `camera`: the cameras of a path or a file.
     pub fn cameras(&mut self) -> Result<Vec<Camera>> {
-        let v = self.required(
-            "camera",
-            "camera: surround(radius: 3, frames: 20, up: z, focal: 1)",
-        )?;
+        let v = self.required("camera")?;
         self.cameras_of(&v)
     }
 
@@ -212,59 +256,61 @@ impl<'p> Block<'p> {
         Ok(())
     }
 
-    /// Setting `size`: `N` or `[width, height]`, 1 to 8192; 256 when absent.
+    /// Setting `size`: `N` or `[width, height]`, or its default.
     pub fn size(&mut self) -> Result<(u32, u32)> {
-        let Some(v) = self.take("size") else {
-            return Ok((256, 256));
+        let Form::Size { default } = self.setting("size").form else {
+            panic!("'size' is not a size in the schema")
         };
-        let side = |x: &Spanned| whole(x, 1, 8192).map(|n| n as u32).map_err(|d| self.error(d));
-        match &v.value {
-            Value::List(items) if items.len() == 2 => Ok((side(&items[0])?, side(&items[1])?)),
-            _ => side(&v).map(|n| (n, n)),
+        match self.take_checked("size")? {
+            Some(v) => read::size(&v, schema::MAX_SIDE).map_err(|d| self.error(d)),
+            None => Ok((default, default)),
         }
     }
 
-    /// Setting `key` as an output file, if given: its folder must exist; `--out` replaces the folder.
+    /// Output setting `key`: the file it names (with an extension the schema allows), or, when absent and
+    /// the schema writes it by default, `<script>.<suffix>` (the script's file stem, then `-2`, `-3`, … if
+    /// an earlier block took that name) in the working folder or in `--out`; `None` for no file.
     pub fn output(&mut self, key: &str) -> Result<Option<PathBuf>> {
-        let Some(v) = self.take(key) else {
+        let Form::Output { formats, by_default } = self.setting(key).form else {
+            panic!("'{key}' is not an output in the schema")
+        };
+        if let Some(v) = self.take(key) {
+            return match read::output_name(&v, formats, by_default.is_some()) {
+                Ok(Some(written)) => self.resolve_output(&v, written).map(Some),
+                Ok(None) => Ok(None),
+                Err(d) => Err(self.error(d)),
+            };
+        }
+        let Some(suffix) = by_default else {
             return Ok(None);
         };
-        let written = PathBuf::from(v.string().map_err(|d| self.error(d))?);
-        self.resolve_output(&v, written).map(Some)
+        let script = Path::new(&self.program.sources.files[1].name);
+        let stem = script.file_stem().unwrap_or_default().to_string_lossy();
+        let taken = |path: &Path| self.outputs.0.borrow().iter().any(|(p, _)| p == path);
+        let path = (1..)
+            .map(|k| {
+                let numbered = if k == 1 { String::new() } else { format!("-{k}") };
+                let name = format!("{stem}{numbered}.{suffix}");
+                match &self.out_dir {
+                    Some(dir) => dir.join(name),
+                    None => PathBuf::from(name),
+                }
+            })
+            .find(|p| !taken(p))
+            .expect("unbounded");
+        let v = Spanned {
+            value: Value::Str(path.display().to_string()),
+            span: self.span(),
+        };
+        self.resolve_output(&v, path).map(Some)
     }
 
-    /// Setting `key` as an output file that is written by default: `none` turns it off; when absent it is
-    /// `<script>.<suffix>` (the script's file stem, then `-2`, `-3`, … if an earlier block took that name)
-    /// in the working folder or in `--out`.
-    pub fn default_output(&mut self, key: &str, suffix: &str) -> Result<Option<PathBuf>> {
-        match self.take(key) {
-            Some(v) if matches!(&v.value, Value::Name(n) if n == "none") => Ok(None),
-            Some(v) => {
-                let written = PathBuf::from(v.string().map_err(|d| self.error(d))?);
-                self.resolve_output(&v, written).map(Some)
-            }
-            None => {
-                let script = Path::new(&self.program.sources.files[1].name);
-                let stem = script.file_stem().unwrap_or_default().to_string_lossy();
-                let taken = |path: &Path| self.outputs.0.borrow().iter().any(|(p, _)| p == path);
-                let path = (1..)
-                    .map(|k| {
-                        let numbered = if k == 1 { String::new() } else { format!("-{k}") };
-                        let name = format!("{stem}{numbered}.{suffix}");
-                        match &self.out_dir {
-                            Some(dir) => dir.join(name),
-                            None => PathBuf::from(name),
-                        }
-                    })
-                    .find(|p| !taken(p))
-                    .expect("unbounded");
-                let v = Spanned {
-                    value: Value::Str(path.display().to_string()),
-                    span: self.span(),
-                };
-                self.resolve_output(&v, path).map(Some)
-            }
+    /// Output setting `key`, which must be given.
+    pub fn required_output(&mut self, key: &str) -> Result<PathBuf> {
+        if self.settings.span_of(key).is_none() {
+            self.required(key)?;
         }
+        Ok(self.output(key)?.expect("given"))
     }
 
     /// Where output `written` (from setting `v`) goes: into `--out` when given; its folder must exist.
@@ -317,51 +363,10 @@ impl<'p> Block<'p> {
         }
     }
 
-    /// Setting `key` as an image output (`.gif` or `.mp4` for all frames, `.png` for one or numbered
-    /// frames).
-    pub fn image_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
-        self.output_as(key, &["gif", "mp4", "png"])
-    }
-
-    /// Setting `key` as a depth output, if given: an image (see [`Block::image_output`]) or float depths
-    /// in a NumPy `.npy` file.
-    pub fn depth_output(&mut self, key: &str) -> Result<Option<PathBuf>> {
-        self.output_as(key, &["gif", "mp4", "png", "npy"])
-    }
-
-    /// Setting `key` as an output file whose extension is one of `formats`.
-    fn output_as(&mut self, key: &str, formats: &[&str]) -> Result<Option<PathBuf>> {
-        let span = self.settings_span(key);
-        let path = self.output(key)?;
-        if let Some(p) = &path {
-            let extension = p.extension().and_then(|e| e.to_str()).unwrap_or("");
-            if !formats.contains(&extension) {
-                let listed: Vec<String> = formats.iter().map(|f| format!(".{f}")).collect();
-                return Err(self.error(
-                    Diagnostic::new(span, format!("cannot write '{}': unknown format", p.display()))
-                        .with_hint(format!("use a file ending in {}", listed.join(", "))),
-                ));
-            }
-        }
-        Ok(path)
-    }
-
-    /// Setting `key` as an image output, which must be given.
-    pub fn required_image_output(&mut self, key: &str, example: &str) -> Result<PathBuf> {
-        if self.settings.span_of(key).is_none() {
-            self.required(key, example)?;
-        }
-        Ok(self.image_output(key)?.expect("present"))
-    }
-
-    fn settings_span(&self, key: &str) -> Span {
-        self.settings.span_of(key).unwrap_or(self.settings.span)
-    }
-
     /// Fails on the first setting not taken, suggesting the closest the block takes.
     pub fn finish(self) -> Result<()> {
         self.settings
-            .finish(self.schema.settings)
+            .finish(&self.schema.names())
             .map_err(|d| at(self.program, d))
     }
 }

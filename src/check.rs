@@ -13,10 +13,9 @@ pub fn run(path: &str) -> Result<String> {
     let diagnostics: Vec<_> = program
         .blocks()
         .into_iter()
-        .filter_map(|b| {
-            Settings::new(&program, b)
-                .and_then(|settings| crate::schema::check(&settings))
-                .err()
+        .flat_map(|b| match Settings::new(&program, b) {
+            Ok(settings) => crate::schema::check(&settings).err().unwrap_or_default(),
+            Err(d) => vec![d],
         })
         .collect();
     if !diagnostics.is_empty() {

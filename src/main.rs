@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::{
     bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, points, run,
-    script, transmittance, viewer, views, WORK_STACK_BYTES,
+    schema, script, transmittance, viewer, views, WORK_STACK_BYTES,
 };
 use nerfjit_dsl::budget;
 
@@ -235,6 +235,12 @@ enum Command {
     Data {
         #[command(subcommand)]
         action: DataCommand,
+    },
+    /// Describe the settings each kind of block takes — values, ranges, defaults — for every kind, or
+    /// for one (`nerfjit settings train`, `nerfjit settings render volume`, `nerfjit settings volume`).
+    Settings {
+        /// The kind of block.
+        kind: Vec<String>,
     },
     /// List the example scripts built into the binary, or print one.
     Examples {
@@ -501,6 +507,7 @@ fn run_command(cli: Cli) -> ExitCode {
         Command::Data {
             action: DataCommand::Check { path },
         } => data_check::run(&path).map(|text| emit(&text)),
+        Command::Settings { kind } => schema::help_for(&kind.join(" ")).map(|text| emit(&text)),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
         Command::Completions { shell } => {
             let mut script = Vec::new();

@@ -280,17 +280,12 @@ pub struct MeshPlan {
 impl MeshPlan {
     /// Reads and checks a `mesh` block.
     pub fn new(mut b: Block) -> Result<MeshPlan> {
-        let function = match b.take("function") {
-            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
-            None => "sdf".to_string(),
-        };
-        let resolution = b.whole("resolution", 2, 1024, 128)? as usize;
-        let bound = b.number("bounds", 1e-3, 1e6, 2.0)? as f32;
-        let level = b.number("level", -1e9, 1e9, 0.0)? as f32;
-        let out_v = b.required("out", "out: \"mesh.ply\"")?;
-        let out = PathBuf::from(out_v.string().map_err(|d| b.error(d))?);
-        let out = b.resolve_output(&out_v, out)?;
-        let gif = b.image_output("gif")?;
+        let function = b.function("function")?;
+        let resolution = b.whole("resolution")? as usize;
+        let bound = b.number("bounds")? as f32;
+        let level = b.number("level")? as f32;
+        let out = b.required_output("out")?;
+        let gif = b.output("gif")?;
         let compare = match b.take("compare") {
             None => None,
             Some(v) => {

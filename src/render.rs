@@ -58,29 +58,20 @@ impl RenderPlan {
         let cameras = b.cameras()?;
         let size = b.size()?;
         b.check_pixels(cameras.len(), size)?;
-        let (near, far) = b.near_far(10.0)?;
-        let eps = b.number("eps", 1e-12, 1.0, 1e-5)? as f32;
-        let max_steps = b.whole("max_steps", 1, 1_000_000, 64)? as u32;
-        let background = b.triple("background")?.unwrap_or([0.0; 3]);
+        let (near, far) = b.near_far()?;
+        let eps = b.number("eps")? as f32;
+        let max_steps = b.whole("max_steps")? as u32;
+        let background = b.triple("background")?.expect("a default");
         let bounds = match b.take("bounds") {
             None => None,
-            Some(v) => {
-                let sphere = |v: &Spanned| -> std::result::Result<(Vec3, f32), Diagnostic> {
-                    let a = CallArgs::new(v, &["center", "radius"])?;
-                    let center = a.raw("center").map(triple).transpose()?.unwrap_or([0.0; 3]);
-                    Ok((Vec3::from_array(center), a.number("radius", None)? as f32))
-                };
-                Some(sphere(&v).map_err(|d| b.error(d))?)
-            }
+            Some(v) => Some(bounding_sphere(&v).map_err(|d| b.error(d))?),
         };
         let has_color = b.program().signature("color").is_some();
-        let shading = b.choice(
-            "shading",
-            &["color", "lambert"],
-            if has_color { "color" } else { "lambert" },
-        )?;
-        let light = Vec3::from_array(b.triple("light")?.unwrap_or([0.5, 0.8, -0.6]));
-        let albedo = b.triple("albedo")?.unwrap_or([0.8; 3]);
+        let shading = b
+            .choice("shading")?
+            .unwrap_or_else(|| if has_color { "color" } else { "lambert" }.to_string());
+        let light = Vec3::from_array(b.triple("light")?.expect("a default"));
+        let albedo = b.triple("albedo")?.expect("a default");
         let shading = if shading == "color" {
             if !has_color {
                 return Err(Failure::Message(
@@ -91,10 +82,10 @@ impl RenderPlan {
         } else {
             ShadingChoice::Lambert { light, albedo }
         };
-        let out = b.required_image_output("out", "out: \"scene.gif\"")?;
-        let depth = b.depth_output("depth")?;
-        let normals = b.image_output("normals")?;
-        let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
+        let out = b.required_output("out")?;
+        let depth = b.output("depth")?;
+        let normals = b.output("normals")?;
+        let frame_ms = b.whole("frame_ms")? as u32;
         b.finish()?;
         Ok(RenderPlan {
             cameras,
@@ -215,4 +206,18 @@ fn write_frames(
         .map(to_image)
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     write_images(path, images, frame_ms)
+}
+
+/// The `bounds` setting of sphere tracing: `sphere(center: [x, y, z], radius: r)`.
+pub(crate) fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), Diagnostic> {
+    let a = CallArgs::new(v, &["center", "radius"])?;
+    let center = a.raw("center").map(triple).transpose()?.unwrap_or([0.0; 3]);
+    let radius = a.number("radius", None)?;
+    if !(radius > 0.0 && radius < 1e9) {
+        return Err(Diagnostic::new(
+            v.span,
+            format!("radius {radius} must be positive"),
+        ));
+    }
+    Ok((Vec3::from_array(center), radius as f32))
 }

@@ -1,12 +1,15 @@
-//! The block kinds a script may hold and the settings each takes: one registry, read by the blocks
-//! (which reject any setting not in it), by `nerfjit check` (which rejects unknown blocks and misspelt
-//! settings without running anything), and by a test that keeps the tables of `docs/LANGUAGE.md` in step
-//! with it; a block that reads a setting missing here fails loudly in every test that runs it. The
-//! settings' types, ranges and defaults are still checked where each block reads them.
+//! The block kinds a script may hold and the settings each takes, with their values, ranges, defaults
+//! and docs: one registry, read by the blocks (which take their settings' ranges and defaults from it and
+//! reject any setting not in it), by `nerfjit check` (which checks names, required settings and every
+//! value that needs no file without running anything), by `nerfjit settings` (the help text), and by a
+//! test that keeps the tables of `docs/LANGUAGE.md` in step with it. A block that reads a setting missing
+//! here, or reads one as another form, fails loudly in every test that runs it.
 
 use nerfjit_dsl::ast::ConfigBlock;
-use nerfjit_dsl::config::Settings;
-use nerfjit_dsl::Diagnostic;
+use nerfjit_dsl::config::{Settings, Spanned};
+use nerfjit_dsl::{Diagnostic, Span};
+
+use crate::settings as read;
 
 /// The kinds of block, one per schema.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,7 +28,208 @@ pub enum Kind {
     Viz,
 }
 
-/// A block kind and the names of its settings.
+/// What values a setting takes, and what it is when absent.
+#[derive(Clone, Copy, Debug)]
+pub enum Form {
+    /// A whole number from `lo` to `hi`; absent, `default` (`None`: off, or decided as the doc says).
+    Whole {
+        /// The smallest value.
+        lo: u64,
+        /// The largest value.
+        hi: u64,
+        /// The value when absent.
+        default: Option<u64>,
+    },
+    /// A number from `lo` to `hi`; absent, `default`.
+    Number {
+        /// The smallest value.
+        lo: f64,
+        /// The largest value.
+        hi: f64,
+        /// The value when absent.
+        default: f64,
+    },
+    /// One of the bare names `choices`; absent, `default` (`None`: decided as the doc says).
+    Choice {
+        /// The names it takes.
+        choices: &'static [&'static str],
+        /// The value when absent.
+        default: Option<&'static str>,
+    },
+    /// Three numbers (one is repeated); absent, `default` (`None`: decided as the doc says).
+    Triple {
+        /// The value when absent.
+        default: Option<[f32; 3]>,
+    },
+    /// An image size, `N` or `[width, height]`, each from 1 to [`MAX_SIDE`].
+    Size {
+        /// The side when absent.
+        default: u32,
+    },
+    /// The name of one of the script's functions, as a string.
+    Function {
+        /// The function when absent.
+        default: &'static str,
+    },
+    /// A file the block writes, ending in one of `formats` (any name when empty). With `by_default`, it
+    /// is written when absent, as `<script stem>.<by_default>`, and `none` turns it off.
+    Output {
+        /// The extensions it may have.
+        formats: &'static [&'static str],
+        /// The suffix of the file written when the setting is absent.
+        by_default: Option<&'static str>,
+    },
+    /// A value with a grammar of its own (a camera, a data source, a schedule), described by `what`;
+    /// `check` tests it without reading files, where that is possible.
+    Value {
+        /// What it is, for help texts.
+        what: &'static str,
+        /// A check that needs no files.
+        check: Option<ValueCheck>,
+    },
+}
+
+/// A check of a setting's value that needs no files.
+pub type ValueCheck = fn(&Spanned) -> Result<(), Diagnostic>;
+
+/// The largest side of an image a block renders.
+pub const MAX_SIDE: u64 = 8192;
+
+/// One setting of a block kind.
+#[derive(Clone, Copy, Debug)]
+pub struct Setting {
+    /// Its name.
+    pub name: &'static str,
+    /// The values it takes.
+    pub form: Form,
+    /// For a setting that must be given, an example of it.
+    pub required: Option<&'static str>,
+    /// What it does, in one line (the language reference says more).
+    pub doc: &'static str,
+}
+
+const fn setting(name: &'static str, form: Form, doc: &'static str) -> Setting {
+    Setting {
+        name,
+        form,
+        required: None,
+        doc,
+    }
+}
+
+const fn whole(name: &'static str, lo: u64, hi: u64, default: u64, doc: &'static str) -> Setting {
+    let default = Some(default);
+    setting(name, Form::Whole { lo, hi, default }, doc)
+}
+
+const fn whole_or_none(name: &'static str, lo: u64, hi: u64, doc: &'static str) -> Setting {
+    let default = None;
+    setting(name, Form::Whole { lo, hi, default }, doc)
+}
+
+const fn number(name: &'static str, lo: f64, hi: f64, default: f64, doc: &'static str) -> Setting {
+    setting(name, Form::Number { lo, hi, default }, doc)
+}
+
+const fn choice(
+    name: &'static str,
+    choices: &'static [&'static str],
+    default: Option<&'static str>,
+    doc: &'static str,
+) -> Setting {
+    setting(name, Form::Choice { choices, default }, doc)
+}
+
+const fn flag(name: &'static str, doc: &'static str) -> Setting {
+    choice(name, &["true", "false"], Some("false"), doc)
+}
+
+const fn triple(name: &'static str, default: Option<[f32; 3]>, doc: &'static str) -> Setting {
+    setting(name, Form::Triple { default }, doc)
+}
+
+const fn function(name: &'static str, doc: &'static str) -> Setting {
+    setting(name, Form::Function { default: "sdf" }, doc)
+}
+
+const fn output(name: &'static str, formats: &'static [&'static str], doc: &'static str) -> Setting {
+    let by_default = None;
+    setting(name, Form::Output { formats, by_default }, doc)
+}
+
+const fn written(name: &'static str, suffix: &'static str, doc: &'static str) -> Setting {
+    let by_default = Some(suffix);
+    setting(
+        name,
+        Form::Output {
+            formats: &[],
+            by_default,
+        },
+        doc,
+    )
+}
+
+const fn value(
+    name: &'static str,
+    what: &'static str,
+    check: Option<ValueCheck>,
+    doc: &'static str,
+) -> Setting {
+    setting(name, Form::Value { what, check }, doc)
+}
+
+impl Setting {
+    /// The same setting, which must be given (as in `example`).
+    const fn required(self, example: &'static str) -> Setting {
+        Setting {
+            required: Some(example),
+            ..self
+        }
+    }
+
+    /// The values it takes, for help texts: `a whole number from 2 to 4096`.
+    pub fn values(&self) -> String {
+        match self.form {
+            Form::Whole { lo, hi, .. } => format!("a whole number from {lo} to {hi}"),
+            Form::Number { lo, hi, .. } => {
+                format!("a number from {} to {}", read::short(lo), read::short(hi))
+            }
+            Form::Choice { choices, .. } => choices.join(" | "),
+            Form::Triple { .. } => "[x, y, z] (or one number for all three)".to_string(),
+            Form::Size { .. } => format!("N or [width, height], 1 to {MAX_SIDE}"),
+            Form::Function { .. } => "a function's name, as a string".to_string(),
+            Form::Output { formats, by_default } => {
+                let none = if by_default.is_some() { ", or none" } else { "" };
+                match formats {
+                    [] => format!("a file name{none}"),
+                    [one] => format!("a .{one} file{none}"),
+                    [rest @ .., last] => format!("a .{} or .{last} file{none}", rest.join(", .")),
+                }
+            }
+            Form::Value { what, .. } => what.to_string(),
+        }
+    }
+
+    /// The value it has when absent, for help texts (`None` for a required setting, and where the doc
+    /// says what happens).
+    pub fn default_text(&self) -> Option<String> {
+        if self.required.is_some() {
+            return None;
+        }
+        match self.form {
+            Form::Whole { default, .. } => default.map(|d| d.to_string()),
+            Form::Number { default, .. } => Some(read::short(default)),
+            Form::Choice { default, .. } => default.map(str::to_string),
+            Form::Triple { default } => default.map(|[x, y, z]| format!("[{x}, {y}, {z}]")),
+            Form::Size { default } => Some(default.to_string()),
+            Form::Function { default } => Some(format!("\"{default}\"")),
+            Form::Output { by_default, .. } => by_default.map(|s| format!("SCRIPT.{s}")),
+            Form::Value { .. } => None,
+        }
+    }
+}
+
+/// A block kind and its settings.
 #[derive(Debug)]
 pub struct BlockSchema {
     /// Which kind it is.
@@ -34,8 +238,10 @@ pub struct BlockSchema {
     pub kind: &'static str,
     /// The word after it, for kinds that have one (`sphere_trace` in `render sphere_trace { }`).
     pub variant: Option<&'static str>,
+    /// What the block does, in one line.
+    pub doc: &'static str,
     /// The settings it takes.
-    pub settings: &'static [&'static str],
+    pub settings: &'static [Setting],
 }
 
 impl BlockSchema {
@@ -46,29 +252,149 @@ impl BlockSchema {
             None => self.kind.to_string(),
         }
     }
+
+    /// Its setting `name`, if it takes one.
+    pub fn setting(&self, name: &str) -> Option<&'static Setting> {
+        self.settings.iter().find(|s| s.name == name)
+    }
+
+    /// The names of its settings.
+    pub fn names(&self) -> Vec<&'static str> {
+        self.settings.iter().map(|s| s.name).collect()
+    }
 }
+
+const IMAGES: &[&str] = &["gif", "mp4", "png"];
+const DEPTHS: &[&str] = &["gif", "mp4", "png", "npy"];
+const MESHES: &[&str] = &["ply", "obj", "stl"];
+const EVERY: u64 = u32::MAX as u64;
+const SEEDS: u64 = u64::MAX >> 1;
+
+const CAMERA: Setting = value(
+    "camera",
+    "surround(...), orbit(...), look_at(...) or cameras(\"file\")",
+    None,
+    "the cameras to render from: a path or a camera file",
+)
+.required("camera: surround(radius: 3, frames: 20, up: z, focal: 1)");
+const SIZE: Setting = setting("size", Form::Size { default: 256 }, "the image size in pixels");
+const NEAR: Setting = number("near", 0.0, 1e6, 0.0, "where rays start");
+const FRAME_MS: Setting = whole("frame_ms", 10, 10_000, 50, "the GIF's frame time in milliseconds");
+const SPACING: Setting = value(
+    "spacing",
+    "linear or lindisp(split: d)",
+    Some(check_spacing),
+    "where samples lie along a ray: evenly in depth, or in disparity beyond split",
+);
+const SKIP_EMPTY: Setting = value(
+    "skip_empty",
+    "grid(bounds, resolution, threshold) or none",
+    Some(check_skip_empty),
+    "an occupancy grid: samples in its empty cells are skipped",
+);
+const EARLY_TERMINATION: Setting = number(
+    "early_termination",
+    0.0,
+    1.0,
+    0.0,
+    "stop a ray once its transmittance is below this (0: exact)",
+);
+const IMPORTANCE: Setting = whole(
+    "importance",
+    0,
+    4096,
+    0,
+    "hierarchical sampling: fine samples per ray drawn from the coarse field's weights (0: off)",
+);
+const SAMPLES: Setting = whole("samples", 2, 4096, 64, "samples per ray");
+const BACKGROUND: Setting = triple(
+    "background",
+    None,
+    "the color behind the scene (black, or the data's background)",
+);
+const STEPS: Setting = whole("steps", 1, 100_000_000, 1000, "optimizer steps");
+const BATCH: Setting = whole("batch", 1, 1 << 20, 4096, "rays (or points) per step");
+const SCHEDULE: Setting = value(
+    "schedule",
+    "constant, exponential(gamma, every) or step(factor, every)",
+    Some(check_schedule),
+    "how the learning rate changes",
+);
+const OPTIMIZER: Setting = value(
+    "optimizer",
+    "adam(beta1, beta2, eps)",
+    Some(check_optimizer),
+    "Adam's decay rates and epsilon",
+);
+const SEED: Setting = whole("seed", 0, SEEDS, 0, "the random numbers' seed");
+const CHECKPOINT: Setting = written(
+    "checkpoint",
+    "ckpt.safetensors",
+    "params and optimizer state (safetensors; .json for JSON), to resume or render",
+);
+const CHECKPOINT_EVERY: Setting = whole("checkpoint_every", 1, EVERY, 500, "steps between checkpoints");
+const LOG: Setting = written(
+    "log",
+    "metrics.jsonl",
+    "the metrics log, JSON Lines (.csv for CSV)",
+);
+const TENSORBOARD: Setting = output(
+    "tensorboard",
+    &[],
+    "a folder that also gets the metrics as TensorBoard scalars",
+);
+const SUMMARY: Setting = output(
+    "summary",
+    &[],
+    "a JSON file with the final params, loss and timings",
+);
 
 /// `render sphere_trace { }`.
 pub const RENDER_SPHERE_TRACE: BlockSchema = BlockSchema {
     id: Kind::SphereTrace,
     kind: "render",
     variant: Some("sphere_trace"),
+    doc: "renders the surface sdf = 0 by sphere tracing",
     settings: &[
-        "camera",
-        "size",
-        "near",
-        "far",
-        "eps",
-        "max_steps",
-        "background",
-        "shading",
-        "light",
-        "albedo",
-        "bounds",
-        "out",
-        "depth",
-        "normals",
-        "frame_ms",
+        CAMERA,
+        SIZE,
+        NEAR,
+        number("far", 0.0, 1e9, 10.0, "where rays that hit nothing stop"),
+        number("eps", 1e-12, 1.0, 1e-5, "a hit where sdf < eps"),
+        whole(
+            "max_steps",
+            1,
+            1_000_000,
+            64,
+            "steps before a ray counts as a miss",
+        ),
+        triple("background", Some([0.0; 3]), "the color of missed rays"),
+        choice(
+            "shading",
+            &["color", "lambert"],
+            None,
+            "the script's color function (the default when it has one) or Lambert shading of the normals",
+        ),
+        triple(
+            "light",
+            Some([0.5, 0.8, -0.6]),
+            "Lambert shading's light direction",
+        ),
+        triple("albedo", Some([0.8; 3]), "Lambert shading's surface color"),
+        value(
+            "bounds",
+            "sphere(center: [x, y, z], radius: r)",
+            Some(check_bounding_sphere),
+            "a bounding sphere: rays missing it are skipped",
+        ),
+        output("out", IMAGES, "the frames: a GIF or MP4, or PNGs").required("out: \"scene.gif\""),
+        output(
+            "depth",
+            DEPTHS,
+            "the depth map: an image, or float depths in .npy",
+        ),
+        output("normals", IMAGES, "the normal map"),
+        FRAME_MS,
     ],
 };
 
@@ -77,20 +403,25 @@ pub const RENDER_VOLUME: BlockSchema = BlockSchema {
     id: Kind::Volume,
     kind: "render",
     variant: Some("volume"),
+    doc: "renders density and color fields by volume rendering",
     settings: &[
-        "camera",
-        "size",
-        "near",
-        "far",
-        "samples",
-        "background",
-        "early_termination",
-        "spacing",
-        "skip_empty",
-        "importance",
-        "out",
-        "depth",
-        "frame_ms",
+        CAMERA,
+        SIZE,
+        NEAR,
+        number("far", 0.0, 1e9, 5.0, "where rays stop"),
+        SAMPLES,
+        BACKGROUND,
+        EARLY_TERMINATION,
+        SPACING,
+        SKIP_EMPTY,
+        IMPORTANCE,
+        output("out", IMAGES, "the frames: a GIF or MP4, or PNGs").required("out: \"volume.gif\""),
+        output(
+            "depth",
+            DEPTHS,
+            "the expected depth: an image, or float depths in .npy",
+        ),
+        FRAME_MS,
     ],
 };
 
@@ -99,43 +430,111 @@ pub const TRAIN: BlockSchema = BlockSchema {
     id: Kind::Train,
     kind: "train",
     variant: None,
+    doc: "fits the params of density and color fields to images",
     settings: &[
-        "data",
-        "near",
-        "far",
-        "samples",
-        "background",
-        "steps",
-        "batch",
-        "lr",
-        "schedule",
-        "views",
-        "jitter",
-        "seed",
-        "checkpoint",
-        "checkpoint_every",
-        "summary",
-        "preview",
-        "preview_every",
-        "sdf",
-        "eikonal_weight",
-        "eikonal_points",
-        "eikonal_bounds",
-        "val",
-        "val_every",
-        "val_views",
-        "val_minutes",
-        "importance",
-        "skip_empty",
-        "grid_every",
-        "grid_warmup",
-        "grid_update",
-        "minutes",
-        "early_termination",
-        "spacing",
-        "optimizer",
-        "log",
-        "tensorboard",
+        value(
+            "data",
+            "views(...), blender(...), nerfstudio(...) or colmap(...)",
+            None,
+            "the images and their cameras",
+        )
+        .required("data: views(\"box_cameras.json\")"),
+        NEAR,
+        number("far", 0.0, 1e9, 5.0, "where rays stop"),
+        SAMPLES,
+        BACKGROUND,
+        STEPS,
+        BATCH,
+        number("lr", 1e-12, 10.0, 5e-4, "Adam's learning rate"),
+        SCHEDULE,
+        choice(
+            "views",
+            &["cycle", "random"],
+            Some("cycle"),
+            "which view each step's rays come from",
+        ),
+        flag("jitter", "stratified jitter of the depths inside their bins"),
+        SEED,
+        CHECKPOINT,
+        CHECKPOINT_EVERY,
+        SUMMARY,
+        output("preview", &[], "a PNG of view 0 next to its target"),
+        whole("preview_every", 1, EVERY, 500, "steps between previews"),
+        function("sdf", "the signed distance function of the eikonal term"),
+        number(
+            "eikonal_weight",
+            0.0,
+            1e6,
+            0.0,
+            "the eikonal term's weight (0: off)",
+        ),
+        whole(
+            "eikonal_points",
+            1,
+            1 << 20,
+            1024,
+            "the eikonal term's points per step",
+        ),
+        number(
+            "eikonal_bounds",
+            1e-3,
+            1e6,
+            4.0,
+            "the eikonal points lie in [-b, b]³",
+        ),
+        value(
+            "val",
+            "holdout(every: n) or a camera file",
+            None,
+            "held-out views to validate on",
+        ),
+        whole("val_every", 1, EVERY, 500, "steps between validations"),
+        whole_or_none(
+            "val_views",
+            1,
+            100_000,
+            "how many held-out views to validate on (all)",
+        ),
+        value(
+            "val_minutes",
+            "a number or a list of minutes",
+            Some(check_minutes),
+            "also validate once training has taken these minutes",
+        ),
+        IMPORTANCE,
+        SKIP_EMPTY,
+        whole(
+            "grid_every",
+            1,
+            EVERY,
+            500,
+            "steps between occupancy grid updates",
+        ),
+        whole(
+            "grid_warmup",
+            0,
+            EVERY,
+            500,
+            "the step of the occupancy grid's first update",
+        ),
+        value(
+            "grid_update",
+            "rebuild or ema(decay, fraction)",
+            Some(check_grid_update),
+            "how the occupancy grid is updated",
+        ),
+        number(
+            "minutes",
+            0.0,
+            1e6,
+            0.0,
+            "also stop after this many minutes of training (0: no limit)",
+        ),
+        EARLY_TERMINATION,
+        SPACING,
+        OPTIMIZER,
+        LOG,
+        TENSORBOARD,
     ],
 };
 
@@ -144,29 +543,49 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
     id: Kind::TrainSdf,
     kind: "train",
     variant: Some("sdf"),
+    doc: "fits a signed distance function to a point cloud",
     settings: &[
-        "data",
-        "function",
-        "steps",
-        "batch",
-        "random",
-        "bounds",
-        "lr",
-        "schedule",
-        "optimizer",
-        "near_weight",
-        "near_sharpness",
-        "eikonal_weight",
-        "eikonal_jitter",
-        "pretrain_steps",
-        "pretrain_radius",
-        "seed",
-        "checkpoint",
-        "checkpoint_every",
-        "log",
-        "tensorboard",
-        "summary",
-        "points_gif",
+        value("data", "points(\"file\", key: \"name\")", None, "the point cloud")
+            .required("data: points(\"bunny_pointcloud.npz\", key: \"verts\")"),
+        function("function", "the function fitted"),
+        STEPS,
+        BATCH,
+        whole("random", 1, 1 << 20, 4096, "uniform points per step"),
+        number("bounds", 1e-3, 1e6, 4.0, "the uniform points lie in [-b, b]³"),
+        number("lr", 1e-12, 10.0, 1e-4, "Adam's learning rate"),
+        SCHEDULE,
+        OPTIMIZER,
+        number(
+            "near_weight",
+            0.0,
+            1e6,
+            0.1,
+            "the weight of the term keeping uniform points off the surface",
+        ),
+        number(
+            "near_sharpness",
+            0.0,
+            1e6,
+            100.0,
+            "how fast that term decays with distance",
+        ),
+        number("eikonal_weight", 0.0, 1e6, 0.02, "the eikonal term's weight"),
+        number(
+            "eikonal_jitter",
+            0.0,
+            1e3,
+            0.0,
+            "σ of the noise moving cloud points for an eikonal term about the surface (0: off)",
+        ),
+        whole("pretrain_steps", 0, 1_000_000, 0, "steps fitting a sphere first"),
+        number("pretrain_radius", 1e-3, 1e6, 1.0, "that sphere's radius"),
+        SEED,
+        CHECKPOINT,
+        CHECKPOINT_EVERY,
+        LOG,
+        TENSORBOARD,
+        SUMMARY,
+        output("points_gif", IMAGES, "a turning GIF of the point cloud"),
     ],
 };
 
@@ -175,14 +594,20 @@ pub const MESH: BlockSchema = BlockSchema {
     id: Kind::Mesh,
     kind: "mesh",
     variant: None,
+    doc: "extracts a level set of a function as a mesh by marching cubes",
     settings: &[
-        "function",
-        "resolution",
-        "bounds",
-        "level",
-        "out",
-        "gif",
-        "compare",
+        function("function", "the function meshed"),
+        whole("resolution", 2, 1024, 128, "cells per axis"),
+        number("bounds", 1e-3, 1e6, 2.0, "the mesh covers [-r, r]³"),
+        number("level", -1e9, 1e9, 0.0, "the level set"),
+        output("out", MESHES, "the mesh").required("out: \"mesh.ply\""),
+        output("gif", IMAGES, "a turntable of the mesh"),
+        value(
+            "compare",
+            "points(\"file\", key: \"name\")",
+            None,
+            "a point cloud to measure the mesh's distance to",
+        ),
     ],
 };
 
@@ -191,19 +616,48 @@ pub const VIZ: BlockSchema = BlockSchema {
     id: Kind::Viz,
     kind: "viz",
     variant: None,
+    doc: "draws the course's teaching images of rays and samples",
     settings: &[
-        "camera",
-        "view",
-        "size",
-        "near",
-        "far",
-        "samples",
-        "rays",
-        "grid",
-        "directions",
-        "points",
+        CAMERA,
+        value("view", "a camera", None, "the camera that sees the sample points"),
+        SIZE,
+        NEAR,
+        number("far", 0.0, 1e9, 5.0, "where rays stop"),
+        whole("samples", 1, 100_000, 16, "samples per ray"),
+        whole("rays", 1, 100_000, 64, "rays whose samples are drawn"),
+        output("grid", IMAGES, "pixel centers in NDC as colors"),
+        output("directions", IMAGES, "ray directions as colors"),
+        output("points", IMAGES, "sample points seen from the view"),
     ],
 };
+
+fn check_spacing(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::volume::depth_spacing(v).map(drop)
+}
+
+fn check_skip_empty(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::volume::skip_empty(v).map(drop)
+}
+
+fn check_schedule(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::train::schedule(Some(v.clone()), 1.0).map(drop)
+}
+
+fn check_optimizer(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::train::optimizer(Some(v.clone())).map(drop)
+}
+
+fn check_grid_update(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::train::grid_update(Some(v.clone())).map(drop)
+}
+
+fn check_minutes(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::train::minutes_list(v).map(drop)
+}
+
+fn check_bounding_sphere(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::render::bounding_sphere(v).map(drop)
+}
 
 /// Every block kind, in the order of the language reference.
 pub const BLOCKS: &[&BlockSchema] = &[
@@ -251,15 +705,95 @@ pub fn of_kind(kind: Kind) -> &'static BlockSchema {
         .expect("every kind has a schema")
 }
 
-/// Checks that `settings` belong to a known block kind and that each is one it takes (a misspelt one
-/// gets "did you mean"); their values are checked when the block is read.
-pub fn check(settings: &Settings) -> Result<(), Diagnostic> {
-    let schema = of(settings)?;
+/// Checks `settings` against the schema of their kind without reading any file: the kind, the names (a
+/// misspelt one gets "did you mean"), the required settings, and each value as far as its form allows.
+/// Returns every error found.
+pub fn check(settings: &Settings) -> Result<(), Vec<Diagnostic>> {
+    let schema = of(settings).map_err(|d| vec![d])?;
     let mut rest = settings.clone();
-    for key in schema.settings {
-        rest.take(key);
+    let mut errors = Vec::new();
+    for setting in schema.settings {
+        match rest.take(setting.name) {
+            Some(v) => errors.extend(validate(setting, &v).err()),
+            None if setting.required.is_some() => errors.push(missing(schema, setting, settings.span)),
+            None => {}
+        }
     }
-    rest.finish(schema.settings)
+    errors.extend(rest.finish(&schema.names()).err());
+    errors.sort_by_key(|d| d.span.start);
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(errors)
+    }
+}
+
+/// Checks value `v` of `setting` as far as that needs no files.
+pub fn validate(setting: &Setting, v: &Spanned) -> Result<(), Diagnostic> {
+    match setting.form {
+        Form::Whole { lo, hi, .. } => read::whole(v, lo, hi).map(drop),
+        Form::Number { lo, hi, .. } => read::ranged(v, lo, hi).map(drop),
+        Form::Choice { choices, .. } => read::name_among(v, choices).map(drop),
+        Form::Triple { .. } => read::triple(v).map(drop),
+        Form::Size { .. } => read::size(v, MAX_SIDE).map(drop),
+        Form::Function { .. } => v.string().map(drop),
+        Form::Output { formats, by_default } => read::output_name(v, formats, by_default.is_some()).map(drop),
+        Form::Value { check, .. } => check.map_or(Ok(()), |check| check(v)),
+    }
+}
+
+/// The error for a required `setting` missing from a block of `schema` at `span`.
+pub fn missing(schema: &BlockSchema, setting: &Setting, span: Span) -> Diagnostic {
+    let example = setting.required.unwrap_or(setting.name);
+    Diagnostic::new(
+        span,
+        format!("the {} block needs '{}'", schema.title(), setting.name),
+    )
+    .with_hint(format!("add e.g. {example}"))
+}
+
+/// The help text of the block kind written `words` (`train sdf`, `render volume` or `volume`), or of
+/// every kind when `words` is empty.
+pub fn help_for(words: &str) -> Result<String, crate::failure::Failure> {
+    if words.trim().is_empty() {
+        return Ok(help(None));
+    }
+    let words = words.split_whitespace().collect::<Vec<_>>().join(" ");
+    BLOCKS
+        .iter()
+        .find(|s| s.title() == words || s.variant == Some(words.as_str()))
+        .map(|s| help(Some(s)))
+        .ok_or_else(|| {
+            let kinds: Vec<String> = BLOCKS.iter().map(|s| s.title()).collect();
+            crate::failure::Failure::Message(format!(
+                "there are no '{words}' blocks; the kinds are: {}",
+                kinds.join(", ")
+            ))
+        })
+}
+
+/// The help text of block kinds: every setting of `kind` (all kinds when `None`) with its values,
+/// default and doc.
+pub fn help(kind: Option<&BlockSchema>) -> String {
+    let kinds: Vec<&BlockSchema> = match kind {
+        Some(k) => vec![k],
+        None => BLOCKS.to_vec(),
+    };
+    let mut out = String::new();
+    for schema in kinds {
+        out += &format!("{} {{ ... }}: {}\n", schema.title(), schema.doc);
+        for s in schema.settings {
+            let default = match (s.required, s.default_text()) {
+                (Some(example), _) => format!("; required, e.g. {example}"),
+                (None, Some(d)) => format!("; default {d}"),
+                (None, None) => String::new(),
+            };
+            out += &format!("  {:<18} {}{default}\n", s.name, s.doc);
+            out += &format!("  {:<18}   {}\n", "", s.values());
+        }
+        out += "\n";
+    }
+    out + "(docs/LANGUAGE.md explains every setting; `nerfjit run --set 'KIND.NAME=VALUE'` overrides one)\n"
 }
 
 #[cfg(test)]
@@ -292,8 +826,10 @@ mod tests {
 
     #[test]
     fn a_misspelt_setting_is_named_with_the_closest_one() {
-        let settings = settings_of("fn sdf(p: vec3) -> f32 = length(p) - 1\ntrain sdf { stesp: 10 }");
-        let error = check(&settings).unwrap_err();
+        let settings = settings_of(
+            "fn sdf(p: vec3) -> f32 = length(p) - 1\ntrain sdf { data: points(\"p.npy\"), stesp: 10 }",
+        );
+        let error = check(&settings).unwrap_err().remove(0);
         assert!(
             error.message.contains("unknown setting 'stesp'"),
             "{}",
@@ -305,7 +841,7 @@ mod tests {
     #[test]
     fn an_unknown_block_kind_lists_the_kinds() {
         let settings = settings_of("fn sdf(p: vec3) -> f32 = length(p) - 1\nrender ray_march { size: 8 }");
-        let error = check(&settings).unwrap_err();
+        let error = check(&settings).unwrap_err().remove(0);
         assert!(
             error.message.contains("no 'render ray_march' blocks"),
             "{}",
@@ -348,7 +884,7 @@ mod tests {
         let reference = include_str!("../docs/LANGUAGE.md");
         for schema in BLOCKS {
             let (names, tabled) = documented(reference, schema);
-            for setting in schema.settings {
+            for setting in schema.names() {
                 let title = schema.title();
                 assert!(
                     names.iter().any(|n| n == setting),
@@ -358,7 +894,7 @@ mod tests {
             if tabled {
                 for name in &names {
                     assert!(
-                        schema.settings.contains(&name.as_str()),
+                        schema.setting(name).is_some(),
                         "'{}' documents '{name}', which it does not take",
                         schema.title()
                     );
@@ -368,8 +904,181 @@ mod tests {
     }
 
     #[test]
-    fn known_settings_pass_whatever_their_values() {
-        let settings = settings_of("fn sdf(p: vec3) -> f32 = length(p) - 1\nmesh { resolution: -3, out: 7 }");
-        assert!(check(&settings).is_ok());
+    fn values_are_checked_against_their_forms_and_every_error_is_reported() {
+        let settings = settings_of(
+            "fn sdf(p: vec3) -> f32 = length(p) - 1\n\
+             mesh { resolution: 100000, level: \"x\", out: \"m.gif\", function: 3, bounds: 0 }",
+        );
+        let errors = check(&settings).unwrap_err();
+        let messages: Vec<&str> = errors.iter().map(|d| d.message.as_str()).collect();
+        assert_eq!(errors.len(), 5, "{messages:?}");
+        assert!(messages[0].contains("100000 is out of range"), "{messages:?}");
+        assert_eq!(
+            errors[0].hint.as_deref(),
+            Some("expected a whole number from 2 to 1024")
+        );
+        assert!(
+            messages.iter().any(|m| m.contains("cannot write 'm.gif'")),
+            "{messages:?}"
+        );
+    }
+
+    #[test]
+    fn a_missing_required_setting_is_named_with_an_example() {
+        let settings = settings_of("fn sdf(p: vec3) -> f32 = length(p) - 1\nmesh { resolution: 8 }");
+        let errors = check(&settings).unwrap_err();
+        assert_eq!(errors.len(), 1);
+        assert_eq!(errors[0].message, "the mesh block needs 'out'");
+        assert_eq!(errors[0].hint.as_deref(), Some("add e.g. out: \"mesh.ply\""));
+    }
+
+    #[test]
+    fn grammars_are_checked_without_files() {
+        let settings = settings_of(
+            "fn sdf(p: vec3) -> f32 = length(p) - 1\n\
+             train sdf { data: points(\"missing.npz\"), schedule: exponentail(gamma: 0.1, every: 10), \
+             optimizer: adam(beta1: 2) }",
+        );
+        let errors = check(&settings).unwrap_err();
+        let messages: Vec<&str> = errors.iter().map(|d| d.message.as_str()).collect();
+        assert_eq!(errors.len(), 2, "{messages:?}");
+        assert!(
+            messages[0].contains("unknown schedule 'exponentail'"),
+            "{messages:?}"
+        );
+        assert!(messages[1].contains("2 is out of range"), "{messages:?}");
+    }
+
+    #[test]
+    fn every_shipped_example_passes_the_schema() {
+        for (name, source) in crate::script::EXAMPLES {
+            let program = nerfjit_dsl::compile(name, source).unwrap();
+            for block in program.blocks() {
+                let settings = Settings::new(&program, block).unwrap();
+                if let Err(errors) = check(&settings) {
+                    panic!(
+                        "{name}: {:?}",
+                        errors.iter().map(|d| &d.message).collect::<Vec<_>>()
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn defaults_lie_in_their_ranges() {
+        for schema in BLOCKS {
+            for s in schema.settings {
+                match s.form {
+                    Form::Whole {
+                        lo,
+                        hi,
+                        default: Some(d),
+                    } => assert!((lo..=hi).contains(&d), "{}", s.name),
+                    Form::Number { lo, hi, default } => assert!((lo..=hi).contains(&default), "{}", s.name),
+                    Form::Choice {
+                        choices,
+                        default: Some(d),
+                    } => assert!(choices.contains(&d), "{}", s.name),
+                    Form::Size { default } => assert!((1..=MAX_SIDE).contains(&u64::from(default))),
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    /// The rows of the table of `schema`'s section of the language reference: (settings, default).
+    fn documented_defaults(reference: &str, schema: &BlockSchema) -> Vec<(Vec<String>, String)> {
+        let heading = format!("### `{} {{ ... }}`", schema.title());
+        let start = reference.find(&heading).expect("a section");
+        let section = &reference[start + heading.len()..];
+        let section = &section[..section.find("\n#").unwrap_or(section.len())];
+        section
+            .lines()
+            .filter(|l| l.starts_with("| `"))
+            .map(|row| {
+                let cells: Vec<&str> = row.split(" | ").collect();
+                let names = cells[0]
+                    .split('`')
+                    .skip(1)
+                    .step_by(2)
+                    .map(str::to_string)
+                    .collect();
+                let default = cells.last().unwrap().trim_end_matches('|').trim().to_string();
+                (names, default)
+            })
+            .collect()
+    }
+
+    /// The numbers and bare words a default cell of the reference gives, one per setting of its row.
+    fn cell_values(default: &str, settings: usize) -> Option<Vec<String>> {
+        let parts: Vec<String> = default
+            .split(", ")
+            .map(|p| {
+                p.split_whitespace()
+                    .next()
+                    .unwrap_or("")
+                    .trim_matches('`')
+                    .to_string()
+            })
+            .collect();
+        (parts.len() == settings).then_some(parts)
+    }
+
+    #[test]
+    fn the_language_reference_gives_the_schemas_defaults() {
+        let reference = include_str!("../docs/LANGUAGE.md");
+        let mut compared = 0;
+        for schema in BLOCKS {
+            for (names, default) in documented_defaults(reference, schema) {
+                let Some(values) = cell_values(&default, names.len()) else {
+                    continue;
+                };
+                for (name, documented) in names.iter().zip(values) {
+                    let setting = schema.setting(name).expect("documented settings exist");
+                    let schema_value = match setting.form {
+                        Form::Whole { default: Some(d), .. } => d as f64,
+                        Form::Number { default, .. } => default,
+                        Form::Choice { default: Some(d), .. } => {
+                            assert_eq!(
+                                documented,
+                                d,
+                                "'{}' documents {name} = {documented}",
+                                schema.title()
+                            );
+                            compared += 1;
+                            continue;
+                        }
+                        _ => continue,
+                    };
+                    let x: f64 = documented
+                        .parse()
+                        .unwrap_or_else(|_| panic!("'{}' documents {name} = '{documented}'", schema.title()));
+                    assert!(
+                        (x - schema_value).abs() <= 1e-9 * schema_value.abs(),
+                        "'{}' documents {name} = {x}, the schema says {schema_value}",
+                        schema.title()
+                    );
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared >= 40, "only {compared} defaults compared");
+    }
+
+    #[test]
+    fn the_help_lists_every_setting_with_its_values() {
+        let text = help(Some(&MESH));
+        assert!(text.starts_with("mesh { ... }: extracts"), "{text}");
+        assert!(
+            text.contains("  resolution         cells per axis; default 128\n"),
+            "{text}"
+        );
+        assert!(text.contains("a whole number from 2 to 1024\n"), "{text}");
+        assert!(
+            text.contains("the mesh; required, e.g. out: \"mesh.ply\"\n"),
+            "{text}"
+        );
+        assert!(text.contains("a .ply, .obj or .stl file\n"), "{text}");
     }
 }

@@ -1,5 +1,7 @@
 //! Typed reading of configuration-block values, with errors that point into the script.
 
+use std::path::PathBuf;
+
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Span};
 
@@ -116,8 +118,13 @@ pub fn ranged(v: &Spanned, lo: f64, hi: f64) -> Result<f64, Diagnostic> {
     if x >= lo && x <= hi {
         Ok(x)
     } else {
-        Err(Diagnostic::new(v.span, format!("{x} is out of range"))
-            .with_hint(format!("expected a number from {lo} to {hi}")))
+        Err(
+            Diagnostic::new(v.span, format!("{x} is out of range")).with_hint(format!(
+                "expected a number from {} to {}",
+                short(lo),
+                short(hi)
+            )),
+        )
     }
 }
 
@@ -125,4 +132,40 @@ pub fn ranged(v: &Spanned, lo: f64, hi: f64) -> Result<f64, Diagnostic> {
 pub fn triple(v: &Spanned) -> Result<[f32; 3], Diagnostic> {
     let x = v.numbers(3)?;
     Ok([x[0] as f32, x[1] as f32, x[2] as f32])
+}
+
+/// An image size: `N` or `[width, height]`, each side a whole number from 1 to `max`.
+pub fn size(v: &Spanned, max: u64) -> Result<(u32, u32), Diagnostic> {
+    let side = |x: &Spanned| whole(x, 1, max).map(|n| n as u32);
+    match &v.value {
+        Value::List(items) if items.len() == 2 => Ok((side(&items[0])?, side(&items[1])?)),
+        _ => side(v).map(|n| (n, n)),
+    }
+}
+
+/// An output file's name ending in one of `formats` (any when empty); `none` (no file) when `may_be_none`.
+pub fn output_name(v: &Spanned, formats: &[&str], may_be_none: bool) -> Result<Option<PathBuf>, Diagnostic> {
+    if may_be_none && matches!(&v.value, Value::Name(n) if n == "none") {
+        return Ok(None);
+    }
+    let path = PathBuf::from(v.string()?);
+    let extension = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    if !formats.is_empty() && !formats.contains(&extension) {
+        let listed: Vec<String> = formats.iter().map(|f| format!(".{f}")).collect();
+        return Err(Diagnostic::new(
+            v.span,
+            format!("cannot write '{}': unknown format", path.display()),
+        )
+        .with_hint(format!("use a file ending in {}", listed.join(", "))));
+    }
+    Ok(Some(path))
+}
+
+/// `x` as a person writes it: `0.5`, `100`, `1e-12`, `1e6`.
+pub fn short(x: f64) -> String {
+    if x != 0.0 && !(1e-3..1e5).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        x.to_string()
+    }
 }

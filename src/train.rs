@@ -154,7 +154,7 @@ struct Validation {
 }
 
 /// The `val_minutes` setting: one number or a list of them, in minutes of training, as seconds in order.
-fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
+pub(crate) fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
     let items = match &v.value {
         Value::List(items) => items
             .iter()
@@ -311,31 +311,28 @@ pub(crate) fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Sched
 impl TrainPlan {
     /// Reads and checks a `train` block.
     pub fn new(mut b: Block) -> Result<TrainPlan> {
-        let data_v = b.required("data", "data: views(\"box_cameras.json\")")?;
+        let data_v = b.required("data")?;
         let data = data_set(&data_v, b.script_dir()).map_err(|d| b.error(d))?;
-        let (near, far) = b.near_far(5.0)?;
-        let lr = b.number("lr", 1e-12, 10.0, 5e-4)? as f32;
-        let samples = b.whole("samples", 2, 4096, 64)? as usize;
+        let (near, far) = b.near_far()?;
+        let lr = b.number("lr")? as f32;
+        let samples = b.whole("samples")? as usize;
         let spacing = b.spacing(near, far)?;
-        let steps = b.whole("steps", 1, 100_000_000, 1000)? as u32;
-        let minutes = b.number("minutes", 0.0, 1e6, 0.0)?;
+        let steps = b.whole("steps")? as u32;
+        let minutes = b.number("minutes")?;
         let time_limit = (minutes > 0.0).then_some(60.0 * minutes);
-        let batch = b.whole("batch", 1, 1 << 20, 4096)? as usize;
+        let batch = b.whole("batch")? as usize;
         if batch * samples > MAX_SAMPLES_PER_STEP {
             return Err(b.block_error(format!(
                 "{batch} rays × {samples} samples is too many for one step (the limit is {MAX_SAMPLES_PER_STEP} samples)"
             )));
         }
-        let seed = b.whole("seed", 0, u64::MAX >> 1, 0)?;
-        let checkpoint_every = b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32;
-        let preview_every = b.whole("preview_every", 1, u64::from(u32::MAX), 500)? as u32;
-        let eikonal_weight = b.number("eikonal_weight", 0.0, 1e6, 0.0)? as f32;
-        let eikonal_points = b.whole("eikonal_points", 1, 1 << 20, 1024)? as usize;
-        let eikonal_bounds = b.number("eikonal_bounds", 1e-3, 1e6, 4.0)? as f32;
-        let sdf = match b.take("sdf") {
-            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
-            None => "sdf".to_string(),
-        };
+        let seed = b.whole("seed")?;
+        let checkpoint_every = b.whole("checkpoint_every")? as u32;
+        let preview_every = b.whole("preview_every")? as u32;
+        let eikonal_weight = b.number("eikonal_weight")? as f32;
+        let eikonal_points = b.whole("eikonal_points")? as usize;
+        let eikonal_bounds = b.number("eikonal_bounds")? as f32;
+        let sdf = b.function("sdf")?;
         let eikonal = (eikonal_weight > 0.0).then(|| {
             let regularizers = Regularizers {
                 points: eikonal_points,
@@ -349,21 +346,18 @@ impl TrainPlan {
         let background = b.triple("background")?;
         let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
         let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
-        let random_views = b.choice("views", &["cycle", "random"], "cycle")? == "random";
-        let jitter = b.choice("jitter", &["true", "false"], "false")? == "true";
-        let checkpoint = b.default_output("checkpoint", "ckpt.safetensors")?;
-        let log = b.default_output("log", "metrics.jsonl")?;
+        let random_views = b.choice("views")?.as_deref() == Some("random");
+        let jitter = b.flag("jitter")?;
+        let checkpoint = b.output("checkpoint")?;
+        let log = b.output("log")?;
         let tensorboard = b.output("tensorboard")?;
         let summary = b.output("summary")?;
         let preview = b.output("preview")?;
         let validation = match b.take("val") {
             Some(v) => {
                 let held_out = held_out(&v, &data, b.script_dir()).map_err(|d| b.error(d))?;
-                let every = b.whole("val_every", 1, u64::from(u32::MAX), 500)? as u32;
-                let views = match b.take("val_views") {
-                    Some(n) => Some(crate::settings::whole(&n, 1, 100_000).map_err(|d| b.error(d))? as usize),
-                    None => None,
-                };
+                let every = b.whole("val_every")? as u32;
+                let views = b.whole_or_none("val_views")?.map(|n| n as usize);
                 let at_seconds = match b.take("val_minutes") {
                     Some(v) => minutes_list(&v).map_err(|d| b.error(d))?,
                     None => Vec::new(),
@@ -377,13 +371,13 @@ impl TrainPlan {
             }
             None => None,
         };
-        let importance = b.whole("importance", 0, 4096, 0)? as usize;
+        let importance = b.whole("importance")? as usize;
         let skip_empty = match b.take("skip_empty") {
             None => None,
             Some(v) => crate::volume::skip_empty(&v).map_err(|d| b.error(d))?,
         };
-        let every = b.whole("grid_every", 1, u64::from(u32::MAX), 500)? as u32;
-        let warmup = b.whole("grid_warmup", 0, u64::from(u32::MAX), 500)? as u32;
+        let every = b.whole("grid_every")? as u32;
+        let warmup = b.whole("grid_warmup")? as u32;
         let update = grid_update(b.take("grid_update")).map_err(|d| b.error(d))?;
         let grid = skip_empty.map(|grid| TrainingGrid {
             grid,
@@ -391,7 +385,7 @@ impl TrainPlan {
             warmup,
             update,
         });
-        let early_termination = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
+        let early_termination = b.number("early_termination")? as f32;
         b.finish()?;
         Ok(TrainPlan {
             early_termination: (early_termination > 0.0).then_some(early_termination),

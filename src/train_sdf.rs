@@ -68,7 +68,7 @@ struct Kernels {
 impl SdfTrainPlan {
     /// Reads and checks a `train sdf` block.
     pub fn new(mut b: Block) -> Result<SdfTrainPlan> {
-        let data_v = b.required("data", "data: points(\"bunny_pointcloud.npz\", key: \"verts\")")?;
+        let data_v = b.required("data")?;
         let (file, key) = CallArgs::new(&data_v, &["file", "key"])
             .and_then(|a| {
                 Ok((
@@ -84,36 +84,33 @@ impl SdfTrainPlan {
                     .with_hint("paths are relative to the working folder or to the script"),
             ));
         }
-        let function = match b.take("function") {
-            Some(v) => v.string().map(str::to_string).map_err(|d| b.error(d))?,
-            None => "sdf".to_string(),
-        };
-        let lr = b.number("lr", 1e-12, 10.0, 1e-4)? as f32;
+        let function = b.function("function")?;
+        let lr = b.number("lr")? as f32;
         let schedule = crate::train::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
         let optimizer = crate::train::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let plan = SdfTrainPlan {
             data,
             key,
             function,
-            steps: b.whole("steps", 1, 100_000_000, 1000)? as u32,
-            batch: b.whole("batch", 1, 1 << 20, 4096)? as usize,
-            random: b.whole("random", 1, 1 << 20, 4096)? as usize,
-            bound: b.number("bounds", 1e-3, 1e6, 4.0)? as f32,
+            steps: b.whole("steps")? as u32,
+            batch: b.whole("batch")? as usize,
+            random: b.whole("random")? as usize,
+            bound: b.number("bounds")? as f32,
             schedule,
             optimizer,
-            near_weight: b.number("near_weight", 0.0, 1e6, 0.1)? as f32,
-            near_sharpness: b.number("near_sharpness", 0.0, 1e6, 100.0)? as f32,
-            eikonal_weight: b.number("eikonal_weight", 0.0, 1e6, 0.02)? as f32,
-            eikonal_jitter: b.number("eikonal_jitter", 0.0, 1e3, 0.0)? as f32,
-            pretrain_steps: b.whole("pretrain_steps", 0, 1_000_000, 0)? as u32,
-            pretrain_radius: b.number("pretrain_radius", 1e-3, 1e6, 1.0)? as f32,
-            seed: b.whole("seed", 0, u64::MAX >> 1, 0)?,
-            checkpoint: b.default_output("checkpoint", "ckpt.safetensors")?,
-            checkpoint_every: b.whole("checkpoint_every", 1, u64::from(u32::MAX), 500)? as u32,
-            log: b.default_output("log", "metrics.jsonl")?,
+            near_weight: b.number("near_weight")? as f32,
+            near_sharpness: b.number("near_sharpness")? as f32,
+            eikonal_weight: b.number("eikonal_weight")? as f32,
+            eikonal_jitter: b.number("eikonal_jitter")? as f32,
+            pretrain_steps: b.whole("pretrain_steps")? as u32,
+            pretrain_radius: b.number("pretrain_radius")? as f32,
+            seed: b.whole("seed")?,
+            checkpoint: b.output("checkpoint")?,
+            checkpoint_every: b.whole("checkpoint_every")? as u32,
+            log: b.output("log")?,
             tensorboard: b.output("tensorboard")?,
             summary: b.output("summary")?,
-            points_gif: b.image_output("points_gif")?,
+            points_gif: b.output("points_gif")?,
         };
         b.finish()?;
         Ok(plan)

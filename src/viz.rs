@@ -30,12 +30,12 @@ impl VizPlan {
             None => None,
         };
         let size = b.size()?;
-        let (near, far) = b.near_far(5.0)?;
-        let samples = b.whole("samples", 1, 100_000, 16)? as usize;
-        let rays = b.whole("rays", 1, 100_000, 64)? as usize;
-        let grid = b.image_output("grid")?;
-        let directions = b.image_output("directions")?;
-        let points_out = b.image_output("points")?;
+        let (near, far) = b.near_far()?;
+        let samples = b.whole("samples")? as usize;
+        let rays = b.whole("rays")? as usize;
+        let grid = b.output("grid")?;
+        let directions = b.output("directions")?;
+        let points_out = b.output("points")?;
         if points_out.is_some() && view.is_none() {
             return Err(b.error(
                 Diagnostic::new(b.span(), "drawing sample points needs a second camera 'view'")

@@ -65,19 +65,19 @@ impl VolumePlan {
         let cameras = b.cameras()?;
         let size = b.size()?;
         b.check_pixels(cameras.len(), size)?;
-        let (near, far) = b.near_far(5.0)?;
-        let samples = b.whole("samples", 2, 4096, 64)? as usize;
-        let early = b.number("early_termination", 0.0, 1.0, 0.0)? as f32;
+        let (near, far) = b.near_far()?;
+        let samples = b.whole("samples")? as usize;
+        let early = b.number("early_termination")? as f32;
         let spacing = b.spacing(near, far)?;
         let background = b.triple("background")?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
             Some(v) => skip_empty(&v).map_err(|d| b.error(d))?,
         };
-        let out = b.required_image_output("out", "out: \"volume.gif\"")?;
-        let depth = b.depth_output("depth")?;
-        let frame_ms = b.whole("frame_ms", 10, 10_000, 50)? as u32;
-        let importance = b.whole("importance", 0, 4096, 0)? as usize;
+        let out = b.required_output("out")?;
+        let depth = b.output("depth")?;
+        let frame_ms = b.whole("frame_ms")? as u32;
+        let importance = b.whole("importance")? as usize;
         if importance > 0 && skip_empty.is_some() {
             return Err(
                 b.block_error("'importance' and 'skip_empty' do not combine yet: choose one".to_string())

@@ -118,6 +118,74 @@ fn check_refuses_a_misspelt_setting_and_an_unknown_block_without_running_them() 
     );
 }
 
+#[test]
+fn check_refuses_values_out_of_their_range_and_reports_every_one() {
+    let (path, stderr) = check_fails(
+        "ranges",
+        "fn sdf(p: vec3) -> f32 = length(p) - 1\n\
+         train sdf { data: points(\"nowhere.npy\"), steps: 0, lr: 50, schedule: linear }\n\
+         render volume { camera: surround(radius: 3, frames: 2), samples: 1000000, out: \"v.avi\" }\n",
+    );
+    assert!(stderr.contains(&format!("{path}:2:49")), "{stderr}");
+    assert!(
+        stderr.contains("hint: expected a whole number from 1 to 100000000"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("hint: expected a number from 1e-12 to 10"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("expected a schedule, found name 'linear'"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("1000000 is out of range"), "{stderr}");
+    assert!(
+        stderr.contains("cannot write 'v.avi': unknown format"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("not found"), "check reads no files: {stderr}");
+}
+
+#[test]
+fn settings_describes_each_kind_of_block() {
+    let out = nerfjit(&["settings", "train", "sdf"], None);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stdout.starts_with("train sdf { ... }: fits a signed distance function"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("  eikonal_weight     the eikonal term's weight; default 0.02\n"),
+        "{stdout}"
+    );
+    let out = nerfjit(&["settings"], None);
+    let stdout = text(&out).0;
+    for kind in [
+        "render sphere_trace",
+        "render volume",
+        "train",
+        "train sdf",
+        "mesh",
+        "viz",
+    ] {
+        assert!(
+            stdout.contains(&format!("\n{kind} {{ ... }}: ")) || stdout.starts_with(kind),
+            "{kind}"
+        );
+    }
+    let out = nerfjit(&["settings", "render", "march"], None);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        text(&out)
+            .1
+            .contains("the kinds are: render sphere_trace, render volume"),
+        "{}",
+        text(&out).1
+    );
+}
+
 fn parse_rows(s: &str) -> Vec<Vec<f64>> {
     s.lines()
         .map(|l| l.split(',').map(|x| x.parse().expect("number")).collect())
@@ -297,7 +365,7 @@ fn run_rejects_bad_scripts_before_any_work() {
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"missing/a.gif\" }", "folder 'missing' does not exist"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 0 }", "0 is out of range"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\", size: 100000 }", "100000 is out of range"),
-        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { out: \"a.gif\" }", "the render block needs 'camera'"),
+        ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace { out: \"a.gif\" }", "the render sphere_trace block needs 'camera'"),
         ("fn sdf(p: vec2) -> f32 = length(p) - 1.0\nrender sphere_trace { camera: orbit(radius: 3), out: \"a.gif\" }", "'sdf' must be fn sdf(vec3) -> f32"),
         ("fn sdf(p: vec3) -> f32 = length(p) - 1.0\n", "nothing to run"),
         (
