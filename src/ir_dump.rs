@@ -21,8 +21,8 @@ pub enum KernelKind {
     Bounds,
 }
 
-/// Prints the IR, node statistics and the Cranelift IR.
-pub fn run(path: &str, function: &str, kind: KernelKind) -> Result<String> {
+/// Prints the IR and node statistics, then (unless `graph_only`) the Cranelift IR.
+pub fn run(path: &str, function: &str, kind: KernelKind, graph_only: bool) -> Result<String> {
     let program = script::load(path)?;
     let lowered = program.lower(function)?;
     let n_params = program.n_params();
@@ -44,13 +44,19 @@ pub fn run(path: &str, function: &str, kind: KernelKind) -> Result<String> {
             )
         }
     };
-    let kernel = Kernel::compile(&graph, Options { keep_clif: true })?;
     let stats: Vec<String> = graph.stats().iter().map(|(op, n)| format!("{op} {n}")).collect();
-    Ok(format!(
-        "; {}: {what}\n; {} nodes: {}\n{graph}\n; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
+    let text = format!(
+        "; {}: {what}\n; {} nodes: {}\n{graph}\n",
         lowered.signature,
         graph.len(),
-        stats.join(", "),
+        stats.join(", ")
+    );
+    if graph_only {
+        return Ok(text);
+    }
+    let kernel = Kernel::compile(&graph, Options { keep_clif: true })?;
+    Ok(format!(
+        "{text}; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
         kernel.stats().code_bytes,
         kernel.stats().seconds * 1e3,
         kernel.stats().clif.as_deref().unwrap_or("")

@@ -97,6 +97,10 @@ enum Command {
         /// Short for `--kind grad`.
         #[arg(long, conflicts_with = "kind")]
         grad: bool,
+        /// Only the IR graph and its node counts, without the Cranelift IR and compile time: text that
+        /// stays the same from run to run, for diffs.
+        #[arg(long)]
+        graph_only: bool,
     },
     /// Run a benchmark workload and print its figures (medians).
     Bench {
@@ -429,9 +433,10 @@ fn run_command(cli: Cli) -> ExitCode {
             function,
             kind,
             grad,
+            graph_only,
         } => {
             let kind = if grad { ir_dump::KernelKind::Grad } else { kind };
-            ir_dump::run(&script, &function, kind).map(|text| emit(&text))
+            ir_dump::run(&script, &function, kind, graph_only).map(|text| emit(&text))
         }
         Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
         Command::Mesh {

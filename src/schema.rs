@@ -200,10 +200,11 @@ impl Setting {
             Form::Function { .. } => "a function's name, as a string".to_string(),
             Form::Output { formats, by_default } => {
                 let none = if by_default.is_some() { ", or none" } else { "" };
-                match formats {
-                    [] => format!("a file name{none}"),
-                    [one] => format!("a .{one} file{none}"),
-                    [rest @ .., last] => format!("a .{} or .{last} file{none}", rest.join(", .")),
+                if formats.is_empty() {
+                    format!("a file name{none}")
+                } else {
+                    let listed: Vec<String> = formats.iter().map(|f| format!(".{f}")).collect();
+                    format!("a {} file{none}", read::one_of(&listed))
                 }
             }
             Form::Value { what, .. } => what.to_string(),

@@ -156,7 +156,7 @@ pub fn output_name(v: &Spanned, formats: &[&str], may_be_none: bool) -> Result<O
             v.span,
             format!("cannot write '{}': unknown format", path.display()),
         )
-        .with_hint(format!("use a file ending in {}", listed.join(", "))));
+        .with_hint(format!("use a file ending in {}", one_of(&listed))));
     }
     Ok(Some(path))
 }
@@ -167,5 +167,14 @@ pub fn short(x: f64) -> String {
         format!("{x:e}")
     } else {
         x.to_string()
+    }
+}
+
+/// `items` as a person lists alternatives: `a`, `a or b`, `a, b or c`.
+pub fn one_of(items: &[String]) -> String {
+    match items {
+        [] => String::new(),
+        [one] => one.clone(),
+        [rest @ .., last] => format!("{} or {last}", rest.join(", ")),
     }
 }
