@@ -196,6 +196,14 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
             vec![(a, g.push(Mul(gy, d)))]
         }
         Exp(a) => vec![(a, g.push(Mul(gy, y)))],
+        TruncExp(a) => {
+            let limit = g.constant(crate::ir::TRUNC_EXP_LIMIT);
+            let low = g.push(Neg(limit));
+            let above = g.push(Max(a, low));
+            let clamped = g.push(Min(above, limit));
+            let d = g.push(Exp(clamped));
+            vec![(a, g.push(Mul(gy, d)))]
+        }
         Log(a) => vec![(a, g.push(Div(gy, a)))],
         Sin(a) => {
             let c = g.push(Cos(a));

@@ -23,6 +23,7 @@ const SIGNATURES: &[(&str, &str)] = &[
     ("relu", "relu(x: T) -> T"),
     ("sigmoid", "sigmoid(x: T) -> T"),
     ("softplus", "softplus(x: T) -> T"),
+    ("trunc_exp", "trunc_exp(x: T) -> T"),
     ("tanh", "tanh(x: T) -> T"),
     ("min", "min(a: T, b: T) -> T"),
     ("max", "max(a: T, b: T) -> T"),
@@ -70,6 +71,7 @@ pub const NAMES: &[&str] = &[
     "relu",
     "sigmoid",
     "softplus",
+    "trunc_exp",
     "tanh",
     "min",
     "max",
@@ -151,6 +153,7 @@ fn unary(g: &mut Graph, name: &str, x: V) -> V {
         "relu" => g.push(Op::Max(x, zero)),
         "sigmoid" => g.push(Op::Sigmoid(x)),
         "softplus" => g.push(Op::Softplus(x)),
+        "trunc_exp" => g.push(Op::TruncExp(x)),
         "tanh" => g.push(Op::Tanh(x)),
         _ => unreachable!("not a unary builtin: {name}"),
     }
@@ -240,7 +243,7 @@ pub fn call(el: &mut Elaborator, name: &Ident, args: Vec<(Val, Span)>, span: Spa
     let nm = name.name.as_str();
     match nm {
         "neg" | "sin" | "cos" | "tan" | "exp" | "log" | "sqrt" | "abs" | "sign" | "floor" | "fract"
-        | "round" | "relu" | "sigmoid" | "softplus" | "tanh" => {
+        | "round" | "relu" | "sigmoid" | "softplus" | "trunc_exp" | "tanh" => {
             want(1)?;
             let (v, at) = args.into_iter().next().expect("one argument");
             el.map1(v, at, nm, |g, x| unary(g, nm, x))

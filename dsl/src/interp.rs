@@ -35,7 +35,7 @@ pub fn apply(op: Op, a: &[f64]) -> f64 {
         }
         Floor(_) => a[0].floor(),
         Sqrt(_) => a[0].sqrt(),
-        Exp(_) => a[0].exp(),
+        Exp(_) | TruncExp(_) => a[0].exp(),
         Log(_) => a[0].ln(),
         Sin(_) => a[0].sin(),
         Cos(_) => a[0].cos(),

@@ -86,9 +86,8 @@ impl Extender<'_> {
                 (self.push(Neg(hi)), self.push(Neg(lo)))
             }
             Abs(a) => self.abs(arg(a)),
-            Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Tanh(a) | Sigmoid(a) | Softplus(a) => {
-                self.monotone(op, arg(a))
-            }
+            Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Tanh(a) | Sigmoid(a) | Softplus(a)
+            | TruncExp(a) => self.monotone(op, arg(a)),
             Sin(_) | Cos(_) => (self.g.constant(-1.0), self.g.constant(1.0)),
             Tan(_) | Dense(_) | Grid(_) | Pick(..) => self.whole(),
             Add(a, b) => {
@@ -158,7 +157,7 @@ impl Extender<'_> {
         let f = |v: V| op.map_args(|_| v);
         let (lo, hi) = (self.push(f(lo)), self.push(f(hi)));
         match op {
-            Op::Exp(_) | Op::Log(_) | Op::Softplus(_) => self.clamp(lo, hi),
+            Op::Exp(_) | Op::Log(_) | Op::Softplus(_) | Op::TruncExp(_) => self.clamp(lo, hi),
             _ => (lo, hi),
         }
     }

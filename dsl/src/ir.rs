@@ -122,6 +122,9 @@ pub struct Scatter {
     pub cotangent: Vec<V>,
 }
 
+/// The bound of [`Op::TruncExp`]'s derivative: e^a is differentiated as e^clamp(a, −limit, limit).
+pub const TRUNC_EXP_LIMIT: f64 = 15.0;
+
 /// One scalar operation. Comparisons give 1.0 or 0.0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Op {
@@ -157,6 +160,9 @@ pub enum Op {
     Sigmoid(V),
     /// ln(1 + e^a)
     Softplus(V),
+    /// e^a, whose derivative is taken as e^clamp(a, −15, 15) (instant-ngp's `trunc_exp` for densities: the
+    /// gradient stays finite where the value is huge). [`TRUNC_EXP_LIMIT`] is the bound.
+    TruncExp(V),
     /// a + b
     Add(V, V),
     /// a − b
@@ -195,7 +201,7 @@ impl Op {
             Pick(d, _) => vec![d],
             Grid(r) => r.p.to_vec(),
             Neg(a) | Abs(a) | Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Sin(a) | Cos(a) | Tan(a)
-            | Tanh(a) | Sigmoid(a) | Softplus(a) => vec![a],
+            | Tanh(a) | Sigmoid(a) | Softplus(a) | TruncExp(a) => vec![a],
             Add(a, b)
             | Sub(a, b)
             | Mul(a, b)
@@ -230,6 +236,7 @@ impl Op {
             Tanh(a) => Tanh(f(a)),
             Sigmoid(a) => Sigmoid(f(a)),
             Softplus(a) => Softplus(f(a)),
+            TruncExp(a) => TruncExp(f(a)),
             Add(a, b) => Add(f(a), f(b)),
             Sub(a, b) => Sub(f(a), f(b)),
             Mul(a, b) => Mul(f(a), f(b)),
@@ -263,6 +270,7 @@ impl Op {
             Tanh(_) => "tanh",
             Sigmoid(_) => "sigmoid",
             Softplus(_) => "softplus",
+            TruncExp(_) => "trunc_exp",
             Add(..) => "add",
             Sub(..) => "sub",
             Mul(..) => "mul",

@@ -10,6 +10,7 @@ const CASES: &[&str] = &[
     "neg(x) * y",
     "sin(x) + cos(y) * tan(0.5 * z)",
     "exp(x) * log(y * y + 0.1)",
+    "trunc_exp(x) * y + trunc_exp(2.0 * z)",
     "sqrt(x * x + 0.5)",
     "abs(x) * y",
     "sign(x) * y + floor(y) * z + round(z) * x",
@@ -88,7 +89,7 @@ proptest! {
 
     #[test]
     fn param_gradients_match_finite_differences(x in prop::collection::vec(-1.9f64..1.9, 3), c in -1.0f64..1.0) {
-        for expr in [CASES[17], CASES[CASES.len() - 1]] {
+        for expr in CASES.iter().filter(|e| e.contains("dense(") || e.contains("mlp(")) {
         let p = program(expr);
         let f = p.lower("f").unwrap();
         let g = kernels::vjp(&f, p.n_params());
@@ -130,6 +131,10 @@ fn derivatives_match_closed_forms() {
             s * (1.0 - s)
         }),
         ("softplus(x)", |x| 1.0 / (1.0 + (-x).exp())),
+        // trunc_exp's derivative is exp's inside ±15, e^±15 beyond (x·10 reaches ±20).
+        ("trunc_exp(10.0 * x) * 0.1", |x| {
+            (10.0 * x).clamp(-15.0, 15.0).exp()
+        }),
         ("sqrt(x + 3.0)", |x| 0.5 / (x + 3.0).sqrt()),
         ("pow(x + 3.0, 2.5)", |x| 2.5 * (x + 3.0).powf(1.5)),
         // The contraction: the identity inside the unit ball (also at its center), 1/x² beyond.
@@ -234,4 +239,20 @@ fn loss_kernel_gradient_matches_finite_differences_of_its_loss() {
         "only {compared} of {} compared",
         params.len()
     );
+}
+
+#[test]
+fn trunc_exp_is_exp_with_a_gradient_that_stays_finite() {
+    let p = program("trunc_exp(x)");
+    let lowered = p.lower("f").unwrap();
+    let g = kernels::with_gradient(&lowered);
+    for x in [-30.0, -15.0, 0.0, 3.0, 15.0, 80.0, 100.0] {
+        let outputs = eval_point(&g, &[x, 0.0, 0.0], &[]).outputs;
+        assert_eq!(outputs[0], f64::exp(x), "value at {x}");
+        assert_eq!(outputs[1], f64::exp(x.clamp(-15.0, 15.0)), "derivative at {x}");
+    }
+    // exp's own gradient overflows f32 where trunc_exp's does not.
+    let exp = kernels::with_gradient(&program("exp(x)").lower("f").unwrap());
+    assert!(eval_point(&exp, &[100.0, 0.0, 0.0], &[]).outputs[1] as f32 == f32::INFINITY);
+    assert!((eval_point(&g, &[100.0, 0.0, 0.0], &[]).outputs[1] as f32).is_finite());
 }

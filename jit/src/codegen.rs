@@ -138,7 +138,7 @@ impl<'g> GraphEmitter<'g> {
                 }
                 Op::Floor(a) => s.b.ins().floor(v(a)),
                 Op::Sqrt(a) => s.b.ins().sqrt(v(a)),
-                Op::Exp(a) => s.exp(v(a)),
+                Op::Exp(a) | Op::TruncExp(a) => s.exp(v(a)),
                 Op::Log(a) => s.log(v(a)),
                 Op::Sin(a) => s.sin_cos(v(a), 0),
                 Op::Cos(a) => s.sin_cos(v(a), 1),

@@ -40,6 +40,7 @@ fn all_ops(a: V, b: V, c: V) -> Vec<Op> {
         Tanh(a),
         Sigmoid(a),
         Softplus(a),
+        TruncExp(a),
         Add(a, b),
         Sub(a, b),
         Mul(a, b),

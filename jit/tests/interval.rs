@@ -36,7 +36,7 @@ fn build(nodes: &[Gen]) -> Graph {
         let a = vals[n.a % vals.len()];
         let b = vals[n.b % vals.len()];
         let c = vals[n.c % vals.len()];
-        let op = match n.kind % 27 {
+        let op = match n.kind % 28 {
             0 => Neg(a),
             1 => Abs(a),
             2 => Sign(a),
@@ -60,6 +60,7 @@ fn build(nodes: &[Gen]) -> Graph {
             23 => Lt(a, b),
             24 => Le(a, b),
             25 => Eq(a, b),
+            26 => TruncExp(a),
             _ => Select(a, b, c),
         };
         vals.push(g.push(op));

@@ -55,7 +55,8 @@ fn build(nodes: &[Gen], kinks: bool) -> Graph {
             }
             9 => {
                 let t = g.push(Op::Tanh(a));
-                g.push(Op::Exp(t))
+                // trunc_exp is exp where its argument stays inside ±15, as tanh's does.
+                g.push(if n.b % 2 == 0 { Op::Exp(t) } else { Op::TruncExp(t) })
             }
             10 => {
                 let a2 = g.push(Op::Mul(a, a));
