@@ -245,6 +245,16 @@ impl DataSet {
         Ok(budget::check(what, budget::bytes_of(pixels, 12))?)
     }
 
+    /// The sparse points of a COLMAP model (its `points3D`), moved as its cameras are; none for other
+    /// data.
+    pub fn sparse_points(&self) -> Result<Vec<[f32; 3]>> {
+        let points = match self.capture()? {
+            Some((capture, _)) => capture.points.iter().map(|p| p.to_array()).collect(),
+            None => Vec::new(),
+        };
+        Ok(points)
+    }
+
     /// The cameras of the training views, without their images.
     pub fn cameras(&self) -> Result<Vec<Camera>> {
         if let Some((capture, data)) = self.capture()? {

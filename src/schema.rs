@@ -524,6 +524,12 @@ pub const TRAIN: BlockSchema = BlockSchema {
             Some(check_grid_update),
             "how the occupancy grid is updated",
         ),
+        value(
+            "grid_seed",
+            "points, points(dilate: n) or none",
+            Some(check_grid_seed),
+            "before grid_warmup, skip all but the cells near a COLMAP model's sparse points",
+        ),
         number(
             "minutes",
             0.0,
@@ -650,6 +656,10 @@ fn check_optimizer(v: &Spanned) -> Result<(), Diagnostic> {
 
 fn check_grid_update(v: &Spanned) -> Result<(), Diagnostic> {
     crate::train::grid_update(Some(v.clone())).map(drop)
+}
+
+fn check_grid_seed(v: &Spanned) -> Result<(), Diagnostic> {
+    crate::train::grid_seed(v).map(drop)
 }
 
 fn check_minutes(v: &Spanned) -> Result<(), Diagnostic> {

@@ -96,7 +96,7 @@ pub fn name_among(v: &Spanned, choices: &[&str]) -> Result<String, Diagnostic> {
         Value::Name(n) if choices.contains(&n.as_str()) => Ok(n.clone()),
         _ => Err(Diagnostic::new(
             v.span,
-            format!("expected one of {}, found {}", choices.join(", "), v.describe()),
+            format!("expected {}, found {}", one_of(&quoted(choices)), v.describe()),
         )),
     }
 }
@@ -177,4 +177,9 @@ pub fn one_of(items: &[String]) -> String {
         [one] => one.clone(),
         [rest @ .., last] => format!("{} or {last}", rest.join(", ")),
     }
+}
+
+/// Each of `names` in quotes.
+fn quoted(names: &[&str]) -> Vec<String> {
+    names.iter().map(|n| format!("'{n}'")).collect()
 }

@@ -14,7 +14,7 @@ use nerfjit_runtime::{
 };
 
 use crate::block::Block;
-use crate::data_source::{data_path, data_set, DataSet};
+use crate::data_source::{data_path, data_set, DataKind, DataSet};
 use crate::failure::{Failure, Result};
 use crate::field::{VolumeField, VolumeFields};
 use crate::interrupt::Watch;
@@ -80,13 +80,36 @@ pub struct TrainPlan {
     early_termination: Option<f32>,
 }
 
-/// The `skip_empty`, `grid_every`, `grid_warmup` and `grid_update` settings.
+/// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
 #[derive(Clone, Copy, Debug)]
 struct TrainingGrid {
     grid: crate::volume::SkipEmpty,
     every: u32,
     warmup: u32,
     update: GridUpdate,
+    /// Before the warm-up, the cells within this many cells of the data's sparse points.
+    seed: Option<usize>,
+}
+
+/// The `grid_seed` setting: `points` or `points(dilate: n)` (n cells around each point, 2 by default;
+/// 0 to 16), or `none`.
+pub(crate) fn grid_seed(v: &Spanned) -> std::result::Result<Option<usize>, Diagnostic> {
+    let hint = "write points or points(dilate: 2)";
+    match &v.value {
+        Value::Name(n) if n == "none" => Ok(None),
+        Value::Name(n) if n == "points" => Ok(Some(2)),
+        Value::Call(n, _) if n == "points" => {
+            let a = CallArgs::new(v, &["dilate"])?;
+            let dilate = match a.raw("dilate") {
+                Some(d) => crate::settings::whole(d, 0, 16)?,
+                None => 2,
+            };
+            Ok(Some(dilate as usize))
+        }
+        _ => Err(
+            Diagnostic::new(v.span, format!("expected a grid seed, found {}", v.describe())).with_hint(hint),
+        ),
+    }
 }
 
 /// How a training grid follows the field: rebuilt from probes of every cell, or instant-ngp's running
@@ -379,11 +402,31 @@ impl TrainPlan {
         let every = b.whole("grid_every")? as u32;
         let warmup = b.whole("grid_warmup")? as u32;
         let update = grid_update(b.take("grid_update")).map_err(|d| b.error(d))?;
+        let grid_seeding = match b.take("grid_seed") {
+            Some(v) => {
+                let seed = grid_seed(&v).map_err(|d| b.error(d))?;
+                if seed.is_some() && !matches!(data.kind, DataKind::Colmap(..)) {
+                    return Err(b.error(
+                        Diagnostic::new(v.span, "only a COLMAP model has sparse points to seed the grid")
+                            .with_hint("use data: colmap(...), or remove grid_seed"),
+                    ));
+                }
+                if seed.is_some() && skip_empty.is_none() {
+                    return Err(b.error(
+                        Diagnostic::new(v.span, "grid_seed seeds the occupancy grid of skip_empty")
+                            .with_hint("add e.g. skip_empty: grid(bounds: 1.5)"),
+                    ));
+                }
+                seed
+            }
+            None => None,
+        };
         let grid = skip_empty.map(|grid| TrainingGrid {
             grid,
             every,
             warmup,
             update,
+            seed: grid_seeding,
         });
         let early_termination = b.number("early_termination")? as f32;
         b.finish()?;
@@ -529,7 +572,26 @@ impl TrainPlan {
         bar.set_position(u64::from(first));
         let mut rng = Rng::new(self.seed ^ 0x5eed);
         let start = Instant::now();
-        let mut grid: Option<OccupancyGrid> = None;
+        let mut grid: Option<OccupancyGrid> = match &self.grid {
+            Some(g) if g.seed.is_some() && first < g.warmup => {
+                let points = self.data.sparse_points()?;
+                let seeded = OccupancyGrid::from_points(
+                    g.grid.bounds,
+                    g.grid.resolution,
+                    &points,
+                    g.seed.unwrap_or_default(),
+                )?;
+                let line = format!(
+                    "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
+                    points.len(),
+                    100.0 * seeded.occupancy(),
+                    g.warmup
+                );
+                report(&bar, line);
+                Some(seeded)
+            }
+            _ => None,
+        };
         // The running occupancy of `grid_update: ema` and the random points of its updates.
         let mut ema: Option<DensityEma> = None;
         let mut ema_rng = Rng::new(self.seed ^ 0x0cc0);

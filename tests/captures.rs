@@ -116,6 +116,7 @@ fn train_and_check(dir: &Path, data: &str, extra: &str) -> serde_json::Value {
     let (ok, out, err) = run(dir, &["run", "train.sdf"]);
     assert!(ok, "{err}");
     assert!(out.contains("trained 300 steps"), "{out}");
+    std::fs::write(dir.join("train.out"), format!("{out}{err}")).unwrap();
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
     let learned: Vec<f64> = ["center", "sides"]
@@ -266,7 +267,28 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     std::fs::create_dir_all(&model).unwrap();
     std::fs::write(model.join("cameras.txt"), cameras).unwrap();
     std::fs::write(model.join("images.txt"), images).unwrap();
-    std::fs::write(model.join("points3D.txt"), "# none\n").unwrap();
+    // The sparse points: a 4 × 4 lattice on each face of the true box, in the model's world.
+    let (center, half) = (Vec3::new(0.2, -0.1, 0.1), Vec3::new(0.6, 0.4, 0.5));
+    let mut points = String::from("# POINT3D_ID X Y Z R G B ERROR TRACK[]\n");
+    for axis in 0..3 {
+        for side in [-1.0f32, 1.0] {
+            for k in 0..16 {
+                let mut at = [0.0f32; 3];
+                at[axis] = side;
+                at[(axis + 1) % 3] = (k % 4) as f32 / 1.5 - 1.0;
+                at[(axis + 2) % 3] = (k / 4) as f32 / 1.5 - 1.0;
+                let p = to_model(center + half * Vec3::from_array(at));
+                points += &format!(
+                    "{} {} {} {} 128 128 128 0.5\n",
+                    points.lines().count(),
+                    p.x,
+                    p.y,
+                    p.z
+                );
+            }
+        }
+    }
+    std::fs::write(model.join("points3D.txt"), points).unwrap();
     let (ok, report, err) = run(&dir, &["data", "check", "sparse/0"]);
     assert!(ok, "{err}");
     assert!(
@@ -274,11 +296,29 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
         "{report}"
     );
     // Views 0 and 4 are held out and scored; training sees the other six.
+    // Until step 100 training skips all but the cells near the sparse points (within one cell of 0.25).
     let summary = train_and_check(
         &dir,
         "colmap(\"sparse/0\")",
-        ", val: holdout(every: 4), val_every: 100000",
+        ", val: holdout(every: 4), val_every: 100000, skip_empty: grid(bounds: 2, resolution: 16), \
+         grid_seed: points(dilate: 1), grid_warmup: 100",
     );
+    let log = std::fs::read_to_string(dir.join("train.out")).unwrap();
+    let seeded = log
+        .lines()
+        .find(|l| l.starts_with("occupancy grid seeded from 96 sparse points: "))
+        .unwrap_or_else(|| panic!("no seeding reported: {log}"));
+    let percent: f64 = seeded
+        .split(": ")
+        .nth(1)
+        .unwrap()
+        .split('%')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((2.0..40.0).contains(&percent), "{seeded}");
+    assert!(log.contains("step 100: occupancy grid rebuilt"), "{log}");
     let scores = summary["validation"].as_array().unwrap();
     let psnr = scores.last().unwrap()["val_psnr"].as_f64().unwrap();
     assert!(psnr > 40.0, "held-out PSNR {psnr}: {summary}");

@@ -115,6 +115,32 @@ impl OccupancyGrid {
         Ok(OccupancyGrid::from_cells(bounds, res, |i| dilated[i] > 0.0))
     }
 
+    /// The grid over `bounds` with `resolution`³ cells whose occupied cells are those within
+    /// `dilation` cells (along each axis: a (2·dilation + 1)³ block) of a cell holding one of
+    /// `points`; points outside the bounds (or NaN) are ignored. For a first state before the field
+    /// has learned anything, from a capture's sparse points (COLMAP's `points3D`).
+    pub fn from_points(
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        points: &[[f32; 3]],
+        dilation: usize,
+    ) -> Result<OccupancyGrid> {
+        check_box(bounds, resolution)?;
+        let (res, (lo, hi)) = (resolution, bounds);
+        let mut hot = vec![0.0f32; res * res * res];
+        for p in points {
+            // The cell coordinates; the upper bounds belong to the last cells, as in `occupied`.
+            let f = [0, 1, 2].map(|i| (p[i] - lo[i]) * res as f32 / (hi[i] - lo[i]));
+            if f.iter().all(|f| (0.0..=res as f32).contains(f)) {
+                let [x, y, z] = f.map(|f| (f as usize).min(res - 1));
+                hot[x + y * res + z * res * res] = 1.0;
+            }
+        }
+        let dilate = |c: usize| c.saturating_sub(dilation)..=(c + dilation).min(res - 1);
+        let dilated = max_filter(&hot, [res, res, res], dilate, [res, res, res]);
+        Ok(OccupancyGrid::from_cells(bounds, res, |i| dilated[i] > 0.0))
+    }
+
     /// The grid over `bounds` with `resolution`³ cells of which those with `occupied(i)` (cell
     /// x + y·res + z·res² for i) are occupied; the bounds and resolution must be valid (as
     /// [`cell_peaks`] checks).
@@ -314,6 +340,20 @@ pub(crate) fn mean(values: &[f32]) -> f32 {
 /// Checks an occupancy grid's bounds and resolution and that `field` is a density of a point (and
 /// optionally a view direction).
 pub(crate) fn check_grid(field: &dyn BatchFn, bounds: ([f32; 3], [f32; 3]), resolution: usize) -> Result<()> {
+    check_box(bounds, resolution)?;
+    let n_inputs = field.n_inputs();
+    if !(n_inputs == 3 || n_inputs == 6) || field.n_outputs() == 0 {
+        return Err(Error::Invalid(format!(
+            "an occupancy grid needs a field of a point (3 inputs) or a point and a view \
+                 direction (6 inputs) with at least 1 output, but it maps {n_inputs} inputs to {} outputs",
+            field.n_outputs()
+        )));
+    }
+    Ok(())
+}
+
+/// Checks a grid's bounds (finite, lo < hi on every axis) and resolution.
+fn check_box(bounds: ([f32; 3], [f32; 3]), resolution: usize) -> Result<()> {
     let (lo, hi) = bounds;
     if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
         return Err(Error::Invalid(format!(
@@ -323,14 +363,6 @@ pub(crate) fn check_grid(field: &dyn BatchFn, bounds: ([f32; 3], [f32; 3]), reso
     if !(1..=MAX_RESOLUTION).contains(&resolution) {
         return Err(Error::Invalid(format!(
             "occupancy grid resolution {resolution} must be in 1..={MAX_RESOLUTION}"
-        )));
-    }
-    let n_inputs = field.n_inputs();
-    if !(n_inputs == 3 || n_inputs == 6) || field.n_outputs() == 0 {
-        return Err(Error::Invalid(format!(
-            "an occupancy grid needs a field of a point (3 inputs) or a point and a view \
-                 direction (6 inputs) with at least 1 output, but it maps {n_inputs} inputs to {} outputs",
-            field.n_outputs()
         )));
     }
     Ok(())
@@ -541,6 +573,29 @@ mod tests {
         let d = 1.0 / 3f32.sqrt();
         let (t0, t1) = grid.ray_interval([-2.0; 3], [d; 3]).unwrap();
         assert!((t0 - 3f32.sqrt()).abs() < 1e-3 && (t1 - 3.0 * 3f32.sqrt()).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_grid_from_points_holds_the_cells_near_them() {
+        let bounds = ([-1.0; 3], [1.0; 3]);
+        // Cells of 0.25: (0.1, 0.1, 0.1) is in cell (4, 4, 4), (1, 1, 1) in the last, the rest outside.
+        let points = [
+            [0.1, 0.1, 0.1],
+            [1.0, 1.0, 1.0],
+            [2.0, 0.0, 0.0],
+            [f32::NAN, 0.0, 0.0],
+        ];
+        let grid = OccupancyGrid::from_points(bounds, 8, &points, 1).unwrap();
+        let near = |c: usize, at: usize| c.abs_diff(at) <= 1;
+        for (x, y, z) in (0..512).map(|i| (i % 8, i / 8 % 8, i / 64)) {
+            let want = (near(x, 4) && near(y, 4) && near(z, 4)) || (x >= 6 && y >= 6 && z >= 6);
+            assert_eq!(grid.cell(x, y, z), want, "cell ({x}, {y}, {z})");
+        }
+        assert_eq!(grid.occupied_cells(), 27 + 8);
+        let exact = OccupancyGrid::from_points(bounds, 8, &points[..1], 0).unwrap();
+        assert_eq!(exact.occupied_cells(), 1);
+        assert!(exact.occupied([0.2, 0.2, 0.2]) && !exact.occupied([0.3, 0.2, 0.2]));
+        assert!(OccupancyGrid::from_points(bounds, 0, &points, 1).is_err());
     }
 
     #[test]
