@@ -72,6 +72,42 @@ pub struct DataSet {
 const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.json\", size: 128), \
                     nerfstudio(\"transforms.json\") or colmap(\"sparse/0\", images: \"images\")";
 
+/// The views of a camera file with its images, to score renders against: a nerfstudio capture or a
+/// COLMAP model folder (every frame, normalized by its own cameras as training and `render --cameras`
+/// normalize it, downscaled by the whole factor nearest to the frames' width ÷ `width`), or Blender
+/// transforms at `width`².
+pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views> {
+    let data = CaptureData {
+        downscale: 1,
+        background,
+        views: None,
+        normalize: true,
+    };
+    let kind = if nerfjit_runtime::is_colmap_model(file) {
+        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
+        DataKind::Colmap(data, images)
+    } else if nerfjit_runtime::is_nerfstudio(
+        &nerfjit_runtime::input::read_text_capped(file).unwrap_or_default(),
+    ) {
+        DataKind::Nerfstudio(data)
+    } else {
+        return Ok(load_blender_views(file, Some(width), background, None)?);
+    };
+    let mut set = DataSet {
+        path: file.to_path_buf(),
+        kind,
+    };
+    let frame_width = match set.capture()? {
+        Some((capture, _)) => capture.frames.first().map_or(width, |f| f.camera.width),
+        None => width,
+    };
+    let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
+    if let DataKind::Colmap(data, _) | DataKind::Nerfstudio(data) = &mut set.kind {
+        data.downscale = downscale;
+    }
+    set.views()
+}
+
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
 pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, Diagnostic> {
     let Value::Call(kind, _) = &v.value else {

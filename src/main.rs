@@ -181,9 +181,11 @@ enum Command {
     EvalViews {
         /// A script, or a checkpoint written by a train block.
         source: String,
-        /// The camera file with the views' images (Blender `transforms_*.json`) [default: the views the
-        /// script's train block holds out for validation, loaded as it trains: its `val` file or
-        /// `holdout(every: n)` views of its data, at its size].
+        /// The camera file with the views' images: Blender `transforms_*.json` (at --size²), a nerfstudio
+        /// `transforms.json` or a COLMAP model folder (every frame, normalized by its own cameras as
+        /// training normalizes them, downscaled by the whole factor nearest to width ÷ --size) [default:
+        /// the views the script's train block holds out for validation, loaded as it trains: its `val`
+        /// file or `holdout(every: n)` views of its data, at its size].
         #[arg(long)]
         cameras: Option<PathBuf>,
         #[command(flatten)]

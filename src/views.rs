@@ -10,8 +10,8 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::composite::Mode;
 use nerfjit_runtime::{
-    load_blender_views, psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid,
-    Quantize, Views, VolumeSettings,
+    psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid, Quantize, Views,
+    VolumeSettings,
 };
 
 use crate::block::MAX_PIXELS;
@@ -371,7 +371,7 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let (program, params) = load(args.source)?;
     let rendering = args.resolve(&program);
     let views = match cameras {
-        Some(file) => load_blender_views(file, Some(args.size), rendering.background, None)?,
+        Some(file) => crate::data_source::file_views(file, args.size, rendering.background)?,
         None => held_out_views(args.source, &program)?,
     };
     let cache = KernelCache::new();

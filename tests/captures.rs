@@ -176,6 +176,27 @@ fn a_nerfstudio_capture_with_rectangular_images_and_per_frame_intrinsics_trains(
     assert!(ok, "{err}");
     assert!(report.contains("8 views") && report.contains("48×32"), "{report}");
     train_and_check(&dir, "nerfstudio(\"transforms.json\")", "");
+    // The checkpoint scored on every frame of the capture, at the frames' aspect ratio.
+    let (ok, out, err) = run(
+        &dir,
+        &[
+            "eval-views",
+            "train.ckpt.safetensors",
+            "--cameras",
+            "transforms.json",
+            "--size",
+            "48",
+            "--json",
+            "all.json",
+        ],
+    );
+    assert!(ok, "{err}");
+    let scores: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("all.json")).unwrap()).unwrap();
+    assert_eq!(scores["views"].as_array().unwrap().len(), 8, "{out}");
+    assert_eq!((scores["width"].as_u64(), scores["height"].as_u64()), (Some(48), Some(32)));
+    let psnr = scores["mean_psnr"].as_f64().unwrap();
+    assert!(psnr > 40.0, "eval-views on the capture: {psnr} dB\n{out}");
     // Rendering from the capture's own cameras reproduces the views.
     let again = format!(
         "const center = [0.2, -0.1, 0.1]\nconst sides = [1.2, 0.8, 1.0]\n{FIELD}\
