@@ -305,8 +305,7 @@ impl VolumeFields {
         Ok(VolumeFields { fine, coarse })
     }
 
-    /// [`VolumeFields::render`], skipping the cells `grid` marks empty when given (with a single field;
-    /// hierarchical sampling does not skip yet).
+    /// [`VolumeFields::render`], skipping the cells `grid` marks empty when given.
     pub fn render_with(
         &self,
         camera: &nerfjit_runtime::Camera,
@@ -315,20 +314,25 @@ impl VolumeFields {
         settings: &nerfjit_runtime::VolumeSettings,
         grid: Option<&nerfjit_runtime::OccupancyGrid>,
     ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
-        match (grid, &self.coarse) {
-            (Some(grid), None) => {
-                let (fine, _) = self.fine.bind(params);
-                Ok(nerfjit_runtime::render_volume_with(
+        let (fine, _) = self.fine.bind(params);
+        Ok(match &self.coarse {
+            None => nerfjit_runtime::render_volume_with(camera, width, height, &fine, settings, grid)?,
+            Some((coarse, importance)) => {
+                let (coarse, _) = coarse.bind(params);
+                let fields = nerfjit_runtime::hierarchical::CoarseFine {
+                    coarse: &coarse,
+                    fine: &fine,
+                    importance: *importance,
+                };
+                nerfjit_runtime::hierarchical::render_hierarchical(
                     camera,
-                    width,
-                    height,
-                    &fine,
+                    (width, height),
+                    fields,
                     settings,
-                    Some(grid),
-                )?)
+                    grid,
+                )?
             }
-            _ => self.render(camera, width, height, params, settings),
-        }
+        })
     }
 
     /// Renders one view (`settings.samples` coarse samples, plus the importance samples).
@@ -340,21 +344,6 @@ impl VolumeFields {
         params: &[f32],
         settings: &nerfjit_runtime::VolumeSettings,
     ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
-        let (fine, _) = self.fine.bind(params);
-        Ok(match &self.coarse {
-            None => nerfjit_runtime::render_volume(camera, width, height, &fine, settings)?,
-            Some((coarse, importance)) => {
-                let (coarse, _) = coarse.bind(params);
-                nerfjit_runtime::hierarchical::render_hierarchical(
-                    camera,
-                    width,
-                    height,
-                    &coarse,
-                    &fine,
-                    settings,
-                    *importance,
-                )?
-            }
-        })
+        self.render_with(camera, (width, height), params, settings, None)
     }
 }

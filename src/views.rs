@@ -182,10 +182,10 @@ impl Rendering {
     }
 
     /// The occupancy grid to render with: the script's `skip_empty` grid built from the field with `params`
-    /// as training builds it (a running grid as its first state), none with hierarchical sampling (which
-    /// does not skip yet).
+    /// as training builds it (a running grid as its first state); with hierarchical sampling both passes
+    /// skip its empty cells.
     pub fn occupancy(&self, fields: &VolumeFields, params: &[f32]) -> Result<Option<OccupancyGrid>> {
-        let Some(s) = self.skip_empty.filter(|_| fields.coarse.is_none()) else {
+        let Some(s) = self.skip_empty else {
             return Ok(None);
         };
         let (mode, density) = (fields.fine.mode, fields.fine.bind_density(params));

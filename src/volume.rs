@@ -78,11 +78,6 @@ impl VolumePlan {
         let depth = b.output("depth")?;
         let frame_ms = b.whole("frame_ms")? as u32;
         let importance = b.whole("importance")? as usize;
-        if importance > 0 && skip_empty.is_some() {
-            return Err(
-                b.block_error("'importance' and 'skip_empty' do not combine yet: choose one".to_string())
-            );
-        }
         b.finish()?;
         Ok(VolumePlan {
             cameras,

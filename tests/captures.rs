@@ -194,7 +194,10 @@ fn a_nerfstudio_capture_with_rectangular_images_and_per_frame_intrinsics_trains(
     let scores: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("all.json")).unwrap()).unwrap();
     assert_eq!(scores["views"].as_array().unwrap().len(), 8, "{out}");
-    assert_eq!((scores["width"].as_u64(), scores["height"].as_u64()), (Some(48), Some(32)));
+    assert_eq!(
+        (scores["width"].as_u64(), scores["height"].as_u64()),
+        (Some(48), Some(32))
+    );
     let psnr = scores["mean_psnr"].as_f64().unwrap();
     assert!(psnr > 40.0, "eval-views on the capture: {psnr} dB\n{out}");
     // Rendering from the capture's own cameras reproduces the views.

@@ -1037,3 +1037,33 @@ fn renders_of_a_field_that_is_nan_somewhere_name_the_function_and_a_point() {
         }
     }
 }
+
+#[test]
+fn hierarchical_renders_skip_an_occupancy_grid_without_changing_the_picture() {
+    let dir = scratch("hierarchical_grid");
+    let script = "\
+fn density(p: vec3) -> f32 = 30.0 * sigmoid(-40.0 * (length(p) - 0.6))
+fn color(p: vec3) -> vec3 = clamp(0.5 + 0.5 * p, 0.0, 1.0)
+fn coarse_density(p: vec3) -> f32 = 10.0 * sigmoid(-10.0 * (length(p) - 0.6))
+fn coarse_color(p: vec3) -> vec3 = vec3(0.5)
+render volume { camera: surround(radius: 3, frames: 1, up: z, focal: 1.5), size: 32, near: 1, far: 5,
+                samples: 16, importance: 32, out: \"exact.png\" }
+render volume { camera: surround(radius: 3, frames: 1, up: z, focal: 1.5), size: 32, near: 1, far: 5,
+                samples: 16, importance: 32, skip_empty: grid(bounds: 1.5, resolution: 32), out: \"grid.png\" }
+";
+    let path = write(&dir, "hierarchical.sdf", script);
+    let out = nerfjit(&["run", &path, "--out", dir.to_str().unwrap()], None);
+    assert!(out.status.success(), "{}", text(&out).1);
+    let exact = image::open(dir.join("exact.png")).unwrap().to_rgb8();
+    let grid = image::open(dir.join("grid.png")).unwrap().to_rgb8();
+    let worst = exact
+        .pixels()
+        .zip(grid.pixels())
+        .flat_map(|(p, q)| (0..3).map(move |c| p[c].abs_diff(q[c])))
+        .max();
+    // The grid is the fine field's (density above 1e-4): the coarse field's wider halo outside it is
+    // skipped, which moves a few importance samples, no pixel by more than a few levels.
+    assert!(worst <= Some(3), "the grid changed a pixel by {worst:?}");
+    let lit = exact.pixels().filter(|p| p[0] > 40).count();
+    assert!(lit > 50, "the ball is missing: {lit} lit pixels");
+}

@@ -1,6 +1,8 @@
 //! Volume rendering with hierarchical sampling: a coarse field at `linspace(near, far, samples)`,
 //! then a fine field at those depths and `importance` more per ray drawn from the coarse weights
-//! (at the centers of equal-probability bins: a deterministic render). The counterpart of
+//! (at the centers of equal-probability bins: a deterministic render). With an occupancy grid, both
+//! passes evaluate only the samples in its occupied cells (the others are empty space, so no
+//! importance sample is drawn there either). The counterpart of
 //! [`crate::train::volume_step_with`]. Samples are laid out ray-major here (ray k's samples at
 //! `k·samples..`), so that each ray composites from contiguous slices.
 
@@ -11,6 +13,7 @@ use crate::composite::Samples;
 use crate::error::{Error, Result};
 use crate::field::BatchFn;
 use crate::importance;
+use crate::occupancy::OccupancyGrid;
 use crate::rays::RayBatch;
 use crate::volume::{check_field, VolumeFrame, VolumeSettings};
 
@@ -18,45 +21,81 @@ use crate::volume::{check_field, VolumeFrame, VolumeSettings};
 const TILE_RAYS: usize = 64;
 
 /// The field's outputs (value, r, g, b) at depths `depths` (ray-major, `per_ray` each) of rays
-/// `first..first + count` of `rays`.
+/// `first..first + count` of `rays`; with a `grid`, only the points in its occupied cells are
+/// evaluated, and the others are empty space (all outputs 0).
 fn evaluate(
     field: &dyn BatchFn,
     rays: &RayBatch,
     first: usize,
     depths: &[f32],
     per_ray: usize,
+    grid: Option<&OccupancyGrid>,
 ) -> [Vec<f32>; 4] {
     let len = depths.len();
     let mut inputs: [Vec<f32>; 6] = Default::default();
     for input in &mut inputs {
         input.reserve(len);
     }
+    // Which samples are evaluated (all without a grid), in order.
+    let mut kept = Vec::with_capacity(len);
     for (i, &t) in depths.iter().enumerate() {
         let r = first + i / per_ray;
         let o = [rays.ox[r], rays.oy[r], rays.oz[r]];
         let d = [rays.dx[r], rays.dy[r], rays.dz[r]];
+        let p = [0, 1, 2].map(|c| o[c] + t * d[c]);
+        if grid.is_some_and(|g| !g.occupied(p)) {
+            continue;
+        }
+        kept.push(i);
         for c in 0..3 {
-            inputs[c].push(o[c] + t * d[c]);
+            inputs[c].push(p[c]);
             inputs[3 + c].push(d[c]);
         }
     }
+    let n = kept.len();
     let refs: Vec<&[f32]> = inputs[..field.n_inputs()].iter().map(Vec::as_slice).collect();
+    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; n]);
+    let mut out_refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
+    if n > 0 {
+        field.eval(n, &refs, &mut out_refs);
+    }
+    if n == len {
+        return packed;
+    }
     let mut outputs: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; len]);
-    let mut out_refs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
-    field.eval(len, &refs, &mut out_refs);
+    for (output, values) in outputs.iter_mut().zip(&packed) {
+        for (&i, &v) in kept.iter().zip(values) {
+            output[i] = v;
+        }
+    }
     outputs
 }
 
-/// Renders a `width`×`height` image with hierarchical sampling (see the module docs).
+/// The two fields of hierarchical sampling and the importance samples drawn per ray.
+#[derive(Clone, Copy)]
+pub struct CoarseFine<'a> {
+    /// Sampled at the fixed depths; its weights place the importance samples.
+    pub coarse: &'a dyn BatchFn,
+    /// Sampled at the fixed depths and the importance samples; it makes the image.
+    pub fine: &'a dyn BatchFn,
+    /// Importance samples per ray (at least 1).
+    pub importance: usize,
+}
+
+/// Renders a `width`×`height` image with hierarchical sampling (see the module docs), skipping the
+/// cells `grid` marks empty when given.
 pub fn render_hierarchical(
     camera: &Camera,
-    width: u32,
-    height: u32,
-    coarse: &dyn BatchFn,
-    fine: &dyn BatchFn,
+    (width, height): (u32, u32),
+    fields: CoarseFine,
     settings: &VolumeSettings,
-    importance: usize,
+    grid: Option<&OccupancyGrid>,
 ) -> Result<VolumeFrame> {
+    let CoarseFine {
+        coarse,
+        fine,
+        importance,
+    } = fields;
     settings.check()?;
     check_field(coarse)?;
     check_field(fine)?;
@@ -85,7 +124,7 @@ pub fn render_hierarchical(
             let first = tile * TILE_RAYS;
             let count = rgb.len();
             let coarse_depths: Vec<f32> = (0..count).flat_map(|_| t.iter().copied()).collect();
-            let [raw, ..] = evaluate(coarse, &rays, first, &coarse_depths, m);
+            let [raw, ..] = evaluate(coarse, &rays, first, &coarse_depths, m, grid);
             let mut fine_depths = vec![0.0; count * total];
             let (mut w, mut drawn) = (vec![0.0; m], vec![0.0; importance]);
             for k in 0..count {
@@ -93,7 +132,7 @@ pub fn render_hierarchical(
                 importance::inverse_cdf(settings.near, settings.far, &t, &w, &u, &mut drawn);
                 importance::merge_sorted(&t, &drawn, &mut fine_depths[k * total..(k + 1) * total]);
             }
-            let [raw, r, g, b] = evaluate(fine, &rays, first, &fine_depths, total);
+            let [raw, r, g, b] = evaluate(fine, &rays, first, &fine_depths, total, grid);
             for k in 0..count {
                 let s = k * total..(k + 1) * total;
                 let samples = Samples::new(
@@ -142,6 +181,38 @@ mod tests {
         })
     }
 
+    fn camera() -> Camera {
+        Camera::look_at(
+            Vec3::new(0.3, 0.2, -3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::splat(1.5),
+            Vec2::ZERO,
+        )
+        .unwrap()
+    }
+
+    fn settings(samples: usize) -> VolumeSettings {
+        VolumeSettings {
+            spacing: crate::sampler::DepthSpacing::Linear,
+            near: 1.0,
+            far: 5.0,
+            samples,
+            mode: Mode::Density,
+            background: Some([0.2, 0.3, 0.4]),
+            early_termination: None,
+        }
+    }
+
+    /// `field` as both fields of hierarchical sampling.
+    fn twice(field: &dyn BatchFn, importance: usize) -> CoarseFine<'_> {
+        CoarseFine {
+            coarse: field,
+            fine: field,
+            importance,
+        }
+    }
+
     fn mean_abs_difference(a: &VolumeFrame, b: &VolumeFrame) -> f32 {
         let sum: f32 = a
             .rgb
@@ -154,28 +225,13 @@ mod tests {
 
     #[test]
     fn importance_samples_recover_a_thin_shell_that_coarse_sampling_misses() {
-        let camera = Camera::look_at(
-            Vec3::new(0.3, 0.2, -3.0),
-            Vec3::ZERO,
-            Vec3::Y,
-            Vec2::splat(1.5),
-            Vec2::ZERO,
-        )
-        .unwrap();
-        let settings = |samples| VolumeSettings {
-            spacing: crate::sampler::DepthSpacing::Linear,
-            near: 1.0,
-            far: 5.0,
-            samples,
-            mode: Mode::Density,
-            background: None,
-            early_termination: None,
-        };
+        let camera = camera();
         let field = shell();
         let exact = render_volume(&camera, 24, 24, &field, &settings(4000)).unwrap();
         let coarse = render_volume(&camera, 24, 24, &field, &settings(96)).unwrap();
-        let fine = render_hierarchical(&camera, 24, 24, &field, &field, &settings(32), 64).unwrap();
-        let same = render_hierarchical(&camera, 24, 24, &field, &field, &settings(2000), 2000).unwrap();
+        let fine = render_hierarchical(&camera, (24, 24), twice(&field, 64), &settings(32), None).unwrap();
+        let same =
+            render_hierarchical(&camera, (24, 24), twice(&field, 2000), &settings(2000), None).unwrap();
         // With many samples the hierarchical render is the exact one (same rays, same compositing).
         assert!(
             mean_abs_difference(&same, &exact) < 2e-3,
@@ -190,5 +246,33 @@ mod tests {
             fine_error < 0.5 * coarse_error,
             "32 + 64 hierarchical samples: error {fine_error}; 96 uniform samples: {coarse_error}"
         );
+    }
+
+    #[test]
+    fn an_occupancy_grid_skips_empty_space_and_changes_nothing() {
+        let camera = camera();
+        let settings = settings(32);
+        let evaluated = std::sync::atomic::AtomicUsize::new(0);
+        let inner = shell();
+        let counted = ClosureFn::new(3, 4, |p, out| {
+            evaluated.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            inner.eval(
+                1,
+                &[&p[0..1], &p[1..2], &p[2..3]],
+                &mut out.iter_mut().map(std::slice::from_mut).collect::<Vec<_>>(),
+            );
+        });
+        let grid = OccupancyGrid::build(&inner, ([-1.2; 3], [1.2; 3]), 48, Mode::Density, 0.0).unwrap();
+        assert!(grid.occupancy() < 0.6, "{}", grid.occupancy());
+        let exact = render_hierarchical(&camera, (24, 24), twice(&counted, 64), &settings, None).unwrap();
+        let all = evaluated.swap(0, std::sync::atomic::Ordering::Relaxed);
+        let skipping =
+            render_hierarchical(&camera, (24, 24), twice(&counted, 64), &settings, Some(&grid)).unwrap();
+        let some = evaluated.load(std::sync::atomic::Ordering::Relaxed);
+        assert_eq!(all, 24 * 24 * (32 + 32 + 64));
+        assert!(some * 2 < all, "{some} of {all} samples evaluated");
+        assert_eq!(skipping.rgb, exact.rgb);
+        assert_eq!(skipping.opacity, exact.opacity);
+        assert_eq!(skipping.depth, exact.depth);
     }
 }
