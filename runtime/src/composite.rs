@@ -53,6 +53,23 @@ pub struct RayOutput {
     pub opacity: f32,
 }
 
+/// A ray being composited run by run ([`Compositor::add`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct RayState {
+    out: RayOutput,
+    transmittance: f32,
+}
+
+impl Default for RayState {
+    /// A ray before its first sample: nothing seen, transmittance 1.
+    fn default() -> RayState {
+        RayState {
+            out: RayOutput::default(),
+            transmittance: 1.0,
+        }
+    }
+}
+
 /// The samples of one ray: depths, the field's first output (density or opacity) and colors.
 #[derive(Debug, Clone, Copy)]
 pub struct Samples<'a> {
@@ -170,22 +187,45 @@ impl Compositor {
 
     /// Composites one ray.
     pub fn forward(&self, samples: &Samples) -> RayOutput {
+        let mut ray = RayState::default();
+        self.add(&mut ray, samples.t, 0, samples.raw, samples.rgb);
+        self.finish(ray)
+    }
+
+    /// Composites samples `first..first + raw.len()` of a ray whose depths are `t` (all of them: δ of
+    /// the last is [`LAST_DELTA`]) into `ray`, with their values `raw` and colors `rgb`. Adding a
+    /// ray's samples run by run, in order, then [`Compositor::finish`], gives [`Compositor::forward`]
+    /// of all of them, bit for bit.
+    pub(crate) fn add(&self, ray: &mut RayState, t: &[f32], first: usize, raw: &[f32], rgb: [&[f32]; 3]) {
         let threshold = self.threshold();
-        let mut out = RayOutput::default();
-        let mut transmittance = 1.0f32;
-        for i in 0..samples.len() {
-            if transmittance < threshold {
+        let RayState { out, transmittance } = ray;
+        for (i, (&raw, k)) in raw.iter().zip(first..).enumerate() {
+            if *transmittance < threshold {
                 break;
             }
-            let (alpha, keep) = self.alpha(samples.raw[i], samples.delta(i));
-            let w = transmittance * alpha;
-            for (acc, c) in out.rgb.iter_mut().zip(&samples.rgb) {
+            let delta = t.get(k + 1).map_or(LAST_DELTA, |next| next - t[k]);
+            let (alpha, keep) = self.alpha(raw, delta);
+            let w = *transmittance * alpha;
+            for (acc, c) in out.rgb.iter_mut().zip(&rgb) {
                 *acc += w * c[i];
             }
-            out.depth += w * samples.t[i];
+            out.depth += w * t[k];
             out.opacity += w;
-            transmittance *= keep;
+            *transmittance *= keep;
         }
+    }
+
+    /// Whether `ray` is still live: its transmittance is not below the early-termination threshold.
+    pub(crate) fn is_live(&self, ray: &RayState) -> bool {
+        ray.transmittance >= self.threshold()
+    }
+
+    /// The composited ray, with the background seen through its remaining transmittance.
+    pub(crate) fn finish(&self, ray: RayState) -> RayOutput {
+        let RayState {
+            mut out,
+            transmittance,
+        } = ray;
         self.add_background(&mut out, transmittance);
         out
     }
