@@ -93,19 +93,14 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
     } else {
         return Ok(load_blender_views(file, Some(width), background, None)?);
     };
-    let mut set = DataSet {
+    let set = DataSet {
         path: file.to_path_buf(),
         kind,
     };
-    let frame_width = match set.capture()? {
-        Some((capture, _)) => capture.frames.first().map_or(width, |f| f.camera.width),
-        None => width,
-    };
-    let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
-    if let DataKind::Colmap(data, _) | DataKind::Nerfstudio(data) = &mut set.kind {
-        data.downscale = downscale;
-    }
-    set.views()
+    let (capture, mut data) = set.capture()?.expect("a capture's kind");
+    let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
+    data.downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
+    set.capture_views(&capture, &data)
 }
 
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
@@ -248,14 +243,7 @@ impl DataSet {
     /// Loads the training views, having checked that they fit in the memory limit.
     pub fn views(&self) -> Result<Views> {
         if let Some((capture, data)) = self.capture()? {
-            let (n, width, height) = capture.view_sizes(&self.path, data.downscale, data.views)?;
-            self.check_memory(n, width, height)?;
-            let request = CaptureRequest {
-                downscale: data.downscale,
-                background: data.background,
-                limit: data.views,
-            };
-            return Ok(capture.views(&self.path, request)?);
+            return self.capture_views(&capture, &data);
         }
         Ok(match self.kind {
             DataKind::Blender(b) => {
@@ -271,6 +259,19 @@ impl DataSet {
                 load_box_views(&self.path)?
             }
         })
+    }
+
+    /// The views of `capture` (this data set's, loaded) as `data` asks, having checked that they fit in
+    /// the memory limit.
+    fn capture_views(&self, capture: &Capture, data: &CaptureData) -> Result<Views> {
+        let (n, width, height) = capture.view_sizes(&self.path, data.downscale, data.views)?;
+        self.check_memory(n, width, height)?;
+        let request = CaptureRequest {
+            downscale: data.downscale,
+            background: data.background,
+            limit: data.views,
+        };
+        Ok(capture.views(&self.path, request)?)
     }
 
     /// Checks that `n` decoded views of `width`×`height` (RGB, f32) fit in the memory limit.

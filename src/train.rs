@@ -573,14 +573,14 @@ impl TrainPlan {
         let mut rng = Rng::new(self.seed ^ 0x5eed);
         let start = Instant::now();
         let mut grid: Option<OccupancyGrid> = match &self.grid {
-            Some(g) if g.seed.is_some() && first < g.warmup => {
+            Some(
+                g @ TrainingGrid {
+                    seed: Some(dilation), ..
+                },
+            ) if first < g.warmup => {
                 let points = self.data.sparse_points()?;
-                let seeded = OccupancyGrid::from_points(
-                    g.grid.bounds,
-                    g.grid.resolution,
-                    &points,
-                    g.seed.unwrap_or_default(),
-                )?;
+                let seeded =
+                    OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &points, *dilation)?;
                 let line = format!(
                     "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
                     points.len(),
