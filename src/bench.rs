@@ -501,7 +501,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
         let one = gflops(reps, 1, PER_THREAD, flops, make);
         let many = gflops(reps, all, PER_THREAD, flops, make);
         crate::emit(
-            &(format!("dense {name} {WIDTH}×{WIDTH} × {TILE} points: {one:.1} GFLOP/s on 1 thread, {many:.1} GFLOP/s on {all}")
+            &(format!("dense {name} {WIDTH}×{WIDTH} × {TILE} points ({:?}): {one:.1} GFLOP/s on 1 thread, {many:.1} GFLOP/s on {all}", gemm::Backend::best())
                 + "\n"),
         );
     };

@@ -1,4 +1,4 @@
-//! The matrix products of dense layers on tiles of points, with AVX-512 micro-kernels.
+//! The matrix products of dense layers on tiles of points, with AVX-512 and AVX2 micro-kernels.
 //!
 //! Activations are stored feature-major: one column of [`TILE`] floats per feature (the layout of the
 //! JIT kernels' buffers), so a layer's input is a list of column pointers and needs no packing.
@@ -9,8 +9,8 @@
 //!   The right operand is transposed to point-major rows first (16 × 16 blocks in registers), so that the
 //!   micro-kernel again broadcasts one operand and streams the other into 4 × 64 accumulators.
 //!
-//! Both run 512-bit code when the CPU has AVX-512F (checked once at run time) and portable loops
-//! otherwise.
+//! Both run the widest [`Backend`] the CPU has (checked once at run time): 512-bit micro-kernels with
+//! AVX-512F, 256-bit ones (6 rows × 16 points) with AVX2 and FMA, portable loops otherwise.
 
 use std::sync::OnceLock;
 
@@ -52,18 +52,94 @@ pub fn padded(n: usize) -> usize {
     n.div_ceil(16) * 16
 }
 
+/// The instruction set a product runs on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// 512-bit micro-kernels (AVX-512F).
+    Avx512,
+    /// 256-bit micro-kernels (AVX2 with FMA).
+    Avx2,
+    /// Plain loops, vectorized as the compiler can for the baseline target.
+    Portable,
+}
+
+impl Backend {
+    /// The widest backend this CPU runs (checked once).
+    pub fn best() -> Backend {
+        static BEST: OnceLock<Backend> = OnceLock::new();
+        *BEST.get_or_init(|| {
+            if has_avx512() {
+                Backend::Avx512
+            } else if has_avx2_fma() {
+                Backend::Avx2
+            } else {
+                Backend::Portable
+            }
+        })
+    }
+
+    /// Every backend this CPU runs, widest first.
+    pub fn available() -> Vec<Backend> {
+        let mut all = Vec::new();
+        if has_avx512() {
+            all.push(Backend::Avx512);
+        }
+        if has_avx2_fma() {
+            all.push(Backend::Avx2);
+        }
+        all.push(Backend::Portable);
+        all
+    }
+}
+
+/// Whether this CPU runs AVX2 and FMA (checked once).
+fn has_avx2_fma() -> bool {
+    static HAS: OnceLock<bool> = OnceLock::new();
+    *HAS.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    })
+}
+
 /// `out[i][t] = Σ_k a[i·k_len + k] · x[k][t]` for i < `out.len()`, t < [`TILE`], where k_len = `x.len()`.
 ///
 /// # Safety
 /// Every pointer of `x` must address [`TILE`] readable floats and every pointer of `out` [`TILE`]
 /// writable floats that no pointer of `x` overlaps; `a` must hold `out.len() · x.len()` floats.
 pub unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+    // SAFETY: the best backend runs on this CPU; the buffers are as the caller guarantees.
+    unsafe { matmul_on(Backend::best(), a, x, out) }
+}
+
+/// [`matmul`] on a given backend.
+///
+/// # Safety
+/// As [`matmul`], and `backend` must be one of [`Backend::available`].
+pub unsafe fn matmul_on(backend: Backend, a: &[f32], x: &[*const f32], out: &[*mut f32]) {
     assert!(a.len() >= out.len() * x.len(), "matrix smaller than its product");
-    #[cfg(target_arch = "x86_64")]
-    if has_avx512() {
-        // SAFETY: the CPU has AVX-512F; the buffers are as the caller guarantees.
-        return unsafe { avx512::matmul(a, x, out) };
+    // SAFETY: the backend runs on this CPU and the buffers are as the caller guarantees.
+    unsafe {
+        match backend {
+            #[cfg(target_arch = "x86_64")]
+            Backend::Avx512 => avx512::matmul(a, x, out),
+            #[cfg(target_arch = "x86_64")]
+            Backend::Avx2 => avx2::matmul(a, x, out),
+            _ => matmul_plain(a, x, out),
+        }
     }
+}
+
+/// [`matmul`] in plain loops.
+///
+/// # Safety
+/// As [`matmul`].
+unsafe fn matmul_plain(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
     let k_len = x.len();
     for (i, &o) in out.iter().enumerate() {
         // SAFETY: `o` addresses TILE floats that no input overlaps (caller).
@@ -86,27 +162,50 @@ pub unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
 /// # Safety
 /// Every pointer of `l` and `r` must address `count` readable floats.
 pub unsafe fn outer(l: &[*const f32], r: &[*const f32], count: usize, g: &mut [f32], scratch: &mut Vec<f32>) {
+    // SAFETY: the best backend runs on this CPU; the buffers are as the caller guarantees.
+    unsafe { outer_on(Backend::best(), l, r, count, g, scratch) }
+}
+
+/// [`outer`] on a given backend.
+///
+/// # Safety
+/// As [`outer`], and `backend` must be one of [`Backend::available`].
+pub unsafe fn outer_on(
+    backend: Backend,
+    l: &[*const f32],
+    r: &[*const f32],
+    count: usize,
+    g: &mut [f32],
+    scratch: &mut Vec<f32>,
+) {
     let stride = padded(r.len());
     assert!(count <= TILE, "more points than a tile");
     assert!(g.len() >= l.len() * stride, "gradient buffer too small");
     scratch.clear();
     scratch.resize(count * stride, 0.0);
-    #[cfg(target_arch = "x86_64")]
-    if has_avx512() {
-        // SAFETY: the CPU has AVX-512F; sizes were checked above and by the caller.
-        unsafe {
+    // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
+    match backend {
+        #[cfg(target_arch = "x86_64")]
+        Backend::Avx512 => unsafe {
             avx512::transpose(r, count, scratch, stride);
-            return avx512::outer(l, scratch, stride, count, g);
-        }
-    }
-    transpose_plain(r, 0, 0, count, scratch, stride);
-    for (i, &li) in l.iter().enumerate() {
-        // SAFETY: `li` addresses `count` floats (caller).
-        let li = unsafe { std::slice::from_raw_parts(li, count) };
-        let row = &mut g[i * stride..(i + 1) * stride];
-        for (t, &lv) in li.iter().enumerate() {
-            for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
-                *gj += lv * rv;
+            avx512::outer(l, scratch, stride, count, g)
+        },
+        #[cfg(target_arch = "x86_64")]
+        Backend::Avx2 => unsafe {
+            avx2::transpose(r, count, scratch, stride);
+            avx2::outer(l, scratch, stride, count, g)
+        },
+        _ => {
+            transpose_plain(r, 0, 0, count, scratch, stride);
+            for (i, &li) in l.iter().enumerate() {
+                // SAFETY: `li` addresses `count` floats (caller).
+                let li = unsafe { std::slice::from_raw_parts(li, count) };
+                let row = &mut g[i * stride..(i + 1) * stride];
+                for (t, &lv) in li.iter().enumerate() {
+                    for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
+                        *gj += lv * rv;
+                    }
+                }
             }
         }
     }
@@ -341,6 +440,190 @@ mod avx512 {
     }
 }
 
+/// The 256-bit micro-kernels: as the 512-bit ones with 8-float vectors and the register blocks that fit
+/// AVX2's 16 registers (6 rows × 16 points: 12 accumulators, 2 loaded vectors, 1 broadcast).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::TILE;
+
+    /// Rows per register block (of the product's A, and of the outer product's G).
+    const MR: usize = 6;
+    /// Vectors of 8 floats per register block (16 points of the product, 16 columns of G).
+    const NV: usize = 2;
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+        let k = x.len();
+        // Point blocks outermost: a block's inputs (k × 16 floats) stay in L1 for every row block.
+        for t0 in (0..TILE).step_by(8 * NV) {
+            let mut i = 0;
+            // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
+            unsafe {
+                while i + MR <= out.len() {
+                    matmul_block::<MR>(a.as_ptr().add(i * k), x, &out[i..i + MR], t0);
+                    i += MR;
+                }
+                match out.len() - i {
+                    5 => matmul_block::<5>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    4 => matmul_block::<4>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    /// R rows of the product for the 8·NV points from `t0`.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32], t0: usize) {
+        let k = x.len();
+        let mut acc = [[_mm256_setzero_ps(); NV]; R];
+        for (kk, &xk) in x.iter().enumerate() {
+            // SAFETY: xk addresses TILE floats and t0 + 8·NV ≤ TILE; row r of A has k floats.
+            unsafe {
+                let p = xk.add(t0);
+                let b: [__m256; NV] = std::array::from_fn(|q| _mm256_loadu_ps(p.add(8 * q)));
+                for (r, acc_r) in acc.iter_mut().enumerate() {
+                    let w = _mm256_broadcast_ss(&*a.add(r * k + kk));
+                    for q in 0..NV {
+                        acc_r[q] = _mm256_fmadd_ps(w, b[q], acc_r[q]);
+                    }
+                }
+            }
+        }
+        for (r, acc_r) in acc.iter().enumerate() {
+            for (q, v) in acc_r.iter().enumerate() {
+                // SAFETY: out[r] addresses TILE writable floats.
+                unsafe { _mm256_storeu_ps(out[r].add(t0 + 8 * q), *v) };
+            }
+        }
+    }
+
+    /// The outer product on the transposed right operand; `stride` is a multiple of 16 (8·NV).
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn outer(l: &[*const f32], rt: &[f32], stride: usize, count: usize, g: &mut [f32]) {
+        debug_assert_eq!(stride % (8 * NV), 0);
+        let mut i = 0;
+        while i < l.len() {
+            let rows = (l.len() - i).min(MR);
+            for j in (0..stride).step_by(8 * NV) {
+                // SAFETY: rows i..i+rows of G and columns j..j+16 ≤ stride exist; l pointers hold
+                // `count` floats and rt holds count rows of `stride` floats (checked by the caller).
+                unsafe {
+                    let (l, rt, g) = (
+                        &l[i..i + rows],
+                        rt.as_ptr().add(j),
+                        g.as_mut_ptr().add(i * stride + j),
+                    );
+                    match rows {
+                        6 => outer_block::<6>(l, rt, stride, count, g),
+                        5 => outer_block::<5>(l, rt, stride, count, g),
+                        4 => outer_block::<4>(l, rt, stride, count, g),
+                        3 => outer_block::<3>(l, rt, stride, count, g),
+                        2 => outer_block::<2>(l, rt, stride, count, g),
+                        _ => outer_block::<1>(l, rt, stride, count, g),
+                    }
+                }
+            }
+            i += rows;
+        }
+    }
+
+    /// R rows of G × 16 columns: `g[r·stride + c] += Σ_t l[r][t] · rt[t·stride + c]`.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn outer_block<const R: usize>(
+        l: &[*const f32],
+        rt: *const f32,
+        stride: usize,
+        count: usize,
+        g: *mut f32,
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); NV]; R];
+        for t in 0..count {
+            // SAFETY: row t of rt has 16 floats from this block's start; l[r] has `count` floats.
+            unsafe {
+                let row = rt.add(t * stride);
+                let b: [__m256; NV] = std::array::from_fn(|q| _mm256_loadu_ps(row.add(8 * q)));
+                for (r, acc_r) in acc.iter_mut().enumerate() {
+                    let lv = _mm256_broadcast_ss(&*l[r].add(t));
+                    for q in 0..NV {
+                        acc_r[q] = _mm256_fmadd_ps(lv, b[q], acc_r[q]);
+                    }
+                }
+            }
+        }
+        for (r, acc_r) in acc.iter().enumerate() {
+            for (q, v) in acc_r.iter().enumerate() {
+                // SAFETY: row r of G has 16 floats from this block's start.
+                unsafe {
+                    let p = g.add(r * stride + 8 * q);
+                    _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *v));
+                }
+            }
+        }
+    }
+
+    /// `rt[t·stride + j] = r[j][t]` for t < count: 8 × 8 blocks in registers, the edges in plain code.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn transpose(r: &[*const f32], count: usize, rt: &mut [f32], stride: usize) {
+        let (full_j, full_t) = (r.len() / 8 * 8, count / 8 * 8);
+        for j0 in (0..full_j).step_by(8) {
+            for t0 in (0..full_t).step_by(8) {
+                // SAFETY: rows j0..j0+8 hold `count` ≥ t0 + 8 floats; rt holds count rows of stride ≥
+                // j0 + 8 floats.
+                unsafe {
+                    let rows: [__m256; 8] = std::array::from_fn(|q| _mm256_loadu_ps(r[j0 + q].add(t0)));
+                    let cols = transpose8(rows);
+                    for (p, v) in cols.iter().enumerate() {
+                        _mm256_storeu_ps(rt.as_mut_ptr().add((t0 + p) * stride + j0), *v);
+                    }
+                }
+            }
+        }
+        super::transpose_plain(r, full_j, 0, count, rt, stride);
+        super::transpose_plain(&r[..full_j], 0, full_t, count, rt, stride);
+    }
+
+    /// The transpose of an 8 × 8 block held as 8 rows: interleave pairs of rows, gather 4 × 4 blocks inside
+    /// each 128-bit lane, then exchange lanes.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn transpose8(r: [__m256; 8]) -> [__m256; 8] {
+        let t: [__m256; 8] = std::array::from_fn(|i| {
+            let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+            if i % 2 == 0 {
+                _mm256_unpacklo_ps(a, b)
+            } else {
+                _mm256_unpackhi_ps(a, b)
+            }
+        });
+        // u[4h + c] holds columns c and c + 4 of rows 4h..4h+4 (one per lane).
+        let u: [__m256; 8] = std::array::from_fn(|i| {
+            let (h, c) = (i / 4, i % 4);
+            let (a, b) = (t[4 * h + c / 2], t[4 * h + 2 + c / 2]);
+            if c % 2 == 0 {
+                _mm256_shuffle_ps::<0x44>(a, b)
+            } else {
+                _mm256_shuffle_ps::<0xee>(a, b)
+            }
+        });
+        std::array::from_fn(|i| {
+            let (a, b) = (u[i % 4], u[4 + i % 4]);
+            if i < 4 {
+                _mm256_permute2f128_ps::<0x20>(a, b)
+            } else {
+                _mm256_permute2f128_ps::<0x31>(a, b)
+            }
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -353,23 +636,34 @@ mod tests {
 
     #[test]
     fn matmul_matches_a_plain_product() {
-        for (m, k) in [(1, 1), (3, 5), (4, 39), (7, 16), (128, 128), (9, 143)] {
+        for (m, k) in [
+            (1, 1),
+            (3, 5),
+            (4, 39),
+            (7, 16),
+            (128, 128),
+            (9, 143),
+            (64, 32),
+            (17, 27),
+        ] {
             let a = column(7, m * k);
             let xs: Vec<Vec<f32>> = (0..k).map(|c| column(c as u32, TILE)).collect();
-            let mut outs = vec![vec![f32::NAN; TILE]; m];
-            let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
-            let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
-            // SAFETY: every column has TILE floats; outputs are separate buffers.
-            unsafe { matmul(&a, &xp, &op) };
-            for i in 0..m {
-                for t in 0..TILE {
-                    let want: f64 = (0..k)
-                        .map(|c| f64::from(a[i * k + c]) * f64::from(xs[c][t]))
-                        .sum();
-                    assert!(
-                        (f64::from(outs[i][t]) - want).abs() < 1e-4,
-                        "{m}x{k} at ({i}, {t})"
-                    );
+            for backend in Backend::available() {
+                let mut outs = vec![vec![f32::NAN; TILE]; m];
+                let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
+                let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
+                // SAFETY: every column has TILE floats; outputs are separate buffers; the backend is available.
+                unsafe { matmul_on(backend, &a, &xp, &op) };
+                for i in 0..m {
+                    for t in 0..TILE {
+                        let want: f64 = (0..k)
+                            .map(|c| f64::from(a[i * k + c]) * f64::from(xs[c][t]))
+                            .sum();
+                        assert!(
+                            (f64::from(outs[i][t]) - want).abs() < 1e-4,
+                            "{backend:?} {m}x{k} at ({i}, {t})"
+                        );
+                    }
                 }
             }
         }
@@ -383,28 +677,32 @@ mod tests {
             (4, 64, 128),
             (6, 39, 100),
             (128, 143, 128),
+            (13, 24, 9),
+            (64, 32, 128),
             (5, 3, 0),
         ] {
             let ls: Vec<Vec<f32>> = (0..m).map(|c| column(c as u32 + 100, TILE)).collect();
             let rs: Vec<Vec<f32>> = (0..n).map(|c| column(c as u32 + 300, TILE)).collect();
             let stride = padded(n);
-            let mut g = vec![1.0f32; m * stride];
-            let lp: Vec<*const f32> = ls.iter().map(|c| c.as_ptr()).collect();
-            let rp: Vec<*const f32> = rs.iter().map(|c| c.as_ptr()).collect();
-            let mut scratch = Vec::new();
-            // SAFETY: every column has TILE ≥ count floats.
-            unsafe { outer(&lp, &rp, count, &mut g, &mut scratch) };
-            for i in 0..m {
-                for j in 0..n {
-                    let want: f64 = 1.0
-                        + (0..count)
-                            .map(|t| f64::from(ls[i][t]) * f64::from(rs[j][t]))
-                            .sum::<f64>();
-                    let got = f64::from(g[i * stride + j]);
-                    assert!(
-                        (got - want).abs() < 1e-4,
-                        "{m}x{n}x{count} at ({i}, {j}): {got} vs {want}"
-                    );
+            for backend in Backend::available() {
+                let mut g = vec![1.0f32; m * stride];
+                let lp: Vec<*const f32> = ls.iter().map(|c| c.as_ptr()).collect();
+                let rp: Vec<*const f32> = rs.iter().map(|c| c.as_ptr()).collect();
+                let mut scratch = Vec::new();
+                // SAFETY: every column has TILE ≥ count floats; the backend is available.
+                unsafe { outer_on(backend, &lp, &rp, count, &mut g, &mut scratch) };
+                for i in 0..m {
+                    for j in 0..n {
+                        let want: f64 = 1.0
+                            + (0..count)
+                                .map(|t| f64::from(ls[i][t]) * f64::from(rs[j][t]))
+                                .sum::<f64>();
+                        let got = f64::from(g[i * stride + j]);
+                        assert!(
+                            (got - want).abs() < 1e-4,
+                            "{backend:?} {m}x{n}x{count} at ({i}, {j}): {got} vs {want}"
+                        );
+                    }
                 }
             }
         }
