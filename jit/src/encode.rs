@@ -4,8 +4,9 @@
 //! The layout, the hash and the weights are those of [`nerfjit_dsl::grid`] (the interpreter's oracle);
 //! here they run in f32 over the columns of a tile, with the levels' layouts computed once per kernel.
 //! On AVX-512 machines 16 points go through a level at once (the corners hashed in vector registers,
-//! the table read by gathers); the arithmetic is the scalar path's, operation for operation, so both give
-//! the same bits.
+//! the table read by gathers, the cotangents scattered by gather-add-scatter); on AVX2 machines 8 (the
+//! corners and the read in vectors, the scatter point by point). The arithmetic is the scalar path's,
+//! operation for operation, so every path gives the same bits.
 
 use nerfjit_dsl::grid::Level;
 use nerfjit_dsl::ir::{GridRead, GridSpec};
@@ -21,9 +22,36 @@ pub(crate) struct GridPlan {
     /// Twice the half extent's inverse: maps p + extent into [0, 1].
     inv_size: f32,
     extent: f32,
-    /// Whether the 16-point path runs: AVX-512 (with conflict detection) is there and every table index
-    /// fits its 32-bit lanes.
-    wide: bool,
+    /// The instructions the reads and scatters run on.
+    path: Path,
+}
+
+/// The instruction set of a grid plan's loops.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Path {
+    /// One point at a time.
+    Scalar,
+    /// 8 points at a time (AVX2): every table index fits 32-bit lanes.
+    Avx2,
+    /// 16 points at a time (AVX-512 with conflict detection): every table index fits 32-bit lanes.
+    Avx512,
+}
+
+impl Path {
+    /// Every path this CPU runs for a table whose indices end at `end`, widest first.
+    fn available(end: usize) -> Vec<Path> {
+        let mut all = Vec::new();
+        if end <= i32::MAX as usize {
+            if crate::gemm::has_avx512_cd() {
+                all.push(Path::Avx512);
+            }
+            if crate::gemm::has_avx2_fma() {
+                all.push(Path::Avx2);
+            }
+        }
+        all.push(Path::Scalar);
+        all
+    }
 }
 
 /// The 8 corners of one point's cell in one level: entries and weights.
@@ -37,16 +65,16 @@ impl GridPlan {
     pub(crate) fn new(read: &GridRead) -> GridPlan {
         let spec: GridSpec = read.spec;
         let extent = f32::from_bits(spec.extent);
+        let end = spec.table as usize + spec.n_params() as usize;
         GridPlan {
             levels: spec.layout(),
             table: spec.table as usize,
             features: spec.features as usize,
             deriv: read.deriv,
-            end: spec.table as usize + spec.n_params() as usize,
+            end,
             inv_size: 1.0 / (2.0 * extent),
             extent,
-            wide: crate::gemm::has_avx512_cd()
-                && spec.table as usize + spec.n_params() as usize <= i32::MAX as usize,
+            path: Path::available(end)[0],
         }
     }
 
@@ -99,10 +127,13 @@ impl GridPlan {
     pub(crate) unsafe fn read(&self, p: [*const f32; 3], out: &[*mut f32], params: &[f32], count: usize) {
         assert!(params.len() >= self.end, "the grid's table is outside the params");
         assert_eq!(out.len(), self.levels.len() * self.features);
+        // SAFETY (both vector paths): the CPU has their instructions and the indices fit (`Path::available`);
+        // the caller's guarantees are passed on.
         #[cfg(target_arch = "x86_64")]
-        if self.wide {
-            // SAFETY: AVX-512 is there (`wide`); the caller's guarantees are passed on.
-            return unsafe { avx512::read(self, p, out, params, count) };
+        match self.path {
+            Path::Avx512 => return unsafe { avx512::read(self, p, out, params, count) },
+            Path::Avx2 => return unsafe { avx2::read(self, p, out, params, count) },
+            Path::Scalar => {}
         }
         for (l, level) in self.levels.iter().enumerate() {
             for t in 0..count {
@@ -139,27 +170,47 @@ impl GridPlan {
             "the grid's table is outside the gradients"
         );
         assert_eq!(cot.len(), self.levels.len() * self.features);
+        // SAFETY (both vector paths): the CPU has their instructions and the indices fit (`Path::available`);
+        // the caller's guarantees are passed on.
         #[cfg(target_arch = "x86_64")]
-        if self.wide {
-            // SAFETY: AVX-512 and its CD extension are there (`wide`); the caller's guarantees are passed on.
-            return unsafe { avx512::scatter(self, p, cot, grads, count) };
+        match self.path {
+            Path::Avx512 => return unsafe { avx512::scatter(self, p, cot, grads, count) },
+            Path::Avx2 => return unsafe { avx2::scatter(self, p, cot, grads, count) },
+            Path::Scalar => {}
         }
         for (l, level) in self.levels.iter().enumerate() {
             for t in 0..count {
                 // SAFETY: t < count, as the caller guarantees for every column.
                 let point = p.map(|c| unsafe { *c.add(t) });
-                let corners = self.corners(level, point);
-                for f in 0..self.features {
-                    // SAFETY: as above.
-                    let c = unsafe { *cot[l * self.features + f].add(t) };
-                    if c == 0.0 {
-                        continue;
-                    }
-                    for k in 0..8 {
-                        // SAFETY: entry + f < self.end ≤ grads.len(), as in `read`.
-                        unsafe { *grads.get_unchecked_mut(corners.entry[k] + f) += corners.weight[k] * c };
-                    }
-                }
+                // SAFETY: passed on from the caller.
+                unsafe { self.scatter_point(&self.corners(level, point), l, t, cot, grads) };
+            }
+        }
+    }
+
+    /// Point `t`'s part of [`GridPlan::scatter`] in level `l`, its cell's corners given.
+    ///
+    /// # Safety
+    /// The pointers of `cot` must address more than `t` readable floats; the corners' entries must be
+    /// those of a level of this plan.
+    #[inline(always)]
+    unsafe fn scatter_point(
+        &self,
+        corners: &Corners,
+        l: usize,
+        t: usize,
+        cot: &[*const f32],
+        grads: &mut [f32],
+    ) {
+        for f in 0..self.features {
+            // SAFETY: t is below the columns' length (caller).
+            let c = unsafe { *cot[l * self.features + f].add(t) };
+            if c == 0.0 {
+                continue;
+            }
+            for k in 0..8 {
+                // SAFETY: entry + f < self.end ≤ grads.len(), as in `read`.
+                unsafe { *grads.get_unchecked_mut(corners.entry[k] + f) += corners.weight[k] * c };
             }
         }
     }
@@ -371,12 +422,195 @@ mod avx512 {
     }
 }
 
+/// The 8-point paths: [`GridPlan::read`] and [`GridPlan::scatter`] on AVX2 (which has gathers but neither
+/// scatters nor conflict detection, so the scatter adds point by point, in the scalar path's order).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use nerfjit_dsl::grid::Level;
+
+    use super::{Corners, GridPlan};
+
+    /// Points per vector.
+    const LANES: usize = 8;
+
+    /// The 8 corners of 8 points' cells in one level: table indices (of the first feature) and weights.
+    struct Corners8 {
+        index: [__m256i; 8],
+        weight: [__m256; 8],
+    }
+
+    /// All ones in the lanes of the points `start..start + 8` that are below `count`.
+    #[target_feature(enable = "avx2")]
+    fn lanes(start: usize, count: usize) -> __m256i {
+        let n = (count - start).min(LANES) as i32;
+        _mm256_cmpgt_epi32(_mm256_set1_epi32(n), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+    }
+
+    /// `GridPlan::corners` for 8 points, operation for operation.
+    #[target_feature(enable = "avx2")]
+    fn corners(plan: &GridPlan, level: &Level, p: [__m256; 3]) -> Corners8 {
+        let res = level.res as f32;
+        let zero = _mm256_setzero_ps();
+        let one = _mm256_set1_ps(1.0);
+        let extent = _mm256_set1_ps(plan.extent);
+        let inv_size = _mm256_set1_ps(plan.inv_size);
+        let top = _mm256_set1_epi32(level.res.saturating_sub(1) as i32);
+        let mut lower = [_mm256_setzero_si256(); 3];
+        let mut factor = [[zero; 2]; 3];
+        for a in 0..3 {
+            let unit = _mm256_mul_ps(_mm256_add_ps(p[a], extent), inv_size);
+            let inside = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(unit, zero),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(unit, one),
+            );
+            // max first: it maps NaN to 0 as the scalar path's clamp-then-max does. The product lies in
+            // [0, res], so the signed conversion is the scalar path's unsigned one.
+            let u = _mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(unit, zero), one), _mm256_set1_ps(res));
+            let c = _mm256_min_epu32(_mm256_cvttps_epi32(u), top);
+            let f = _mm256_sub_ps(u, _mm256_cvtepi32_ps(c));
+            lower[a] = c;
+            factor[a] = if plan.deriv >> a & 1 == 1 {
+                let s = _mm256_and_ps(inside, _mm256_set1_ps(res * plan.inv_size));
+                [_mm256_xor_ps(s, _mm256_set1_ps(-0.0)), s]
+            } else {
+                [_mm256_sub_ps(one, f), f]
+            };
+        }
+        let features = _mm256_set1_epi32(plan.features as i32);
+        let first = _mm256_set1_epi32(plan.table as i32);
+        let offset = _mm256_set1_epi32(level.offset as i32);
+        let mut corners = Corners8 {
+            index: [_mm256_setzero_si256(); 8],
+            weight: [zero; 8],
+        };
+        for k in 0..8usize {
+            let bit = |a: usize| k >> a & 1;
+            let v = [0, 1, 2].map(|a| _mm256_add_epi32(lower[a], _mm256_set1_epi32(bit(a) as i32)));
+            let local = match level.hash_mask {
+                Some(mask) => {
+                    let h = _mm256_xor_si256(
+                        _mm256_xor_si256(
+                            v[0],
+                            _mm256_mullo_epi32(v[1], _mm256_set1_epi32(2_654_435_761u32 as i32)),
+                        ),
+                        _mm256_mullo_epi32(v[2], _mm256_set1_epi32(805_459_861)),
+                    );
+                    _mm256_and_si256(h, _mm256_set1_epi32(mask as i32))
+                }
+                None => {
+                    let n = _mm256_set1_epi32(level.res as i32 + 1);
+                    let row = _mm256_add_epi32(_mm256_mullo_epi32(v[2], n), v[1]);
+                    _mm256_add_epi32(_mm256_mullo_epi32(row, n), v[0])
+                }
+            };
+            corners.index[k] = _mm256_add_epi32(
+                first,
+                _mm256_mullo_epi32(_mm256_add_epi32(offset, local), features),
+            );
+            corners.weight[k] = _mm256_mul_ps(
+                _mm256_mul_ps(factor[0][bit(0)], factor[1][bit(1)]),
+                factor[2][bit(2)],
+            );
+        }
+        corners
+    }
+
+    /// The point columns' lanes `start..start + 8` (0 beyond `count`).
+    ///
+    /// # Safety
+    /// The columns must address `count` readable floats.
+    #[target_feature(enable = "avx2")]
+    unsafe fn load_points(p: [*const f32; 3], start: usize, m: __m256i) -> [__m256; 3] {
+        // SAFETY: the masked lanes are below count.
+        p.map(|c| unsafe { _mm256_maskload_ps(c.add(start), m) })
+    }
+
+    /// [`GridPlan::read`] on AVX2.
+    ///
+    /// # Safety
+    /// As [`GridPlan::read`]'s, with `params.len() ≥ plan.end` and every index below 2^31.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn read(
+        plan: &GridPlan,
+        p: [*const f32; 3],
+        out: &[*mut f32],
+        params: &[f32],
+        count: usize,
+    ) {
+        for (l, level) in plan.levels.iter().enumerate() {
+            for start in (0..count).step_by(LANES) {
+                let m = lanes(start, count);
+                // SAFETY: the caller's columns hold count floats.
+                let corners = corners(plan, level, unsafe { load_points(p, start, m) });
+                for f in 0..plan.features {
+                    let shift = _mm256_set1_epi32(f as i32);
+                    let mut sum = _mm256_setzero_ps();
+                    for k in 0..8 {
+                        // SAFETY: an index + f is below plan.end ≤ params.len(), as in the scalar path.
+                        let value = unsafe {
+                            _mm256_mask_i32gather_ps::<4>(
+                                _mm256_setzero_ps(),
+                                params.as_ptr(),
+                                _mm256_add_epi32(corners.index[k], shift),
+                                _mm256_castsi256_ps(m),
+                            )
+                        };
+                        sum = _mm256_add_ps(sum, _mm256_mul_ps(corners.weight[k], value));
+                    }
+                    // SAFETY: the output columns hold count floats.
+                    unsafe { _mm256_maskstore_ps(out[l * plan.features + f].add(start), m, sum) };
+                }
+            }
+        }
+    }
+
+    /// [`GridPlan::scatter`] on AVX2: the corners 8 points at a time, the additions point by point.
+    ///
+    /// # Safety
+    /// As [`GridPlan::scatter`]'s, with `grads.len() ≥ plan.end` and every index below 2^31.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn scatter(
+        plan: &GridPlan,
+        p: [*const f32; 3],
+        cot: &[*const f32],
+        grads: &mut [f32],
+        count: usize,
+    ) {
+        let mut index = [[0u32; LANES]; 8];
+        let mut weight = [[0.0f32; LANES]; 8];
+        for (l, level) in plan.levels.iter().enumerate() {
+            for start in (0..count).step_by(LANES) {
+                let m = lanes(start, count);
+                // SAFETY: the caller's columns hold count floats.
+                let vectors = corners(plan, level, unsafe { load_points(p, start, m) });
+                for k in 0..8 {
+                    // SAFETY: 8 lanes into arrays of 8.
+                    unsafe {
+                        _mm256_storeu_si256(index[k].as_mut_ptr().cast(), vectors.index[k]);
+                        _mm256_storeu_ps(weight[k].as_mut_ptr(), vectors.weight[k]);
+                    }
+                }
+                for lane in 0..(count - start).min(LANES) {
+                    let corners = Corners {
+                        entry: std::array::from_fn(|k| index[k][lane] as usize),
+                        weight: std::array::from_fn(|k| weight[k][lane]),
+                    };
+                    // SAFETY: start + lane < count; the entries are this plan's (as in the scalar path).
+                    unsafe { plan.scatter_point(&corners, l, start + lane, cot, grads) };
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use nerfjit_dsl::ir::{GridRead, GridSpec, V};
     use proptest::prelude::*;
 
-    use super::GridPlan;
+    use super::{GridPlan, Path};
 
     /// A grid of dense and hashed levels, its table at param 3.
     fn read(deriv: u8, extent: f32) -> GridRead {
@@ -407,21 +641,19 @@ mod tests {
     }
 
     proptest! {
-        /// The 16-point path (when this machine has AVX-512) gives the scalar path's bits, for reads,
-        /// their derivatives and scatters, at any count.
+        /// The vector paths this machine has (16 points with AVX-512, 8 with AVX2) give the scalar path's
+        /// bits, for reads, their derivatives and scatters, at any count.
         #[test]
-        fn wide_and_scalar_paths_agree(
+        fn vector_and_scalar_paths_agree(
             points in proptest::collection::vec([coordinate(), coordinate(), coordinate()], 0..=128),
             deriv in 0u8..8,
             seed in any::<u32>(),
         ) {
-            let wide = GridPlan::new(&read(deriv, 1.0));
-            let scalar = GridPlan { wide: false, ..GridPlan::new(&read(deriv, 1.0)) };
-            prop_assert_eq!(wide.wide, crate::gemm::has_avx512_cd());
+            let scalar = GridPlan { path: Path::Scalar, ..GridPlan::new(&read(deriv, 1.0)) };
             let count = points.len();
             let columns: Vec<Vec<f32>> = (0..3).map(|a| points.iter().map(|p| p[a]).collect()).collect();
             let p = [0, 1, 2].map(|a| columns[a].as_ptr());
-            let params: Vec<f32> = (0..wide.params_end())
+            let params: Vec<f32> = (0..scalar.params_end())
                 .map(|i| ((i as u32).wrapping_mul(2_654_435_761) ^ seed) as f32 / u32::MAX as f32 - 0.5)
                 .collect();
             let outputs = |plan: &GridPlan| {
@@ -432,7 +664,6 @@ mod tests {
                 out
             };
             let bits = |c: Vec<Vec<f32>>| c.concat().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
-            prop_assert_eq!(bits(outputs(&wide)), bits(outputs(&scalar)));
 
             let cotangent: Vec<Vec<f32>> = (0..10)
                 .map(|j| (0..count).map(|t| if (t + j) % 5 == 0 { 0.0 } else { (t * 10 + j) as f32 * 0.01 }).collect())
@@ -444,10 +675,21 @@ mod tests {
                 unsafe { plan.scatter(p, &cot, &mut grads, count) };
                 grads
             };
-            // The same terms, summed in another order (corner by corner rather than point by point); the
-            // derivative's terms reach ±25 and cancel, so the sums agree to a few f32 roundings of that.
-            for (w, s) in scattered(&wide).iter().zip(scattered(&scalar)) {
-                prop_assert!((w - s).abs() <= 2e-4 * (1.0 + s.abs()) || (w.is_nan() && s.is_nan()), "{} vs {}", w, s);
+            for path in Path::available(scalar.params_end()) {
+                let plan = GridPlan { path, ..GridPlan::new(&read(deriv, 1.0)) };
+                prop_assert_eq!(bits(outputs(&plan)), bits(outputs(&scalar)), "{:?}", path);
+                if path == Path::Avx512 {
+                    // The same terms, summed in another order (corner by corner rather than point by
+                    // point); the derivative's terms reach ±25 and cancel, so the sums agree to a few f32
+                    // roundings of that.
+                    for (w, s) in scattered(&plan).iter().zip(scattered(&scalar)) {
+                        prop_assert!((w - s).abs() <= 2e-4 * (1.0 + s.abs()) || (w.is_nan() && s.is_nan()), "{} vs {}", w, s);
+                    }
+                } else {
+                    // The scalar path's additions in its order.
+                    let bits = |g: Vec<f32>| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                    prop_assert_eq!(bits(scattered(&plan)), bits(scattered(&scalar)), "{:?}", path);
+                }
             }
         }
     }

@@ -93,7 +93,7 @@ impl Backend {
 }
 
 /// Whether this CPU runs AVX2 and FMA (checked once).
-fn has_avx2_fma() -> bool {
+pub(crate) fn has_avx2_fma() -> bool {
     static HAS: OnceLock<bool> = OnceLock::new();
     *HAS.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
