@@ -132,7 +132,7 @@ fn mesh_kernels(compiler: &crate::field::Compiler) -> Result<(JitFn, JitFn, JitF
 }
 
 fn mesh(reps: usize) -> Result<()> {
-    use nerfjit_runtime::marching::{extract, extract_pruned};
+    use nerfjit_runtime::surfaces::marching::{extract, extract_pruned};
     const RESOLUTION: usize = 512;
     let program = script::load("examples/complex_scene.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
@@ -209,8 +209,14 @@ fn large(reps: usize) -> Result<()> {
     // One run: tens of seconds.
     let t = Instant::now();
     let grid = ([-1.0; 3], [1.0; 3]);
-    let (_, pruning) =
-        nerfjit_runtime::marching::extract_pruned(&value, Some(&gradient), &bounds_of, grid, 512, 0.0)?;
+    let (_, pruning) = nerfjit_runtime::surfaces::marching::extract_pruned(
+        &value,
+        Some(&gradient),
+        &bounds_of,
+        grid,
+        512,
+        0.0,
+    )?;
     let mesh_s = t.elapsed().as_secs_f64();
     crate::emit(&format!(
         "  mesh at 512³, interval-pruned, one run {:7.3} s (field evaluations {:.2}% of the grid's points)\n",

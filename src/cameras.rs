@@ -99,7 +99,7 @@ pub fn camera_file(
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         Some(load_colmap(file, &images)?)
     } else {
-        let text = nerfjit_runtime::input::read_text_capped(file).unwrap_or_default();
+        let text = nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default();
         if is_camera_path(&text) {
             let path = load_camera_path(file)?;
             return Ok((path.cameras, Some((path.width, path.height))));

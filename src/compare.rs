@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::label::{draw_text, text_height, text_width};
+use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
 use nerfjit_runtime::{load_blender_views, mse, psnr, rgb_image, save_png, ImageF32, Quantize};
 
 use crate::failure::{Failure, Result};

@@ -87,7 +87,7 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         DataKind::Colmap(data, images)
     } else if nerfjit_runtime::is_nerfstudio(
-        &nerfjit_runtime::input::read_text_capped(file).unwrap_or_default(),
+        &nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default(),
     ) {
         DataKind::Nerfstudio(data)
     } else {

@@ -4,8 +4,8 @@ use std::sync::Arc;
 
 use nerfjit_dsl::{kernels, Program, Type};
 use nerfjit_jit::{Kernel, KernelCache, Marcher, Options, Rays, Stop};
-use nerfjit_runtime::composite::Mode;
-use nerfjit_runtime::march::{MarchRays, RayMarcher};
+use nerfjit_runtime::surfaces::march::{MarchRays, RayMarcher};
+use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{BatchFn, BatchVjp};
 
 use crate::failure::{Failure, Result};
@@ -313,18 +313,18 @@ impl VolumeFields {
         params: &[f32],
         settings: &nerfjit_runtime::VolumeSettings,
         grid: Option<&nerfjit_runtime::OccupancyGrid>,
-    ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
+    ) -> Result<nerfjit_runtime::volume::render::VolumeFrame> {
         let (fine, _) = self.fine.bind(params);
         Ok(match &self.coarse {
             None => nerfjit_runtime::render_volume_with(camera, width, height, &fine, settings, grid)?,
             Some((coarse, importance)) => {
                 let (coarse, _) = coarse.bind(params);
-                let fields = nerfjit_runtime::hierarchical::CoarseFine {
+                let fields = nerfjit_runtime::volume::hierarchical::CoarseFine {
                     coarse: &coarse,
                     fine: &fine,
                     importance: *importance,
                 };
-                nerfjit_runtime::hierarchical::render_hierarchical(
+                nerfjit_runtime::volume::hierarchical::render_hierarchical(
                     camera,
                     (width, height),
                     fields,
@@ -343,7 +343,7 @@ impl VolumeFields {
         height: u32,
         params: &[f32],
         settings: &nerfjit_runtime::VolumeSettings,
-    ) -> Result<nerfjit_runtime::volume::VolumeFrame> {
+    ) -> Result<nerfjit_runtime::volume::render::VolumeFrame> {
         self.render_with(camera, (width, height), params, settings, None)
     }
 }

@@ -131,7 +131,7 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
 /// Converts the model file `input` and writes the script to `out` (default: the input with `.sdf`);
 /// returns a summary.
 pub fn run(input: &Path, out: Option<&Path>) -> Result<String> {
-    let text = nerfjit_runtime::input::read_text_capped(input)
+    let text = nerfjit_runtime::data::input::read_text_capped(input)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", input.display())))?;
     let name = input.file_name().and_then(|n| n.to_str()).unwrap_or("model.vm");
     let script = convert(&text, name).map_err(Failure::Message)?;

@@ -7,8 +7,8 @@ use std::time::Instant;
 use glam::{Vec2, Vec3};
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::marching::{extract, extract_pruned, Pruning};
-use nerfjit_runtime::raster::render_mesh;
+use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
+use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh};
 
 use crate::block::Block;

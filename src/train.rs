@@ -711,7 +711,7 @@ impl TrainPlan {
                 )));
             }
             (loss, psnr) = (result.loss, result.psnr);
-            nerfjit_runtime::train::recycle(result.param_grads);
+            nerfjit_runtime::volume::train::recycle(result.param_grads);
             train_seconds += step_start.elapsed().as_secs_f64();
             done = step + 1;
             let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);

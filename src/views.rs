@@ -8,7 +8,7 @@ use std::time::Instant;
 use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::composite::Mode;
+use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{
     psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid, Quantize, Views,
     VolumeSettings,

@@ -4,7 +4,9 @@
 use std::path::PathBuf;
 
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::viz::{pixel_grid_image, ray_directions_image, sample_points_image, SamplePoints};
+use nerfjit_runtime::output::viz::{
+    pixel_grid_image, ray_directions_image, sample_points_image, SamplePoints,
+};
 use nerfjit_runtime::{save_png, Camera};
 
 use crate::block::Block;

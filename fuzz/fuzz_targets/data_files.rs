@@ -6,7 +6,8 @@
 use std::path::{Path, PathBuf};
 
 use libfuzzer_sys::fuzz_target;
-use nerfjit_runtime::{camera_files, camera_path, colmap, nerfstudio, pointcloud};
+use nerfjit_runtime::cameras::{camera_files, camera_path};
+use nerfjit_runtime::data::{colmap, nerfstudio, pointcloud};
 
 /// The formats, by the first byte modulo their count.
 const FORMATS: [&str; 13] = [

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use glam::{Vec2, Vec3};
-use nerfjit_runtime::marching::extract;
+use nerfjit_runtime::surfaces::marching::extract;
 use nerfjit_runtime::{
     chamfer_report, point_to_mesh_distances, render_mesh, render_points, save_png, Camera, ClosureFn,
 };

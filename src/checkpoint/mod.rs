@@ -99,7 +99,7 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     if start[0] != b'{' {
         return binary::read(path, &bad);
     }
-    let text = nerfjit_runtime::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
+    let text = nerfjit_runtime::data::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
     let saved = json::decode(&text, &bad)?;
     let program = saved.script.compile()?;
     let n_params = program.n_params();

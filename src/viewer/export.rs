@@ -103,7 +103,7 @@ fn video(scene: &Scene, view: &ViewCamera, stem: &str) -> Result<File> {
         .map(|camera| scene.render(camera, side, side, Layer::Color))
         .collect::<Result<Vec<RgbImage>>>()?;
     let scratch = Scratch::new("mp4");
-    nerfjit_runtime::video::save_mp4(&scratch.0, &frames, 40)?;
+    nerfjit_runtime::output::video::save_mp4(&scratch.0, &frames, 40)?;
     Ok(File {
         name: format!("{stem}-orbit.mp4"),
         mime: "video/mp4",

@@ -186,7 +186,7 @@ impl Scene {
         match &self.renderer {
             Renderer::Surface(_) => ("sdf", 0.0, 4.0),
             Renderer::Volume { fields, .. } => match fields.fine.mode {
-                nerfjit_runtime::composite::Mode::Density => ("density", 10.0, 1.5),
+                nerfjit_runtime::volume::composite::Mode::Density => ("density", 10.0, 1.5),
                 _ => ("opacity", 0.5, 1.5),
             },
         }

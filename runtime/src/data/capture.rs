@@ -1,0 +1,630 @@
+//! Captures of real scenes — nerfstudio / instant-ngp `transforms.json` files
+//! ([`crate::data::nerfstudio`]) and COLMAP models ([`crate::data::colmap`]) — as training [`Views`].
+//!
+//! A capture is a list of frames, each a camera-to-world pose (OpenGL convention: camera looks
+//! down −Z, +Y up, +X right), pixel intrinsics with optional OpenCV lens distortion, its image
+//! size and its image file; COLMAP models add a sparse point cloud. Images may be PNG or JPEG,
+//! RGB or RGBA, of any aspect ratio; they are undistorted to the pinhole camera of the same
+//! intrinsics, composited onto a background and area-downscaled on load.
+//!
+//! Captures are in the coordinates of whatever made them. [`Capture::normalize`] moves them into
+//! the frame nerfjit's scripts expect (the one of the NeRF-synthetic scenes), as instant-ngp's
+//! `colmap2nerf` does: +Z along the cameras' mean up vector, the origin at the point nearest to
+//! every optical axis (what the cameras look at), and the cameras 4 units from it on average.
+
+use std::path::{Path, PathBuf};
+
+use glam::{Mat3, Mat4, Vec3};
+use image::ImageDecoder;
+use rayon::prelude::*;
+
+use crate::cameras::camera::{Camera, PixelIntrinsics};
+use crate::data::blender::{area_resize, composite};
+use crate::data::dataset::Views;
+use crate::data::npy::ImageF32;
+use crate::error::{Error, Result};
+
+/// The most pixels an image of a capture may declare in its header; larger ones are refused
+/// before they are decoded.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 27;
+
+/// The mean distance of the cameras from the scene's center after [`Capture::normalize`], as in
+/// the NeRF-synthetic scenes (and instant-ngp's `colmap2nerf`).
+pub const NORMALIZED_CAMERA_DISTANCE: f32 = 4.0;
+
+/// OpenCV's radial-tangential lens distortion of normalized image coordinates (`k1`, `k2`,
+/// `k3` radial, `p1`, `p2` tangential); all zero for a pinhole camera.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Distortion {
+    /// Radial coefficient of r².
+    pub k1: f32,
+    /// Radial coefficient of r⁴.
+    pub k2: f32,
+    /// Radial coefficient of r⁶.
+    pub k3: f32,
+    /// First tangential coefficient.
+    pub p1: f32,
+    /// Second tangential coefficient.
+    pub p2: f32,
+}
+
+impl Distortion {
+    /// Whether this is no distortion at all.
+    pub fn is_none(&self) -> bool {
+        *self == Distortion::default()
+    }
+
+    /// Where an undistorted normalized point (x, y) = (X/Z, Y/Z) appears in the distorted image.
+    pub fn apply(&self, x: f32, y: f32) -> (f32, f32) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+        let xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+        (xd, yd)
+    }
+}
+
+/// One frame's camera: pose, intrinsics, distortion and the size of its image in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameCamera {
+    /// Camera-to-world transform, OpenGL convention (looks down −Z, +Y up, +X right).
+    pub c2w: Mat4,
+    /// Pinhole intrinsics for an image of `width`×`height`.
+    pub intrinsics: PixelIntrinsics,
+    /// Lens distortion; images are undistorted on load.
+    pub distortion: Distortion,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+impl FrameCamera {
+    /// The (undistorted) camera for this frame's image resized to `width`×`height`: intrinsics
+    /// scaled per axis, exact for area resampling.
+    pub fn camera(&self, width: u32, height: u32) -> Result<Camera> {
+        let (sx, sy) = (
+            width as f32 / self.width as f32,
+            height as f32 / self.height as f32,
+        );
+        let k = self.intrinsics;
+        let scaled = PixelIntrinsics {
+            fx: k.fx * sx,
+            fy: k.fy * sy,
+            cx: k.cx * sx,
+            cy: k.cy * sy,
+        };
+        Camera::from_pixels(self.c2w, scaled, width, height)
+    }
+
+    /// The image size after dividing by `downscale` (rounded, at least 1 pixel).
+    pub fn downscaled(&self, downscale: u32) -> (u32, u32) {
+        let side = |n: u32| ((n as f32 / downscale as f32).round() as u32).max(1);
+        (side(self.width), side(self.height))
+    }
+}
+
+/// One image of a capture and the camera that took it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// The camera.
+    pub camera: FrameCamera,
+    /// The image file.
+    pub image: PathBuf,
+}
+
+/// A capture: frames and, from COLMAP, the sparse points of the scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Capture {
+    /// The frames, in a stable order (file order, or by image name for COLMAP).
+    pub frames: Vec<Frame>,
+    /// Sparse 3D points of the scene (COLMAP's `points3D`), in the capture's coordinates.
+    pub points: Vec<Vec3>,
+    /// instant-ngp's `aabb_scale`, if the file states one.
+    pub aabb_scale: Option<f32>,
+}
+
+/// The similarity transform [`Capture::normalize`] applied: `x' = scale · (rotation · x − center)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Normalization {
+    /// Rotation taking the cameras' mean up vector to +Z.
+    pub rotation: Mat3,
+    /// The scene's center after the rotation (the point nearest every optical axis).
+    pub center: Vec3,
+    /// Uniform scale making the mean camera distance [`NORMALIZED_CAMERA_DISTANCE`].
+    pub scale: f32,
+}
+
+impl Normalization {
+    /// The transformed point.
+    pub fn point(&self, x: Vec3) -> Vec3 {
+        self.scale * (self.rotation * x - self.center)
+    }
+
+    /// The transformed camera-to-world matrix (rotated, its position moved and scaled).
+    pub fn pose(&self, c2w: Mat4) -> Mat4 {
+        let rotation = self.rotation * Mat3::from_mat4(c2w);
+        let position = self.point(c2w.w_axis.truncate());
+        Mat4::from_cols(
+            rotation.x_axis.extend(0.0),
+            rotation.y_axis.extend(0.0),
+            rotation.z_axis.extend(0.0),
+            position.extend(1.0),
+        )
+    }
+}
+
+/// How to turn a capture's images into views.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CaptureRequest {
+    /// Divide both image sides by this (area resampling; 1 keeps the images as they are).
+    pub downscale: u32,
+    /// The color under transparent pixels of RGBA images.
+    pub background: [f32; 3],
+    /// Only the first this many frames, if given.
+    pub limit: Option<usize>,
+}
+
+impl Capture {
+    /// Moves the capture into nerfjit's frame (see the [module docs](self)) and returns the
+    /// transform it applied.
+    pub fn normalize(&mut self) -> Result<Normalization> {
+        let up: Vec3 = self.frames.iter().map(|f| f.camera.c2w.y_axis.truncate()).sum();
+        let rotation = if up.length() > 1e-6 {
+            rotation_onto_z(up.normalize())
+        } else {
+            Mat3::IDENTITY
+        };
+        let positions: Vec<Vec3> = self
+            .frames
+            .iter()
+            .map(|f| rotation * f.camera.c2w.w_axis.truncate())
+            .collect();
+        let axes: Vec<Vec3> = self
+            .frames
+            .iter()
+            .map(|f| -(rotation * f.camera.c2w.z_axis.truncate()).normalize_or_zero())
+            .collect();
+        let center = nearest_to_axes(&positions, &axes);
+        let mean_distance =
+            positions.iter().map(|p| (*p - center).length()).sum::<f32>() / positions.len().max(1) as f32;
+        if !(mean_distance > 1e-6 && mean_distance.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "the {} cameras of the capture are all at one point: cannot scale the scene",
+                positions.len()
+            )));
+        }
+        let normalization = Normalization {
+            rotation,
+            center,
+            scale: NORMALIZED_CAMERA_DISTANCE / mean_distance,
+        };
+        for frame in &mut self.frames {
+            frame.camera.c2w = normalization.pose(frame.camera.c2w);
+        }
+        for p in &mut self.points {
+            *p = normalization.point(*p);
+        }
+        Ok(normalization)
+    }
+
+    /// The first `limit` frames (all if `None`), or an error if there are fewer.
+    fn first_frames(&self, source: &Path, limit: Option<usize>) -> Result<&[Frame]> {
+        match limit {
+            None => Ok(&self.frames),
+            Some(n) if n >= 1 && n <= self.frames.len() => Ok(&self.frames[..n]),
+            Some(n) => Err(Error::Invalid(format!(
+                "views: {n} must be between 1 and the {} frames of {}",
+                self.frames.len(),
+                source.display()
+            ))),
+        }
+    }
+
+    /// The size every frame has after `downscale`, or an error naming a frame that differs.
+    fn common_size(frames: &[Frame], downscale: u32) -> Result<(u32, u32)> {
+        let first = frames
+            .first()
+            .ok_or_else(|| Error::Invalid("the capture has no frames".into()))?;
+        let size = first.camera.downscaled(downscale);
+        match frames.iter().find(|f| f.camera.downscaled(downscale) != size) {
+            Some(odd) => Err(Error::format(
+                &odd.image,
+                format!(
+                    "image is {}×{} but {} is {}×{}: nerfjit trains on images of one size",
+                    odd.camera.width,
+                    odd.camera.height,
+                    first.image.display(),
+                    first.camera.width,
+                    first.camera.height
+                ),
+            )),
+            None => Ok(size),
+        }
+    }
+
+    /// The cameras of the first `limit` frames for their images divided by `downscale`.
+    pub fn cameras(&self, source: &Path, downscale: u32, limit: Option<usize>) -> Result<Vec<Camera>> {
+        let frames = self.first_frames(source, limit)?;
+        let (width, height) = Capture::common_size(frames, downscale.max(1))?;
+        frames.iter().map(|f| f.camera.camera(width, height)).collect()
+    }
+
+    /// How many views [`Capture::views`] would load with `downscale` and `limit`, and their width and
+    /// height: known from the frames' intrinsics before any image is decoded.
+    pub fn view_sizes(
+        &self,
+        source: &Path,
+        downscale: u32,
+        limit: Option<usize>,
+    ) -> Result<(usize, u32, u32)> {
+        let frames = self.first_frames(source, limit)?;
+        let (width, height) = Capture::common_size(frames, downscale.max(1))?;
+        Ok((frames.len(), width, height))
+    }
+
+    /// Loads the images of the capture (read from `source`) as views: decoded in parallel,
+    /// undistorted, composited onto the background and downscaled. Every image must have the
+    /// size its frame states; after downscaling all must have one size.
+    pub fn views(&self, source: &Path, request: CaptureRequest) -> Result<Views> {
+        if !request.background.iter().all(|c| c.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "background {:?} must be finite",
+                request.background
+            )));
+        }
+        let downscale = request.downscale.max(1);
+        let frames = self.first_frames(source, request.limit)?;
+        let (width, height) = Capture::common_size(frames, downscale)?;
+        let images = frames
+            .par_iter()
+            .map(|frame| load_frame(frame, (width, height), request.background))
+            .collect::<Result<Vec<_>>>()?;
+        let cameras = frames
+            .iter()
+            .map(|f| f.camera.camera(width, height))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Views {
+            cameras,
+            images,
+            width,
+            height,
+        })
+    }
+}
+
+/// The shortest rotation taking the unit vector `from` onto +Z. (glam's `from_rotation_arc` returns the
+/// identity for angles below about 7·10⁻⁴ rad; this keeps them.)
+fn rotation_onto_z(from: Vec3) -> Mat3 {
+    let axis = from.cross(Vec3::Z);
+    let (sin, cos) = (axis.length(), from.z);
+    if sin > 1e-12 {
+        Mat3::from_axis_angle(axis / sin, sin.atan2(cos))
+    } else if cos > 0.0 {
+        Mat3::IDENTITY
+    } else {
+        // Upside down: half a turn about x.
+        Mat3::from_axis_angle(Vec3::X, std::f32::consts::PI)
+    }
+}
+
+/// The point nearest (in least squares) to every line `positions[i] + t·axes[i]`; the mean of the
+/// positions when the lines are (nearly) parallel.
+fn nearest_to_axes(positions: &[Vec3], axes: &[Vec3]) -> Vec3 {
+    let n = positions.len().max(1) as f32;
+    let mean = positions.iter().copied().sum::<Vec3>() / n;
+    let mut a = Mat3::ZERO;
+    let mut b = Vec3::ZERO;
+    for (p, d) in positions.iter().zip(axes) {
+        // (I − d dᵀ) projects onto the plane perpendicular to the axis.
+        let projector = Mat3::IDENTITY - Mat3::from_cols(*d * d.x, *d * d.y, *d * d.z);
+        a += projector;
+        b += projector * (*p - mean);
+    }
+    if (a * (1.0 / n)).determinant() < 1e-3 {
+        return mean;
+    }
+    mean + a.inverse() * b
+}
+
+/// Reads an image's header and refuses sizes beyond [`MAX_IMAGE_PIXELS`] before decoding it.
+pub fn decode_checked(path: &Path) -> Result<image::DynamicImage> {
+    let bad = |e: &dyn std::fmt::Display| Error::format(path, format!("invalid image: {e}"));
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| Error::reading(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::read(path, e))?;
+    if reader.format().is_none() {
+        return Err(Error::format(path, "not an image nerfjit reads (PNG or JPEG)"));
+    }
+    let decoder = reader.into_decoder().map_err(|e| bad(&e))?;
+    let (w, h) = decoder.dimensions();
+    if u64::from(w) * u64::from(h) > MAX_IMAGE_PIXELS {
+        return Err(Error::format(
+            path,
+            format!("the image declares {w}×{h} pixels, more than the {MAX_IMAGE_PIXELS} nerfjit decodes"),
+        ));
+    }
+    image::DynamicImage::from_decoder(decoder).map_err(|e| bad(&e))
+}
+
+/// Decodes, undistorts, composites and resizes one frame's image to `size`.
+fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<ImageF32> {
+    let rgba = decode_checked(&frame.image)?.to_rgba32f();
+    let camera = &frame.camera;
+    if rgba.dimensions() != (camera.width, camera.height) {
+        return Err(Error::format(
+            &frame.image,
+            format!(
+                "image is {}×{} but its camera says {}×{}",
+                rgba.width(),
+                rgba.height(),
+                camera.width,
+                camera.height
+            ),
+        ));
+    }
+    let mut image = composite(&rgba, background);
+    if !camera.distortion.is_none() {
+        image = undistort(&image, camera.intrinsics, camera.distortion);
+    }
+    if (image.width, image.height) != size {
+        image = area_resize(&image, size.0, size.1);
+    }
+    Ok(image)
+}
+
+/// The pinhole image of the same intrinsics: each pixel samples (bilinearly, clamped to the
+/// border) the distorted image where its ray landed.
+pub fn undistort(image: &ImageF32, k: PixelIntrinsics, distortion: Distortion) -> ImageF32 {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let pixels = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            (0..w).map(move |col| {
+                let x = (col as f32 + 0.5 - k.cx) / k.fx;
+                let y = (row as f32 + 0.5 - k.cy) / k.fy;
+                let (xd, yd) = distortion.apply(x, y);
+                bilinear(image, k.fy * yd + k.cy - 0.5, k.fx * xd + k.cx - 0.5)
+            })
+        })
+        .collect();
+    ImageF32 {
+        width: image.width,
+        height: image.height,
+        pixels,
+    }
+}
+
+/// The image at continuous pixel-index coordinates (pixel centers at integers), clamped to the
+/// border.
+fn bilinear(image: &ImageF32, row: f32, col: f32) -> [f32; 3] {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let r = row.clamp(0.0, (h - 1) as f32);
+    let c = col.clamp(0.0, (w - 1) as f32);
+    let (r0, c0) = (r.floor() as usize, c.floor() as usize);
+    let (r1, c1) = ((r0 + 1).min(h - 1), (c0 + 1).min(w - 1));
+    let (fr, fc) = (r - r0 as f32, c - c0 as f32);
+    let at = |r: usize, c: usize| image.pixels[r * w + c];
+    let (a, b, c_, d) = (at(r0, c0), at(r0, c1), at(r1, c0), at(r1, c1));
+    std::array::from_fn(|i| {
+        let top = a[i] + fc * (b[i] - a[i]);
+        let bottom = c_[i] + fc * (d[i] - c_[i]);
+        top + fr * (bottom - top)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn look_at(eye: Vec3, up: Vec3) -> Mat4 {
+        // OpenGL: −Z looks at the origin.
+        let back = eye.normalize();
+        let right = up.cross(back).normalize();
+        let up = back.cross(right);
+        Mat4::from_cols(
+            right.extend(0.0),
+            up.extend(0.0),
+            back.extend(0.0),
+            eye.extend(1.0),
+        )
+    }
+
+    fn frame(c2w: Mat4) -> Frame {
+        Frame {
+            camera: FrameCamera {
+                c2w,
+                intrinsics: PixelIntrinsics {
+                    fx: 50.0,
+                    fy: 50.0,
+                    cx: 24.0,
+                    cy: 16.0,
+                },
+                distortion: Distortion::default(),
+                width: 48,
+                height: 32,
+            },
+            image: PathBuf::from("x.png"),
+        }
+    }
+
+    /// Eight cameras 4 units from the origin looking at it, z up, symmetric about the z axis.
+    fn ring() -> Capture {
+        let frames = (0..8)
+            .map(|i| {
+                let azimuth = i as f32 * std::f32::consts::FRAC_PI_4;
+                let elevation: f32 = if i % 2 == 0 { 0.5 } else { -0.2 };
+                let eye = 4.0
+                    * Vec3::new(
+                        elevation.cos() * azimuth.cos(),
+                        elevation.cos() * azimuth.sin(),
+                        elevation.sin(),
+                    );
+                frame(look_at(eye, Vec3::Z))
+            })
+            .collect();
+        Capture {
+            frames,
+            points: vec![Vec3::new(0.1, 0.2, 0.3)],
+            aabb_scale: None,
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn normalization_undoes_a_tilt_a_shift_and_a_scale(
+            axis_angle in 0.0f32..std::f32::consts::TAU,
+            tilt in -1.2f32..1.2,
+            shift in prop::array::uniform3(-20.0f32..20.0),
+            scale in 0.05f32..30.0,
+        ) {
+            // A rotation about a horizontal axis (the arc normalization takes back), then a
+            // shift and a scale, applied to the symmetric ring.
+            let axis = Vec3::new(axis_angle.cos(), axis_angle.sin(), 0.0);
+            let moved = Normalization {
+                rotation: Mat3::from_axis_angle(axis, tilt),
+                center: Vec3::from(shift),
+                scale,
+            };
+            let original = ring();
+            let mut capture = original.clone();
+            for f in &mut capture.frames {
+                f.camera.c2w = moved.pose(f.camera.c2w);
+            }
+            capture.points[0] = moved.point(capture.points[0]);
+            capture.normalize().unwrap();
+            for (got, want) in capture.frames.iter().zip(&original.frames) {
+                prop_assert!(got.camera.c2w.abs_diff_eq(want.camera.c2w, 2e-3),
+                    "{} vs {}", got.camera.c2w, want.camera.c2w);
+            }
+            prop_assert!(capture.points[0].abs_diff_eq(original.points[0], 2e-3));
+        }
+    }
+
+    #[test]
+    fn tiny_and_upside_down_tilts_are_undone() {
+        for tilt in [6.664e-4f32, 1e-5, std::f32::consts::PI] {
+            let r = Mat3::from_axis_angle(Vec3::X, tilt);
+            let up = r * Vec3::Z;
+            assert!((rotation_onto_z(up) * up).abs_diff_eq(Vec3::Z, 1e-6), "{tilt}");
+        }
+    }
+
+    #[test]
+    fn parallel_cameras_are_centered_on_their_mean_position() {
+        let frames = (0..3)
+            .map(|i| {
+                let mut c2w = Mat4::IDENTITY;
+                c2w.w_axis = Vec3::new(i as f32, 0.0, 0.0).extend(1.0);
+                frame(c2w)
+            })
+            .collect();
+        let mut capture = Capture {
+            frames,
+            points: Vec::new(),
+            aabb_scale: None,
+        };
+        let n = capture.normalize().unwrap();
+        assert!(n.point(Vec3::new(1.0, 0.0, 0.0)).length() < 1e-5);
+        let one_place = Capture {
+            frames: vec![frame(Mat4::IDENTITY); 2],
+            points: Vec::new(),
+            aabb_scale: None,
+        };
+        let e = one_place.clone().normalize().unwrap_err().to_string();
+        assert!(e.contains("all at one point"), "{e}");
+    }
+
+    #[test]
+    fn downscaled_cameras_keep_rays_through_the_same_footprints() {
+        let f = frame(look_at(Vec3::new(3.0, 1.0, 2.0), Vec3::Z));
+        assert_eq!(f.camera.downscaled(2), (24, 16));
+        let full = f.camera.camera(48, 32).unwrap();
+        let half = f.camera.camera(24, 16).unwrap();
+        // Half-resolution pixel (3, 5) covers full-resolution rows 6–7 and columns 10–11.
+        let (_, a) = half.ray(3, 5, 24, 16);
+        let (_, b) = full.ray_at(7.0, 11.0, 48, 32);
+        assert!(a.abs_diff_eq(b, 1e-5), "{a} {b}");
+    }
+
+    /// The normalized coordinates whose distortion is (xd, yd), by Newton's method.
+    fn undistorted(d: Distortion, xd: f32, yd: f32) -> (f32, f32) {
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..50 {
+            let (fx, fy) = d.apply(x, y);
+            let e = 1e-3;
+            let (ax, ay) = d.apply(x + e, y);
+            let (bx, by) = d.apply(x, y + e);
+            let j = Mat3::from_cols(
+                Vec3::new((ax - fx) / e, (ay - fy) / e, 0.0),
+                Vec3::new((bx - fx) / e, (by - fy) / e, 0.0),
+                Vec3::Z,
+            );
+            let step = j.inverse() * Vec3::new(fx - xd, fy - yd, 0.0);
+            x -= step.x;
+            y -= step.y;
+        }
+        (x, y)
+    }
+
+    #[test]
+    fn undistortion_recovers_the_pinhole_image_of_a_smooth_scene() {
+        let k = PixelIntrinsics {
+            fx: 60.0,
+            fy: 58.0,
+            cx: 41.0,
+            cy: 29.0,
+        };
+        let d = Distortion {
+            k1: -0.12,
+            k2: 0.03,
+            k3: 0.0,
+            p1: 0.002,
+            p2: -0.001,
+        };
+        // The scene as a pinhole camera would see it, in normalized coordinates.
+        let scene = |x: f32, y: f32| {
+            [
+                0.5 + 0.4 * (6.0 * x).sin(),
+                0.5 + 0.3 * (4.0 * y).cos(),
+                0.5 * (x + y).cos(),
+            ]
+        };
+        let (w, h) = (80u32, 60u32);
+        let pixel = |row: u32, col: u32| ((col as f32 + 0.5 - k.cx) / k.fx, (row as f32 + 0.5 - k.cy) / k.fy);
+        let distorted = ImageF32 {
+            width: w,
+            height: h,
+            pixels: (0..h)
+                .flat_map(|r| (0..w).map(move |c| (r, c)))
+                .map(|(r, c)| {
+                    let (xd, yd) = pixel(r, c);
+                    let (x, y) = undistorted(d, xd, yd);
+                    scene(x, y)
+                })
+                .collect(),
+        };
+        let fixed = undistort(&distorted, k, d);
+        let mut worst: f32 = 0.0;
+        let mut before: f32 = 0.0;
+        // Away from the border, where undistortion samples inside the image.
+        for r in 6..h - 6 {
+            for c in 6..w - 6 {
+                let (x, y) = pixel(r, c);
+                let want = scene(x, y);
+                let i = (r * w + c) as usize;
+                for (ch, want) in want.iter().enumerate() {
+                    worst = worst.max((fixed.pixels[i][ch] - want).abs());
+                    before = before.max((distorted.pixels[i][ch] - want).abs());
+                }
+            }
+        }
+        assert!(worst < 5e-3, "undistorted differs by {worst}");
+        assert!(
+            before > 0.03,
+            "the test's distortion is too weak to matter: {before}"
+        );
+    }
+}

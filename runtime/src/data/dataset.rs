@@ -1,0 +1,299 @@
+//! Training views: cameras with the images they took, as in the course's `box_cameras.json`.
+
+use std::path::Path;
+
+use crate::cameras::camera::Camera;
+use crate::cameras::camera_files::load_box_cameras;
+use crate::cameras::rays::RayBatch;
+use crate::data::npy::{read_npy_rgb, ImageF32};
+use crate::error::{Error, Result};
+
+/// Cameras and their images, all of one size.
+#[derive(Debug, Clone)]
+pub struct Views {
+    /// The cameras, in file order.
+    pub cameras: Vec<Camera>,
+    /// The image of each camera.
+    pub images: Vec<ImageF32>,
+    /// Width of every image in pixels.
+    pub width: u32,
+    /// Height of every image in pixels.
+    pub height: u32,
+}
+
+/// Reads an RGB image: a float32 `.npy` of shape (H, W, 3), or any PNG (values scaled to
+/// [0, 1]; an alpha channel is composited on black).
+pub fn read_rgb_image(path: &Path) -> Result<ImageF32> {
+    let is_png = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    if !is_png {
+        return read_npy_rgb(path);
+    }
+    let decoded = image::open(path).map_err(|e| match e {
+        image::ImageError::IoError(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Error::read(path, "file not found")
+        }
+        e => Error::read(path, e),
+    })?;
+    let rgba = decoded.to_rgba32f();
+    Ok(ImageF32 {
+        width: rgba.width(),
+        height: rgba.height(),
+        pixels: rgba
+            .pixels()
+            .map(|p| [p[0] * p[3], p[1] * p[3], p[2] * p[3]])
+            .collect(),
+    })
+}
+
+/// Reads the course's `box_cameras.json` and the images it names (`.npy` or `.png`, relative
+/// to the JSON file), checking that every image has the size the file states.
+pub fn load_box_views(path: &Path) -> Result<Views> {
+    let set = load_box_cameras(path)?;
+    let mut images = Vec::with_capacity(set.images.len());
+    let mut size = set.image_size;
+    for file in &set.images {
+        let image = read_rgb_image(file)?;
+        let (width, height) = *size.get_or_insert((image.width, image.height));
+        if (image.width, image.height) != (width, height) {
+            return Err(Error::format(
+                file,
+                format!(
+                    "image is {}×{} but {} states {width}×{height}",
+                    image.width,
+                    image.height,
+                    path.display()
+                ),
+            ));
+        }
+        images.push(image);
+    }
+    let (width, height) = size.unwrap_or_default();
+    Ok(Views {
+        cameras: set.cameras,
+        images,
+        width,
+        height,
+    })
+}
+
+impl Views {
+    /// Number of views.
+    pub fn len(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// True if there is no view.
+    pub fn is_empty(&self) -> bool {
+        self.cameras.is_empty()
+    }
+
+    /// Splits off every `every`-th view (views 0, every, 2·every, …) as held-out views, as
+    /// mip-NeRF 360 and nerfstudio do for captures: (training views, held-out views). Both keep
+    /// at least one view.
+    pub fn hold_out(self, every: usize) -> Result<(Views, Views)> {
+        if every < 2 || self.len() < 2 {
+            return Err(Error::Invalid(format!(
+                "holding out every {every}th of {} views leaves nothing to train on or to score: \
+                 it needs at least 2 views and every ≥ 2",
+                self.len()
+            )));
+        }
+        let (width, height) = (self.width, self.height);
+        let empty = || Views {
+            cameras: Vec::new(),
+            images: Vec::new(),
+            width,
+            height,
+        };
+        let (mut train, mut held) = (empty(), empty());
+        for (i, (camera, image)) in self.cameras.into_iter().zip(self.images).enumerate() {
+            let to = if i % every == 0 { &mut held } else { &mut train };
+            to.cameras.push(camera);
+            to.images.push(image);
+        }
+        Ok((train, held))
+    }
+
+    /// The rays of `count` distinct random pixels of view `view` (seeded by `seed`) and the
+    /// colors of those pixels in its image.
+    pub fn random_rays(&self, view: usize, count: usize, seed: u64) -> Result<(RayBatch, Vec<[f32; 3]>)> {
+        let (Some(camera), Some(image)) = (self.cameras.get(view), self.images.get(view)) else {
+            return Err(Error::Invalid(format!(
+                "view {view} does not exist: there are {} views",
+                self.len()
+            )));
+        };
+        let (rays, pixels) = RayBatch::random_pixels(camera, self.width, self.height, count, seed)?;
+        let colors = pixels.iter().map(|&p| image.pixels[p]).collect();
+        Ok((rays, colors))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::npy::write_npy_rgb;
+
+    #[test]
+    fn every_nth_view_is_held_out() {
+        let camera = |x: f32| {
+            Camera::look_at(
+                glam::Vec3::new(x, 0.0, -3.0),
+                glam::Vec3::ZERO,
+                glam::Vec3::Y,
+                glam::Vec2::ONE,
+                glam::Vec2::ZERO,
+            )
+            .unwrap()
+        };
+        let image = |v: f32| ImageF32 {
+            width: 1,
+            height: 1,
+            pixels: vec![[v; 3]],
+        };
+        let views = Views {
+            cameras: (0..10).map(|i| camera(i as f32)).collect(),
+            images: (0..10).map(|i| image(i as f32)).collect(),
+            width: 1,
+            height: 1,
+        };
+        let (train, held) = views.clone().hold_out(4).unwrap();
+        let values = |v: &Views| {
+            v.images
+                .iter()
+                .map(|i| i.pixels[0][0] as usize)
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(values(&held), [0, 4, 8]);
+        assert_eq!(values(&train), [1, 2, 3, 5, 6, 7, 9]);
+        assert_eq!(held.cameras[1], views.cameras[4]);
+        assert!(views.clone().hold_out(1).is_err());
+        let one = Views {
+            cameras: vec![camera(0.0)],
+            images: vec![image(0.0)],
+            width: 1,
+            height: 1,
+        };
+        assert!(one.hold_out(8).is_err());
+    }
+    use std::path::PathBuf;
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("nerfjit-dataset-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    fn cameras_json(dir: &Path, images: &[&str], size: &str) -> PathBuf {
+        let cams: Vec<String> = images
+            .iter()
+            .enumerate()
+            .map(|(k, image)| {
+                format!(
+                    r#"{{"image": "{image}", "focal": 1.0, "principal_point": [0.0, 0.0],
+                    "eye": [-2.5, {k}.0, 0.0], "scene_center": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0]}}"#
+                )
+            })
+            .collect();
+        let path = dir.join("cams.json");
+        let text = format!(r#"{{"image_size": {size}, "cameras": [{}]}}"#, cams.join(","));
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    fn gradient_image(width: u32, height: u32) -> ImageF32 {
+        ImageF32 {
+            width,
+            height,
+            pixels: (0..width * height)
+                .map(|k| [(k % width) as f32 / width as f32, 0.5, 0.25])
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn npy_and_png_views_load_and_give_pixel_colors() {
+        let dir = temp_dir("ok");
+        write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
+        // An RGBA PNG: alpha is composited on black.
+        let png = image::RgbaImage::from_fn(6, 4, |x, _| image::Rgba([255, 51 * x as u8, 0, 128]));
+        png.save(dir.join("b.png")).unwrap();
+        let views = load_box_views(&cameras_json(&dir, &["a.npy", "b.png"], "[4, 6]")).unwrap();
+        assert_eq!(
+            (views.len(), views.width, views.height, views.is_empty()),
+            (2, 6, 4, false)
+        );
+        assert_eq!(views.images[0], gradient_image(6, 4));
+        let alpha = 128.0 / 255.0;
+        let px = views.images[1].pixels[3];
+        assert!(
+            (px[0] - alpha).abs() < 1e-6 && (px[1] - 0.6 * alpha).abs() < 1e-6 && px[2] == 0.0,
+            "{px:?}"
+        );
+        let (rays, colors) = views.random_rays(0, 10, 3).unwrap();
+        assert_eq!((rays.len(), colors.len()), (10, 10));
+        let (_, pixels) = RayBatch::random_pixels(&views.cameras[0], 6, 4, 10, 3).unwrap();
+        for (c, p) in colors.iter().zip(pixels) {
+            assert_eq!(*c, views.images[0].pixels[p]);
+        }
+        assert!(views
+            .random_rays(2, 10, 3)
+            .unwrap_err()
+            .to_string()
+            .contains("2 views"));
+        assert!(views.random_rays(1, 25, 3).is_err());
+    }
+
+    #[test]
+    fn missing_and_wrong_size_images_name_the_file() {
+        let dir = temp_dir("bad");
+        write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
+        write_npy_rgb(&dir.join("small.npy"), &gradient_image(3, 4)).unwrap();
+        let e = load_box_views(&cameras_json(&dir, &["a.npy", "small.npy"], "[4, 6]")).unwrap_err();
+        let small = dir.join("small.npy");
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "{}: image is 3×4 but {} states 6×4",
+                small.display(),
+                dir.join("cams.json").display()
+            )
+        );
+        let e = load_box_views(&cameras_json(&dir, &["a.npy", "gone.png"], "[4, 6]")).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            format!("cannot read {}: file not found", dir.join("gone.png").display())
+        );
+        let e = load_box_views(&cameras_json(&dir, &["gone.npy"], "[4, 6]")).unwrap_err();
+        assert!(e
+            .to_string()
+            .starts_with(&format!("cannot read {}", dir.join("gone.npy").display())));
+        std::fs::write(dir.join("junk.png"), b"not a png").unwrap();
+        let e = load_box_views(&cameras_json(&dir, &["junk.png"], "[4, 6]")).unwrap_err();
+        assert!(e
+            .to_string()
+            .starts_with(&format!("cannot read {}", dir.join("junk.png").display())));
+    }
+
+    #[test]
+    fn course_views_load_when_present() {
+        let path = Path::new("/work/shared/data/assignment3/box_cameras.json");
+        if !path.exists() {
+            eprintln!("note: {} not found, skipping", path.display());
+            return;
+        }
+        let views = load_box_views(path).unwrap();
+        assert_eq!((views.len(), views.width, views.height), (4, 256, 256));
+        for image in &views.images {
+            assert_eq!(image.pixels.len(), 256 * 256);
+            // The box covers the center of every view, the corners are background.
+            let center = image.pixels[128 * 256 + 128];
+            assert!(center.iter().sum::<f32>() > 0.05, "{center:?}");
+            assert!(
+                image.pixels[0].iter().all(|c| c.abs() < 0.02),
+                "{:?}",
+                image.pixels[0]
+            );
+        }
+    }
+}

@@ -1,0 +1,13 @@
+//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], and the fused marcher [`march`] compiled
+//! kernels offer), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`]), triangle meshes
+//! and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
+//! rasterizer for previews ([`raster`]).
+
+mod bvh;
+pub mod march;
+pub mod marching;
+pub mod mesh;
+pub mod mesh_metrics;
+pub mod prune;
+pub mod raster;
+pub mod sphere_trace;

@@ -1,0 +1,612 @@
+//! Occupancy grids for empty-space skipping in volume rendering (as in instant-ngp and
+//! nerfacc): a bit per cell of a regular grid over an axis-aligned box, set where the field's
+//! first output (density σ or per-sample opacity a) may exceed a threshold.
+//!
+//! [`OccupancyGrid::build`] evaluates the field on the lattice that splits every cell into
+//! [`SUBDIVISIONS`]³ sub-cells: each cell is probed at its 8 corners, the midpoints of its 12
+//! edges and 6 faces, and its center (27 points with 2 subdivisions, shared with the
+//! neighbouring cells). A cell is occupied if any of its probes has a value above the
+//! threshold (or NaN); the occupied set is then dilated by one cell (the 26 neighbours), so
+//! that the falloff around a detected feature, which lies partly in cells whose own probes
+//! are all below the threshold, is kept.
+//!
+//! This is an approximation, which is why renderers use a grid only when asked
+//! ([`crate::volume::render::render_volume_with`]). What it can miss:
+//! - anything outside the grid's bounds (the grid says "empty" there);
+//! - a feature that contains no probe and lies more than one cell away from any probe above
+//!   the threshold: e.g. a blob or a sheet thinner than the probe spacing (cell /
+//!   [`SUBDIVISIONS`]) that falls between probes, away from detected features;
+//! - values at or below the threshold. In [`Mode::Opacity`] the threshold bounds the alpha of
+//!   a skipped sample; in [`Mode::Density`] it is compared with σ itself, so a skipped sample
+//!   has alpha = 1 − exp(−σδ) ≤ threshold·δ for sample spacing δ (and, as the last sample of
+//!   a ray has δ = [`crate::volume::composite::LAST_DELTA`], a skipped last sample contributes
+//!   nothing although σ·1e10 might be large).
+//!
+//! The first output is assumed not to depend on the view direction: a field that takes one
+//! is probed with direction (0, 0, 1).
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::field::BatchFn;
+use crate::volume::composite::Mode;
+
+/// Each cell is probed on a lattice of this many steps per cell and axis.
+pub const SUBDIVISIONS: usize = 2;
+
+/// Largest supported resolution (cells per axis).
+pub const MAX_RESOLUTION: usize = 256;
+
+/// Probe points per field call while building.
+const BUILD_BATCH: usize = 8192;
+
+/// Layers of cells probed by one parallel task while building.
+const LAYERS_PER_TASK: usize = 4;
+
+/// A bit per cell of a `resolution`³ grid over an axis-aligned box. See the module docs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OccupancyGrid {
+    lo: [f32; 3],
+    hi: [f32; 3],
+    resolution: usize,
+    /// Bits per row (and rows per plane) are 2^shift >= resolution: no multiplications.
+    shift: u32,
+    /// Cells per unit length along each axis.
+    scale: [f32; 3],
+    /// The bounds widened by 1e-4 of their size, for ray intervals.
+    outer: [[f32; 3]; 2],
+    /// Bit `(z << 2·shift) | (y << shift) | x` is set for an occupied cell x, y, z; the
+    /// others, and the last word, past the cells, are 0.
+    bits: Vec<u64>,
+}
+
+impl OccupancyGrid {
+    /// Probes `field` (3 inputs, or 6 with a view direction; its first output is σ or a as
+    /// `mode` says) in `resolution`³ cells over `bounds` = (lo, hi) and marks the cells with a
+    /// probe value above `threshold` (σ itself in [`Mode::Density`], a in [`Mode::Opacity`]),
+    /// dilated by one cell. See the module docs.
+    pub fn build(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        mode: Mode,
+        threshold: f32,
+    ) -> Result<OccupancyGrid> {
+        OccupancyGrid::build_with(field, bounds, resolution, mode, threshold, false)
+    }
+
+    /// [`OccupancyGrid::build`] with the threshold lowered to the mean of the cells' peak probe values
+    /// where that is lower (instant-ngp's rule for training): a field whose values are all small keeps
+    /// its larger half occupied instead of an empty grid, whose samples would never be trained again.
+    pub fn build_for_training(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        mode: Mode,
+        threshold: f32,
+    ) -> Result<OccupancyGrid> {
+        OccupancyGrid::build_with(field, bounds, resolution, mode, threshold, true)
+    }
+
+    fn build_with(
+        field: &dyn BatchFn,
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        mode: Mode,
+        threshold: f32,
+        capped_by_mean: bool,
+    ) -> Result<OccupancyGrid> {
+        check_threshold(mode, threshold)?;
+        let peaks = cell_peaks(field, bounds, resolution)?;
+        // 3. The cells above the threshold, 4. dilated: a max filter of width 3 and stride 1
+        //    along each axis.
+        let threshold = if capped_by_mean {
+            threshold.min(mean(&peaks))
+        } else {
+            threshold
+        };
+        let res = resolution;
+        let hot: Vec<f32> = peaks
+            .iter()
+            .map(|&p| if p > threshold { 1.0 } else { 0.0 })
+            .collect();
+        let dilate = |c: usize| c.saturating_sub(1)..=(c + 1).min(res - 1);
+        let dilated = max_filter(&hot, [res, res, res], dilate, [res, res, res]);
+        Ok(OccupancyGrid::from_cells(bounds, res, |i| dilated[i] > 0.0))
+    }
+
+    /// The grid over `bounds` with `resolution`³ cells whose occupied cells are those within
+    /// `dilation` cells (along each axis: a (2·dilation + 1)³ block) of a cell holding one of
+    /// `points`; points outside the bounds (or NaN) are ignored. For a first state before the field
+    /// has learned anything, from a capture's sparse points (COLMAP's `points3D`).
+    pub fn from_points(
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        points: &[[f32; 3]],
+        dilation: usize,
+    ) -> Result<OccupancyGrid> {
+        check_box(bounds, resolution)?;
+        let (res, (lo, hi)) = (resolution, bounds);
+        let mut hot = vec![0.0f32; res * res * res];
+        for p in points {
+            // The cell coordinates; the upper bounds belong to the last cells, as in `occupied`.
+            let f = [0, 1, 2].map(|i| (p[i] - lo[i]) * res as f32 / (hi[i] - lo[i]));
+            if f.iter().all(|f| (0.0..=res as f32).contains(f)) {
+                let [x, y, z] = f.map(|f| (f as usize).min(res - 1));
+                hot[x + y * res + z * res * res] = 1.0;
+            }
+        }
+        let dilate = |c: usize| c.saturating_sub(dilation)..=(c + dilation).min(res - 1);
+        let dilated = max_filter(&hot, [res, res, res], dilate, [res, res, res]);
+        Ok(OccupancyGrid::from_cells(bounds, res, |i| dilated[i] > 0.0))
+    }
+
+    /// The grid over `bounds` with `resolution`³ cells of which those with `occupied(i)` (cell
+    /// x + y·res + z·res² for i) are occupied; the bounds and resolution must be valid (as
+    /// [`cell_peaks`] checks).
+    pub(crate) fn from_cells(
+        (lo, hi): ([f32; 3], [f32; 3]),
+        resolution: usize,
+        occupied: impl Fn(usize) -> bool,
+    ) -> OccupancyGrid {
+        let res = resolution;
+        let shift = res.next_power_of_two().trailing_zeros();
+        let mut bits = vec![0u64; (1usize << (3 * shift)).div_ceil(64) + 1];
+        for i in (0..res * res * res).filter(|&i| occupied(i)) {
+            let bit = bit_of(shift, [i % res, i / res % res, i / (res * res)].map(|c| c as u32)) as usize;
+            bits[bit / 64] |= 1 << (bit % 64);
+        }
+        let center = [0, 1, 2].map(|i| 0.5 * (lo[i] + hi[i]));
+        OccupancyGrid {
+            lo,
+            hi,
+            resolution,
+            shift,
+            scale: [0, 1, 2].map(|i| res as f32 / (hi[i] - lo[i])),
+            outer: [lo, hi].map(|side| [0, 1, 2].map(|i| side[i] + (side[i] - center[i]) * 2e-4)),
+            bits,
+        }
+    }
+
+    /// The box (lo, hi) covered by the grid.
+    pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
+        (self.lo, self.hi)
+    }
+
+    /// Cells per axis.
+    pub fn resolution(&self) -> usize {
+        self.resolution
+    }
+
+    /// Number of occupied cells.
+    pub fn occupied_cells(&self) -> usize {
+        self.bits.iter().map(|b| b.count_ones() as usize).sum()
+    }
+
+    /// Fraction of the cells that are occupied.
+    pub fn occupancy(&self) -> f64 {
+        self.occupied_cells() as f64 / (self.resolution as f64).powi(3)
+    }
+
+    /// Whether cell (x, y, z) (each in 0..resolution) is occupied.
+    pub fn cell(&self, x: usize, y: usize, z: usize) -> bool {
+        let r = self.resolution;
+        assert!(
+            x < r && y < r && z < r,
+            "cell ({x}, {y}, {z}) outside a {r}³ grid"
+        );
+        self.bit(bit_of(self.shift, [x, y, z].map(|c| c as u32)))
+    }
+
+    /// Whether the cell containing `p` is occupied; points outside the bounds (or NaN) are
+    /// empty. Cells are half-open, except that the upper bounds belong to the last cells.
+    #[inline]
+    pub fn occupied(&self, p: [f32; 3]) -> bool {
+        self.bit(self.bit_index(p[0], p[1], p[2]))
+    }
+
+    /// The bit of the cell containing (x, y, z), or the last bit (always clear) if the point
+    /// is outside the bounds or NaN. Without branches, so that loops over points vectorize.
+    #[inline(always)]
+    fn bit_index(&self, x: f32, y: f32, z: f32) -> u32 {
+        let r = self.resolution as u32;
+        let (last, top) = ((r - 1) as f32, r as f32);
+        let fx = (x - self.lo[0]) * self.scale[0];
+        let fy = (y - self.lo[1]) * self.scale[1];
+        let fz = (z - self.lo[2]) * self.scale[2];
+        let inside = (fx >= 0.0) & (fx <= top) & (fy >= 0.0) & (fy <= top) & (fz >= 0.0) & (fz <= top);
+        // ⌊f⌋ clamped to the cells, with selects and integer operations only (a saturating
+        // `as` does not vectorize): NaN and negative values give 0.
+        let cell = |f: f32| {
+            let f = if f >= 0.0 { f } else { 0.0 };
+            let f = if f <= last { f } else { last };
+            // f + 2²³ rounds f to the nearest integer, found in the low bits; then floor.
+            let nearest = (f + 8_388_608.0).to_bits() - 0x4B00_0000;
+            nearest - u32::from(nearest as f32 > f)
+        };
+        let index = bit_of(self.shift, [cell(fx), cell(fy), cell(fz)]);
+        if inside {
+            index
+        } else {
+            (self.bits.len() * 64 - 1) as u32
+        }
+    }
+
+    /// Whether bit `index` (from [`OccupancyGrid::bit_index`]) is set.
+    #[inline(always)]
+    fn bit(&self, index: u32) -> bool {
+        let index = index as usize;
+        self.bits[index / 64] >> (index % 64) & 1 == 1
+    }
+
+    /// Packs the points (x, y, z)[i] in occupied cells to the front of `x`, `y`, `z`, and for
+    /// each of them `first + i` to the front of `index`; returns their number. `cells` is
+    /// scratch space; all slices have the same length.
+    pub(crate) fn pack_occupied(
+        &self,
+        [x, y, z]: [&mut [f32]; 3],
+        index: &mut [u32],
+        first: u32,
+        cells: &mut [u32],
+    ) -> usize {
+        let n = x.len();
+        let (y, z, index, cells) = (&mut y[..n], &mut z[..n], &mut index[..n], &mut cells[..n]);
+        for (((cell, x), y), z) in cells.iter_mut().zip(&*x).zip(&*y).zip(&*z) {
+            *cell = self.bit_index(*x, *y, *z);
+        }
+        if cells.iter().all(|&cell| self.bit(cell)) {
+            for (i, index) in index.iter_mut().enumerate() {
+                *index = first + i as u32;
+            }
+            return n;
+        }
+        // Every point is written at `packed`, which only advances past occupied ones (and
+        // never past the point being read): no branches.
+        let mut packed = 0;
+        for (i, &cell) in cells.iter().enumerate() {
+            (x[packed], y[packed], z[packed]) = (x[i], y[i], z[i]);
+            index[packed] = first + i as u32;
+            packed += usize::from(self.bit(cell));
+        }
+        packed
+    }
+
+    /// The depths [t0, t1] (t0 may be negative) where the ray `o + t·d` is inside the bounds
+    /// widened by a tiny margin, or `None` if it misses them: every point of the ray that
+    /// [`OccupancyGrid::occupied`] may accept is in that interval.
+    pub fn ray_interval(&self, o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
+        let (t0, t1) = self.interval(o, d);
+        (t0 <= t1).then_some((t0, t1))
+    }
+
+    /// [`OccupancyGrid::ray_interval`] of the rays from `o` in directions (dx, dy, dz)[k] to
+    /// (t0, t1)[k], with t0 > t1 (or NaN) for rays that miss; all slices of one length.
+    pub(crate) fn ray_intervals(
+        &self,
+        o: [f32; 3],
+        [dx, dy, dz]: [&[f32]; 3],
+        t0: &mut [f32],
+        t1: &mut [f32],
+    ) {
+        let n = t0.len();
+        let (dx, dy, dz, t1) = (&dx[..n], &dy[..n], &dz[..n], &mut t1[..n]);
+        for k in 0..n {
+            (t0[k], t1[k]) = self.interval(o, [dx[k], dy[k], dz[k]]);
+        }
+    }
+
+    /// The slab test, without branches so that loops over rays vectorize: a zero direction
+    /// component gives infinite slab depths, of the same sign (a miss) if `o` is outside
+    /// the slab.
+    #[inline(always)]
+    fn interval(&self, o: [f32; 3], d: [f32; 3]) -> (f32, f32) {
+        let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+        for i in 0..3 {
+            let inv = 1.0 / d[i];
+            let (a, b) = ((self.outer[0][i] - o[i]) * inv, (self.outer[1][i] - o[i]) * inv);
+            let (near, far) = if a < b { (a, b) } else { (b, a) };
+            t0 = if near > t0 { near } else { t0 };
+            t1 = if far < t1 { far } else { t1 };
+        }
+        (t0, t1)
+    }
+}
+
+/// The bit of cell (x, y, z) in rows and planes of 2^`shift` bits.
+#[inline(always)]
+fn bit_of(shift: u32, [x, y, z]: [u32; 3]) -> u32 {
+    (z << (2 * shift)) | (y << shift) | x
+}
+
+/// Checks a threshold: finite and ≥ 0 for densities, in [0, 1) for opacities.
+pub(crate) fn check_threshold(mode: Mode, threshold: f32) -> Result<()> {
+    let threshold_ok = match mode {
+        Mode::Density => threshold.is_finite() && threshold >= 0.0,
+        Mode::Opacity => (0.0..1.0).contains(&threshold),
+    };
+    if !threshold_ok {
+        return Err(Error::Invalid(format!(
+            "occupancy threshold {threshold} must be >= 0 and finite (density) or in [0, 1) (opacity)"
+        )));
+    }
+    Ok(())
+}
+
+/// The mean of `values` (in f64).
+pub(crate) fn mean(values: &[f32]) -> f32 {
+    (values.iter().map(|&v| f64::from(v)).sum::<f64>() / values.len().max(1) as f64) as f32
+}
+
+/// Checks an occupancy grid's bounds and resolution and that `field` is a density of a point (and
+/// optionally a view direction).
+pub(crate) fn check_grid(field: &dyn BatchFn, bounds: ([f32; 3], [f32; 3]), resolution: usize) -> Result<()> {
+    check_box(bounds, resolution)?;
+    let n_inputs = field.n_inputs();
+    if !(n_inputs == 3 || n_inputs == 6) || field.n_outputs() == 0 {
+        return Err(Error::Invalid(format!(
+            "an occupancy grid needs a field of a point (3 inputs) or a point and a view \
+                 direction (6 inputs) with at least 1 output, but it maps {n_inputs} inputs to {} outputs",
+            field.n_outputs()
+        )));
+    }
+    Ok(())
+}
+
+/// Checks a grid's bounds (finite, lo < hi on every axis) and resolution.
+fn check_box(bounds: ([f32; 3], [f32; 3]), resolution: usize) -> Result<()> {
+    let (lo, hi) = bounds;
+    if !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] < hi[i]) {
+        return Err(Error::Invalid(format!(
+            "occupancy grid bounds {lo:?}..{hi:?} must be finite with lo < hi on every axis"
+        )));
+    }
+    if !(1..=MAX_RESOLUTION).contains(&resolution) {
+        return Err(Error::Invalid(format!(
+            "occupancy grid resolution {resolution} must be in 1..={MAX_RESOLUTION}"
+        )));
+    }
+    Ok(())
+}
+
+/// Each cell's peak over its probes (see the module docs): the field's first output on the lattice
+/// of [`SUBDIVISIONS`] steps per cell, NaN counted as +∞; cell x + y·res + z·res² at index
+/// x + y·res + z·res². Checks the bounds, the resolution and the field's shape.
+pub(crate) fn cell_peaks(
+    field: &dyn BatchFn,
+    bounds: ([f32; 3], [f32; 3]),
+    resolution: usize,
+) -> Result<Vec<f32>> {
+    check_grid(field, bounds, resolution)?;
+    let (lo, hi) = bounds;
+    let n_inputs = field.n_inputs();
+
+    // 1. Probe the lattice of m³ points, a few layers of cells at a time (sharing their
+    //    boundary planes of probes), and 2. take each cell's peak over the probes of its
+    //    closed box: a max filter of width SUBDIVISIONS + 1 and stride SUBDIVISIONS along
+    //    each axis. NaN probes count as +∞.
+    let res = resolution;
+    let (s, m) = (SUBDIVISIONS, res * SUBDIVISIONS + 1);
+    let step = [0, 1, 2].map(|i| (hi[i] - lo[i]) / (m - 1) as f32);
+    let coord = |i: usize, k: usize| {
+        if k + 1 == m {
+            hi[i]
+        } else {
+            lo[i] + step[i] * k as f32
+        }
+    };
+    let mut peaks = vec![0.0f32; res * res * res];
+    peaks
+        .par_chunks_mut(res * res * LAYERS_PER_TASK)
+        .enumerate()
+        .for_each(|(task, cells)| {
+            let (layers, z0) = (cells.len() / (res * res), task * LAYERS_PER_TASK * s);
+            let mut probes = vec![0.0f32; (layers * s + 1) * m * m];
+            let batch = BUILD_BATCH.min(probes.len());
+            let mut inputs = vec![vec![0.0f32; batch]; n_inputs];
+            if n_inputs == 6 {
+                inputs[5].fill(1.0);
+            }
+            let mut outputs = vec![vec![0.0f32; batch]; field.n_outputs()];
+            for (c, probes) in probes.chunks_mut(batch).enumerate() {
+                let n = probes.len();
+                for (k, i) in (c * batch..c * batch + n).enumerate() {
+                    let (x, y, z) = (i % m, i / m % m, z0 + i / (m * m));
+                    (inputs[0][k], inputs[1][k], inputs[2][k]) = (coord(0, x), coord(1, y), coord(2, z));
+                }
+                let inputs: Vec<&[f32]> = inputs.iter().map(|v| &v[..n]).collect();
+                let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(|v| &mut v[..n]).collect();
+                field.eval(n, &inputs, &mut outs);
+                for (probe, &v) in probes.iter_mut().zip(&outputs[0]) {
+                    *probe = if v.is_nan() { f32::INFINITY } else { v };
+                }
+            }
+            let window = |c: usize| c * s..=c * s + s;
+            cells.copy_from_slice(&max_filter(
+                &probes,
+                [m, m, layers * s + 1],
+                window,
+                [res, res, layers],
+            ));
+        });
+
+    Ok(peaks)
+}
+
+/// A max (or) filter of the `dims` = [x, y, z] volume `v` (x fastest) along each axis in
+/// turn: output cell c along an axis is the or of the input cells `window(c)`; the axes
+/// become `out` = [x, y, z] long.
+fn max_filter<W: Iterator<Item = usize>>(
+    v: &[f32],
+    [nx, ny, nz]: [usize; 3],
+    window: impl Fn(usize) -> W,
+    [ox, oy, oz]: [usize; 3],
+) -> Vec<f32> {
+    // Along x: rows of nx → ox.
+    let mut a = vec![f32::NEG_INFINITY; ox * ny * nz];
+    for (src, dst) in v.chunks_exact(nx).zip(a.chunks_exact_mut(ox)) {
+        for (c, d) in dst.iter_mut().enumerate() {
+            *d = window(c).map(|i| src[i]).fold(f32::NEG_INFINITY, f32::max);
+        }
+    }
+    // Along y: planes of ox·ny → ox·oy.
+    let mut b = vec![f32::NEG_INFINITY; ox * oy * nz];
+    for (src, dst) in a.chunks_exact(ox * ny).zip(b.chunks_exact_mut(ox * oy)) {
+        for (c, row) in dst.chunks_exact_mut(ox).enumerate() {
+            for i in window(c) {
+                for (d, s) in row.iter_mut().zip(&src[i * ox..(i + 1) * ox]) {
+                    *d = d.max(*s);
+                }
+            }
+        }
+    }
+    // Along z: planes of ox·oy, nz → oz.
+    let plane = ox * oy;
+    let mut c = vec![f32::NEG_INFINITY; plane * oz];
+    for (k, dst) in c.chunks_exact_mut(plane).enumerate() {
+        for i in window(k) {
+            for (d, s) in dst.iter_mut().zip(&b[i * plane..(i + 1) * plane]) {
+                *d = d.max(*s);
+            }
+        }
+    }
+    c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::ClosureFn;
+
+    const UNIT: ([f32; 3], [f32; 3]) = ([-1.0; 3], [1.0; 3]);
+
+    #[test]
+    fn a_field_in_one_cell_marks_it_and_its_26_neighbours() {
+        // 8³ cells of width 0.25 over [-1, 1]³: cell (5, 2, 3) spans x in [0.25, 0.5),
+        // y in [-0.5, -0.25), z in [-0.25, 0). The field is non-zero on a small ball around
+        // the cell's center, which only the center probe sees.
+        let center = [0.375f32, -0.375, -0.125];
+        let field = ClosureFn::new(3, 4, move |p, out| {
+            let d2: f32 = (0..3).map(|i| (p[i] - center[i]).powi(2)).sum();
+            out.fill(0.0);
+            out[0] = if d2 < 0.01 { 0.5 } else { 0.0 };
+        });
+        let grid = OccupancyGrid::build(&field, UNIT, 8, Mode::Opacity, 1e-3).unwrap();
+        for z in 0..8usize {
+            for y in 0..8usize {
+                for x in 0..8usize {
+                    let near = x.abs_diff(5) <= 1 && y.abs_diff(2) <= 1 && z.abs_diff(3) <= 1;
+                    assert_eq!(grid.cell(x, y, z), near, "cell ({x}, {y}, {z})");
+                }
+            }
+        }
+        assert_eq!(grid.occupied_cells(), 27);
+        assert!(grid.occupied(center));
+        assert!(grid.occupied([0.6, -0.6, 0.1]));
+        assert!(!grid.occupied([0.8, -0.6, 0.1]));
+        // Dilation stops at the bounds: a field in a corner cell marks 2³ cells.
+        let corner = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = if p.iter().all(|&x| x > 0.9) { 1.0 } else { 0.0 };
+        });
+        let grid = OccupancyGrid::build(&corner, UNIT, 8, Mode::Density, 0.0).unwrap();
+        assert_eq!(grid.occupied_cells(), 8);
+        assert!(grid.cell(6, 6, 6) && grid.cell(7, 7, 7) && !grid.cell(5, 7, 7));
+        // The upper bound belongs to the last cell; outside and NaN are empty.
+        assert!(grid.occupied([1.0, 1.0, 1.0]));
+        assert!(!grid.occupied([1.001, 1.0, 1.0]));
+        assert!(!grid.occupied([f32::NAN, 1.0, 1.0]));
+    }
+
+    #[test]
+    fn zero_fields_are_empty_and_nan_is_occupied() {
+        let zero = ClosureFn::new(6, 4, |_, out| out.fill(0.0));
+        let grid = OccupancyGrid::build(&zero, UNIT, 16, Mode::Density, 0.0).unwrap();
+        assert_eq!((grid.occupied_cells(), grid.occupancy()), (0, 0.0));
+        let nan = ClosureFn::new(3, 1, |_, out| out[0] = f32::NAN);
+        let grid = OccupancyGrid::build(&nan, UNIT, 4, Mode::Opacity, 0.5).unwrap();
+        assert_eq!(grid.occupancy(), 1.0);
+    }
+
+    #[test]
+    fn a_training_grid_of_a_faint_field_keeps_its_denser_half() {
+        // σ = 0.01 in the half x > 0, 0.001 elsewhere: all below the threshold 0.3.
+        let faint = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = if p[0] > 0.0 { 0.01 } else { 0.001 };
+        });
+        let bounds = ([-1.0; 3], [1.0; 3]);
+        let plain = OccupancyGrid::build(&faint, bounds, 16, Mode::Density, 0.3).unwrap();
+        assert_eq!(plain.occupied_cells(), 0);
+        let training = OccupancyGrid::build_for_training(&faint, bounds, 16, Mode::Density, 0.3).unwrap();
+        // The cells of x > 0 (and the dilated layer next to them), none further.
+        for x in 0..16 {
+            let expected = x >= 7;
+            assert!(
+                (0..16).all(|y| (0..16).all(|z| training.cell(x, y, z) == expected)),
+                "x = {x}"
+            );
+        }
+        // A field above the threshold somewhere keeps the threshold.
+        let bright = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = if p[0] > 0.5 { 100.0 } else { 0.2 };
+        });
+        let a = OccupancyGrid::build(&bright, bounds, 16, Mode::Density, 0.3).unwrap();
+        let b = OccupancyGrid::build_for_training(&bright, bounds, 16, Mode::Density, 0.3).unwrap();
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn ray_intervals_cover_the_box() {
+        let grid = OccupancyGrid::build(
+            &ClosureFn::new(3, 1, |_, o| o[0] = 1.0),
+            UNIT,
+            2,
+            Mode::Opacity,
+            0.5,
+        )
+        .unwrap();
+        let (t0, t1) = grid.ray_interval([0.0, 0.0, -3.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((t0 - 2.0).abs() < 1e-3 && (t1 - 4.0).abs() < 1e-3, "{t0} {t1}");
+        assert!(grid.ray_interval([0.0, 2.0, -3.0], [0.0, 0.0, 1.0]).is_none());
+        assert!(grid.ray_interval([0.0, 0.0, -3.0], [0.0, 0.0, -1.0]).unwrap().1 < 0.0);
+        let d = 1.0 / 3f32.sqrt();
+        let (t0, t1) = grid.ray_interval([-2.0; 3], [d; 3]).unwrap();
+        assert!((t0 - 3f32.sqrt()).abs() < 1e-3 && (t1 - 3.0 * 3f32.sqrt()).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_grid_from_points_holds_the_cells_near_them() {
+        let bounds = ([-1.0; 3], [1.0; 3]);
+        // Cells of 0.25: (0.1, 0.1, 0.1) is in cell (4, 4, 4), (1, 1, 1) in the last, the rest outside.
+        let points = [
+            [0.1, 0.1, 0.1],
+            [1.0, 1.0, 1.0],
+            [2.0, 0.0, 0.0],
+            [f32::NAN, 0.0, 0.0],
+        ];
+        let grid = OccupancyGrid::from_points(bounds, 8, &points, 1).unwrap();
+        let near = |c: usize, at: usize| c.abs_diff(at) <= 1;
+        for (x, y, z) in (0..512).map(|i| (i % 8, i / 8 % 8, i / 64)) {
+            let want = (near(x, 4) && near(y, 4) && near(z, 4)) || (x >= 6 && y >= 6 && z >= 6);
+            assert_eq!(grid.cell(x, y, z), want, "cell ({x}, {y}, {z})");
+        }
+        assert_eq!(grid.occupied_cells(), 27 + 8);
+        let exact = OccupancyGrid::from_points(bounds, 8, &points[..1], 0).unwrap();
+        assert_eq!(exact.occupied_cells(), 1);
+        assert!(exact.occupied([0.2, 0.2, 0.2]) && !exact.occupied([0.3, 0.2, 0.2]));
+        assert!(OccupancyGrid::from_points(bounds, 0, &points, 1).is_err());
+    }
+
+    #[test]
+    fn bad_arguments_are_errors() {
+        let f = ClosureFn::new(3, 4, |_, out| out.fill(0.0));
+        assert!(OccupancyGrid::build(&f, ([0.0; 3], [1.0, 0.0, 1.0]), 4, Mode::Opacity, 0.1).is_err());
+        assert!(OccupancyGrid::build(&f, UNIT, 0, Mode::Opacity, 0.1).is_err());
+        assert!(OccupancyGrid::build(&f, UNIT, MAX_RESOLUTION + 1, Mode::Opacity, 0.1).is_err());
+        assert!(OccupancyGrid::build(&f, UNIT, 4, Mode::Opacity, 1.0).is_err());
+        assert!(OccupancyGrid::build(&f, UNIT, 4, Mode::Density, f32::NAN).is_err());
+        let g = ClosureFn::new(2, 4, |_, out| out.fill(0.0));
+        assert!(OccupancyGrid::build(&g, UNIT, 4, Mode::Opacity, 0.1).is_err());
+    }
+}

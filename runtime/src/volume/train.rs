@@ -1,0 +1,832 @@
+//! One training step of a volume-rendered field: sample, evaluate, composite, MSE against
+//! target colors, and back through the compositor and the field to the field's parameters.
+//!
+//! Rays are cut into tiles of about [`TILE_POINTS`](crate::volume::render::TILE_POINTS) sample
+//! points laid out sample-major (sample j of ray k at `j·rays + k`), evaluated in one field
+//! call, composited and back-propagated across rays (loops that vectorize), then passed to
+//! one call of the field's backward pass with their cotangents. Tiles are grouped into
+//! chunks of about [`CHUNK_POINTS`] points; chunk c adds its gradients to accumulator
+//! c mod [`ACCUMULATORS`], whose chunks run in order in one parallel task, and the accumulators are
+//! summed in order, so a step's result does not depend on the number of threads. Accumulators
+//! are kept between steps (a hash grid's gradient has millions of entries: fresh memory every step
+//! would be faulted in page by page).
+
+use std::sync::Mutex;
+
+use rayon::prelude::*;
+
+use crate::cameras::rays::RayBatch;
+use crate::error::{Error, Result};
+use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
+use crate::rng::Rng;
+use crate::training::metrics::psnr;
+use crate::volume::composite::{Compositor, RayOutput, LAST_DELTA};
+use crate::volume::importance;
+use crate::volume::occupancy::OccupancyGrid;
+use crate::volume::render::{check_field, with_scratch, Scratch, VolumeSettings, CHUNK_SAMPLES};
+use crate::volume::sampler::jittered_depth;
+
+/// Sample points per chunk of tiles.
+pub const CHUNK_POINTS: usize = 32768;
+
+/// Gradient accumulators of a step at most (its parallel tasks).
+pub const ACCUMULATORS: usize = 4;
+
+/// Accumulators given back by earlier steps, for the next ones.
+static SPARE_ACCUMULATORS: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+
+/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length.
+fn accumulator(n: usize) -> Vec<f32> {
+    let spare = SPARE_ACCUMULATORS.lock().map(|mut s| s.pop()).unwrap_or(None);
+    match spare {
+        Some(mut grads) if grads.len() == n => {
+            grads.fill(0.0);
+            grads
+        }
+        _ => vec![0.0; n],
+    }
+}
+
+/// Gives a step's gradient (its [`StepResult::param_grads`], once used) back as an accumulator for
+/// the next steps; optional, it saves faulting in fresh memory for large tables.
+pub fn recycle(grads: Vec<f32>) {
+    if let Ok(mut spare) = SPARE_ACCUMULATORS.lock() {
+        if spare.len() < 2 * ACCUMULATORS {
+            spare.push(grads);
+        }
+    }
+}
+
+/// The outcome of [`volume_step`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepResult {
+    /// Mean squared error over rays and color channels.
+    pub loss: f32,
+    /// PSNR of that error for colors in [0, 1].
+    pub psnr: f32,
+    /// With hierarchical sampling: the coarse pass's error (`loss` is the fine pass's).
+    pub coarse_loss: Option<f32>,
+    /// ∂loss/∂θ for the parameters θ of the field (length `vjp.n_params()`).
+    pub param_grads: Vec<f32>,
+}
+
+/// The fine pass of hierarchical sampling: a second field evaluated at the coarse depths plus
+/// `importance` depths drawn from the coarse weights (see [`crate::volume::importance`]).
+pub struct FinePass<'a> {
+    /// The fine field.
+    pub field: &'a dyn BatchFn,
+    /// Its backward pass.
+    pub vjp: &'a dyn BatchVjp,
+    /// Depths drawn per ray from the coarse weights.
+    pub importance: usize,
+}
+
+/// What a training step may add to plain volume rendering.
+#[derive(Clone, Copy, Default)]
+pub struct StepOptions<'a> {
+    /// Hierarchical sampling: the fine pass.
+    pub fine: Option<&'a FinePass<'a>>,
+    /// Empty-space skipping: samples in the grid's empty cells (or outside it) are neither
+    /// evaluated nor back-propagated; they composite as empty space.
+    pub grid: Option<&'a OccupancyGrid>,
+}
+
+/// What every tile of a step needs to know.
+struct Job<'a> {
+    rays: &'a RayBatch,
+    targets: &'a [[f32; 3]],
+    field: &'a dyn BatchFn,
+    vjp: &'a dyn BatchVjp,
+    settings: &'a VolumeSettings,
+    /// The fine pass and its settings (samples = coarse + importance), if sampling is hierarchical.
+    fine: Option<(&'a FinePass<'a>, VolumeSettings)>,
+    grid: Option<&'a OccupancyGrid>,
+    /// The depths of every ray when they are not jittered.
+    fixed_depths: Option<Vec<f32>>,
+    /// ∂loss/∂color = scale·(color − target).
+    scale: f32,
+}
+
+/// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
+/// summed squared error (of the coarse pass, then of the fine pass if there is one). Jitter, if
+/// any, comes from a generator seeded with `seed`.
+fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, grads: &mut [f32]) -> [f64; 2] {
+    let samples = job.settings.samples;
+    let len = n * samples;
+    s.reserve(len, n);
+    let mut rng = Rng::new(seed);
+    let depths = &mut s.depths[..len];
+    match &job.fixed_depths {
+        Some(fixed) => {
+            for (row, &t) in depths.chunks_exact_mut(n).zip(fixed) {
+                row.fill(t);
+            }
+        }
+        None => {
+            let VolumeSettings {
+                near, far, spacing, ..
+            } = *job.settings;
+            let bin = (far - near) / samples as f32;
+            for k in 0..n {
+                for j in 0..samples {
+                    depths[j * n + k] = spacing.warp(near, far, jittered_depth(near, bin, j, rng.next_f32()));
+                }
+            }
+        }
+    }
+    let coarse = run_pass(job, job.field, job.vjp, job.settings, s, first, n, grads);
+    let Some((fine, fine_settings)) = &job.fine else {
+        return [coarse, 0.0];
+    };
+    let jitter = job.fixed_depths.is_none().then_some(&mut rng);
+    let fine_depths = importance_depths(job.settings, fine.importance, s, n, jitter);
+    s.reserve(fine_depths.len(), n);
+    s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
+    let fine_error = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
+    [coarse, fine_error]
+}
+
+/// The fine depths of the tile's `n` rays (sample-major): the coarse depths in `s.depths` merged with
+/// `importance` depths drawn from the coarse weights (stratified with `jitter`, else at bin centers).
+fn importance_depths(
+    coarse: &VolumeSettings,
+    importance: usize,
+    s: &Scratch,
+    n: usize,
+    mut jitter: Option<&mut Rng>,
+) -> Vec<f32> {
+    let m = coarse.samples;
+    let compositor = coarse.compositor();
+    let total = m + importance;
+    let mut fine = vec![0.0; n * total];
+    let (mut t, mut raw, mut w) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
+    let (mut u, mut drawn, mut merged) = (Vec::new(), vec![0.0; importance], vec![0.0; total]);
+    for k in 0..n {
+        for j in 0..m {
+            t[j] = s.depths[j * n + k];
+            raw[j] = s.outputs[0][j * n + k];
+        }
+        importance::ray_weights(&compositor, &t, &raw, &mut w);
+        match jitter.as_deref_mut() {
+            Some(rng) => importance::quantiles(importance, Some(&mut || rng.next_f32()), &mut u),
+            None => importance::quantiles(importance, None, &mut u),
+        }
+        importance::inverse_cdf(coarse.near, coarse.far, &t, &w, &u, &mut drawn);
+        importance::merge_sorted(&t, &drawn, &mut merged);
+        for (j, &d) in merged.iter().enumerate() {
+            fine[j * n + k] = d;
+        }
+    }
+    fine
+}
+
+/// Evaluates `field` at the depths in `s.depths` of rays `first..first + n`, composites, and adds
+/// the gradient of the MSE through `vjp` to `grads`; returns the summed squared error.
+#[allow(clippy::too_many_arguments)]
+fn run_pass(
+    job: &Job,
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    s: &mut Scratch,
+    first: usize,
+    n: usize,
+    grads: &mut [f32],
+) -> f64 {
+    let len = n * settings.samples;
+    let view_dependent = field.n_inputs() == 6;
+    let Scratch {
+        inputs: [x, y, z, vx, vy, vz],
+        outputs: [raw, r, g, b],
+        cotangents: [g_raw, g_r, g_g, g_b],
+        depths,
+        lanes,
+        ..
+    } = s;
+    let depths = &depths[..len];
+    let rays = first..first + n;
+    let rb = job.rays;
+    let (ox, oy, oz) = (&rb.ox[rays.clone()], &rb.oy[rays.clone()], &rb.oz[rays.clone()]);
+    let (dx, dy, dz) = (&rb.dx[rays.clone()], &rb.dy[rays.clone()], &rb.dz[rays]);
+    for (j, t) in depths.chunks_exact(n).enumerate() {
+        let row = j * n..(j + 1) * n;
+        let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
+        for k in 0..n {
+            x[k] = ox[k] + dx[k] * t[k];
+            y[k] = oy[k] + dy[k] * t[k];
+            z[k] = oz[k] + dz[k] * t[k];
+        }
+        if view_dependent {
+            vx[row.clone()].copy_from_slice(dx);
+            vy[row.clone()].copy_from_slice(dy);
+            vz[row].copy_from_slice(dz);
+        }
+    }
+    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
+    let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
+    let compositor = settings.compositor();
+    let evaluated = evaluate(
+        field,
+        &compositor,
+        job.grid,
+        inputs,
+        depths,
+        n,
+        [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
+    );
+    let mut squared_error = 0.0f64;
+    lanes.reset(n);
+    lanes.forward_backward(
+        &compositor,
+        depths,
+        &raw[..len],
+        [&r[..len], &g[..len], &b[..len]],
+        [
+            &mut g_raw[..len],
+            &mut g_r[..len],
+            &mut g_g[..len],
+            &mut g_b[..len],
+        ],
+        |k, out| {
+            let target = job.targets[first + k];
+            let error = [0, 1, 2].map(|c| out.rgb[c] - target[c]);
+            squared_error += error.iter().map(|e| f64::from(e * e)).sum::<f64>();
+            RayOutput {
+                rgb: error.map(|e| job.scale * e),
+                ..RayOutput::default()
+            }
+        },
+    );
+    let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
+    let backward = match (compositor.early_termination, evaluated) {
+        // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
+        (Some(_), Some(index)) => {
+            let nonzero = |&i: &usize| cotangents.iter().any(|c| c[i] != 0.0);
+            Some(index.into_iter().filter(nonzero).collect())
+        }
+        (_, index) => index,
+    };
+    match backward {
+        None => vjp.vjp(len, inputs, &cotangents, grads),
+        Some(index) => vjp_at(vjp, inputs, &index, &cotangents, grads),
+    }
+    squared_error
+}
+
+/// Evaluates `field` at the tile's samples (sample-major, `n` rays) that can contribute, writing zeros
+/// (empty space) for the others; returns the indices evaluated, or `None` if all were. With a grid,
+/// samples in its empty cells are skipped. With early termination, the depths go in groups of
+/// [`CHUNK_SAMPLES`] and a group evaluates only the rays whose transmittance before it is still at the
+/// threshold: every sample the compositor counts is evaluated.
+fn evaluate(
+    field: &dyn BatchFn,
+    compositor: &Compositor,
+    grid: Option<&OccupancyGrid>,
+    inputs: &[&[f32]],
+    depths: &[f32],
+    n: usize,
+    mut outputs: [&mut [f32]; 4],
+) -> Option<Vec<usize>> {
+    let len = depths.len();
+    let occupied = |i: usize| grid.is_none_or(|g| g.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]));
+    let Some(threshold) = compositor.early_termination else {
+        if grid.is_none() {
+            let [raw, r, g, b] = outputs;
+            field.eval(len, inputs, &mut [raw, r, g, b]);
+            return None;
+        }
+        let index: Vec<usize> = (0..len).filter(|&i| occupied(i)).collect();
+        eval_at(field, inputs, &index, outputs);
+        return Some(index);
+    };
+    let rows = len / n;
+    let mut transmittance = vec![1.0f32; n];
+    let mut index = Vec::with_capacity(len);
+    for group in (0..rows).step_by(CHUNK_SAMPLES) {
+        let group = group..(group + CHUNK_SAMPLES).min(rows);
+        let start = index.len();
+        for j in group.clone() {
+            let live = (0..n).filter(|&k| transmittance[k] >= threshold);
+            index.extend(live.map(|k| j * n + k).filter(|&i| occupied(i)));
+        }
+        let span = group.start * n..group.end * n;
+        let part = outputs.each_mut().map(|o| &mut o[span.clone()]);
+        let local: Vec<usize> = index[start..].iter().map(|&i| i - span.start).collect();
+        let inputs_here: Vec<&[f32]> = inputs.iter().map(|c| &c[span.clone()]).collect();
+        eval_at(field, &inputs_here, &local, part);
+        for j in group {
+            for (k, trans) in transmittance.iter_mut().enumerate() {
+                let i = j * n + k;
+                let delta = if j + 1 < rows {
+                    depths[i + n] - depths[i]
+                } else {
+                    LAST_DELTA
+                };
+                *trans *= compositor.alpha(outputs[0][i], delta).1;
+            }
+        }
+    }
+    Some(index)
+}
+
+/// Evaluates `field` at the samples `index` of the columns `inputs` (gathered into one dense call) and
+/// scatters the results into `outputs`, which are zero elsewhere.
+fn eval_at(field: &dyn BatchFn, inputs: &[&[f32]], index: &[usize], outputs: [&mut [f32]; 4]) {
+    let m = index.len();
+    let gathered = gather(inputs, index);
+    let ins: Vec<&[f32]> = gathered.iter().map(Vec::as_slice).collect();
+    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
+    let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
+    field.eval(m, &ins, &mut refs);
+    for (out, values) in outputs.into_iter().zip(&packed) {
+        out.fill(0.0);
+        for (&i, &v) in index.iter().zip(values) {
+            out[i] = v;
+        }
+    }
+}
+
+/// The backward pass of the samples `index` only.
+fn vjp_at(
+    vjp: &dyn BatchVjp,
+    inputs: &[&[f32]],
+    index: &[usize],
+    cotangents: &[&[f32]; 4],
+    grads: &mut [f32],
+) {
+    let ins = gather(inputs, index);
+    let cots = gather(cotangents, index);
+    let ins: Vec<&[f32]> = ins.iter().map(Vec::as_slice).collect();
+    let cots: Vec<&[f32]> = cots.iter().map(Vec::as_slice).collect();
+    vjp.vjp(index.len(), &ins, &cots, grads);
+}
+
+/// The entries `index` of each column.
+fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
+    columns
+        .iter()
+        .map(|c| index.iter().map(|&i| c[i]).collect())
+        .collect()
+}
+
+/// One training step on `rays` with target colors `targets` (one per ray): samples each ray
+/// between `settings.near` and `settings.far` (`linspace` spread by the settings' spacing, or stratified with uniform jitter
+/// drawn from `jitter` when given), evaluates `field`, composites, takes the mean squared
+/// error over rays and channels, and back-propagates it through the compositor and `vjp`
+/// (the field's backward pass) to the field's parameters.
+pub fn volume_step(
+    rays: &RayBatch,
+    targets: &[[f32; 3]],
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    jitter: Option<&mut Rng>,
+) -> Result<StepResult> {
+    volume_step_with(
+        rays,
+        targets,
+        field,
+        vjp,
+        settings,
+        StepOptions::default(),
+        jitter,
+    )
+}
+
+/// [`volume_step`] with options. With hierarchical sampling, `field` is the coarse field, sampled
+/// as in [`volume_step`]; `options.fine` is evaluated at those depths and `fine.importance` more
+/// per ray drawn from the coarse compositing weights (stratified when jittering); the loss is the
+/// sum of both passes' MSE (both fields are trained) and the reported loss and PSNR are the fine
+/// pass's. With a grid, both passes skip the samples in its empty cells.
+pub fn volume_step_with(
+    rays: &RayBatch,
+    targets: &[[f32; 3]],
+    field: &dyn BatchFn,
+    vjp: &dyn BatchVjp,
+    settings: &VolumeSettings,
+    options: StepOptions,
+    jitter: Option<&mut Rng>,
+) -> Result<StepResult> {
+    let fine = options.fine;
+    if rays.is_empty() || targets.len() != rays.len() {
+        return Err(Error::Invalid(format!(
+            "a training step needs at least one ray and one target color per ray, got {} rays and {} targets",
+            rays.len(),
+            targets.len()
+        )));
+    }
+    rays.check()?;
+    settings.check()?;
+    check_field(field)?;
+    check_vjp_arity(vjp, field.n_inputs(), field.n_outputs())?;
+    if let Some(f) = fine {
+        check_field(f.field)?;
+        check_vjp_arity(f.vjp, f.field.n_inputs(), f.field.n_outputs())?;
+        if f.importance == 0 {
+            return Err(Error::Invalid(
+                "hierarchical sampling needs at least one importance sample".into(),
+            ));
+        }
+    }
+    let fine = fine.map(|f| {
+        let fine_settings = VolumeSettings {
+            samples: settings.samples + f.importance,
+            ..*settings
+        };
+        (f, fine_settings)
+    });
+    let tile = settings.rays_per_tile();
+    let n_tiles = rays.len().div_ceil(tile);
+    // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
+    let (fixed_depths, seeds) = match jitter {
+        Some(rng) => (None, (0..n_tiles).map(|_| rng.next_u64()).collect()),
+        None => {
+            let mut depths = vec![0.0; settings.samples];
+            settings.fixed_depths(&mut depths);
+            (Some(depths), vec![0; n_tiles])
+        }
+    };
+    let job = Job {
+        rays,
+        targets,
+        field,
+        vjp,
+        settings,
+        fine,
+        grid: options.grid,
+        fixed_depths,
+        scale: 2.0 / (3.0 * rays.len() as f32),
+    };
+    let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
+    let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
+    let n_tasks = n_chunks.min(ACCUMULATORS);
+    let n_params = vjp.n_params();
+    let tasks: Vec<([f64; 2], Vec<f32>)> = (0..n_tasks)
+        .into_par_iter()
+        .map(|task| {
+            let mut grads = accumulator(n_params);
+            let mut squared_error = [0.0; 2];
+            with_scratch(|s| {
+                for c in (task..n_chunks).step_by(n_tasks) {
+                    let tiles = c * tiles_per_chunk..((c + 1) * tiles_per_chunk).min(n_tiles);
+                    for t in tiles {
+                        let first = t * tile;
+                        let n = tile.min(rays.len() - first);
+                        let [coarse, fine] = train_tile(&job, s, first, n, seeds[t], &mut grads);
+                        squared_error[0] += coarse;
+                        squared_error[1] += fine;
+                    }
+                }
+            });
+            (squared_error, grads)
+        })
+        .collect();
+    let mut squared_error = [0.0; 2];
+    for (e, _) in &tasks {
+        squared_error[0] += e[0];
+        squared_error[1] += e[1];
+    }
+    let mut accumulators = tasks.into_iter().map(|(_, grads)| grads);
+    let mut param_grads = accumulators.next().unwrap_or_else(|| vec![0.0; n_params]);
+    let rest: Vec<Vec<f32>> = accumulators.collect();
+    // Element by element in task order: the same sums on any number of threads.
+    param_grads
+        .par_chunks_mut(1 << 16)
+        .enumerate()
+        .for_each(|(i, total)| {
+            for grads in &rest {
+                let part = &grads[i << 16..(i << 16) + total.len()];
+                for (t, g) in total.iter_mut().zip(part) {
+                    *t += g;
+                }
+            }
+        });
+    rest.into_iter().for_each(recycle);
+    let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
+    let (loss, coarse_loss) = match job.fine {
+        Some(_) => (mse(squared_error[1]), Some(mse(squared_error[0]))),
+        None => (mse(squared_error[0]), None),
+    };
+    Ok(StepResult {
+        loss,
+        psnr: psnr(loss),
+        coarse_loss,
+        param_grads,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cameras::camera::Camera;
+    use crate::field::{ClosureFn, ClosureVjp};
+    use crate::volume::composite::Mode;
+    use glam::{Vec2, Vec3};
+
+    /// A Gaussian blob e = exp(−|p − c|²) around c = (θ₁, θ₂, θ₃) of density (or opacity)
+    /// θ₀·e and color (θ₄·e, θ₅·|d_x|, θ₆·p_y) (d the view direction).
+    fn blob_value(theta: &[f32], p: &[f32]) -> [f32; 4] {
+        let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+        let e = (-(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])).exp();
+        [theta[0] * e, theta[4] * e, theta[5] * p[3].abs(), theta[6] * p[1]]
+    }
+
+    fn blob_vjp(theta: &[f32], p: &[f32], cot: &[f32], grads: &mut [f32]) {
+        let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+        let e = (-(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])).exp();
+        let d_e = cot[0] * theta[0] + cot[1] * theta[4];
+        grads[0] += cot[0] * e;
+        for i in 0..3 {
+            grads[1 + i] += d_e * e * 2.0 * q[i];
+        }
+        grads[4] += cot[1] * e;
+        grads[5] += cot[2] * p[3].abs();
+        grads[6] += cot[3] * p[1];
+    }
+
+    fn rays() -> RayBatch {
+        let cam = Camera::look_at(
+            Vec3::new(0.3, 0.5, -3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::splat(1.5),
+            Vec2::ZERO,
+        )
+        .unwrap();
+        RayBatch::random_pixels(&cam, 16, 16, 150, 5).unwrap().0
+    }
+
+    fn targets(n: usize) -> Vec<[f32; 3]> {
+        (0..n)
+            .map(|k| [0.1 * (k % 7) as f32, 0.5, 0.05 * (k % 13) as f32])
+            .collect()
+    }
+
+    /// 96 samples in [1, 5] of a density on a colored background.
+    fn blob_settings(early_termination: Option<f32>) -> VolumeSettings {
+        VolumeSettings {
+            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            near: 1.0,
+            far: 5.0,
+            samples: 96,
+            mode: Mode::Density,
+            background: Some([0.3, 0.9, 0.1]),
+            early_termination,
+        }
+    }
+
+    fn step(theta: &[f32], settings: &VolumeSettings, jitter: Option<&mut Rng>) -> StepResult {
+        let theta2 = theta.to_vec();
+        let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&theta2, p)));
+        let theta3 = theta.to_vec();
+        let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&theta3, p, c, g));
+        let rays = rays();
+        volume_step(&rays, &targets(rays.len()), &field, &vjp, settings, jitter).unwrap()
+    }
+
+    #[test]
+    fn gradients_match_finite_differences_of_the_loss() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        for mode in [Mode::Density, Mode::Opacity] {
+            let theta = match mode {
+                Mode::Density => theta,
+                Mode::Opacity => [0.05, theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]],
+            };
+            let settings = VolumeSettings {
+                spacing: crate::volume::sampler::DepthSpacing::Linear,
+                near: 1.0,
+                far: 5.0,
+                // Small tiles: several tiles and chunks per step.
+                samples: 1000,
+                mode,
+                background: Some([0.3, 0.9, 0.1]),
+                early_termination: None,
+            };
+            let result = step(&theta, &settings, None);
+            assert_eq!(result.param_grads.len(), 7);
+            assert!((result.psnr - psnr(result.loss)).abs() < 1e-6);
+            for i in 0..7 {
+                let h = 0.01 * theta[i].abs().max(0.1);
+                let (mut plus, mut minus) = (theta, theta);
+                plus[i] += h;
+                minus[i] -= h;
+                let fd = (step(&plus, &settings, None).loss - step(&minus, &settings, None).loss) / (2.0 * h);
+                let got = result.param_grads[i];
+                assert!(
+                    (got - fd).abs() <= 2e-3 * fd.abs().max(1e-2),
+                    "{mode:?} θ{i}: {got} vs {fd}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_step_gives_the_same_bits_on_any_number_of_threads() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        // 1000 samples a ray: tiles of a few rays, more chunks than accumulators.
+        let settings = VolumeSettings {
+            samples: 1000,
+            ..blob_settings(None)
+        };
+        let tile = settings.rays_per_tile();
+        let chunks = rays()
+            .len()
+            .div_ceil(tile * (CHUNK_POINTS / (tile * 1000)).max(1));
+        assert!(chunks > ACCUMULATORS, "{chunks} chunks");
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| step(&theta, &settings, Some(&mut Rng::new(7))))
+        };
+        let one = on(1);
+        for threads in [2, 3] {
+            let many = on(threads);
+            assert_eq!(one.loss.to_bits(), many.loss.to_bits());
+            let bits = |r: &StepResult| r.param_grads.iter().map(|g| g.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&one), bits(&many), "{threads} threads");
+        }
+    }
+
+    #[test]
+    fn grid_skipping_is_exact_where_the_field_is_empty_and_evaluates_less() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        // The blob cut to a ball of radius 0.7 around its center: zero outside.
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let inside = move |p: &[f32]| {
+            let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+            q[0] * q[0] + q[1] * q[1] + q[2] * q[2] < 0.49
+        };
+        let evaluated = AtomicUsize::new(0);
+        let field = ClosureFn::new(6, 4, |p, out| {
+            evaluated.fetch_add(1, Ordering::Relaxed);
+            let v = blob_value(&theta, p);
+            out.copy_from_slice(&if inside(p) { v } else { [0.0; 4] });
+        });
+        let vjp = ClosureVjp::new(6, 4, 7, |p, c, g| {
+            if inside(p) {
+                blob_vjp(&theta, p, c, g)
+            }
+        });
+        let settings = blob_settings(None);
+        let rays = rays();
+        let targets = targets(rays.len());
+        let exact = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let all = evaluated.swap(0, Ordering::Relaxed);
+        let grid = OccupancyGrid::build(&field, ([-1.5; 3], [1.5; 3]), 32, Mode::Density, 0.0).unwrap();
+        evaluated.store(0, Ordering::Relaxed);
+        let options = StepOptions {
+            fine: None,
+            grid: Some(&grid),
+        };
+        let skipped = volume_step_with(&rays, &targets, &field, &vjp, &settings, options, None).unwrap();
+        let some = evaluated.load(Ordering::Relaxed);
+        assert!(some * 3 < all, "{some} of {all} samples evaluated");
+        assert!((skipped.loss - exact.loss).abs() <= 1e-6 * exact.loss.max(1.0));
+        for (a, b) in skipped.param_grads.iter().zip(&exact.param_grads) {
+            assert!((a - b).abs() <= 1e-5 * b.abs().max(1e-3), "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn early_termination_evaluates_less_and_matches_every_sample_composited_one_by_one() {
+        use crate::volume::composite::{SampleGrads, Samples};
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        // A dense blob: rays through it end inside, so their later samples do not count.
+        let theta = [60.0f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let (evaluated, back_propagated) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let field = ClosureFn::new(6, 4, |p, out| {
+            evaluated.fetch_add(1, Ordering::Relaxed);
+            out.copy_from_slice(&blob_value(&theta, p));
+        });
+        let vjp = ClosureVjp::new(6, 4, 7, |p, c, g| {
+            back_propagated.fetch_add(1, Ordering::Relaxed);
+            blob_vjp(&theta, p, c, g)
+        });
+        let settings = blob_settings(Some(1e-3));
+        let rays = rays();
+        let targets = targets(rays.len());
+        let result = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let all = rays.len() * settings.samples;
+        let (some, fewer) = (
+            evaluated.load(Ordering::Relaxed),
+            back_propagated.load(Ordering::Relaxed),
+        );
+        assert!(some * 5 < all * 4, "{some} of {all} samples evaluated");
+        assert!(
+            fewer < some,
+            "{fewer} of {some} evaluated samples back-propagated"
+        );
+
+        // The reference: every sample evaluated, composited ray by ray, every sample back-propagated.
+        let compositor = settings.compositor();
+        let mut t = vec![0.0; settings.samples];
+        settings.fixed_depths(&mut t);
+        let (mut squared_error, mut grads) = (0.0f64, vec![0.0f32; 7]);
+        for (k, target) in targets.iter().enumerate() {
+            let (o, d) = rays.ray(k).unwrap();
+            let inputs: Vec<[f32; 6]> = t
+                .iter()
+                .map(|&t| {
+                    let p = o + t * d;
+                    [p.x, p.y, p.z, d.x, d.y, d.z]
+                })
+                .collect();
+            let values: Vec<[f32; 4]> = inputs.iter().map(|p| blob_value(&theta, p)).collect();
+            let column = |c: usize| values.iter().map(|v| v[c]).collect::<Vec<f32>>();
+            let (raw, r, g, b) = (column(0), column(1), column(2), column(3));
+            let samples = Samples::new(&t, &raw, [&r, &g, &b]).unwrap();
+            let mut sample_grads: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; t.len()]);
+            let [g_raw, g_r, g_g, g_b] = &mut sample_grads;
+            let mut out_grads = SampleGrads::new(g_raw, [g_r, g_g, g_b]).unwrap();
+            compositor
+                .forward_backward(&samples, &mut out_grads, |out| {
+                    let error = [0, 1, 2].map(|c| out.rgb[c] - target[c]);
+                    squared_error += error.iter().map(|e| f64::from(e * e)).sum::<f64>();
+                    RayOutput {
+                        rgb: error.map(|e| 2.0 / (3.0 * rays.len() as f32) * e),
+                        ..RayOutput::default()
+                    }
+                })
+                .unwrap();
+            for (j, p) in inputs.iter().enumerate() {
+                let cot = sample_grads.each_ref().map(|c| c[j]);
+                blob_vjp(&theta, p, &cot, &mut grads);
+            }
+        }
+        let loss = (squared_error / (3.0 * rays.len() as f64)) as f32;
+        assert!(
+            (result.loss - loss).abs() <= 1e-5 * loss,
+            "{} vs {loss}",
+            result.loss
+        );
+        for (a, b) in result.param_grads.iter().zip(&grads) {
+            assert!((a - b).abs() <= 1e-4 * b.abs().max(1e-3), "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn jitter_is_seeded_and_changes_the_samples() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let settings = VolumeSettings {
+            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            near: 1.0,
+            far: 5.0,
+            samples: 32,
+            mode: Mode::Density,
+            background: None,
+            early_termination: None,
+        };
+        let a = step(&theta, &settings, Some(&mut Rng::new(1)));
+        let b = step(&theta, &settings, Some(&mut Rng::new(1)));
+        let c = step(&theta, &settings, Some(&mut Rng::new(2)));
+        let fixed = step(&theta, &settings, None);
+        assert_eq!(a, b);
+        assert_ne!(a.loss, c.loss);
+        assert_ne!(a.loss, fixed.loss);
+        // Jittered and fixed samples estimate the same image.
+        assert!(
+            (a.loss - fixed.loss).abs() < 0.05 * fixed.loss,
+            "{} vs {}",
+            a.loss,
+            fixed.loss
+        );
+    }
+
+    #[test]
+    fn bad_arguments_are_errors() {
+        let rays = rays();
+        let field = ClosureFn::new(3, 4, |_, out| out.fill(0.5));
+        let vjp = ClosureVjp::new(3, 4, 1, |_, _, _| {});
+        let settings = VolumeSettings {
+            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            near: 0.0,
+            far: 5.0,
+            samples: 8,
+            mode: Mode::Opacity,
+            background: None,
+            early_termination: None,
+        };
+        let t = targets(rays.len());
+        let ok = volume_step(&rays, &t, &field, &vjp, &settings, None).unwrap();
+        // Opacity 0.5 per sample, color 0.5: the image is 0.5·(1 − 2⁻⁸) everywhere.
+        let c = 0.5 * (1.0 - 0.5f32.powi(8));
+        let mse = t.iter().flatten().map(|x| (x - c) * (x - c)).sum::<f32>() / (3 * t.len()) as f32;
+        assert!((ok.loss - mse).abs() < 1e-6, "{} vs {mse}", ok.loss);
+        assert_eq!(ok.param_grads, vec![0.0]);
+        let e = volume_step(&rays, &t[1..], &field, &vjp, &settings, None).unwrap_err();
+        assert!(e.to_string().contains("149 targets"), "{e}");
+        let vjp6 = ClosureVjp::new(6, 4, 1, |_, _, _| {});
+        assert!(volume_step(&rays, &t, &field, &vjp6, &settings, None).is_err());
+        let bad = VolumeSettings {
+            samples: 0,
+            ..settings
+        };
+        assert!(volume_step(&rays, &t, &field, &vjp, &bad, None).is_err());
+        assert!(volume_step(&RayBatch::default(), &[], &field, &vjp, &settings, None).is_err());
+        let mut broken = rays.clone();
+        broken.oy.pop();
+        assert!(volume_step(&broken, &t, &field, &vjp, &settings, None).is_err());
+    }
+}
