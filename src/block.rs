@@ -55,7 +55,7 @@ pub fn first_block<'p>(program: &'p Program, kind: Kind, script_dir: &str) -> Re
 }
 
 impl<'p> Block<'p> {
-    /// The settings of one block of `program`, of a kind the [schema](crate::schema) knows; relative
+    /// The settings of one block of `program`, of a kind the schema ([`crate::schema`]) knows; relative
     /// input files are looked up next to the script, outputs go to `out_dir` when given and are recorded
     /// in `outputs` (shared by the run's blocks).
     pub fn new(

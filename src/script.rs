@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use nerfjit_dsl::parser::MAX_SOURCE_BYTES;
+use nerfjit_dsl::MAX_SOURCE_BYTES;
 use nerfjit_dsl::{compile_with, Program};
 use nerfjit_runtime::data::input::read_text_at_most;
 

@@ -8,7 +8,7 @@
 //! cube by the bounds [−extent, extent]³ and clamped to it: points outside read the nearest face, and
 //! the read's derivative along a clamped axis is 0.
 //!
-//! The read of level l at p is Σ over the cell's 8 corners of w(corner)·table[corner], with the trilinear
+//! The read of level l at p is Σ over the cell's 8 corners of w(corner)·table\[corner\], with the trilinear
 //! weights w. Its derivative along axis a replaces that axis's factor (1 − f or f) by ∓res/(2·extent);
 //! along the same axis twice it is 0, so the mixed derivatives selected by a 3-bit mask close the set.
 

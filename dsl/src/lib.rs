@@ -1,9 +1,11 @@
 //! The `.sdf` language of nerfjit: source text to typed, differentiable IR.
 //!
-//! The pipeline, one module per stage: [`lexer`] → [`parser`] (to the [`ast`]) → [`program`] (names,
-//! params and their initial values) → [`elaborate`] (type checking and lowering, with [`builtins`] and the
-//! prelude) → [`ir`] graphs → [`autodiff`] and [`kernels`] (graph transforms) → [`interp`], the f64
-//! reference interpreter. Errors are [`diag::Diagnostic`]s with spans, printed with a caret.
+//! The facade: [`compile`] (or [`compile_with`], with `--set` overrides) turns a script into a
+//! [`Program`] whose functions lower to [`ir`] graphs; [`autodiff`] and [`kernels`] transform the graphs
+//! (gradients, VJPs, second order, interval bounds); [`interp`] is the f64 reference interpreter and
+//! [`interval`] its interval counterpart. Errors are [`Diagnostic`]s with spans, printed with a caret.
+//! Block settings stay as written ([`ast::ConfigBlock`], read through [`config`]). The stages behind
+//! `compile` (lexer, parser, elaboration with the builtins, `--set` overrides) are private.
 //!
 //! ```
 //! let program = nerfjit_dsl::compile("torus.sdf", "fn sdf(p: vec3) -> f32 = torus(p, 1.0, 0.25)").unwrap();
@@ -16,25 +18,26 @@
 pub mod ast;
 pub mod autodiff;
 pub mod budget;
-pub mod builtins;
+mod builtins;
 pub mod config;
 pub mod diag;
-pub mod elaborate;
+mod elaborate;
 pub mod grid;
 pub mod init;
 pub mod interp;
 pub mod interval;
 pub mod ir;
 pub mod kernels;
-pub mod lexer;
-pub mod overrides;
-pub mod parser;
+mod lexer;
+mod overrides;
+mod parser;
 pub mod program;
 pub mod types;
 mod validate;
 pub mod value;
 
 pub use diag::{Diagnostic, Report, Span};
+pub use parser::MAX_SOURCE_BYTES;
 pub use program::{compile, compile_with, Lowered, Program, Signature, PRELUDE};
 pub use types::Type;
 

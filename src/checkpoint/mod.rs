@@ -1,7 +1,7 @@
 //! Training checkpoints: params and optimizer state with the script that wrote them, written atomically
 //! (temporary file, then rename) so that an interrupted write never replaces a good checkpoint. The
-//! format follows the file name: a `.json` name gets readable JSON ([`json`]), any other the binary
-//! safetensors format ([`binary`]); both are read whatever the name.
+//! format follows the file name: a `.json` name gets readable JSON (`json`), any other the binary
+//! safetensors format (`binary`); both are read whatever the name.
 
 mod binary;
 mod json;
