@@ -323,7 +323,7 @@ const SCHEDULE: Setting = value(
 );
 const OPTIMIZER: Setting = value(
     "optimizer",
-    "adam(beta1, beta2, eps)",
+    "adam(beta1, beta2, eps, sparse)",
     Some(check_optimizer),
     "Adam's decay rates and epsilon",
 );

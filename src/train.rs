@@ -242,6 +242,9 @@ pub struct AdamSettings {
     pub beta2: f32,
     /// Added to √v̂ in the denominator.
     pub eps: f32,
+    /// Whether grid tables are updated as PyTorch's SparseAdam updates them (entries with a zero gradient
+    /// left alone), as instant-ngp does.
+    pub sparse: bool,
 }
 
 impl Default for AdamSettings {
@@ -251,18 +254,19 @@ impl Default for AdamSettings {
             beta1: 0.9,
             beta2: 0.999,
             eps: 1e-8,
+            sparse: false,
         }
     }
 }
 
-/// The `optimizer` setting: `adam(beta1: 0.9, beta2: 0.99, eps: 1e-15)` (every argument optional, the
-/// default Adam when the setting is absent).
+/// The `optimizer` setting: `adam(beta1: 0.9, beta2: 0.99, eps: 1e-15, sparse: true)` (every argument
+/// optional, the default Adam when the setting is absent).
 pub(crate) fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagnostic> {
     let defaults = AdamSettings::default();
     let Some(v) = v else {
         return Ok(defaults);
     };
-    let hint = "write adam(beta1: 0.9, beta2: 0.99, eps: 1e-15)";
+    let hint = "write adam(beta1: 0.9, beta2: 0.99, eps: 1e-15, sparse: true)";
     match &v.value {
         Value::Call(name, _) if name == "adam" => {}
         Value::Name(name) if name == "adam" => return Ok(defaults),
@@ -273,7 +277,7 @@ pub(crate) fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings,
             )
         }
     }
-    let a = CallArgs::new(&v, &["beta1", "beta2", "eps"])?;
+    let a = CallArgs::new(&v, &["beta1", "beta2", "eps", "sparse"])?;
     let decay = |slot: &str, default: f32| -> std::result::Result<f32, Diagnostic> {
         match a.raw(slot) {
             None => Ok(default),
@@ -288,6 +292,7 @@ pub(crate) fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings,
         beta1: decay("beta1", defaults.beta1)?,
         beta2: decay("beta2", defaults.beta2)?,
         eps,
+        sparse: a.choice("sparse", &["true", "false"], "false")? == "true",
     })
 }
 

@@ -816,7 +816,19 @@ fn optimizer_settings_are_checked_and_used() {
         stderr.contains("bad.sdf:6:28") && stderr.contains("out of range"),
         "{stderr}"
     );
-    let good = write(&dir, "good.sdf", &script("adam(beta2: 0.99, eps: 1e-15)"));
+    let bad = write(&dir, "bad.sdf", &script("adam(sparse: yes)"));
+    let out = nerfjit(&["run", &bad, "--out", &dir.display().to_string()], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("bad.sdf:6:29") && stderr.contains("'true' or 'false'"),
+        "{stderr}"
+    );
+    let good = write(
+        &dir,
+        "good.sdf",
+        &script("adam(beta2: 0.99, eps: 1e-15, sparse: true)"),
+    );
     let out = nerfjit(&["run", &good, "--out", &dir.display().to_string()], None);
     let (stdout, stderr) = text(&out);
     assert!(out.status.success(), "{stdout}{stderr}");

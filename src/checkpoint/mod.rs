@@ -8,7 +8,7 @@ mod json;
 
 use std::path::Path;
 
-use nerfjit_dsl::{budget, Program};
+use nerfjit_dsl::{budget, Program, Type};
 use nerfjit_runtime::Adam;
 
 use crate::failure::{Failure, Result};
@@ -127,7 +127,7 @@ pub fn resume_or_start(
     let n = params.len();
     let what = || format!("training {n} params (values, gradients and Adam's two moments)");
     budget::check(what, budget::bytes_of(n as u64, 16))?;
-    let fresh = || Ok((configured(Adam::new(n, lr(0)), settings), 0));
+    let fresh = || Ok((configured(Adam::new(n, lr(0)), settings, program), 0));
     let path = match checkpoint {
         Some(path) if resume && path.exists() => path,
         Some(path) if resume => {
@@ -158,7 +158,7 @@ pub fn resume_or_start(
     let mut adam = saved.adam;
     adam.lr = lr(saved.step);
     eprintln!("resuming from {} at step {}", path.display(), saved.step);
-    Ok((configured(adam, settings), saved.step))
+    Ok((configured(adam, settings, program), saved.step))
 }
 
 /// Each param of `program` as `name: type`.
@@ -170,11 +170,22 @@ fn param_layout(program: &Program) -> Vec<String> {
         .collect()
 }
 
-/// `adam` with the decay rates and ε of `settings`.
-fn configured(mut adam: Adam, settings: AdamSettings) -> Adam {
+/// `adam` with the decay rates and ε of `settings`, and `program`'s grid tables as its sparse ranges if
+/// `settings` asks for sparse updates.
+fn configured(mut adam: Adam, settings: AdamSettings, program: &Program) -> Adam {
     adam.beta1 = settings.beta1;
     adam.beta2 = settings.beta2;
     adam.eps = settings.eps;
+    adam.sparse = if settings.sparse {
+        program
+            .params
+            .iter()
+            .filter(|p| matches!(p.ty, Type::Grid(_)))
+            .map(|p| p.offset..p.offset + p.ty.scalars())
+            .collect()
+    } else {
+        Vec::new()
+    };
     adam
 }
 

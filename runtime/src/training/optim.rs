@@ -1,5 +1,7 @@
 //! Optimization: the Adam optimizer and learning-rate schedules.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -7,6 +9,11 @@ use crate::error::{Error, Result};
 /// Adam (Kingma & Ba) with bias correction, as `torch.optim.Adam` without weight decay:
 /// m ← β1·m + (1−β1)·g, v ← β2·v + (1−β2)·g², θ ← θ − lr·m̂/(√v̂ + ε) with
 /// m̂ = m/(1−β1ᵗ), v̂ = v/(1−β2ᵗ).
+///
+/// Params in the [`Adam::sparse`] ranges (grid tables) are updated as `torch.optim.SparseAdam` updates
+/// them: an entry whose gradient is exactly 0 in a step keeps its moments and its value (the step count
+/// t of the bias correction is the optimizer's, as in PyTorch); instant-ngp's optimizer also leaves
+/// untouched table entries alone.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Adam {
     /// Learning rate (set it from a [`Schedule`] before each step if it varies).
@@ -17,6 +24,8 @@ pub struct Adam {
     pub beta2: f32,
     /// Added to √v̂ in the denominator.
     pub eps: f32,
+    /// Disjoint ranges of params updated only where their gradient is non-zero (empty: none).
+    pub sparse: Vec<Range<usize>>,
     steps: u32,
     m: Vec<f32>,
     v: Vec<f32>,
@@ -30,6 +39,7 @@ impl Adam {
             beta1: 0.9,
             beta2: 0.999,
             eps: 1e-8,
+            sparse: Vec::new(),
             steps: 0,
             m: vec![0.0; n_params],
             v: vec![0.0; n_params],
@@ -51,28 +61,38 @@ impl Adam {
                 grads.len()
             )));
         }
+        let mut sparse = self.sparse.clone();
+        sparse.sort_by_key(|r| r.start);
+        let disjoint = sparse.windows(2).all(|w| w[0].end <= w[1].start);
+        if !disjoint || sparse.iter().any(|r| r.start > r.end || r.end > params.len()) {
+            return Err(Error::Invalid(format!(
+                "Adam's sparse ranges {:?} are not disjoint ranges of its {} parameters",
+                self.sparse,
+                params.len()
+            )));
+        }
         self.steps += 1;
         let t = self.steps as i32;
-        let (b1, b2) = (self.beta1, self.beta2);
-        let correction1 = 1.0 - b1.powi(t);
-        let correction2 = 1.0 - b2.powi(t);
-        let lr = self.lr;
-        let eps = self.eps;
-        // Element by element (the same result on any number of threads), in parallel blocks.
-        const BLOCK: usize = 1 << 14;
-        params
-            .par_chunks_mut(BLOCK)
-            .zip(grads.par_chunks(BLOCK))
-            .zip(self.m.par_chunks_mut(BLOCK).zip(self.v.par_chunks_mut(BLOCK)))
-            .for_each(|((params, grads), (m, v))| {
-                for ((p, g), (m, v)) in params.iter_mut().zip(grads).zip(m.iter_mut().zip(v)) {
-                    *m = b1 * *m + (1.0 - b1) * g;
-                    *v = b2 * *v + (1.0 - b2) * g * g;
-                    let m_hat = *m / correction1;
-                    let v_hat = *v / correction2;
-                    *p -= lr * m_hat / (v_hat.sqrt() + eps);
-                }
-            });
+        let update = Update {
+            b1: self.beta1,
+            b2: self.beta2,
+            correction1: 1.0 - self.beta1.powi(t),
+            correction2: 1.0 - self.beta2.powi(t),
+            lr: self.lr,
+            eps: self.eps,
+        };
+        // The dense stretches between the sparse ranges, then the sparse ranges.
+        let mut start = 0;
+        for range in sparse
+            .iter()
+            .cloned()
+            .chain(std::iter::once(params.len()..params.len()))
+        {
+            let dense = start..range.start;
+            update.run(params, grads, &mut self.m, &mut self.v, dense, false);
+            start = range.end;
+            update.run(params, grads, &mut self.m, &mut self.v, range, true);
+        }
         Ok(())
     }
 
@@ -125,6 +145,58 @@ impl Adam {
             v: state[1 + n_params..].to_vec(),
             ..Adam::new(n_params, lr)
         })
+    }
+}
+
+/// The coefficients of one Adam step.
+#[derive(Clone, Copy)]
+struct Update {
+    b1: f32,
+    b2: f32,
+    correction1: f32,
+    correction2: f32,
+    lr: f32,
+    eps: f32,
+}
+
+impl Update {
+    /// Updates the params in `range`, skipping those whose gradient is 0 if `sparse`. Element by element
+    /// (the same result on any number of threads), in parallel blocks.
+    fn run(
+        &self,
+        params: &mut [f32],
+        grads: &[f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        range: Range<usize>,
+        sparse: bool,
+    ) {
+        const BLOCK: usize = 1 << 14;
+        let Update {
+            b1,
+            b2,
+            correction1,
+            correction2,
+            lr,
+            eps,
+        } = *self;
+        let r = range;
+        params[r.clone()]
+            .par_chunks_mut(BLOCK)
+            .zip(grads[r.clone()].par_chunks(BLOCK))
+            .zip(m[r.clone()].par_chunks_mut(BLOCK).zip(v[r].par_chunks_mut(BLOCK)))
+            .for_each(|((params, grads), (m, v))| {
+                for ((p, &g), (m, v)) in params.iter_mut().zip(grads).zip(m.iter_mut().zip(v)) {
+                    if sparse && g == 0.0 {
+                        continue;
+                    }
+                    *m = b1 * *m + (1.0 - b1) * g;
+                    *v = b2 * *v + (1.0 - b2) * g * g;
+                    let m_hat = *m / correction1;
+                    let v_hat = *v / correction2;
+                    *p -= lr * m_hat / (v_hat.sqrt() + eps);
+                }
+            });
     }
 }
 
@@ -206,6 +278,84 @@ mod tests {
             "{p:?}"
         );
         assert_eq!(adam.steps(), 1);
+    }
+
+    /// Gradients of 6 params over 4 steps, some exactly 0 (and one -0).
+    fn gradients(k: usize) -> [f32; 6] {
+        let g = [0.5, 0.0, -1.5, 0.25, -0.0, 2.0];
+        std::array::from_fn(|i| {
+            if (i + k).is_multiple_of(3) {
+                0.0
+            } else {
+                g[i] * (k as f32 + 1.0)
+            }
+        })
+    }
+
+    #[test]
+    fn sparse_ranges_leave_untouched_entries_and_update_the_rest_as_dense_adam() {
+        let mut dense = Adam::new(6, 0.1);
+        let mut sparse = Adam {
+            sparse: vec![4..6, 1..3],
+            ..Adam::new(6, 0.1)
+        };
+        let (mut p_dense, mut p_sparse) = ([1.0f32; 6], [1.0f32; 6]);
+        for k in 0..4 {
+            let g = gradients(k);
+            let (before, moments) = (p_sparse, (sparse.m.clone(), sparse.v.clone()));
+            dense.step(&mut p_dense, &g).unwrap();
+            sparse.step(&mut p_sparse, &g).unwrap();
+            for i in 0..6 {
+                let in_sparse = (1..3).contains(&i) || (4..6).contains(&i);
+                if in_sparse && g[i] == 0.0 {
+                    assert_eq!(p_sparse[i].to_bits(), before[i].to_bits(), "step {k}, param {i}");
+                    assert_eq!((sparse.m[i], sparse.v[i]), (moments.0[i], moments.1[i]));
+                } else if !in_sparse {
+                    // Outside the sparse ranges: exactly dense Adam, zeros included.
+                    assert_eq!(p_sparse[i].to_bits(), p_dense[i].to_bits(), "step {k}, param {i}");
+                } else {
+                    assert_ne!(p_sparse[i], before[i], "step {k}, param {i} moves");
+                }
+            }
+        }
+        // Param 2 (sparse, its gradient 0 at step 1 only) ends elsewhere than dense Adam takes it.
+        assert_ne!(p_sparse[2].to_bits(), p_dense[2].to_bits());
+    }
+
+    #[test]
+    fn sparse_ranges_without_zero_gradients_give_dense_adam_bit_for_bit() {
+        let mut dense = Adam::new(5, 0.01);
+        let mut sparse = Adam {
+            sparse: vec![0..2, 3..5],
+            ..Adam::new(5, 0.01)
+        };
+        let (mut a, mut b) = ([0.1f32, 0.2, 0.3, 0.4, 0.5], [0.1f32, 0.2, 0.3, 0.4, 0.5]);
+        for k in 1..20 {
+            let g: Vec<f32> = (0..5)
+                .map(|i| (i as f32 + 1.0) * (k as f32).sin() + 0.01)
+                .collect();
+            dense.step(&mut a, &g).unwrap();
+            sparse.step(&mut b, &g).unwrap();
+        }
+        assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits));
+    }
+
+    #[test]
+    fn overlapping_or_outside_sparse_ranges_are_refused() {
+        for ranges in [
+            vec![0..3, 2..4],
+            vec![0..1, 3..7],
+            vec![0..1, Range { start: 3, end: 2 }],
+        ] {
+            let mut adam = Adam {
+                sparse: ranges.clone(),
+                ..Adam::new(5, 0.01)
+            };
+            let mut p = [0.0f32; 5];
+            let err = adam.step(&mut p, &[1.0; 5]).unwrap_err().to_string();
+            assert!(err.contains("sparse ranges"), "{ranges:?}: {err}");
+            assert_eq!(adam.steps(), 0);
+        }
     }
 
     #[test]
