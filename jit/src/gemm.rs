@@ -64,18 +64,15 @@ pub enum Backend {
 }
 
 impl Backend {
-    /// The widest backend this CPU runs (checked once).
+    /// The widest backend this CPU runs.
     pub fn best() -> Backend {
-        static BEST: OnceLock<Backend> = OnceLock::new();
-        *BEST.get_or_init(|| {
-            if has_avx512() {
-                Backend::Avx512
-            } else if has_avx2_fma() {
-                Backend::Avx2
-            } else {
-                Backend::Portable
-            }
-        })
+        if has_avx512() {
+            Backend::Avx512
+        } else if has_avx2_fma() {
+            Backend::Avx2
+        } else {
+            Backend::Portable
+        }
     }
 
     /// Every backend this CPU runs, widest first.

@@ -81,7 +81,8 @@ impl Adam {
             lr: self.lr,
             eps: self.eps,
         };
-        // The dense stretches between the sparse ranges, then the sparse ranges.
+        // Each stretch of dense params before a sparse range, then that range; the empty range at the end
+        // closes the last dense stretch.
         let mut start = 0;
         for range in sparse
             .iter()
