@@ -36,9 +36,23 @@ use crate::ir::{Graph, Op, V};
 /// finite in f32.
 pub const BOUND: f64 = 1e18;
 
+/// The relative margin by which the arguments of steps (`floor`, `sign`) are widened: far above the f32
+/// rounding of the values and of their bounds.
+const ROUNDING: f64 = 1e-4;
+
 /// The interval extension of `g`'s per-point outputs (reductions are not carried over): inputs
 /// `lo₀ … lo₍ₙ₋₁₎, hi₀ … hi₍ₙ₋₁₎` for n = `g.n_inputs`; outputs `lo` of each output of `g`, then `hi` of each.
 pub fn extend(g: &Graph) -> Graph {
+    let (mut out, pairs) = extend_pairs(g);
+    let los: Vec<V> = g.outputs.iter().map(|v| pairs[v.0 as usize].0).collect();
+    let his: Vec<V> = g.outputs.iter().map(|v| pairs[v.0 as usize].1).collect();
+    out.outputs = los.into_iter().chain(his).collect();
+    out.compact()
+}
+
+/// The interval graph of `g` (inputs as in [`extend`], no outputs yet) and the pair of values bounding each
+/// node of `g` (for the nodes the outputs do not need: a pair of zeros).
+fn extend_pairs(g: &Graph) -> (Graph, Vec<(V, V)>) {
     let mut out = Graph::new();
     let n = g.n_inputs;
     let mut pairs: Vec<(V, V)> = Vec::with_capacity(g.len());
@@ -53,11 +67,71 @@ pub fn extend(g: &Graph) -> Graph {
         };
         pairs.push(pair);
     }
-    let los: Vec<V> = g.outputs.iter().map(|v| pairs[v.0 as usize].0).collect();
-    let his: Vec<V> = g.outputs.iter().map(|v| pairs[v.0 as usize].1).collect();
-    out.outputs = los.into_iter().chain(his).collect();
     out.n_inputs = 2 * n;
-    out.compact()
+    (out, pairs)
+}
+
+/// Bounds of every node of a graph over boxes of inputs, evaluated by the reference interpreter in f64
+/// (for decisions per box, such as [`crate::simplify`]'s). The interval graph is built once.
+pub struct NodeBounds {
+    /// The interval graph whose outputs are the bounds of the live nodes: every `lo`, then every `hi`.
+    bounds: Graph,
+    /// For each node of the original graph, its place among the live nodes.
+    place: Vec<Option<usize>>,
+}
+
+impl NodeBounds {
+    /// Prepares the bounds of `g`'s nodes.
+    pub fn new(g: &Graph) -> NodeBounds {
+        let (mut bounds, pairs) = extend_pairs(g);
+        let live = g.live();
+        let mut place = vec![None; g.len()];
+        let mut los = Vec::new();
+        let mut his = Vec::new();
+        for (i, &(lo, hi)) in pairs.iter().enumerate() {
+            if live[i] {
+                place[i] = Some(los.len());
+                los.push(lo);
+                his.push(hi);
+            }
+        }
+        bounds.outputs = los.into_iter().chain(his).collect();
+        NodeBounds {
+            bounds: bounds.compact(),
+            place,
+        }
+    }
+
+    /// The bounds `(lo, hi)` of each node over the box `lo ≤ x ≤ hi` of inputs, with the params at `params`
+    /// (`None` for the nodes the outputs do not need).
+    pub fn eval(&self, lo: &[f64], hi: &[f64], params: &[f64]) -> Vec<Option<(f64, f64)>> {
+        let corners: Vec<f64> = lo.iter().chain(hi).copied().collect();
+        // The interval graph is elementwise (multi-valued ops bound to constants): a plain loop of the
+        // interpreter's semantics, without its general machinery, as this runs once per box.
+        let mut vals: Vec<f64> = Vec::with_capacity(self.bounds.len());
+        for op in self.bounds.ops() {
+            let v = match *op {
+                Op::Input(k) => corners.get(k as usize).copied().unwrap_or(f64::NAN),
+                Op::Param(k) => params.get(k as usize).copied().unwrap_or(f64::NAN),
+                _ => {
+                    let args = op.args();
+                    let mut a = [0.0; 3];
+                    for (slot, v) in a.iter_mut().zip(args.iter()) {
+                        *slot = vals[v.0 as usize];
+                    }
+                    crate::interp::apply(*op, &a[..args.len()])
+                }
+            };
+            vals.push(v);
+        }
+        let value = |v: &V| vals[v.0 as usize];
+        let live = self.bounds.outputs.len() / 2;
+        let (los, his) = self.bounds.outputs.split_at(live);
+        self.place
+            .iter()
+            .map(|p| p.map(|k| (value(&los[k]), value(&his[k]))))
+            .collect()
+    }
 }
 
 /// Builds the interval ops of one node into the interval graph.
@@ -152,6 +226,10 @@ impl Extender<'_> {
                 let zero = self.g.constant(0.0);
                 (self.push(Op::Max(zero, lo)), self.push(Op::Max(zero, hi)))
             }
+            // Steps: an argument that f32 rounding moves across an integer (or across 0) jumps by 1, so the
+            // argument's bounds are widened by the rounding margin first (p / p is 0.99999994 in f32 when
+            // computed as p · (1 / p), as the bounds of a quotient are).
+            Op::Floor(_) | Op::Sign(_) => (self.widen(lo, -1.0), self.widen(hi, 1.0)),
             _ => (lo, hi),
         };
         let f = |v: V| op.map_args(|_| v);
@@ -160,6 +238,16 @@ impl Extender<'_> {
             Op::Exp(_) | Op::Log(_) | Op::Softplus(_) | Op::TruncExp(_) => self.clamp(lo, hi),
             _ => (lo, hi),
         }
+    }
+
+    /// `v + direction · ROUNDING · (1 + |v|)`: a bound moved outwards by the f32 rounding margin.
+    fn widen(&mut self, v: V, direction: f64) -> V {
+        let abs = self.push(Op::Abs(v));
+        let scale = self.g.constant(direction * ROUNDING);
+        let one = self.g.constant(1.0);
+        let magnitude = self.push(Op::Add(abs, one));
+        let margin = self.push(Op::Mul(magnitude, scale));
+        self.push(Op::Add(v, margin))
     }
 
     /// `|a|`: `[max(lo, −hi, 0), max(−lo, hi)]`.

@@ -21,7 +21,7 @@
 //! assert_eq!(nerfjit_dsl::interp::eval_point(&g, &[3.0], &[]).outputs, vec![11.0]);
 //! ```
 
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 use std::fmt;
 
 /// A value in a [`Graph`]: the index of the node that computes it.
@@ -194,14 +194,14 @@ pub enum Op {
 
 impl Op {
     /// The values this op reads, but for the list operand of [`Op::Dense`] (use [`Graph::args`]).
-    pub fn args(&self) -> Vec<V> {
+    pub fn args(&self) -> Args {
         use Op::*;
-        match *self {
-            Const(_) | Input(_) | Param(_) | Dense(_) => vec![],
-            Pick(d, _) => vec![d],
-            Grid(r) => r.p.to_vec(),
+        let (vals, len) = match *self {
+            Const(_) | Input(_) | Param(_) | Dense(_) => ([V(0); 3], 0),
+            Pick(d, _) => ([d, V(0), V(0)], 1),
+            Grid(r) => (r.p, 3),
             Neg(a) | Abs(a) | Sign(a) | Floor(a) | Sqrt(a) | Exp(a) | Log(a) | Sin(a) | Cos(a) | Tan(a)
-            | Tanh(a) | Sigmoid(a) | Softplus(a) | TruncExp(a) => vec![a],
+            | Tanh(a) | Sigmoid(a) | Softplus(a) | TruncExp(a) => ([a, V(0), V(0)], 1),
             Add(a, b)
             | Sub(a, b)
             | Mul(a, b)
@@ -210,9 +210,10 @@ impl Op {
             | Max(a, b)
             | Lt(a, b)
             | Le(a, b)
-            | Eq(a, b) => vec![a, b],
-            Select(c, a, b) => vec![c, a, b],
-        }
+            | Eq(a, b) => ([a, b, V(0)], 2),
+            Select(c, a, b) => ([c, a, b], 3),
+        };
+        Args { vals, len }
     }
 
     /// The same op reading `f(arg)` for each argument, but for the list operand of [`Op::Dense`], which
@@ -290,13 +291,39 @@ impl Op {
     }
 }
 
+/// The arguments of an op ([`Op::args`]), held inline: no op reads more than three values.
+#[derive(Clone, Copy, Debug)]
+pub struct Args {
+    vals: [V; 3],
+    len: usize,
+}
+
+impl std::ops::Deref for Args {
+    type Target = [V];
+
+    fn deref(&self) -> &[V] {
+        &self.vals[..self.len]
+    }
+}
+
+impl IntoIterator for Args {
+    type Item = V;
+    type IntoIter = std::iter::Take<std::array::IntoIter<V, 3>>;
+
+    fn into_iter(self) -> Self::IntoIter {
+        self.vals.into_iter().take(self.len)
+    }
+}
+
 /// A graph of scalar ops with per-point outputs and per-batch reductions.
 #[derive(Clone, Debug, Default)]
 pub struct Graph {
     ops: Vec<Op>,
-    memo: HashMap<Op, V>,
+    /// Hash-consing of ops (Fx hashing: graphs of tens of thousands of nodes are rebuilt per box when
+    /// simplified, and SipHash dominated that).
+    memo: FxHashMap<Op, V>,
     lists: Vec<Vec<V>>,
-    list_memo: HashMap<Vec<V>, ListId>,
+    list_memo: FxHashMap<Vec<V>, ListId>,
     /// Values written per point, in order.
     pub outputs: Vec<V>,
     /// Values summed over all points of a batch, in order.
@@ -349,7 +376,7 @@ impl Graph {
     pub fn args(&self, op: &Op) -> Vec<V> {
         match op {
             Op::Dense(d) => self.list(d.x).to_vec(),
-            _ => op.args(),
+            _ => op.args().to_vec(),
         }
     }
 
@@ -495,8 +522,24 @@ impl Graph {
     /// A copy holding only the nodes that outputs and reductions need, rebuilt through [`Graph::push`]
     /// (dead-code elimination, with CSE and folding applied again). `n_inputs` is kept.
     pub fn compact(&self) -> Graph {
-        let live = self.live();
+        self.rebuild(&[]).0
+    }
+
+    /// [`Graph::compact`] where nodes may be replaced by one of their arguments: `alias[i]`, when given, is
+    /// the argument (a value of this graph) that stands for node `i`. Only what the outputs then need is
+    /// kept. Also gives, for each node of the new graph, the node of this graph it stands for (`None` for
+    /// none: a node folding made on the way).
+    pub fn rebuild(&self, alias: &[Option<V>]) -> (Graph, Vec<Option<V>>) {
+        // Each node's stand-in, through chains of aliases (arguments come first, so they are resolved).
+        let mut resolved: Vec<V> = (0..self.ops.len() as u32).map(V).collect();
+        for (i, a) in alias.iter().enumerate() {
+            if let Some(a) = a {
+                resolved[i] = resolved[a.0 as usize];
+            }
+        }
+        let live = self.live_through(&resolved);
         let mut out = Graph::new();
+        out.memo.reserve(live.iter().filter(|&&l| l).count());
         let mut map = vec![V(0); self.ops.len()];
         for (i, op) in self.ops.iter().enumerate() {
             if !live[i] {
@@ -504,15 +547,26 @@ impl Graph {
             }
             map[i] = match *op {
                 Op::Dense(d) => {
-                    let xs: Vec<V> = self.list(d.x).iter().map(|a| map[a.0 as usize]).collect();
+                    let xs: Vec<V> = self
+                        .list(d.x)
+                        .iter()
+                        .map(|a| map[resolved[a.0 as usize].0 as usize])
+                        .collect();
                     let list = out.intern_list(&xs);
                     out.insert(Op::Dense(Dense { x: list, ..d }))
                 }
                 // A read at a constant point is not folded: it reads the params.
-                Op::Grid(_) => out.insert(op.map_args(|a| map[a.0 as usize])),
-                _ => out.push(op.map_args(|a| map[a.0 as usize])),
+                Op::Grid(_) => out.insert(op.map_args(|a| map[resolved[a.0 as usize].0 as usize])),
+                _ => out.push(op.map_args(|a| map[resolved[a.0 as usize].0 as usize])),
             };
         }
+        let mut origin = vec![None; out.len()];
+        for (i, &new) in map.iter().enumerate().rev() {
+            if live[i] {
+                origin[new.0 as usize] = Some(V(i as u32));
+            }
+        }
+        let map: Vec<V> = resolved.iter().map(|r| map[r.0 as usize]).collect();
         let remap = |vs: &[V]| -> Vec<V> { vs.iter().map(|v| map[v.0 as usize]).collect() };
         out.outputs = remap(&self.outputs);
         out.reductions = remap(&self.reductions);
@@ -537,11 +591,17 @@ impl Graph {
             })
             .collect();
         out.n_inputs = self.n_inputs;
-        out
+        (out, origin)
     }
 
     /// Which nodes the outputs and reductions depend on.
     pub fn live(&self) -> Vec<bool> {
+        let identity: Vec<V> = (0..self.ops.len() as u32).map(V).collect();
+        self.live_through(&identity)
+    }
+
+    /// [`Graph::live`] where every read of node `i` reads node `stand_in[i]` instead.
+    fn live_through(&self, stand_in: &[V]) -> Vec<bool> {
         let mut live = vec![false; self.ops.len()];
         let outer = self.outer.iter().flat_map(|o| o.left.iter().chain(&o.right));
         let scatter = self
@@ -555,13 +615,16 @@ impl Graph {
             .chain(outer)
             .chain(scatter)
         {
-            live[v.0 as usize] = true;
+            live[stand_in[v.0 as usize].0 as usize] = true;
         }
         for i in (0..self.ops.len()).rev() {
-            if live[i] {
-                for a in self.args(&self.ops[i]) {
-                    live[a.0 as usize] = true;
-                }
+            if !live[i] {
+                continue;
+            }
+            let mut mark = |a: V| live[stand_in[a.0 as usize].0 as usize] = true;
+            match &self.ops[i] {
+                Op::Dense(d) => self.list(d.x).iter().for_each(|&a| mark(a)),
+                op => op.args().into_iter().for_each(mark),
             }
         }
         live

@@ -3,8 +3,9 @@
 //! The facade: [`compile`] (or [`compile_with`], with `--set` overrides) turns a script into a
 //! [`Program`] whose functions lower to [`ir`] graphs; [`autodiff`] and [`kernels`] transform the graphs
 //! (gradients, VJPs, second order, interval bounds); [`interp`] is the f64 reference interpreter and
-//! [`interval`] its interval counterpart. Errors are [`Diagnostic`]s with spans, printed with a caret.
-//! Block settings stay as written ([`ast::ConfigBlock`], read through [`config`]). The stages behind
+//! [`interval`] its interval counterpart; [`simplify`] restricts a graph to a box of inputs. Errors are
+//! [`Diagnostic`]s with spans, printed with a caret. Block settings stay as written ([`ast::ConfigBlock`],
+//! read through [`config`]). The stages behind
 //! `compile` (lexer, parser, elaboration with the builtins, `--set` overrides) are private.
 //!
 //! ```
@@ -32,6 +33,7 @@ mod lexer;
 mod overrides;
 mod parser;
 pub mod program;
+pub mod simplify;
 pub mod types;
 mod validate;
 pub mod value;

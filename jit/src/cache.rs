@@ -45,20 +45,33 @@ impl KernelCache {
         Self::default()
     }
 
-    /// The kernel of `graph`, compiled on first request.
+    /// The kernel of `graph`, compiled on first request. Threads compile different kernels at once (the
+    /// cache is not locked while compiling); two threads asking for the same new kernel at once may both
+    /// compile it, and both get the one cached first.
     pub fn get(&self, graph: &Graph, options: Options) -> Result<Arc<Kernel>, JitError> {
         let graph = graph.compact();
         let key = fingerprint(&graph);
-        let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((_, k)) = entries
-            .get(&key)
-            .and_then(|v| v.iter().find(|(g, _)| same(g, &graph)))
-        {
-            return Ok(k.clone());
+        if let Some(kernel) = self.find(key, &graph) {
+            return Ok(kernel);
         }
         let kernel = Arc::new(Kernel::compile(&graph, options)?);
-        entries.entry(key).or_default().push((graph, kernel.clone()));
+        let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
+        let bucket = entries.entry(key).or_default();
+        if let Some((_, first)) = bucket.iter().find(|(g, _)| same(g, &graph)) {
+            return Ok(first.clone());
+        }
+        bucket.push((graph, kernel.clone()));
         Ok(kernel)
+    }
+
+    /// The cached kernel of a compacted graph with fingerprint `key`.
+    fn find(&self, key: u64, graph: &Graph) -> Option<Arc<Kernel>> {
+        let entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
+        let bucket = entries.get(&key)?;
+        bucket
+            .iter()
+            .find(|(g, _)| same(g, graph))
+            .map(|(_, k)| k.clone())
     }
 
     /// How many kernels are cached.

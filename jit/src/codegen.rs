@@ -45,7 +45,7 @@ pub fn signature(sig: &mut Signature, ptr: types::Type) {
 }
 
 /// Which multiplications are folded into the add or subtract that is their only user (emitted as FMA).
-fn fused_muls(g: &Graph) -> Vec<bool> {
+pub(crate) fn fused_muls(g: &Graph) -> Vec<bool> {
     let live = g.live();
     let mut uses = vec![0u32; g.len()];
     for (i, op) in g.ops().iter().enumerate() {
@@ -83,6 +83,56 @@ fn fused_muls(g: &Graph) -> Vec<bool> {
         }
     }
     fused
+}
+
+/// Which operand of a fused multiply-add is negated (for a subtract).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Negate {
+    Nothing,
+    /// a − p·q = (−p)·q + a.
+    Product,
+    /// p·q − c = p·q + (−c).
+    Addend,
+}
+
+/// An add or subtract emitted as one FMA: `±p · q ± addend`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Fused {
+    pub p: V,
+    pub q: V,
+    pub addend: V,
+    pub negate: Negate,
+}
+
+/// The FMA an add or subtract `op` becomes, given the products that fuse ([`fused_muls`]); `None` for a
+/// plain add or subtract.
+pub(crate) fn sum_form(g: &Graph, fused: &[bool], op: &Op) -> Option<Fused> {
+    let (Op::Add(a, c) | Op::Sub(a, c)) = *op else {
+        return None;
+    };
+    let sub = matches!(op, Op::Sub(..));
+    let product = |x: V| match (fused[x.0 as usize], g.op(x)) {
+        (true, Op::Mul(p, q)) => Some((p, q)),
+        _ => None,
+    };
+    let pick = |yes: bool, negate: Negate| if yes { negate } else { Negate::Nothing };
+    match (product(a), product(c)) {
+        // a + p·q  or  a − p·q
+        (_, Some((p, q))) => Some(Fused {
+            p,
+            q,
+            addend: a,
+            negate: pick(sub, Negate::Product),
+        }),
+        // p·q + c  or  p·q − c
+        (Some((p, q)), None) => Some(Fused {
+            p,
+            q,
+            addend: c,
+            negate: pick(sub, Negate::Addend),
+        }),
+        (None, None) => None,
+    }
 }
 
 /// Emits the IR ops of one graph as f32x4 instructions.
@@ -146,27 +196,17 @@ impl<'g> GraphEmitter<'g> {
                 Op::Tanh(a) => s.tanh(v(a)),
                 Op::Sigmoid(a) => s.sigmoid(v(a)),
                 Op::Softplus(a) => s.softplus(v(a)),
-                Op::Add(a, c) | Op::Sub(a, c) => {
-                    let sub = matches!(op, Op::Sub(..));
-                    let product = |x: V| match (fused[x.0 as usize], g.op(x)) {
-                        (true, Op::Mul(p, q)) => Some((p, q)),
-                        _ => None,
-                    };
-                    match (product(a), product(c)) {
-                        // a + p·q  or  a − p·q
-                        (_, Some((p, q))) => {
-                            let pv = if sub { s.b.ins().fneg(v(p)) } else { v(p) };
-                            s.fma(pv, v(q), v(a))
-                        }
-                        // p·q + c  or  p·q − c
-                        (Some((p, q)), None) => {
-                            let cv = if sub { s.b.ins().fneg(v(c)) } else { v(c) };
-                            s.fma(v(p), v(q), cv)
-                        }
-                        (None, None) if sub => s.b.ins().fsub(v(a), v(c)),
-                        (None, None) => s.b.ins().fadd(v(a), v(c)),
+                Op::Add(a, c) | Op::Sub(a, c) => match sum_form(g, fused, op) {
+                    Some(Fused { p, q, addend, negate }) => {
+                        let neg =
+                            |s: &mut Simd, x: V, yes: bool| if yes { s.b.ins().fneg(v(x)) } else { v(x) };
+                        let pv = neg(&mut s, p, negate == Negate::Product);
+                        let cv = neg(&mut s, addend, negate == Negate::Addend);
+                        s.fma(pv, v(q), cv)
                     }
-                }
+                    None if matches!(op, Op::Sub(..)) => s.b.ins().fsub(v(a), v(c)),
+                    None => s.b.ins().fadd(v(a), v(c)),
+                },
                 Op::Mul(a, c) => s.b.ins().fmul(v(a), v(c)),
                 // Division by a constant is a multiplication by its reciprocal (within 1 ulp; much faster).
                 Op::Div(a, c) => match g.const_value(c) {

@@ -24,8 +24,10 @@ pub mod gemm;
 mod kernel;
 mod march;
 mod simd;
+mod tape;
 mod tiled;
 
 pub use cache::KernelCache;
 pub use kernel::{CompileStats, JitError, Kernel, Options};
 pub use march::{Marcher, Rays, Stop};
+pub use tape::{fused_products, Tape};

@@ -1,13 +1,16 @@
 //! Property tests of the interval extension ([`nerfjit_dsl::interval::extend`]) on random programs over
 //! every elementwise op: over random boxes, the bounds contain the function at random points of the box, in
-//! the f64 interpreter and in the JIT (f32, within the rounding margin callers keep).
+//! the f64 interpreter and in the JIT (f32, within the rounding margin callers keep). And tape
+//! simplification ([`nerfjit_dsl::simplify`]), which rests on those bounds: over random boxes, the simplified
+//! graph gives the original's values at random points of the box, in the interpreter and in the JIT.
 
 mod common;
 
-use common::jit_eval;
+use common::{close, jit_eval};
 use nerfjit_dsl::interp::eval_point;
 use nerfjit_dsl::interval::{extend, BOUND};
 use nerfjit_dsl::ir::{Graph, Op, V};
+use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_jit::Options;
 use proptest::prelude::*;
 
@@ -173,6 +176,87 @@ proptest! {
     }
 }
 
+proptest! {
+    // About a quarter of random graphs and boxes decide a choice.
+    #![proptest_config(ProptestConfig::with_cases(512))]
+
+    #[test]
+    fn simplified_graphs_give_the_same_values_in_the_interpreter(
+        gen in nodes(), (lo, hi, points) in boxes(), p in params()
+    ) {
+        let g = build(&gen);
+        let simplified = Simplifier::new(&g).simplify(&lo, &hi, &p);
+        prop_assert_eq!(simplified.graph.validate(), Ok(()));
+        prop_assert!(simplified.graph.len() <= g.compact().len());
+        for x in points.iter().filter(|x| defined(&g, x, &p)) {
+            let want = eval_point(&g, x, &p).outputs;
+            let got = eval_point(&simplified.graph, x, &p).outputs;
+            prop_assert_eq!(&got, &want, "at {:?} on box {:?}..{:?}\n{}\nsimplified:\n{}", x, lo, hi, g,
+                simplified.graph);
+        }
+    }
+
+    #[test]
+    fn simplified_kernels_give_the_same_values_in_the_jit(
+        gen in nodes(), (lo, hi, points) in boxes(), p in params()
+    ) {
+        let g = build(&gen);
+        // The box and its points as the JIT sees them: in f32.
+        let (lo, hi) = (f32s(&lo), f32s(&hi));
+        let points: Vec<Vec<f64>> = points.iter().map(|x| f32s(x).iter().zip(lo.iter().zip(&hi))
+            .map(|(&v, (&l, &h))| v.clamp(l, h)).collect()).collect();
+        let simplified = Simplifier::new(&g).simplify(&lo, &hi, &p);
+        let (want, _) = jit_eval(&g, &points, &p, Options::default());
+        let (got, _) = jit_eval(&simplified.graph, &points, &p, Options::default());
+        for ((x, got), want) in points.iter().zip(&got).zip(&want) {
+            if defined(&g, x, &p) {
+                // The same up to the constants simplification folds: in f64, where the JIT's polynomial
+                // for, e.g., tanh(−2) may differ in the last bit.
+                for (&a, &b) in got.iter().zip(want) {
+                    prop_assert!(close(a, f64::from(b), 1e-5, 1.0),
+                        "{:?} vs {:?} at {:?}\n{}\nsimplified:\n{}", got, want, x, g, simplified.graph);
+                }
+            }
+        }
+    }
+}
+
+/// A union of many spheres keeps, over a small box, the spheres that can be nearest there.
+#[test]
+fn a_union_of_spheres_keeps_the_nearest_ones_over_a_box() {
+    let mut g = Graph::new();
+    let p: Vec<V> = (0..3).map(|i| g.input(i)).collect();
+    let mut union: Option<V> = None;
+    for k in 0..20 {
+        // A sphere of radius 0.4 at (k, 0, 0).
+        let c = g.constant(f64::from(k));
+        let dx = g.push(Op::Sub(p[0], c));
+        let dx2 = g.push(Op::Mul(dx, dx));
+        let y2 = g.push(Op::Mul(p[1], p[1]));
+        let z2 = g.push(Op::Mul(p[2], p[2]));
+        let r2 = g.push(Op::Add(dx2, y2));
+        let r2 = g.push(Op::Add(r2, z2));
+        let r = g.push(Op::Sqrt(r2));
+        let radius = g.constant(0.4);
+        let d = g.push(Op::Sub(r, radius));
+        union = Some(union.map_or(d, |u| g.push(Op::Min(u, d))));
+    }
+    g.outputs.push(union.expect("20 spheres"));
+    g.n_inputs = 3;
+    let simplifier = Simplifier::new(&g);
+    // Around sphere 7 only sphere 7 can be nearest: the others are at least 0.5 away, it at most 0.1.
+    let s = simplifier.simplify(&[6.9, -0.1, -0.1], &[7.1, 0.1, 0.1], &[]);
+    let count = |g: &Graph| g.ops().iter().filter(|op| matches!(op, Op::Sqrt(_))).count();
+    assert_eq!(count(&g.compact()), 20);
+    assert_eq!(count(&s.graph), 1, "{}", s.graph);
+    assert_eq!(s.choices, 19);
+    let at = |g: &Graph| eval_point(g, &[7.05, 0.02, -0.03], &[]).outputs;
+    assert_eq!(at(&s.graph), at(&g));
+    // Over the whole row nothing is decided.
+    let whole = simplifier.simplify(&[-1.0, -1.0, -1.0], &[20.0, 1.0, 1.0], &[]);
+    assert_eq!((whole.choices, count(&whole.graph)), (0, 20));
+}
+
 /// A point's sphere distance is bounded tightly enough for pruning: the square is recognized.
 #[test]
 fn sphere_distance_bounds_are_tight() {
@@ -210,6 +294,32 @@ fn decided_comparisons_select_one_branch() {
     assert_eq!(at(1.0, 2.0), vec![10.0, 10.0]);
     assert_eq!(at(-2.0, -1.0), vec![-10.0, -10.0]);
     assert_eq!(at(-1.0, 1.0), vec![-10.0, 10.0]);
+}
+
+/// A step of a quotient that f32 rounds below an integer: floor(p / p) is 1, while the bounds of the
+/// quotient, p · (1 / p), are 0.99999994 in f32 for p = 41; the step's bounds still contain 1.
+#[test]
+fn steps_of_rounded_bounds_still_contain_the_value() {
+    let mut g = Graph::new();
+    let p = g.param(0);
+    let q = g.push(Op::Div(p, p));
+    let f = g.push(Op::Floor(q));
+    let x = g.input(0);
+    let s = g.push(Op::Sub(x, q));
+    let sign = g.push(Op::Sign(s));
+    g.outputs = vec![f, sign];
+    g.n_inputs = 1;
+    let (b, _) = jit_eval(&extend(&g), &[vec![1.0, 1.0]], &[41.0], Options::default());
+    let (v, _) = jit_eval(&g, &[vec![1.0]], &[41.0], Options::default());
+    assert_eq!(v[0], vec![1.0, 0.0]);
+    for k in 0..2 {
+        assert!(
+            b[0][k] <= v[0][k] && v[0][k] <= b[0][2 + k],
+            "output {k}: {:?} vs {:?}",
+            v[0],
+            b[0]
+        );
+    }
 }
 
 /// Division by an interval that contains 0 is unbounded; by one that does not, it is bounded.

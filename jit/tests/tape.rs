@@ -1,0 +1,108 @@
+//! Property tests of the tape interpreter ([`nerfjit_jit::Tape`]): on random programs of the ops it takes,
+//! it gives the same bits as the compiled kernel of the same graph, fused multiply-adds included; graphs
+//! with other ops are refused.
+
+mod common;
+
+use common::jit_eval;
+use nerfjit_dsl::ir::{Graph, Op, V};
+use nerfjit_jit::{Options, Tape};
+use proptest::prelude::*;
+
+const N_INPUTS: u32 = 3;
+
+/// A random graph of the tape's ops, products often feeding sums (so that some fuse into FMAs and some,
+/// used twice, do not).
+fn build(nodes: &[(u8, usize, usize, usize)]) -> Graph {
+    use Op::*;
+    let mut g = Graph::new();
+    let mut vals: Vec<V> = (0..N_INPUTS).map(|i| g.input(i)).collect();
+    vals.push(g.param(0));
+    vals.push(g.constant(0.5));
+    vals.push(g.constant(-3.0));
+    for &(kind, ia, ib, ic) in nodes {
+        let (a, b, c) = (
+            vals[ia % vals.len()],
+            vals[ib % vals.len()],
+            vals[ic % vals.len()],
+        );
+        let op = match kind % 20 {
+            0 => Neg(a),
+            1 => Abs(a),
+            2 => Sign(a),
+            3 => Floor(a),
+            4 => Sqrt(a),
+            5 | 6 => Add(a, b),
+            7 | 8 => Sub(a, b),
+            9..=11 => Mul(a, b),
+            12 => Div(a, b),
+            13 => Min(a, b),
+            14 => Max(a, b),
+            15 => Lt(a, b),
+            16 => Le(a, b),
+            17 => Eq(a, b),
+            18 => Select(a, b, c),
+            // By one of the constants: a product by the reciprocal.
+            _ => Div(a, vals[N_INPUTS as usize + 1 + ib % 2]),
+        };
+        vals.push(g.push(op));
+    }
+    let last = vals.len() - 1;
+    g.outputs = vec![vals[last], vals[last / 2], vals[N_INPUTS as usize]];
+    g.n_inputs = N_INPUTS;
+    g
+}
+
+fn bits(x: f32) -> u32 {
+    // NaNs compare as one value: their payloads are not part of the semantics.
+    if x.is_nan() {
+        u32::MAX
+    } else {
+        x.to_bits()
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(256))]
+
+    #[test]
+    fn tapes_give_the_kernels_bits(
+        nodes in prop::collection::vec((any::<u8>(), any::<usize>(), any::<usize>(), any::<usize>()), 1..40),
+        points in prop::collection::vec(prop::collection::vec(-4.0f64..4.0, N_INPUTS as usize), 1..300),
+        param in -2.0f64..2.0,
+    ) {
+        let g = build(&nodes);
+        let tape = Tape::new(&g, &[param as f32]).expect("only the tape's ops");
+        let (want, _) = jit_eval(&g, &points, &[param], Options::default());
+        let n = points.len();
+        let cols: Vec<Vec<f32>> = (0..N_INPUTS as usize)
+            .map(|k| points.iter().map(|p| p[k] as f32).collect())
+            .collect();
+        let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
+        let mut outs = vec![vec![0.0f32; n]; g.outputs.len()];
+        let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
+        tape.eval(n, &ins, &mut refs);
+        for (i, w) in want.iter().enumerate() {
+            for (o, &w) in w.iter().enumerate() {
+                prop_assert_eq!(bits(outs[o][i]), bits(w), "output {} of point {}: {} vs {}\n{}",
+                    o, i, outs[o][i], w, g);
+            }
+        }
+    }
+}
+
+#[test]
+fn ops_with_approximations_and_reductions_are_refused() {
+    let mut g = Graph::new();
+    let x = g.input(0);
+    let e = g.push(Op::Exp(x));
+    g.outputs.push(e);
+    g.n_inputs = 1;
+    let err = Tape::new(&g, &[]).expect_err("exp is approximated by the kernel");
+    assert!(err.0.contains("'exp'"), "{}", err.0);
+    let mut g = Graph::new();
+    let x = g.input(0);
+    g.reductions.push(x);
+    g.n_inputs = 1;
+    assert!(Tape::new(&g, &[]).is_err());
+}
