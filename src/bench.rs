@@ -3,8 +3,9 @@
 
 use std::time::Instant;
 
-use nerfjit_dsl::kernels;
+use nerfjit_dsl::{kernels, Type};
 use nerfjit_jit::{Kernel, Options};
+use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
 use crate::block::first_block;
@@ -132,7 +133,6 @@ fn mesh_kernels(compiler: &crate::field::Compiler) -> Result<(JitFn, JitFn, JitF
 }
 
 fn mesh(reps: usize) -> Result<()> {
-    use nerfjit_runtime::surfaces::marching::{extract, extract_pruned};
     const RESOLUTION: usize = 512;
     let program = script::load("examples/complex_scene.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
@@ -152,29 +152,68 @@ fn mesh(reps: usize) -> Result<()> {
     let mut pruned = None;
     let pruned_s = time_reps(reps, || {
         pruned = Some(
-            extract_pruned(&value, Some(&gradient), &bounds_of, grid, RESOLUTION, 0.0)
+            extract_pruned(&value, Some(&gradient), &bounds_of, None, grid, RESOLUTION, 0.0)
                 .expect("a finite field meshes"),
         );
     });
-    let (brute, (pruned, pruning)) = (brute.expect("timed"), pruned.expect("timed"));
-    let same = brute.vertices == pruned.vertices && brute.triangles == pruned.triangles;
+    let mut specialized = None;
+    let specialized_s = time_reps(reps, || {
+        specialized = Some(specialized_mesh(
+            &compiler, &value, &gradient, &bounds_of, grid, RESOLUTION,
+        ));
+    });
+    let brute = brute.expect("timed");
+    let (pruned, pruning) = pruned.expect("timed");
+    let (specialized, regions) = specialized.expect("timed");
+    let same = |m: &nerfjit_runtime::Mesh| m.vertices == brute.vertices && m.triangles == brute.triangles;
+    let verdict = |m| if same(m) { "the same mesh" } else { "MESHES DIFFER" };
     crate::emit(&format!(
-        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms)\n  {} triangles, {}\n",
+        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms): {}\n  and specialized    {:7.3} s   ({:.3}× brute force; {} of {} regions with a simplified field, compiled within the time): {}\n  {} triangles\n",
         brute_s,
         pruned_s,
         pruned_s / brute_s,
         100.0 * pruning.points_evaluated as f64 / pruning.points as f64,
         pruning.boxes,
         compile_s * 1e3,
+        verdict(&pruned),
+        specialized_s,
+        specialized_s / brute_s,
+        regions.regions_specialized,
+        regions.regions,
+        verdict(&specialized),
         brute.triangles.len(),
-        if same { "the same mesh" } else { "MESHES DIFFER" }
     ));
-    if !same {
+    if !same(&pruned) || !same(&specialized) {
         return Err(Failure::Message(
-            "the pruned mesh differs from the brute-force mesh".into(),
+            "a pruned mesh differs from the brute-force mesh".into(),
         ));
     }
     Ok(())
+}
+
+/// The pruned mesh of a script's `sdf` with its regions specialized (the specialization is part of the
+/// time).
+fn specialized_mesh(
+    compiler: &crate::field::Compiler,
+    value: &JitFn,
+    gradient: &JitFn,
+    bounds_of: &JitFn,
+    grid: ([f32; 3], [f32; 3]),
+    resolution: usize,
+) -> (nerfjit_runtime::Mesh, Pruning) {
+    let specializer = compiler
+        .specializer("sdf", &[Type::Vec(3)], &Type::F32)
+        .expect("the benchmark's sdf is checked");
+    extract_pruned(
+        value,
+        Some(gradient),
+        bounds_of,
+        Some(&specializer),
+        grid,
+        resolution,
+        0.0,
+    )
+    .expect("a finite field meshes")
 }
 
 fn large(reps: usize) -> Result<()> {
@@ -209,19 +248,23 @@ fn large(reps: usize) -> Result<()> {
     // One run: tens of seconds.
     let t = Instant::now();
     let grid = ([-1.0; 3], [1.0; 3]);
-    let (_, pruning) = nerfjit_runtime::surfaces::marching::extract_pruned(
-        &value,
-        Some(&gradient),
-        &bounds_of,
-        grid,
-        512,
-        0.0,
-    )?;
+    let (pruned, pruning) = extract_pruned(&value, Some(&gradient), &bounds_of, None, grid, 512, 0.0)?;
     let mesh_s = t.elapsed().as_secs_f64();
     crate::emit(&format!(
         "  mesh at 512³, interval-pruned, one run {:7.3} s (field evaluations {:.2}% of the grid's points)\n",
         mesh_s,
         100.0 * pruning.points_evaluated as f64 / pruning.points as f64
+    ));
+    let t = Instant::now();
+    let (specialized, regions) = specialized_mesh(&compiler, &value, &gradient, &bounds_of, grid, 512);
+    let specialized_s = t.elapsed().as_secs_f64();
+    let same = specialized.vertices == pruned.vertices && specialized.triangles == pruned.triangles;
+    crate::emit(&format!(
+        "  and specialized, one run             {:7.3} s ({} of {} regions with a simplified field, compiled within the time): {}\n",
+        specialized_s,
+        regions.regions_specialized,
+        regions.regions,
+        if same { "the same mesh" } else { "MESHES DIFFER" }
     ));
     let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let (sdf, _) = plan.compile_fields(&compiler)?;

@@ -9,6 +9,7 @@ use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::surfaces::raster::render_mesh;
+use nerfjit_runtime::surfaces::regions::Specialize;
 use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh};
 
 use crate::block::Block;
@@ -125,10 +126,12 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
     let t = Instant::now();
     let (mesh, pruning) = match &bounds_of {
         Some(bounds_of) => {
+            let specializer = compiler.specializer(args.function, &[Type::Vec(3)], &Type::F32)?;
             let (mesh, pruning) = extract_pruned(
                 &value,
                 Some(&gradient),
                 bounds_of,
+                Some(&specializer as &dyn Specialize).filter(|_| specializer.pays()),
                 args.bounds,
                 args.resolution,
                 args.level,
@@ -254,11 +257,18 @@ fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec
 fn pruning_summary(pruning: Option<&Pruning>, asked: bool) -> String {
     match pruning {
         Some(p) => format!(
-            "field evaluations {:.1}% of the grid's points: interval bounds of {} boxes left {} of {} blocks near the surface",
+            "field evaluations {:.1}% of the grid's points: interval bounds of {} boxes left {} of {} blocks near the surface{}",
             100.0 * p.points_evaluated as f64 / p.points as f64,
             p.boxes,
             p.blocks_evaluated,
-            p.blocks
+            p.blocks,
+            match p.regions {
+                0 => String::new(),
+                regions => format!(
+                    "; {} of {regions} regions evaluated with the function restricted to them",
+                    p.regions_specialized
+                ),
+            }
         ),
         None if asked => "every grid point evaluated: interval arithmetic bounds nothing through dense layers or grid reads".into(),
         None => "every grid point evaluated".into(),
@@ -341,5 +351,51 @@ impl MeshPlan {
             );
         }
         Ok(summary)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nerfjit_runtime::surfaces::marching::extract_pruned;
+
+    /// The generated city of `nerfjit bench large`, meshed with and without its regions' restrictions: the
+    /// same vertices and triangles (normals to rounding), and most regions near the surface restricted.
+    #[test]
+    fn restricted_regions_give_the_same_mesh_of_a_large_model() {
+        let script = crate::import::convert(&crate::large_model::city(), "city.vm").unwrap();
+        let program = nerfjit_dsl::compile("city.sdf", &script).unwrap();
+        let cache = KernelCache::new();
+        let compiler = Compiler {
+            program: &program,
+            params: &program.param_values,
+            cache: &cache,
+        };
+        let kernels = MeshKernels::compile(&compiler, "sdf", true).unwrap();
+        let bounds_of = kernels.bounds.expect("boxes have bounds");
+        let specializer = compiler.specializer("sdf", &[Type::Vec(3)], &Type::F32).unwrap();
+        assert!(specializer.pays());
+        let grid = ([-1.0; 3], [1.0; 3]);
+        let mesh = |specialize: Option<&dyn Specialize>| {
+            extract_pruned(
+                &kernels.value,
+                Some(&kernels.gradient),
+                &bounds_of,
+                specialize,
+                grid,
+                96,
+                0.0,
+            )
+            .unwrap()
+        };
+        let (plain, _) = mesh(None);
+        let (restricted, pruning) = mesh(Some(&specializer));
+        assert!(plain.triangles.len() > 10_000);
+        assert_eq!(restricted.vertices, plain.vertices);
+        assert_eq!(restricted.triangles, plain.triangles);
+        for (a, b) in restricted.normals.iter().zip(&plain.normals) {
+            assert!(Vec3::from(*a).abs_diff_eq(Vec3::from(*b), 1e-4), "{a:?} vs {b:?}");
+        }
+        assert!(pruning.regions_specialized > pruning.regions / 10, "{pruning:?}");
     }
 }

@@ -7,6 +7,8 @@
 //!
 //! [`extract_pruned`] evaluates only the points of blocks that bounds of the field over boxes cannot
 //! place wholly on one side of the level (see [`crate::surfaces::prune`]); it gives the same mesh as [`extract`].
+//! Given a [`Specialize`], it also evaluates each region of the grid with the field restricted to the
+//! region (see [`crate::surfaces::regions`]).
 //!
 //! # The case table
 //! Each cell is polygonized from a table of its 256 sign cases (corner at or above the level,
@@ -33,6 +35,7 @@ use crate::error::{Error, Result};
 use crate::field::{check_arity, BatchFn};
 use crate::surfaces::mesh::Mesh;
 use crate::surfaces::prune::{Blocks, Run};
+use crate::surfaces::regions::{Regions, Specialize};
 
 /// The largest number of cells per axis [`extract`] accepts.
 pub const MAX_RESOLUTION: usize = 2048;
@@ -292,6 +295,8 @@ struct Window<'a> {
     field: &'a dyn BatchFn,
     /// The blocks whose points are evaluated, when pruning; else every point is.
     blocks: Option<&'a Blocks>,
+    /// The fields restricted to regions of the grid, where they are.
+    regions: Option<&'a Regions>,
     /// Points evaluated so far.
     evaluated: usize,
     /// Slice index of `slices[0]`.
@@ -308,11 +313,12 @@ struct Window<'a> {
 }
 
 impl<'a> Window<'a> {
-    fn new(grid: &'a Grid, field: &'a dyn BatchFn, blocks: Option<&'a Blocks>) -> Self {
+    fn new(job: &'a Job<'a>) -> Self {
         Window {
-            grid,
-            field,
-            blocks,
+            grid: &job.grid,
+            field: job.field,
+            blocks: job.blocks,
+            regions: job.regions,
             evaluated: 0,
             first: 0,
             slices: VecDeque::new(),
@@ -376,37 +382,29 @@ impl<'a> Window<'a> {
                 blocks.slice(k, [below, above], &mut slice.values, &mut slice.runs);
             }
         }
-        // One batch for all runs: gathered, evaluated, scattered back.
-        let points = |r: &Run| r.row * row + r.start..=r.row * row + r.end;
         let n: usize = slice.runs.iter().map(|r| r.end + 1 - r.start).sum();
-        let whole = n == count;
-        if !whole {
-            self.x.clear();
-            self.y.clear();
-            for r in &slice.runs {
-                self.x.extend_from_slice(&grid.slice_x[points(r)]);
-                self.y.extend_from_slice(&grid.slice_y[points(r)]);
+        match self.regions {
+            None if n == count => {
+                self.z.clear();
+                self.z.resize(n, grid.coord(2, k));
+                let inputs = [&grid.slice_x[..], &grid.slice_y[..], &self.z[..]];
+                self.field.eval(n, &inputs, &mut [&mut slice.values[..]]);
+                self.evaluated += n;
             }
-            self.batch.resize(n, 0.0);
-        }
-        self.z.clear();
-        self.z.resize(n, grid.coord(2, k));
-        let (x, y) = if whole {
-            (&grid.slice_x, &grid.slice_y)
-        } else {
-            (&self.x, &self.y)
-        };
-        let out = if whole { &mut slice.values } else { &mut self.batch };
-        self.field.eval(n, &[x, y, &self.z], &mut [&mut out[..]]);
-        if !whole {
-            let mut done = 0;
-            for r in &slice.runs {
-                let len = r.end + 1 - r.start;
-                slice.values[points(r)].copy_from_slice(&self.batch[done..done + len]);
-                done += len;
+            None => self.evaluate_runs(self.field, &slice.runs, k, &mut slice.values),
+            Some(regions) => {
+                // One batch per region, with the region's field.
+                let mut pieces = region_pieces(regions, &slice.runs, k);
+                pieces.sort_by_key(|&(r, _)| r);
+                let mut runs = Vec::new();
+                for group in pieces.chunk_by(|a, b| a.0 == b.0) {
+                    runs.clear();
+                    runs.extend(group.iter().map(|&(_, run)| run));
+                    let field = regions.field(group[0].0).unwrap_or(self.field);
+                    self.evaluate_runs(field, &runs, k, &mut slice.values);
+                }
             }
         }
-        self.evaluated += n;
         for r in &slice.runs {
             if let Some(i) = (r.start..=r.end).find(|&i| !slice.values[r.row * row + i].is_finite()) {
                 return Err(Error::Invalid(format!(
@@ -417,6 +415,31 @@ impl<'a> Window<'a> {
             }
         }
         Ok(slice)
+    }
+
+    /// Evaluates `field` at the points of `runs` of slice `k` (one batch: gathered, evaluated, scattered back
+    /// into `values`).
+    fn evaluate_runs(&mut self, field: &dyn BatchFn, runs: &[Run], k: usize, values: &mut [f32]) {
+        let (grid, row) = (self.grid, self.grid.n + 1);
+        let points = |r: &Run| r.row * row + r.start..=r.row * row + r.end;
+        self.x.clear();
+        self.y.clear();
+        for r in runs {
+            self.x.extend_from_slice(&grid.slice_x[points(r)]);
+            self.y.extend_from_slice(&grid.slice_y[points(r)]);
+        }
+        let n = self.x.len();
+        self.z.clear();
+        self.z.resize(n, grid.coord(2, k));
+        self.batch.resize(n, 0.0);
+        field.eval(n, &[&self.x, &self.y, &self.z], &mut [&mut self.batch[..n]]);
+        let mut done = 0;
+        for r in runs {
+            let len = r.end + 1 - r.start;
+            values[points(r)].copy_from_slice(&self.batch[done..done + len]);
+            done += len;
+        }
+        self.evaluated += n;
     }
 
     /// The gradient at grid point `p` by central differences (one-sided at the grid's
@@ -444,12 +467,27 @@ struct ChunkMesh {
     first_slice: SliceEdges,
 }
 
+/// The runs of slice `k` cut where they cross from one region to the next, each with its region.
+fn region_pieces(regions: &Regions, runs: &[Run], k: usize) -> Vec<(usize, Run)> {
+    let mut pieces = Vec::with_capacity(runs.len());
+    for run in runs {
+        let mut start = run.start;
+        while start <= run.end {
+            let end = regions.last_of_region(start).min(run.end);
+            pieces.push((regions.of_point([start, run.row, k]), Run { start, end, ..*run }));
+            start = end + 1;
+        }
+    }
+    pieces
+}
+
 /// What every chunk needs.
 struct Job<'a> {
     grid: Grid,
     field: &'a dyn BatchFn,
     gradient: Option<&'a dyn BatchFn>,
     blocks: Option<&'a Blocks>,
+    regions: Option<&'a Regions>,
     /// Field points evaluated by all chunks.
     evaluated: AtomicUsize,
 }
@@ -600,7 +638,7 @@ impl Job<'_> {
     /// `k0..k1` (the chunk's own); vertices of slice `k1` are left to the next chunk.
     fn chunk(&self, k0: usize, k1: usize) -> Result<ChunkMesh> {
         let n = self.grid.n;
-        let mut window = Window::new(&self.grid, self.field, self.blocks);
+        let mut window = Window::new(self);
         // Normals from differences need the slices on either side.
         let margin = usize::from(self.gradient.is_none());
         let range = |lo: usize, hi: usize| (lo.saturating_sub(margin), (hi + margin).min(n));
@@ -626,7 +664,7 @@ impl Job<'_> {
             std::mem::swap(&mut bottom, &mut top);
         }
         if let Some(gradient) = self.gradient {
-            normals_from_gradient(gradient, &out.vertices, &mut out.normals);
+            normals_from_gradient(gradient, self.regions, &out.vertices, &mut out.normals);
         }
         self.evaluated.fetch_add(window.evaluated, Ordering::Relaxed);
         Ok(out)
@@ -634,18 +672,32 @@ impl Job<'_> {
 }
 
 /// Replaces `normals` by the normalized gradient at `vertices`, where it is finite and
-/// non-zero.
-fn normals_from_gradient(gradient: &dyn BatchFn, vertices: &[[f32; 3]], normals: &mut [[f32; 3]]) {
-    let n = vertices.len();
-    let column = |axis: usize| -> Vec<f32> { vertices.iter().map(|p| p[axis]).collect() };
-    let (x, y, z) = (column(0), column(1), column(2));
-    let mut outputs = vec![vec![0.0f32; n]; 4];
-    let mut slices: Vec<&mut [f32]> = outputs.iter_mut().map(|o| o.as_mut_slice()).collect();
-    gradient.eval(n, &[&x, &y, &z], &mut slices);
-    for (k, normal) in normals.iter_mut().enumerate() {
-        let g = Vec3::new(outputs[1][k], outputs[2][k], outputs[3][k]).normalize_or_zero();
-        if g.is_finite() && g != Vec3::ZERO {
-            *normal = g.into();
+/// non-zero: of each vertex's region where `regions` specialize the gradient.
+fn normals_from_gradient(
+    gradient: &dyn BatchFn,
+    regions: Option<&Regions>,
+    vertices: &[[f32; 3]],
+    normals: &mut [[f32; 3]],
+) {
+    let mut order: Vec<(usize, usize)> = vertices
+        .iter()
+        .enumerate()
+        .map(|(v, &p)| (regions.map_or(0, |r| r.of_position(p)), v))
+        .collect();
+    order.sort_unstable();
+    for group in order.chunk_by(|a, b| a.0 == b.0) {
+        let gradient = regions.and_then(|r| r.gradient(group[0].0)).unwrap_or(gradient);
+        let n = group.len();
+        let column = |axis: usize| -> Vec<f32> { group.iter().map(|&(_, v)| vertices[v][axis]).collect() };
+        let (x, y, z) = (column(0), column(1), column(2));
+        let mut outputs = vec![vec![0.0f32; n]; 4];
+        let mut slices: Vec<&mut [f32]> = outputs.iter_mut().map(|o| o.as_mut_slice()).collect();
+        gradient.eval(n, &[&x, &y, &z], &mut slices);
+        for (k, &(_, v)) in group.iter().enumerate() {
+            let g = Vec3::new(outputs[1][k], outputs[2][k], outputs[3][k]).normalize_or_zero();
+            if g.is_finite() && g != Vec3::ZERO {
+                normals[v] = g.into();
+            }
         }
     }
 }
@@ -714,7 +766,7 @@ pub fn extract(
     level: f32,
 ) -> Result<Mesh> {
     let grid = Grid::new(field, gradient, bounds, resolution, level)?;
-    polygonize(grid, field, gradient, None).map(|(mesh, _)| mesh)
+    polygonize(grid, field, gradient, None, None).map(|(mesh, _)| mesh)
 }
 
 /// What pruning did in [`extract_pruned`].
@@ -730,17 +782,24 @@ pub struct Pruning {
     pub points_evaluated: usize,
     /// Points of the grid: (resolution + 1)³.
     pub points: usize,
+    /// Regions of the grid evaluated with a specialized field.
+    pub regions_specialized: usize,
+    /// Regions of the grid.
+    pub regions: usize,
 }
 
 /// [`extract`], evaluating the field only in the blocks of cells that `bounds_of` (6 inputs, a box's
 /// low and high corners → 2 outputs, lower and upper bounds of the field over the box) cannot place
 /// wholly above or below the level. The mesh is the same as [`extract`]'s where the bounds hold
 /// (see [`crate::surfaces::prune`] for the rounding margin); a NaN that the field would give inside a pruned
-/// block goes unnoticed.
+/// block goes unnoticed. With `specialize`, each region of the grid is evaluated with the field (and its
+/// gradient) restricted to it, where that is cheaper ([`crate::surfaces::regions`]): the same mesh, as the
+/// restricted fields give the same values.
 pub fn extract_pruned(
     field: &dyn BatchFn,
     gradient: Option<&dyn BatchFn>,
     bounds_of: &dyn BatchFn,
+    specialize: Option<&dyn Specialize>,
     bounds: ([f32; 3], [f32; 3]),
     resolution: usize,
     level: f32,
@@ -748,7 +807,11 @@ pub fn extract_pruned(
     let grid = Grid::new(field, gradient, bounds, resolution, level)?;
     let coord = |axis: usize, i: usize| grid.coord(axis, i);
     let blocks = Blocks::classify(bounds_of, grid.n, &coord, level, gradient.is_none())?;
-    let (mesh, points_evaluated) = polygonize(grid, field, gradient, Some(&blocks))?;
+    let regions = specialize
+        .map(|s| Regions::build(s, &blocks, grid.n, &coord, gradient.is_some()))
+        .transpose()?;
+    let (regions_specialized, region_count) = regions.as_ref().map_or((0, 0), |r| (r.specialized(), r.len()));
+    let (mesh, points_evaluated) = polygonize(grid, field, gradient, Some(&blocks), regions.as_ref())?;
     let count = resolution.div_ceil(crate::surfaces::prune::BLOCK);
     let pruning = Pruning {
         boxes: blocks.boxes,
@@ -756,6 +819,8 @@ pub fn extract_pruned(
         blocks: count * count * count,
         points_evaluated,
         points: (resolution + 1).pow(3),
+        regions_specialized,
+        regions: region_count,
     };
     Ok((mesh, pruning))
 }
@@ -767,6 +832,7 @@ fn polygonize(
     field: &dyn BatchFn,
     gradient: Option<&dyn BatchFn>,
     blocks: Option<&Blocks>,
+    regions: Option<&Regions>,
 ) -> Result<(Mesh, usize)> {
     let n = grid.n;
     let job = Job {
@@ -774,6 +840,7 @@ fn polygonize(
         field,
         gradient,
         blocks,
+        regions,
         evaluated: AtomicUsize::new(0),
     };
     // A few chunks per thread balance the load; each one re-evaluates up to three slices.
@@ -874,6 +941,14 @@ mod tests {
         })
     }
 
+    /// The sphere's SDF and its (unnormalized) gradient.
+    fn sphere_gradient(radius: f32) -> impl BatchFn {
+        ClosureFn::new(3, 4, move |p, out| {
+            out[0] = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - radius;
+            out[1..].copy_from_slice(&p[..3]);
+        })
+    }
+
     /// Max |‖v‖ − r| over the vertices.
     fn radial_error(mesh: &Mesh, radius: f32) -> f32 {
         mesh.vertices
@@ -941,10 +1016,7 @@ mod tests {
     #[test]
     fn pruned_extraction_gives_the_brute_force_mesh() {
         let bounds_of = crate::surfaces::prune::tests::sphere_bounds(0.6);
-        let gradient = ClosureFn::new(3, 4, |p, out| {
-            out[0] = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.6;
-            out[1..].copy_from_slice(&p[..3]);
-        });
+        let gradient = sphere_gradient(0.6);
         let box_ = ([-1.0, -0.9, -1.1], [1.0, 0.8, 0.9]);
         for (n, level, with_gradient) in [
             (40, 0.0, true),
@@ -955,7 +1027,7 @@ mod tests {
             let gradient = with_gradient.then_some(&gradient as &dyn BatchFn);
             let brute = extract(&sphere(0.6), gradient, box_, n, level).unwrap();
             let (pruned, pruning) =
-                extract_pruned(&sphere(0.6), gradient, &bounds_of, box_, n, level).unwrap();
+                extract_pruned(&sphere(0.6), gradient, &bounds_of, None, box_, n, level).unwrap();
             assert!(!brute.triangles.is_empty());
             assert_eq!(pruned.vertices, brute.vertices, "n = {n}");
             assert_eq!(pruned.normals, brute.normals, "n = {n}");
@@ -963,6 +1035,84 @@ mod tests {
             assert_eq!(pruning.points, (n + 1).pow(3));
             if n >= 40 {
                 assert!(pruning.points_evaluated < pruning.points * 3 / 4, "{pruning:?}");
+            }
+        }
+    }
+
+    /// The sphere's field restricted to a box: its field and gradient count the points they are asked for
+    /// outside the box.
+    struct Watchful {
+        lo: [f32; 3],
+        hi: [f32; 3],
+        strays: std::sync::Arc<AtomicUsize>,
+        leaves: std::sync::Arc<AtomicUsize>,
+    }
+
+    impl Watchful {
+        fn watch(&self, outputs: usize) -> Box<dyn BatchFn + Send> {
+            let (lo, hi, strays) = (self.lo, self.hi, self.strays.clone());
+            Box::new(ClosureFn::new(3, outputs, move |p, out| {
+                // Vertices lie within rounding of their region's box.
+                let slack = 1e-5;
+                if (0..3).any(|a| p[a] < lo[a] - slack || p[a] > hi[a] + slack) {
+                    strays.fetch_add(1, Ordering::Relaxed);
+                }
+                out[0] = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.6;
+                if outputs == 4 {
+                    out[1..].copy_from_slice(&p[..3]);
+                }
+            }))
+        }
+    }
+
+    impl Specialize for Watchful {
+        fn restrict(&self, lo: [f32; 3], hi: [f32; 3]) -> Result<Box<dyn Specialize>> {
+            // A restriction lies within its parent's box.
+            assert!((0..3).all(|a| self.lo[a] <= lo[a] && hi[a] <= self.hi[a] && lo[a] < hi[a]));
+            Ok(Box::new(Watchful {
+                lo,
+                hi,
+                strays: self.strays.clone(),
+                leaves: self.leaves.clone(),
+            }))
+        }
+
+        fn fields(&self, gradient: bool) -> Result<Option<crate::surfaces::regions::Specialized>> {
+            self.leaves.fetch_add(1, Ordering::Relaxed);
+            Ok(Some(crate::surfaces::regions::Specialized {
+                field: self.watch(1),
+                gradient: gradient.then(|| self.watch(4)),
+            }))
+        }
+    }
+
+    #[test]
+    fn specialized_regions_see_only_their_own_points_and_give_the_same_mesh() {
+        let bounds_of = crate::surfaces::prune::tests::sphere_bounds(0.6);
+        let gradient = sphere_gradient(0.6);
+        let box_ = ([-1.0, -0.9, -1.1], [1.0, 0.8, 0.9]);
+        // 300 cells: 38 blocks, regions of 3 blocks and a shorter last one.
+        for (n, with_gradient) in [(300, true), (37, false), (64, true)] {
+            let gradient = with_gradient.then_some(&gradient as &dyn BatchFn);
+            let watchful = Watchful {
+                lo: box_.0,
+                hi: box_.1,
+                strays: Default::default(),
+                leaves: Default::default(),
+            };
+            let brute = extract(&sphere(0.6), gradient, box_, n, 0.0).unwrap();
+            let (mesh, pruning) =
+                extract_pruned(&sphere(0.6), gradient, &bounds_of, Some(&watchful), box_, n, 0.0).unwrap();
+            assert_eq!(mesh.vertices, brute.vertices, "n = {n}");
+            assert_eq!(mesh.normals, brute.normals, "n = {n}");
+            assert_eq!(mesh.triangles, brute.triangles, "n = {n}");
+            assert_eq!(watchful.strays.load(Ordering::Relaxed), 0, "n = {n}");
+            let asked = watchful.leaves.load(Ordering::Relaxed);
+            assert_eq!(pruning.regions_specialized, asked);
+            // Regions far from the sphere hold no evaluated block and are not specialized (at 37 cells,
+            // the neighbours of the sphere's blocks, evaluated for normals from differences, are all).
+            if n >= 64 {
+                assert!(asked > 8 && asked < pruning.regions, "{pruning:?}");
             }
         }
     }

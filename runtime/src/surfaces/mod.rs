@@ -1,6 +1,6 @@
 //! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], and the fused marcher [`march`] compiled
-//! kernels offer), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`]), triangle meshes
-//! and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
+//! kernels offer), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields
+//! specialized to regions of the grid in [`regions`]), triangle meshes and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
 //! rasterizer for previews ([`raster`]).
 
 mod bvh;
@@ -10,4 +10,5 @@ pub mod mesh;
 pub mod mesh_metrics;
 pub mod prune;
 pub mod raster;
+pub mod regions;
 pub mod sphere_trace;

@@ -52,7 +52,7 @@ pub struct Blocks {
 }
 
 /// A range of blocks `[lo, hi)` along each axis.
-type Range = [[usize; 2]; 3];
+pub(crate) type Range = [[usize; 2]; 3];
 
 impl Blocks {
     /// Classifies the blocks of a grid of `n` cells per axis whose plane `i` along `axis` lies at
@@ -151,6 +151,11 @@ impl Blocks {
         }
     }
 
+    /// Whether block `b` (indices along x, y, z) is evaluated.
+    pub fn is_needed(&self, b: [usize; 3]) -> bool {
+        self.needed[self.index(b)]
+    }
+
     /// The number of blocks that are evaluated.
     pub fn needed_count(&self) -> usize {
         self.needed.iter().filter(|&&x| x).count()
@@ -219,7 +224,7 @@ pub struct Run {
 }
 
 /// The eight (or fewer, where a side is one block long) halves of a range.
-fn split(range: &Range) -> Vec<Range> {
+pub(crate) fn split(range: &Range) -> Vec<Range> {
     let halves = range.map(|[lo, hi]| {
         let mid = lo + (hi - lo).div_ceil(2);
         if hi - lo > 1 {
