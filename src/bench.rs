@@ -168,7 +168,7 @@ fn mesh(reps: usize) -> Result<()> {
     let same = |m: &nerfjit_runtime::Mesh| m.vertices == brute.vertices && m.triangles == brute.triangles;
     let verdict = |m| if same(m) { "the same mesh" } else { "MESHES DIFFER" };
     crate::emit(&format!(
-        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms): {}\n  and specialized    {:7.3} s   ({:.3}× brute force; {} of {} regions with a simplified field, compiled within the time): {}\n  {} triangles\n",
+        "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms): {}\n  and specialized    {:7.3} s   ({:.3}× brute force; {} of {} regions restricted, the restrictions within the time): {}\n  {} triangles\n",
         brute_s,
         pruned_s,
         pruned_s / brute_s,
@@ -260,7 +260,7 @@ fn large(reps: usize) -> Result<()> {
     let specialized_s = t.elapsed().as_secs_f64();
     let same = specialized.vertices == pruned.vertices && specialized.triangles == pruned.triangles;
     crate::emit(&format!(
-        "  and specialized, one run             {:7.3} s ({} of {} regions with a simplified field, compiled within the time): {}\n",
+        "  and specialized, one run             {:7.3} s ({} of {} regions restricted, the restrictions within the time): {}\n",
         specialized_s,
         regions.regions_specialized,
         regions.regions,
