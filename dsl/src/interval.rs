@@ -53,7 +53,8 @@ pub fn extend(g: &Graph) -> Graph {
 /// The interval graph of `g` (inputs as in [`extend`], no outputs yet) and the pair of values bounding each
 /// node of `g` (for the nodes the outputs do not need: a pair of zeros).
 fn extend_pairs(g: &Graph) -> (Graph, Vec<(V, V)>) {
-    let mut out = Graph::new();
+    // About four interval nodes per node.
+    let mut out = Graph::with_capacity(4 * g.len());
     let n = g.n_inputs;
     let mut pairs: Vec<(V, V)> = Vec::with_capacity(g.len());
     let live = g.live();
@@ -96,10 +97,8 @@ impl NodeBounds {
             }
         }
         bounds.outputs = los.into_iter().chain(his).collect();
-        NodeBounds {
-            bounds: bounds.compact(),
-            place,
-        }
+        // Not compacted: every pair is an output, and a rebuild would cost more than the few dead nodes.
+        NodeBounds { bounds, place }
     }
 
     /// The bounds `(lo, hi)` of each node over the box `lo ≤ x ≤ hi` of inputs, with the params at `params`

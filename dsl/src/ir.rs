@@ -342,6 +342,14 @@ impl Graph {
         Graph::default()
     }
 
+    /// An empty graph with room for `nodes` nodes (a graph rebuilt from another grows without rehashing).
+    pub fn with_capacity(nodes: usize) -> Graph {
+        let mut g = Graph::default();
+        g.ops.reserve(nodes);
+        g.memo.reserve(nodes);
+        g
+    }
+
     /// The ops, in topological order.
     pub fn ops(&self) -> &[Op] {
         &self.ops
@@ -538,8 +546,7 @@ impl Graph {
             }
         }
         let live = self.live_through(&resolved);
-        let mut out = Graph::new();
-        out.memo.reserve(live.iter().filter(|&&l| l).count());
+        let mut out = Graph::with_capacity(live.iter().filter(|&&l| l).count());
         let mut map = vec![V(0); self.ops.len()];
         for (i, op) in self.ops.iter().enumerate() {
             if !live[i] {
