@@ -106,3 +106,60 @@ fn ops_with_approximations_and_reductions_are_refused() {
     g.n_inputs = 1;
     assert!(Tape::new(&g, &[]).is_err());
 }
+
+/// A product two sums share is not fused by the kernel; restricted to a box where one sum is dropped, the
+/// product has one reader left. A tape given the original's fusion flags (through `origin`) still rounds as
+/// the original kernel; one that decides afresh fuses it and rounds differently.
+#[test]
+fn carried_fusion_flags_keep_the_original_kernels_rounding() {
+    use nerfjit_dsl::simplify::Simplifier;
+    use nerfjit_jit::fused_products;
+    let mut g = Graph::new();
+    let (x, y, z) = (g.input(0), g.input(1), g.input(2));
+    let yy = g.push(Op::Mul(y, y));
+    let a = g.push(Op::Add(yy, x));
+    let ten = g.constant(10.0);
+    let z10 = g.push(Op::Add(z, ten));
+    let b = g.push(Op::Add(yy, z10));
+    let f = g.push(Op::Min(a, b));
+    g.outputs.push(f);
+    g.n_inputs = 3;
+    let original = fused_products(&g);
+    assert!(!original[yy.0 as usize], "read by two sums");
+    let (lo, hi) = ([-1.0, 0.1, -1.0], [1.0, 1.0, 1.0]);
+    let simplified = Simplifier::new(&g).simplify(&lo, &hi, &[]);
+    assert_eq!(simplified.choices, 1);
+    let carried: Vec<bool> = simplified
+        .origin
+        .iter()
+        .map(|o| o.is_some_and(|o| original[o.0 as usize]))
+        .collect();
+    let mut rng = 0x1234_5678_u32;
+    let mut next = |l: f64, h: f64| {
+        rng ^= rng << 13;
+        rng ^= rng >> 17;
+        rng ^= rng << 5;
+        l + (h - l) * f64::from(rng) / f64::from(u32::MAX)
+    };
+    let points: Vec<Vec<f64>> = (0..4096)
+        .map(|_| (0..3).map(|k| next(lo[k], hi[k])).collect())
+        .collect();
+    let (want, _) = jit_eval(&g, &points, &[], Options::default());
+    let run = |tape: Tape| -> Vec<f32> {
+        let cols: Vec<Vec<f32>> = (0..3)
+            .map(|k| points.iter().map(|p| p[k] as f32).collect())
+            .collect();
+        let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
+        let mut out = vec![0.0f32; points.len()];
+        tape.eval(points.len(), &ins, &mut [&mut out]);
+        out
+    };
+    let kept = run(Tape::with_fusion(&simplified.graph, &[], &carried).unwrap());
+    let fresh = run(Tape::new(&simplified.graph, &[]).unwrap());
+    let want: Vec<f32> = want.iter().map(|w| w[0]).collect();
+    assert_eq!(kept, want);
+    assert!(
+        fresh.iter().zip(&want).any(|(a, b)| a != b),
+        "fusing afresh rounds differently somewhere"
+    );
+}
