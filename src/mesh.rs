@@ -398,4 +398,38 @@ mod tests {
         }
         assert!(pruning.regions_specialized > pruning.regions / 10, "{pruning:?}");
     }
+
+    /// Restrictions with an op a tape does not take (`tanh`, which kernels approximate) give no fields: every
+    /// region is evaluated by the full kernels.
+    #[test]
+    fn restrictions_with_approximated_ops_leave_the_full_kernels() {
+        let script = crate::import::convert(&crate::large_model::city(), "city.vm").unwrap();
+        let script = script.replacen("fn sdf(", "fn city(", 1)
+            + "\nfn sdf(p: vec3) -> f32 = city(p) + 0.001 * tanh(p.x)\n";
+        let program = nerfjit_dsl::compile("city.sdf", &script).unwrap();
+        let cache = KernelCache::new();
+        let compiler = Compiler {
+            program: &program,
+            params: &program.param_values,
+            cache: &cache,
+        };
+        let kernels = MeshKernels::compile(&compiler, "sdf", true).unwrap();
+        let bounds_of = kernels.bounds.expect("bounded");
+        let specializer = compiler.specializer("sdf", &[Type::Vec(3)], &Type::F32).unwrap();
+        assert!(specializer.pays());
+        let grid = ([-1.0; 3], [1.0; 3]);
+        let (mesh, pruning) = extract_pruned(
+            &kernels.value,
+            Some(&kernels.gradient),
+            &bounds_of,
+            Some(&specializer),
+            grid,
+            48,
+            0.0,
+        )
+        .unwrap();
+        assert!(!mesh.triangles.is_empty());
+        assert!(pruning.regions > 0);
+        assert_eq!(pruning.regions_specialized, 0, "{pruning:?}");
+    }
 }
