@@ -165,8 +165,8 @@ const SPECIALIZE_SMALL_NODES: usize = 64;
 const SPECIALIZE_MIN_GAIN_PERCENT: usize = 25;
 
 /// Functions of fewer nodes are meshed without restrictions: restricting the 358-node scene of W7 to the
-/// regions of a 512³ mesh took longer (0.30 s) than evaluating it whole (0.23 s); the 6,425-node city of
-/// `nerfjit bench large` meshes in two thirds of the time.
+/// regions of a 512³ mesh took longer (0.31 s) than evaluating it whole (0.23 s); the 6,425-node city of
+/// `nerfjit bench large` meshes in 60% of the time.
 const SPECIALIZE_MIN_NODES: usize = 1024;
 
 impl Specializer {
