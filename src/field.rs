@@ -170,14 +170,17 @@ const SPECIALIZE_MIN_GAIN_PERCENT: usize = 25;
 const SPECIALIZE_MIN_NODES: usize = 1024;
 
 impl Specializer {
-    /// Whether restricting the function pays: it is large and has branches to decide.
+    /// Whether restricting the function pays: it is large, has branches to decide, and runs as a tape (a
+    /// neural field's dense layers do not: restricting it would only cost time).
     pub fn pays(&self) -> bool {
         let branches = self
             .graph
             .ops()
             .iter()
             .any(|op| matches!(op, Op::Min(..) | Op::Max(..) | Op::Select(..)));
-        self.graph.len() >= SPECIALIZE_MIN_NODES && branches
+        self.graph.len() >= SPECIALIZE_MIN_NODES
+            && branches
+            && Tape::with_fusion(&self.graph, &self.function.params, &self.fused).is_ok()
     }
 
     fn new(graph: nerfjit_dsl::ir::Graph, fused: Vec<bool>, function: Arc<Function>) -> Specializer {
