@@ -359,12 +359,10 @@ mod tests {
     use super::*;
     use nerfjit_runtime::surfaces::marching::extract_pruned;
 
-    /// The generated city of `nerfjit bench large`, meshed with and without its regions' restrictions: the
-    /// same vertices and triangles (normals to rounding), and most regions near the surface restricted.
-    #[test]
-    fn restricted_regions_give_the_same_mesh_of_a_large_model() {
-        let script = crate::import::convert(&crate::large_model::city(), "city.vm").unwrap();
-        let program = nerfjit_dsl::compile("city.sdf", &script).unwrap();
+    /// Meshes the `sdf` of `script` over [−1, 1]³ at `resolution`, pruned, with its regions restricted when
+    /// `restrict`; also says whether restricting it pays.
+    fn mesh_of(script: &str, resolution: usize, restrict: bool) -> (Mesh, Pruning, bool) {
+        let program = nerfjit_dsl::compile("city.sdf", script).unwrap();
         let cache = KernelCache::new();
         let compiler = Compiler {
             program: &program,
@@ -374,22 +372,31 @@ mod tests {
         let kernels = MeshKernels::compile(&compiler, "sdf", true).unwrap();
         let bounds_of = kernels.bounds.expect("boxes have bounds");
         let specializer = compiler.specializer("sdf", &[Type::Vec(3)], &Type::F32).unwrap();
-        assert!(specializer.pays());
-        let grid = ([-1.0; 3], [1.0; 3]);
-        let mesh = |specialize: Option<&dyn Specialize>| {
-            extract_pruned(
-                &kernels.value,
-                Some(&kernels.gradient),
-                &bounds_of,
-                specialize,
-                grid,
-                96,
-                0.0,
-            )
-            .unwrap()
-        };
-        let (plain, _) = mesh(None);
-        let (restricted, pruning) = mesh(Some(&specializer));
+        let specialize = restrict.then_some(&specializer as &dyn Specialize);
+        let (mesh, pruning) = extract_pruned(
+            &kernels.value,
+            Some(&kernels.gradient),
+            &bounds_of,
+            specialize,
+            ([-1.0; 3], [1.0; 3]),
+            resolution,
+            0.0,
+        )
+        .unwrap();
+        (mesh, pruning, specializer.pays())
+    }
+
+    fn city() -> String {
+        crate::import::convert(&crate::large_model::city(), "city.vm").unwrap()
+    }
+
+    /// The generated city of `nerfjit bench large`, meshed with and without its regions' restrictions: the
+    /// same vertices and triangles (normals to rounding), and most regions near the surface restricted.
+    #[test]
+    fn restricted_regions_give_the_same_mesh_of_a_large_model() {
+        let (plain, _, _) = mesh_of(&city(), 96, false);
+        let (restricted, pruning, pays) = mesh_of(&city(), 96, true);
+        assert!(pays);
         assert!(plain.triangles.len() > 10_000);
         assert_eq!(restricted.vertices, plain.vertices);
         assert_eq!(restricted.triangles, plain.triangles);
@@ -404,31 +411,10 @@ mod tests {
     /// see [`crate::field::Specializer::pays`].)
     #[test]
     fn restrictions_with_approximated_ops_leave_the_full_kernels() {
-        let script = crate::import::convert(&crate::large_model::city(), "city.vm").unwrap();
-        let script = script.replacen("fn sdf(", "fn city(", 1)
+        let script = city().replacen("fn sdf(", "fn city(", 1)
             + "\nfn sdf(p: vec3) -> f32 = city(p) + 0.001 * tanh(p.x)\n";
-        let program = nerfjit_dsl::compile("city.sdf", &script).unwrap();
-        let cache = KernelCache::new();
-        let compiler = Compiler {
-            program: &program,
-            params: &program.param_values,
-            cache: &cache,
-        };
-        let kernels = MeshKernels::compile(&compiler, "sdf", true).unwrap();
-        let bounds_of = kernels.bounds.expect("bounded");
-        let specializer = compiler.specializer("sdf", &[Type::Vec(3)], &Type::F32).unwrap();
-        assert!(!specializer.pays());
-        let grid = ([-1.0; 3], [1.0; 3]);
-        let (mesh, pruning) = extract_pruned(
-            &kernels.value,
-            Some(&kernels.gradient),
-            &bounds_of,
-            Some(&specializer),
-            grid,
-            48,
-            0.0,
-        )
-        .unwrap();
+        let (mesh, pruning, pays) = mesh_of(&script, 48, true);
+        assert!(!pays);
         assert!(!mesh.triangles.is_empty());
         assert!(pruning.regions > 0);
         assert_eq!(pruning.regions_specialized, 0, "{pruning:?}");

@@ -545,7 +545,7 @@ impl Graph {
                 resolved[i] = resolved[a.0 as usize];
             }
         }
-        let live = self.live_through(&resolved);
+        let live = self.live_through(|v| resolved[v.0 as usize]);
         let mut out = Graph::with_capacity(live.iter().filter(|&&l| l).count());
         let mut map = vec![V(0); self.ops.len()];
         for (i, op) in self.ops.iter().enumerate() {
@@ -603,12 +603,11 @@ impl Graph {
 
     /// Which nodes the outputs and reductions depend on.
     pub fn live(&self) -> Vec<bool> {
-        let identity: Vec<V> = (0..self.ops.len() as u32).map(V).collect();
-        self.live_through(&identity)
+        self.live_through(|v| v)
     }
 
-    /// [`Graph::live`] where every read of node `i` reads node `stand_in[i]` instead.
-    fn live_through(&self, stand_in: &[V]) -> Vec<bool> {
+    /// [`Graph::live`] where every read of a node `v` reads `stand_in(v)` instead.
+    fn live_through(&self, stand_in: impl Fn(V) -> V) -> Vec<bool> {
         let mut live = vec![false; self.ops.len()];
         let outer = self.outer.iter().flat_map(|o| o.left.iter().chain(&o.right));
         let scatter = self
@@ -622,13 +621,13 @@ impl Graph {
             .chain(outer)
             .chain(scatter)
         {
-            live[stand_in[v.0 as usize].0 as usize] = true;
+            live[stand_in(*v).0 as usize] = true;
         }
         for i in (0..self.ops.len()).rev() {
             if !live[i] {
                 continue;
             }
-            let mut mark = |a: V| live[stand_in[a.0 as usize].0 as usize] = true;
+            let mut mark = |a: V| live[stand_in(a).0 as usize] = true;
             match &self.ops[i] {
                 Op::Dense(d) => self.list(d.x).iter().for_each(|&a| mark(a)),
                 op => op.args().into_iter().for_each(mark),

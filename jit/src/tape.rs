@@ -225,14 +225,23 @@ impl Tape {
     pub fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
         assert!(inputs.len() >= self.n_inputs && inputs.iter().all(|x| x.len() >= n));
         assert!(outputs.len() >= self.outputs.len() && outputs.iter().all(|x| x.len() >= n));
-        let mut slots = vec![vec![0.0f32; CHUNK]; self.slots];
-        #[cfg(target_arch = "x86_64")]
-        if crate::gemm::has_avx2_fma() {
-            // SAFETY: the CPU has AVX2 and FMA.
-            unsafe { self.eval_avx2(n, inputs, outputs, &mut slots) };
-            return;
+        // The slots are kept per thread: a mesher calls a tape hundreds of thousands of times.
+        thread_local! {
+            static SLOTS: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
         }
-        self.eval_chunks(n, inputs, outputs, &mut slots);
+        SLOTS.with_borrow_mut(|slots| {
+            if slots.len() < self.slots {
+                slots.resize(self.slots, vec![0.0f32; CHUNK]);
+            }
+            let slots = &mut slots[..self.slots];
+            #[cfg(target_arch = "x86_64")]
+            if crate::gemm::has_avx2_fma() {
+                // SAFETY: the CPU has AVX2 and FMA.
+                unsafe { self.eval_avx2(n, inputs, outputs, slots) };
+                return;
+            }
+            self.eval_chunks(n, inputs, outputs, slots);
+        });
     }
 
     #[cfg(target_arch = "x86_64")]
