@@ -1,11 +1,11 @@
 //! Tape simplification, as fidget and libfive do it: the graph of a function restricted to a box of inputs.
 //!
 //! Over a box, interval bounds ([`crate::interval`]) often decide a choice for every point inside: a `min`
-//! whose one argument lies wholly above the other, a `max` the reverse, a `select` whose condition (a comparison, or any value) is
-//! decided everywhere. [`Simplifier::simplify`] replaces each such node by the argument it takes
-//! and drops what only the other argument needed. A CSG scene of hundreds of primitives joined by `min`
-//! keeps, near a point, the few primitives that can be nearest there: kernels compiled from the simplified
-//! graph evaluate a fraction of the operations.
+//! whose one argument lies wholly above the other, a `max` the reverse, a `select` whose condition (a
+//! comparison, or any value) is decided everywhere. [`Simplifier::simplify`] replaces each such node by the
+//! argument it takes and drops what only the other argument needed. A CSG scene of hundreds of primitives
+//! joined by `min` keeps, near a point, the few primitives that can be nearest there: the simplified graph
+//! evaluates a fraction of the operations.
 //!
 //! A choice is taken only when the bounds clear each other by a margin of
 //! `1e-4 · (1 + |lo| + |hi|)` (as octree meshing keeps for its decisions), far above the f32 rounding of
@@ -54,7 +54,7 @@ pub struct Simplifier {
     bounds: NodeBounds,
 }
 
-/// Whether every value in `[lo, hi]` lies below every value in `[other_lo, other_hi]`, by the margin.
+/// Whether an interval whose upper bound is `hi` lies below one whose lower bound is `other_lo`, by the margin.
 fn clearly_below(hi: f64, other_lo: f64) -> bool {
     hi + MARGIN * (1.0 + hi.abs() + other_lo.abs()) < other_lo
 }
