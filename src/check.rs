@@ -29,7 +29,9 @@ pub fn run(path: &str) -> Result<String> {
         out += &format!("  {sig}\n");
     }
     for p in &program.params {
-        out += &format!("  param {}: {} ({} values)\n", p.name, p.ty, p.ty.scalars());
+        let n = p.ty.scalars();
+        let noun = if n == 1 { "value" } else { "values" };
+        out += &format!("  param {}: {} ({n} {noun})\n", p.name, p.ty);
     }
     for b in program.blocks() {
         let name = b

@@ -483,6 +483,12 @@ pub const TRAIN: BlockSchema = BlockSchema {
             4.0,
             "the eikonal points lie in [-b, b]³",
         ),
+        choice(
+            "eikonal_sampling",
+            &["uniform", "occupied"],
+            Some("uniform"),
+            "where in [-b, b]³ the eikonal points lie: anywhere, or in the cells skip_empty's grid marks occupied",
+        ),
         value(
             "val",
             "holdout(every: n) or a camera file",

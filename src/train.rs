@@ -19,7 +19,7 @@ use crate::failure::{Failure, Result};
 use crate::field::{VolumeField, VolumeFields};
 use crate::interrupt::Watch;
 use crate::metrics_log::RunLog;
-use crate::regularizers::{RegularizerKernels, Regularizers};
+use crate::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 use crate::viewer::Live;
 
@@ -66,8 +66,8 @@ pub struct TrainPlan {
     summary: Option<PathBuf>,
     preview: Option<PathBuf>,
     preview_every: u32,
-    /// VolSDF-style training: the eikonal term on the script's SDF (its name) at random points.
-    eikonal: Option<(String, Regularizers)>,
+    /// VolSDF-style training: the eikonal term on the script's SDF at random points.
+    eikonal: Option<Eikonal>,
     /// Held-out views scored during training (Blender data only).
     validation: Option<Validation>,
     /// Importance samples per ray for hierarchical sampling (0: one field, no fine pass).
@@ -78,6 +78,17 @@ pub struct TrainPlan {
     /// Training rays stop once their transmittance is below this (later samples are neither evaluated
     /// nor back-propagated); validation stops rays the same way, previews are exact.
     early_termination: Option<f32>,
+}
+
+/// The eikonal term of VolSDF-style training.
+#[derive(Clone, Debug)]
+struct Eikonal {
+    /// The script's SDF (its name).
+    sdf: String,
+    /// The term's weight and points.
+    regularizers: Regularizers,
+    /// Points in the occupancy grid's occupied cells (while there is one) instead of uniform ones.
+    occupied: bool,
 }
 
 /// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
@@ -361,15 +372,17 @@ impl TrainPlan {
         let eikonal_points = b.whole("eikonal_points")? as usize;
         let eikonal_bounds = b.number("eikonal_bounds")? as f32;
         let sdf = b.function("sdf")?;
-        let eikonal = (eikonal_weight > 0.0).then(|| {
-            let regularizers = Regularizers {
+        let occupied = b.choice("eikonal_sampling")?.as_deref() == Some("occupied");
+        let eikonal = (eikonal_weight > 0.0).then_some(Eikonal {
+            sdf,
+            regularizers: Regularizers {
                 points: eikonal_points,
                 bound: eikonal_bounds,
                 near_weight: 0.0,
                 near_sharpness: 0.0,
                 eikonal_weight,
-            };
-            (sdf, regularizers)
+            },
+            occupied,
         });
         let background = b.triple("background")?;
         let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
@@ -545,7 +558,7 @@ impl TrainPlan {
         let fields = VolumeFields::compile(program, &cache, self.importance)?;
         let field = &fields.fine;
         let regularizer_kernels = match &self.eikonal {
-            Some((sdf, reg)) => Some(RegularizerKernels::compile(program, sdf, reg)?),
+            Some(e) => Some(RegularizerKernels::compile(program, &e.sdf, &e.regularizers)?),
             None => None,
         };
         let compile_s = t.elapsed().as_secs_f64();
@@ -691,8 +704,13 @@ impl TrainPlan {
                     )?
                 }
             };
-            if let (Some((_, reg)), Some(k)) = (&self.eikonal, &regularizer_kernels) {
-                let [_, eikonal] = reg.add(k, params, &mut result.param_grads, &mut rng, threads);
+            if let (Some(e), Some(k)) = (&self.eikonal, &regularizer_kernels) {
+                let reg = &e.regularizers;
+                let points = match &grid {
+                    Some(grid) if e.occupied => occupied_points(&mut rng, reg.points, reg.bound, grid),
+                    _ => uniform_points(&mut rng, reg.points, reg.bound),
+                };
+                let [_, eikonal] = reg.add_at(k, &points, params, &mut result.param_grads, threads);
                 eikonal_loss = eikonal;
             }
             if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {

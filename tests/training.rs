@@ -519,6 +519,43 @@ fn volume_training_with_the_eikonal_term_moves_a_scaled_sdf_to_unit_gradient() {
 }
 
 #[test]
+fn occupied_eikonal_sampling_keeps_the_eikonal_points_where_the_grid_has_density() {
+    // The SDF is the box's scaled distance plus a term k·max(|p| − 2.2, 0) that is nonzero only far
+    // from the box (in the corners of [−2, 2]³). Uniform eikonal points see that term and move k;
+    // points in the occupancy grid's occupied cells (about the box) never do, so k stays exactly 1
+    // while the scale s still goes to 1.
+    let dir = scratch("eikonal_occupied");
+    make_views(&dir);
+    let trained = |sampling: &str| {
+        let src = format!(
+            "param center: vec3 = [0.2, -0.1, 0.1]\nparam sides: vec3 = [1.2, 0.8, 1.0]\n\
+             param s: f32 = 2.0\nparam k: f32 = 1.0\n\
+             fn sdf(p: vec3) -> f32 = s * box(p - center, sides) + k * max(length(p) - 2.2, 0.0)\n\
+             fn density(p: vec3) -> f32 = volsdf_density(box(p - center, sides), alpha: 10.0, beta: 0.05)\n\
+             fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)\n\
+             train {{ data: views(\"cams.json\"), samples: 32, steps: 300, batch: 256, lr: 0.01, \
+             eikonal_weight: 1.0, eikonal_points: 256, eikonal_bounds: 2.0, eikonal_sampling: {sampling}, \
+             skip_empty: grid(bounds: 1.5, resolution: 16, threshold: 0.01), grid_warmup: 0, \
+             grid_every: 100, summary: \"{sampling}.json\" }}\n"
+        );
+        std::fs::write(dir.join(format!("{sampling}.sdf")), src).unwrap();
+        let (ok, out, err) = run(&dir, &["run", &format!("{sampling}.sdf")]);
+        assert!(ok, "{err}");
+        assert!(out.contains("trained 300 steps"), "{out}");
+        let path = dir.join(format!("{sampling}.json"));
+        let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let param = |name: &str| json["params"][name][0].as_f64().unwrap();
+        (param("s"), param("k"))
+    };
+    let (s, k) = trained("occupied");
+    assert!((s - 1.0).abs() < 0.05, "s {s}");
+    assert_eq!(k, 1.0, "no occupied point is 2.2 from the center");
+    let (s, k) = trained("uniform");
+    assert!((s - 1.0).abs() < 0.1, "s {s}");
+    assert!((k - 1.0).abs() > 0.05, "uniform points should move k, got {k}");
+}
+
+#[test]
 fn a_neural_sdf_converges_to_points_on_a_sphere() {
     // A small ReLU network (on top of a sphere prior of the wrong radius) fitted with the course's loss:
     // its mesh lies on the points within 2% of the radius, in a few seconds.
