@@ -234,7 +234,8 @@ impl Extender<'_> {
         let f = |v: V| op.map_args(|_| v);
         let (lo, hi) = (self.push(f(lo)), self.push(f(hi)));
         match op {
-            Op::Exp(_) | Op::Log(_) | Op::Softplus(_) | Op::TruncExp(_) => self.clamp(lo, hi),
+            // Floor too: its widened argument may lie beyond ±BOUND (the whole range of a NaN log).
+            Op::Exp(_) | Op::Log(_) | Op::Softplus(_) | Op::TruncExp(_) | Op::Floor(_) => self.clamp(lo, hi),
             _ => (lo, hi),
         }
     }

@@ -322,6 +322,21 @@ fn steps_of_rounded_bounds_still_contain_the_value() {
     }
 }
 
+/// The floor of the whole range (here the log of a negative param: NaN, so ±BOUND) stays within ±BOUND
+/// although its argument is widened by the rounding margin first (random programs found
+/// `floor(log(p))` bounded by ±1.0001e18).
+#[test]
+fn the_floor_of_the_whole_range_stays_in_the_range() {
+    let mut g = Graph::new();
+    let p = g.param(0);
+    let l = g.push(Op::Log(p));
+    let f = g.push(Op::Floor(l));
+    g.outputs = vec![f];
+    g.n_inputs = 1;
+    let b = eval_point(&extend(&g), &[0.0, 1.0], &[-1.0]).outputs;
+    assert_eq!(b, [-BOUND, BOUND]);
+}
+
 /// Division by an interval that contains 0 is unbounded; by one that does not, it is bounded.
 #[test]
 fn division_by_a_range_through_zero_is_the_whole_range() {
