@@ -137,6 +137,9 @@ enum Command {
         /// Also write a turntable GIF of the mesh.
         #[arg(long)]
         gif: Option<PathBuf>,
+        /// The turntable's axis: the scene's up direction (y, or z for Blender scenes such as lego).
+        #[arg(long, default_value = "y", value_parser = ["y", "z"])]
+        up: String,
         /// Evaluate the function at every grid point instead of only in the blocks of cells whose interval
         /// bounds may cross the level (the mesh is the same; for comparison).
         #[arg(long)]
@@ -450,6 +453,7 @@ fn run_command(cli: Cli) -> ExitCode {
             out,
             color,
             gif,
+            up,
             no_prune,
         } => mesh::parse_bounds(&bounds)
             .map_err(failure::Failure::Message)
@@ -461,6 +465,11 @@ fn run_command(cli: Cli) -> ExitCode {
                     level,
                     out: &out,
                     gif: gif.as_deref(),
+                    up: if up == "z" {
+                        nerfjit_runtime::Up::Z
+                    } else {
+                        nerfjit_runtime::Up::Y
+                    },
                     prune: !no_prune,
                     color: color.as_deref(),
                 };

@@ -10,7 +10,7 @@ use nerfjit_jit::KernelCache;
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::surfaces::regions::Specialize;
-use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh, Up};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -34,23 +34,31 @@ pub struct MeshArgs<'a> {
     pub color: Option<&'a str>,
     /// A turntable GIF of the mesh, if wanted.
     pub gif: Option<&'a Path>,
+    /// The turntable's axis: the scene's up direction.
+    pub up: Up,
     /// Evaluate the function only in the blocks of cells where its interval bounds may cross the level
     /// (the same mesh, fewer evaluations); otherwise at every grid point.
     pub prune: bool,
 }
 
-/// 36 cameras circling the box `bounds` 25° above its center, framing it.
-pub fn turntable(bounds: ([f32; 3], [f32; 3])) -> nerfjit_runtime::Result<Vec<Camera>> {
+/// 36 cameras circling the box `bounds` about the `up` axis, 25° above its center, framing it.
+pub fn turntable(bounds: ([f32; 3], [f32; 3]), up: Up) -> nerfjit_runtime::Result<Vec<Camera>> {
     let (lo, hi) = (Vec3::from_array(bounds.0), Vec3::from_array(bounds.1));
     let center = lo.lerp(hi, 0.5);
     let radius = 0.8 * (hi - lo).length();
     let elevation = 25f32.to_radians();
+    // Two directions spanning the plane of the circle, right-handed with `up`.
+    let (a, b) = match up {
+        Up::Y => (Vec3::X, Vec3::NEG_Z),
+        Up::Z => (Vec3::X, Vec3::Y),
+    };
     (0..36)
         .map(|i| {
             let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
             let flat = radius * elevation.cos();
-            let eye = center + Vec3::new(flat * phi.cos(), radius * elevation.sin(), -flat * phi.sin());
-            Camera::look_at(eye, center, Vec3::Y, Vec2::splat(1.2), Vec2::ZERO)
+            let eye =
+                center + flat * phi.cos() * a + flat * phi.sin() * b + radius * elevation.sin() * up.vector();
+            Camera::look_at(eye, center, up.vector(), Vec2::splat(1.2), Vec2::ZERO)
         })
         .collect()
 }
@@ -155,7 +163,7 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
     }
     if let Some(gif) = args.gif {
         // Frame the mesh itself (the grid may be much larger), lit from above the camera's left shoulder.
-        let frames = turntable(mesh.bounds().unwrap_or(args.bounds))?
+        let frames = turntable(mesh.bounds().unwrap_or(args.bounds), args.up)?
             .iter()
             .map(|camera| {
                 let light = camera.rotation() * Vec3::new(0.4, 0.6, -1.0);
@@ -284,6 +292,7 @@ pub struct MeshPlan {
     level: f32,
     out: PathBuf,
     gif: Option<PathBuf>,
+    up: Up,
     compare: Option<(PathBuf, Option<String>)>,
 }
 
@@ -296,6 +305,10 @@ impl MeshPlan {
         let level = b.number("level")? as f32;
         let out = b.required_output("out")?;
         let gif = b.output("gif")?;
+        let up = match b.choice("up")?.as_deref() {
+            Some("z") => Up::Z,
+            _ => Up::Y,
+        };
         let compare = match b.take("compare") {
             None => None,
             Some(v) => {
@@ -317,6 +330,7 @@ impl MeshPlan {
             level,
             out,
             gif,
+            up,
             compare,
         })
     }
@@ -330,6 +344,7 @@ impl MeshPlan {
             level: self.level,
             out: &self.out,
             gif: self.gif.as_deref(),
+            up: self.up,
             prune: true,
             color: None,
         };
@@ -357,6 +372,25 @@ impl MeshPlan {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn turntables_circle_their_up_axis_above_the_center() {
+        let bounds = ([-1.0, -2.0, 0.0], [1.0, 2.0, 1.0]);
+        for up in [Up::Y, Up::Z] {
+            let cameras = turntable(bounds, up).unwrap();
+            assert_eq!(cameras.len(), 36);
+            let height = |c: &Camera| c.position().dot(up.vector());
+            let center = Vec3::new(0.0, 0.0, 0.5);
+            for c in &cameras {
+                // Every eye at the same height above the center, looking at it, upright.
+                assert!((height(c) - height(&cameras[0])).abs() < 1e-5);
+                assert!(height(c) > center.dot(up.vector()));
+                let forward = c.rotation() * Vec3::Z;
+                assert!(forward.dot((center - c.position()).normalize()) > 0.9999);
+                assert!((c.rotation() * Vec3::Y).dot(up.vector()) > 0.0);
+            }
+        }
+    }
     use nerfjit_runtime::surfaces::marching::extract_pruned;
 
     /// Meshes the `sdf` of `script` over [−1, 1]³ at `resolution`, pruned, with its regions restricted when

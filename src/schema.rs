@@ -615,6 +615,12 @@ pub const MESH: BlockSchema = BlockSchema {
         number("level", -1e9, 1e9, 0.0, "the level set"),
         output("out", MESHES, "the mesh").required("out: \"mesh.ply\""),
         output("gif", IMAGES, "a turntable of the mesh"),
+        choice(
+            "up",
+            &["y", "z"],
+            Some("y"),
+            "the turntable's axis: the scene's up direction",
+        ),
         value(
             "compare",
             "points(\"file\", key: \"name\")",

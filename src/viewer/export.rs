@@ -121,6 +121,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         level,
         out: &scratch.0,
         gif: None,
+        up: nerfjit_runtime::Up::Y,
         prune: true,
         color: None,
     };

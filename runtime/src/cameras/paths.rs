@@ -15,7 +15,8 @@ pub enum Up {
 }
 
 impl Up {
-    fn vector(self) -> Vec3 {
+    /// The up direction: +Y or +Z.
+    pub fn vector(self) -> Vec3 {
         match self {
             Up::Y => Vec3::Y,
             Up::Z => Vec3::Z,
