@@ -74,9 +74,10 @@ pub(crate) fn fused_muls(g: &Graph) -> Vec<bool> {
             }
         }
     }
-    // An add of two fusable products fuses only the second.
-    for op in g.ops() {
-        if let Op::Add(a, b) | Op::Sub(a, b) = *op {
+    // An add of two fusable products fuses only the second. (Dead sums do not count: they are not
+    // compiled, and a compacted graph, which has none, must fuse the same products.)
+    for (i, op) in g.ops().iter().enumerate() {
+        if let (true, Op::Add(a, b) | Op::Sub(a, b)) = (live[i], *op) {
             if fused[a.0 as usize] && fused[b.0 as usize] {
                 fused[a.0 as usize] = false;
             }
