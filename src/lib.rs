@@ -16,8 +16,9 @@
 //! # }
 //! ```
 //!
-//! The library API is still the commands' (one function per command or block kind); a `Session` that
-//! keeps compiled kernels between blocks is not there yet.
+//! The library API is still the commands' (one function per command or block kind). A run compiles
+//! through one kernel cache for all its blocks (a field trained and then rendered or meshed is compiled
+//! once); a `Session` type that keeps a program, its params and that cache between calls is not there yet.
 
 pub mod bench;
 pub mod block;

@@ -86,12 +86,18 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
 /// checkpoint (with the trained ones).
 pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
     let (program, params) = crate::views::load(source)?;
-    let (_, summary) = extract_and_write(&program, &params, args)?;
+    let (_, summary) = extract_and_write(&program, &params, args, &KernelCache::new())?;
     Ok(summary)
 }
 
-/// Extracts the mesh with `params`, writes it (and the GIF); returns it and a summary line.
-pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> Result<(Mesh, String)> {
+/// Extracts the mesh with `params` (compiling through `cache`), writes it (and the GIF); returns it and a
+/// summary line.
+pub fn extract_and_write(
+    program: &Program,
+    params: &[f32],
+    args: &MeshArgs,
+    cache: &KernelCache,
+) -> Result<(Mesh, String)> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
     if !matches!(ext, "ply" | "obj" | "stl") {
         return Err(Failure::Message(format!(
@@ -118,11 +124,10 @@ pub fn extract_and_write(program: &Program, params: &[f32], args: &MeshArgs) -> 
             )));
         }
     }
-    let cache = KernelCache::new();
     let compiler = Compiler {
         program,
         params,
-        cache: &cache,
+        cache,
     };
     let t = Instant::now();
     let MeshKernels {
@@ -335,8 +340,8 @@ impl MeshPlan {
         })
     }
 
-    /// Meshes, writes and (when asked) compares; returns a summary.
-    pub fn run(&self, program: &Program, params: &[f32]) -> Result<String> {
+    /// Meshes (compiling through `cache`), writes and (when asked) compares; returns a summary.
+    pub fn run(&self, program: &Program, params: &[f32], cache: &KernelCache) -> Result<String> {
         let args = MeshArgs {
             function: &self.function,
             resolution: self.resolution,
@@ -348,7 +353,7 @@ impl MeshPlan {
             prune: true,
             color: None,
         };
-        let (mesh, mut summary) = extract_and_write(program, params, &args)?;
+        let (mesh, mut summary) = extract_and_write(program, params, &args, cache)?;
         if let Some((file, key)) = &self.compare {
             // The points as the fit saw them: mean-centered.
             let (points, _) = mean_center(&read_points(file, key.as_deref())?);

@@ -117,13 +117,19 @@ impl RenderPlan {
         Ok((sdf, color))
     }
 
-    /// Compiles the script's functions and renders every frame; writes the outputs and returns a summary.
-    pub fn run(&self, program: &Program, params: &[f32], progress: &dyn Fn(usize)) -> Result<String> {
-        let cache = KernelCache::new();
+    /// Compiles the script's functions (through `cache`) and renders every frame; writes the outputs and
+    /// returns a summary.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &[f32],
+        cache: &KernelCache,
+        progress: &dyn Fn(usize),
+    ) -> Result<String> {
         let compiler = Compiler {
             program,
             params,
-            cache: &cache,
+            cache,
         };
         let compile_start = Instant::now();
         let (sdf, color) = self.compile_fields(&compiler)?;

@@ -6,6 +6,7 @@ use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::Settings;
+use nerfjit_jit::KernelCache;
 
 use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
@@ -83,24 +84,26 @@ pub fn run(
         None => None,
     };
     let mut params = program.param_values.clone();
+    // One cache for every block: a field trained and then rendered or meshed is compiled once.
+    let cache = KernelCache::new();
     for plan in &plans {
         let summary = match plan {
             Plan::Trace(p) => {
                 let bar = bar(p.cameras.len(), "rendering");
-                let summary = p.run(&program, &params, &|done| bar.set_position(done as u64))?;
+                let summary = p.run(&program, &params, &cache, &|done| bar.set_position(done as u64))?;
                 bar.finish_and_clear();
                 summary
             }
             Plan::Volume(p) => {
                 let bar = bar(p.cameras.len(), "volume rendering");
-                let summary = p.run(&program, &params, &|done| bar.set_position(done as u64))?;
+                let summary = p.run(&program, &params, &cache, &|done| bar.set_position(done as u64))?;
                 bar.finish_and_clear();
                 summary
             }
-            Plan::Train(p) => p.run(&program, &mut params, resume, live.as_deref())?,
+            Plan::Train(p) => p.run(&program, &mut params, &cache, resume, live.as_deref())?,
             Plan::Viz(p) => p.run()?,
             Plan::FitSdf(p) => p.run(&program, &mut params, resume)?,
-            Plan::Mesh(p) => p.run(&program, &params)?,
+            Plan::Mesh(p) => p.run(&program, &params, &cache)?,
         };
         crate::emit(&format!("{summary}\n"));
     }

@@ -515,7 +515,7 @@ impl TrainPlan {
             validation: None,
             ..*self
         };
-        let line = quiet.run(program, params, false, None)?;
+        let line = quiet.run(program, params, &KernelCache::new(), false, None)?;
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
@@ -539,12 +539,13 @@ impl TrainPlan {
         Ok((views, val_views))
     }
 
-    /// Trains `params` in place (resuming from the checkpoint when asked), publishing its progress and
-    /// params to a live viewer when given; returns a summary line.
+    /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`),
+    /// publishing its progress and params to a live viewer when given; returns a summary line.
     pub fn run(
         &self,
         program: &Program,
         params: &mut Vec<f32>,
+        cache: &KernelCache,
         resume: bool,
         live: Option<&Live>,
     ) -> Result<String> {
@@ -553,9 +554,8 @@ impl TrainPlan {
         let mut val_message = String::new();
         let mut train_seconds = 0.0f64;
 
-        let cache = KernelCache::new();
         let t = Instant::now();
-        let fields = VolumeFields::compile(program, &cache, self.importance)?;
+        let fields = VolumeFields::compile(program, cache, self.importance)?;
         let field = &fields.fine;
         let regularizer_kernels = match &self.eikonal {
             Some(e) => Some(RegularizerKernels::compile(program, &e.sdf, &e.regularizers)?),

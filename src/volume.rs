@@ -109,11 +109,17 @@ impl VolumePlan {
         }
     }
 
-    /// Renders every frame with `params` and writes the outputs; returns a summary line.
-    pub fn run(&self, program: &Program, params: &[f32], progress: &dyn Fn(usize)) -> Result<String> {
-        let cache = KernelCache::new();
+    /// Renders every frame with `params` (compiling through `cache`) and writes the outputs; returns a
+    /// summary line.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &[f32],
+        cache: &KernelCache,
+        progress: &dyn Fn(usize),
+    ) -> Result<String> {
         let t = Instant::now();
-        let fields = VolumeFields::compile(program, &cache, self.importance)?;
+        let fields = VolumeFields::compile(program, cache, self.importance)?;
         let field = &fields.fine;
         let compile_s = t.elapsed().as_secs_f64();
         let settings = self.settings(field);

@@ -14,7 +14,7 @@ use crate::tiled::Tiled;
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 
 /// How to compile a kernel.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub struct Options {
     /// Keep the Cranelift IR text for `nerfjit ir`.
     pub keep_clif: bool,

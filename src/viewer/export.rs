@@ -125,7 +125,12 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         prune: true,
         color: None,
     };
-    extract_and_write(scene.program(), scene.params(), &args)?;
+    extract_and_write(
+        scene.program(),
+        scene.params(),
+        &args,
+        &nerfjit_jit::KernelCache::new(),
+    )?;
     Ok(File {
         name: format!("{stem}.ply"),
         mime: "application/octet-stream",
