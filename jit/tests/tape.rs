@@ -112,11 +112,11 @@ fn dead_sums_do_not_unfuse_a_product() {
     let (want, _) = jit_eval(&g, &[vec![x]], &[], Options::default());
     let xf = x as f32;
     assert_eq!(
-        bits(want[0][0] as f32),
+        bits(want[0][0]),
         bits(xf.mul_add(-3.0, xf.sqrt())),
         "the kernel fuses"
     );
-    assert_eq!(bits(out[0]), bits(want[0][0] as f32));
+    assert_eq!(bits(out[0]), bits(want[0][0]));
 }
 
 #[test]
