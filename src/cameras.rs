@@ -15,11 +15,7 @@ use nerfjit_runtime::{
 use crate::settings::{triple, CallArgs};
 
 fn up(args: &CallArgs) -> std::result::Result<Up, Diagnostic> {
-    Ok(if args.choice("up", &["y", "z"], "y")? == "z" {
-        Up::Z
-    } else {
-        Up::Y
-    })
+    Ok(Up::named(&args.choice("up", &["y", "z"], "y")?).unwrap_or(Up::Y))
 }
 
 /// The cameras a `camera` value describes; a camera file is resolved against `script_dir`. The outer error

@@ -465,11 +465,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     level,
                     out: &out,
                     gif: gif.as_deref(),
-                    up: if up == "z" {
-                        nerfjit_runtime::Up::Z
-                    } else {
-                        nerfjit_runtime::Up::Y
-                    },
+                    up: nerfjit_runtime::Up::named(&up).unwrap_or(nerfjit_runtime::Up::Y),
                     prune: !no_prune,
                     color: color.as_deref(),
                 };

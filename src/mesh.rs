@@ -310,10 +310,7 @@ impl MeshPlan {
         let level = b.number("level")? as f32;
         let out = b.required_output("out")?;
         let gif = b.output("gif")?;
-        let up = match b.choice("up")?.as_deref() {
-            Some("z") => Up::Z,
-            _ => Up::Y,
-        };
+        let up = b.choice("up")?.as_deref().and_then(Up::named).unwrap_or(Up::Y);
         let compare = match b.take("compare") {
             None => None,
             Some(v) => {
@@ -377,6 +374,7 @@ impl MeshPlan {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nerfjit_runtime::surfaces::marching::extract_pruned;
 
     #[test]
     fn turntables_circle_their_up_axis_above_the_center() {
@@ -396,7 +394,6 @@ mod tests {
             }
         }
     }
-    use nerfjit_runtime::surfaces::marching::extract_pruned;
 
     /// Meshes the `sdf` of `script` over [−1, 1]³ at `resolution`, pruned, with its regions restricted when
     /// `restrict`; also says whether restricting it pays.

@@ -15,6 +15,15 @@ pub enum Up {
 }
 
 impl Up {
+    /// The axis a setting names: `y` or `z` (anything else is `None`).
+    pub fn named(name: &str) -> Option<Up> {
+        match name {
+            "y" => Some(Up::Y),
+            "z" => Some(Up::Z),
+            _ => None,
+        }
+    }
+
     /// The up direction: +Y or +Z.
     pub fn vector(self) -> Vec3 {
         match self {
