@@ -16,9 +16,11 @@
 //! # }
 //! ```
 //!
-//! The library API is still the commands' (one function per command or block kind). A run compiles
-//! through one kernel cache for all its blocks (a field trained and then rendered or meshed is compiled
-//! once); a `Session` type that keeps a program, its params and that cache between calls is not there yet.
+//! A [`session::Session`] keeps a checked script, its params and one kernel cache between calls: its
+//! blocks run one at a time, and the params a `train` block learned can be read, changed and rendered
+//! with (a field trained and then rendered or meshed is compiled once); its documentation trains the
+//! course's box from Rust. The other modules are the commands' work (one function per command or block
+//! kind).
 
 pub mod bench;
 pub mod block;
@@ -45,6 +47,7 @@ pub mod render;
 pub mod run;
 pub mod schema;
 pub mod script;
+pub mod session;
 pub mod settings;
 pub mod tensorboard;
 pub mod train;
