@@ -104,7 +104,7 @@ enum Command {
     },
     /// Run a benchmark workload and print its figures (medians).
     Bench {
-        /// The workload: w7 (SDF evaluation) or w1 (sphere-traced torus).
+        /// The workload (w1 … w8, listed by `nerfjit bench --help`).
         workload: bench::Workload,
         /// Repetitions; the median is reported.
         #[arg(long, default_value_t = 9)]

@@ -5,7 +5,9 @@
 //! here they run in f32 over the columns of a tile, with the levels' layouts computed once per kernel.
 //! On AVX-512 machines 16 points go through a level at once (the corners hashed in vector registers,
 //! the table read by gathers, the cotangents scattered by gather-add-scatter); on AVX2 machines 8 (the
-//! corners and the read in vectors, the scatter point by point). The arithmetic is the scalar path's,
+//! corners and the read in vectors, the scatter point by point), with the corners of levels larger than
+//! the L1 cache computed two blocks ahead and their lines prefetched, so that the reads of a large table
+//! overlap instead of waiting on memory one after the other. The arithmetic is the scalar path's,
 //! operation for operation, so every path gives the same bits.
 
 use nerfjit_dsl::grid::Level;
@@ -24,7 +26,13 @@ pub(crate) struct GridPlan {
     extent: f32,
     /// The instructions the reads and scatters run on.
     path: Path,
+    /// Per level: its part of the table is larger than a core's L1 cache, so the AVX2 path fetches the
+    /// lines of the points' corners ahead of their use.
+    far: Vec<bool>,
 }
+
+/// Bytes of a level's table above which its corners' lines are prefetched (a core's L1 data cache).
+const PREFETCH_ABOVE: u64 = 32 << 10;
 
 /// The instruction set of a grid plan's loops.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -75,6 +83,9 @@ impl GridPlan {
             inv_size: 1.0 / (2.0 * extent),
             extent,
             path: Path::available(end)[0],
+            far: (0..spec.levels)
+                .map(|l| spec.level_size(l) * u64::from(spec.features) * 4 > PREFETCH_ABOVE)
+                .collect(),
         }
     }
 
@@ -436,9 +447,115 @@ mod avx2 {
     const LANES: usize = 8;
 
     /// The 8 corners of 8 points' cells in one level: table indices (of the first feature) and weights.
+    #[derive(Clone, Copy)]
     struct Corners8 {
         index: [__m256i; 8],
         weight: [__m256; 8],
+    }
+
+    /// How many blocks of 8 points ahead of their use the corners of a far level are computed and their
+    /// lines prefetched: the table reads of a level larger than the caches wait on memory otherwise.
+    const AHEAD: usize = 2;
+
+    /// The corners of a level's blocks of 8 points in order; for a far level each is computed [`AHEAD`]
+    /// blocks before it is returned, and its entries' lines in `table` prefetched then.
+    struct Lookahead<'a> {
+        plan: &'a GridPlan,
+        level: &'a Level,
+        p: [*const f32; 3],
+        count: usize,
+        table: *const f32,
+        ahead: usize,
+        ring: [Corners8; AHEAD + 1],
+    }
+
+    impl<'a> Lookahead<'a> {
+        /// Starts level `l` of `plan` over the points `p` (columns of `count` floats).
+        ///
+        /// # Safety
+        /// The columns of `p` must hold `count` readable floats.
+        #[target_feature(enable = "avx2")]
+        unsafe fn new(
+            plan: &'a GridPlan,
+            l: usize,
+            p: [*const f32; 3],
+            count: usize,
+            table: *const f32,
+        ) -> Self {
+            let zero = Corners8 {
+                index: [_mm256_setzero_si256(); 8],
+                weight: [_mm256_setzero_ps(); 8],
+            };
+            let ahead = if plan.far[l] {
+                AHEAD.min(count.div_ceil(LANES))
+            } else {
+                0
+            };
+            let mut look = Lookahead {
+                plan,
+                level: &plan.levels[l],
+                p,
+                count,
+                table,
+                ahead,
+                ring: [zero; AHEAD + 1],
+            };
+            for b in 0..ahead {
+                // SAFETY: passed on; block b starts below count.
+                unsafe { look.fetch(b) };
+            }
+            look
+        }
+
+        /// The corners of block `b` (points `8b..8b + 8`).
+        ///
+        /// # Safety
+        /// As for [`Lookahead::new`], with `8b < count`.
+        #[target_feature(enable = "avx2")]
+        unsafe fn compute(&self, b: usize) -> Corners8 {
+            let start = b * LANES;
+            // SAFETY: passed on.
+            let points = unsafe { load_points(self.p, start, lanes(start, self.count)) };
+            corners(self.plan, self.level, points)
+        }
+
+        /// Computes the corners of block `b` into the ring and prefetches their lines.
+        ///
+        /// # Safety
+        /// As for [`Lookahead::compute`].
+        #[target_feature(enable = "avx2")]
+        unsafe fn fetch(&mut self, b: usize) {
+            // SAFETY: passed on.
+            let corners = unsafe { self.compute(b) };
+            let mut index = [0u32; LANES];
+            for k in 0..8 {
+                // SAFETY: 8 lanes into an array of 8.
+                unsafe { _mm256_storeu_si256(index.as_mut_ptr().cast(), corners.index[k]) };
+                for &i in &index {
+                    // A prefetch is a hint that never faults; the address is computed without
+                    // dereferencing (lanes past `count` hold the corners of a point at 0, in the table).
+                    _mm_prefetch::<_MM_HINT_T0>(self.table.wrapping_add(i as usize).cast());
+                }
+            }
+            self.ring[b % (AHEAD + 1)] = corners;
+        }
+
+        /// The corners of block `b`; blocks must be asked for in order 0, 1, ...
+        ///
+        /// # Safety
+        /// As for [`Lookahead::compute`].
+        #[target_feature(enable = "avx2")]
+        unsafe fn block(&mut self, b: usize) -> Corners8 {
+            if self.ahead == 0 {
+                // SAFETY: passed on.
+                return unsafe { self.compute(b) };
+            }
+            if (b + self.ahead) * LANES < self.count {
+                // SAFETY: passed on; that block starts below count.
+                unsafe { self.fetch(b + self.ahead) };
+            }
+            self.ring[b % (AHEAD + 1)]
+        }
     }
 
     /// All ones in the lanes of the points `start..start + 8` that are below `count`.
@@ -539,11 +656,13 @@ mod avx2 {
         params: &[f32],
         count: usize,
     ) {
-        for (l, level) in plan.levels.iter().enumerate() {
-            for start in (0..count).step_by(LANES) {
+        for l in 0..plan.levels.len() {
+            // SAFETY: the caller's columns hold count floats.
+            let mut look = unsafe { Lookahead::new(plan, l, p, count, params.as_ptr()) };
+            for (b, start) in (0..count).step_by(LANES).enumerate() {
                 let m = lanes(start, count);
-                // SAFETY: the caller's columns hold count floats.
-                let corners = corners(plan, level, unsafe { load_points(p, start, m) });
+                // SAFETY: as above; the block starts below count.
+                let corners = unsafe { look.block(b) };
                 for f in 0..plan.features {
                     let shift = _mm256_set1_epi32(f as i32);
                     let mut sum = _mm256_setzero_ps();
@@ -580,11 +699,12 @@ mod avx2 {
     ) {
         let mut index = [[0u32; LANES]; 8];
         let mut weight = [[0.0f32; LANES]; 8];
-        for (l, level) in plan.levels.iter().enumerate() {
-            for start in (0..count).step_by(LANES) {
-                let m = lanes(start, count);
-                // SAFETY: the caller's columns hold count floats.
-                let vectors = corners(plan, level, unsafe { load_points(p, start, m) });
+        for l in 0..plan.levels.len() {
+            // SAFETY: the caller's columns hold count floats.
+            let mut look = unsafe { Lookahead::new(plan, l, p, count, grads.as_ptr()) };
+            for (b, start) in (0..count).step_by(LANES).enumerate() {
+                // SAFETY: as above; the block starts below count.
+                let vectors = unsafe { look.block(b) };
                 for k in 0..8 {
                     // SAFETY: 8 lanes into arrays of 8.
                     unsafe {
@@ -641,8 +761,8 @@ mod tests {
     }
 
     proptest! {
-        /// The vector paths this machine has (16 points with AVX-512, 8 with AVX2) give the scalar path's
-        /// bits, for reads, their derivatives and scatters, at any count.
+        /// The vector paths this machine has (16 points with AVX-512, 8 with AVX2, with and without the
+        /// lookahead) give the scalar path's bits, for reads, their derivatives and scatters, at any count.
         #[test]
         fn vector_and_scalar_paths_agree(
             points in proptest::collection::vec([coordinate(), coordinate(), coordinate()], 0..=128),
@@ -675,9 +795,12 @@ mod tests {
                 unsafe { plan.scatter(p, &cot, &mut grads, count) };
                 grads
             };
-            for path in Path::available(scalar.params_end()) {
-                let plan = GridPlan { path, ..GridPlan::new(&read(deriv, 1.0)) };
-                prop_assert_eq!(bits(outputs(&plan)), bits(outputs(&scalar)), "{:?}", path);
+            // Each vector path with and without the prefetched lookahead (this small table's levels are
+            // all near, so `far` is set by hand).
+            let paths = Path::available(scalar.params_end()).into_iter().flat_map(|path| [(path, false), (path, true)]);
+            for (path, far) in paths {
+                let plan = GridPlan { path, far: vec![far; 5], ..GridPlan::new(&read(deriv, 1.0)) };
+                prop_assert_eq!(bits(outputs(&plan)), bits(outputs(&scalar)), "{:?} far {}", path, far);
                 if path == Path::Avx512 {
                     // The same terms, summed in another order (corner by corner rather than point by
                     // point); the derivative's terms reach ±25 and cancel, so the sums agree to a few f32
@@ -688,7 +811,7 @@ mod tests {
                 } else {
                     // The scalar path's additions in its order.
                     let bits = |g: Vec<f32>| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
-                    prop_assert_eq!(bits(scattered(&plan)), bits(scattered(&scalar)), "{:?}", path);
+                    prop_assert_eq!(bits(scattered(&plan)), bits(scattered(&scalar)), "{:?} far {}", path, far);
                 }
             }
         }
