@@ -18,7 +18,11 @@
 //! box (a slab test) write the background without any work; for the others, the samples
 //! between where the ray enters and leaves the box are looked up in the grid, the occupied
 //! ones packed ray by ray into one dense field call per tile (or per chunk with early
-//! termination), and each ray composites its own evaluated samples in order. Evaluated
+//! termination), and each ray composites its own evaluated samples in order. As a grid leaves
+//! few samples of a ray to evaluate, such a tile takes many more rays (up to
+//! [`PACKED_TILE_RAYS`]) so that the field calls stay large, and early termination goes
+//! [`PACKED_CHUNK_SAMPLES`] samples at a time, so that few samples past a ray's end are
+//! evaluated. Evaluated
 //! samples are at exactly the points and depths of the exact render and composited with
 //! the same operations, so the result is, bit for bit, the exact render of the field with
 //! its first output set to 0 in the empty cells (given finite colors): the two renders
@@ -43,6 +47,13 @@ pub const TILE_POINTS: usize = 8192;
 
 /// Samples per field call when early termination is on.
 pub const CHUNK_SAMPLES: usize = 16;
+
+/// Rays per tile at most when an occupancy grid skips samples (tiles are also kept small
+/// enough for eight a thread).
+pub const PACKED_TILE_RAYS: usize = 16384;
+
+/// Sample rows per field call when early termination is on and a grid skips samples.
+pub const PACKED_CHUNK_SAMPLES: usize = 8;
 
 /// Parameters of volume rendering and training.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -533,9 +544,10 @@ pub fn render_volume_with(
         compositor: settings.compositor(),
         deltas: deltas(&depths),
         depths,
-        chunk: match settings.early_termination {
-            Some(_) => CHUNK_SAMPLES.min(settings.samples),
-            None => settings.samples,
+        chunk: match (settings.early_termination, grid) {
+            (Some(_), None) => CHUNK_SAMPLES.min(settings.samples),
+            (Some(_), Some(_)) => PACKED_CHUNK_SAMPLES.min(settings.samples),
+            (None, _) => settings.samples,
         },
         inv_step: (settings.samples - 1) as f32 / (settings.far - settings.near),
         grid,
@@ -549,7 +561,11 @@ pub fn render_volume_with(
         depth: vec![0.0; n],
         opacity: vec![0.0; n],
     };
-    let tile = settings.rays_per_tile();
+    let tile = match grid {
+        // Eight tiles a thread at least, for the balance between threads.
+        Some(_) => (n / (8 * rayon::current_num_threads())).clamp(settings.rays_per_tile(), PACKED_TILE_RAYS),
+        None => settings.rays_per_tile(),
+    };
     frame
         .rgb
         .par_chunks_mut(tile)
@@ -819,15 +835,20 @@ mod tests {
                     out[0] = 0.0;
                 }
             });
-            for early_termination in [None, Some(0.3)] {
+            // The larger frame renders with tiles of more rays than the exact render's.
+            let cases = [(33, 27), (200, 150)]
+                .into_iter()
+                .flat_map(|size| [(size, None), (size, Some(0.3))]);
+            for ((width, height), early_termination) in cases {
                 let settings = VolumeSettings {
                     background: Some([0.1, 0.2, 0.3]),
                     early_termination,
                     ..settings(mode)
                 };
-                let fast = render_volume_with(&camera(), 33, 27, &field, &settings, Some(&grid)).unwrap();
-                let reference = render_volume(&camera(), 33, 27, &cut, &settings).unwrap();
-                assert_eq!(fast, reference, "{mode:?} {early_termination:?}");
+                let fast =
+                    render_volume_with(&camera(), width, height, &field, &settings, Some(&grid)).unwrap();
+                let reference = render_volume(&camera(), width, height, &cut, &settings).unwrap();
+                assert_eq!(fast, reference, "{mode:?} {width}×{height} {early_termination:?}");
             }
         }
     }
