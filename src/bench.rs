@@ -4,6 +4,7 @@
 use std::time::Instant;
 
 use nerfjit_dsl::{kernels, Type};
+use nerfjit_jit::profile::{self, Phase};
 use nerfjit_jit::{Kernel, Options};
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
@@ -610,12 +611,37 @@ fn w8(reps: usize) -> Result<()> {
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
         let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
-        let summary = plan.run_steps(&program, &mut params, steps)?;
+        profile::take();
+        profile::enable(true);
+        let summary = plan.run_steps(&program, &mut params, steps);
+        profile::enable(false);
+        let times = profile::take();
         crate::emit(&format!(
-            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {summary}\n"
+            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {}\n  {}\n",
+            summary?,
+            time_shares(&times)
         ));
     }
     Ok(())
+}
+
+/// Each phase's share of the training steps' time on all threads (wall time × threads), and the rest:
+/// sampling, compositing, occupancy updates, gradient sums and idle threads.
+fn time_shares(times: &profile::Times) -> String {
+    let total = times.seconds(Phase::Steps) * rayon::current_num_threads() as f64;
+    let mut parts: Vec<String> = Vec::new();
+    let mut accounted = 0.0;
+    for phase in Phase::ALL.into_iter().filter(|&p| p != Phase::Steps) {
+        let share = times.seconds(phase) / total;
+        accounted += share;
+        parts.push(format!("{} {:.1}%", phase.name(), 100.0 * share));
+    }
+    parts.push(format!("the rest {:.1}%", 100.0 * (1.0 - accounted)));
+    format!(
+        "time on {} threads: {}",
+        rayon::current_num_threads(),
+        parts.join(", ")
+    )
 }
 
 fn w5(reps: usize) -> Result<()> {

@@ -553,6 +553,8 @@ impl TrainPlan {
         let mut history: Vec<serde_json::Value> = Vec::new();
         let mut val_message = String::new();
         let mut train_seconds = 0.0f64;
+        // Samples evaluated by the steps of this run.
+        let mut samples = 0usize;
 
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance)?;
@@ -726,7 +728,10 @@ impl TrainPlan {
             adam.lr = self.schedule.lr(step);
             before.clear();
             before.extend_from_slice(params);
+            let update = std::time::Instant::now();
             adam.step(params, &result.param_grads)?;
+            nerfjit_jit::profile::record(nerfjit_jit::profile::Phase::Optimizer, update.elapsed());
+            samples += result.samples;
             if params.iter().any(|p| !p.is_finite()) {
                 params.copy_from_slice(&before);
                 return Err(Failure::Message(format!(
@@ -735,7 +740,9 @@ impl TrainPlan {
             }
             (loss, psnr) = (result.loss, result.psnr);
             nerfjit_runtime::volume::train::recycle(result.param_grads);
-            train_seconds += step_start.elapsed().as_secs_f64();
+            let step_time = step_start.elapsed();
+            nerfjit_jit::profile::record(nerfjit_jit::profile::Phase::Steps, step_time);
+            train_seconds += step_time.as_secs_f64();
             done = step + 1;
             let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);
             let interrupted = watch.requested();
@@ -841,6 +848,11 @@ impl TrainPlan {
         } else {
             0.0
         };
+        let samples_per_s = if train_seconds > 0.0 {
+            samples as f64 / train_seconds
+        } else {
+            0.0
+        };
         let values = describe_params(program, params);
         if let Some(path) = &self.summary {
             let json = serde_json::json!({
@@ -851,6 +863,7 @@ impl TrainPlan {
                 "final_psnr": psnr,
                 "seconds": seconds,
                 "ms_per_step": ms_per_step,
+                "samples_per_s": samples_per_s,
                 "compile_seconds": compile_s,
                 "train_seconds": train_seconds,
                 "validation": history,
@@ -862,7 +875,8 @@ impl TrainPlan {
             return Err(crate::interrupt::stopped(done, self.checkpoint.as_deref()));
         }
         Ok(format!(
-            "trained {trained} steps in {seconds:.1} s ({ms_per_step:.2} ms/step, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{values}"
+            "trained {trained} steps in {seconds:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{values}",
+            samples_per_s * 1e-6
         ))
     }
 

@@ -23,6 +23,7 @@ mod encode;
 pub mod gemm;
 mod kernel;
 mod march;
+pub mod profile;
 mod simd;
 mod tape;
 mod tiled;

@@ -17,6 +17,7 @@ use nerfjit_dsl::ir::{Graph, Op, V};
 use crate::encode::GridPlan;
 use crate::gemm::{self, TILE};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
+use crate::profile::{Laps, Phase};
 
 /// One elementwise segment: a JIT kernel reading and writing slots.
 struct Segment {
@@ -479,6 +480,7 @@ impl Tiled {
             .map(|sc| (sc.p.map(|s| column(s) as *const f32), reads(&sc.cotangent)))
             .collect();
         let mut scratch = Vec::new();
+        let mut laps = Laps::start();
 
         for start in (0..n).step_by(TILE) {
             let count = TILE.min(n - start);
@@ -487,34 +489,42 @@ impl Tiled {
                     arena[slot * TILE..slot * TILE + count].copy_from_slice(&inputs[k][start..start + count]);
                 }
             }
+            laps.lap(Phase::Elementwise);
             for s in 0..self.segments.len() {
                 for (p, m) in product_io[s].iter().zip(&matrices[s]) {
                     // SAFETY: all columns are TILE floats in the arena; a product's outputs are picks, whose
                     // slots no input of the same product uses (its inputs precede it).
                     unsafe { gemm::matmul(m, &p.0, &p.1) };
                 }
+                laps.lap(Phase::Products);
                 for (step, (p, out)) in self.grids[s].iter().zip(&grid_io[s]) {
                     // SAFETY: all columns are TILE ≥ count floats in the arena; the outputs are picks,
                     // whose slots the point (read before them) does not share.
                     unsafe { step.plan.read(*p, out, params, count) };
                 }
+                laps.lap(Phase::GridReads);
                 if let (Some(seg), Some((ins, outs))) = (&self.segments[s], &segment_io[s]) {
                     // SAFETY: the segment's columns are TILE ≥ count rounded up to 4 floats each.
                     unsafe { seg.kernel.call_raw(ins, outs, params, &mut accums[s], count) };
                 }
+                laps.lap(Phase::Elementwise);
             }
             for ((io, g), _) in outer_io.iter().zip(&mut grads).zip(&self.outer) {
                 // SAFETY: operand columns hold TILE ≥ count floats.
                 unsafe { gemm::outer(&io.0, &io.1, count, g, &mut scratch) };
             }
+            laps.lap(Phase::OuterProducts);
             for (sc, (p, cot)) in self.scatters.iter().zip(&scatter_io) {
                 // SAFETY: operand columns hold TILE ≥ count floats.
                 unsafe { sc.plan.scatter(*p, cot, reductions, count) };
             }
+            laps.lap(Phase::GridScatters);
             for (out, &slot) in outputs.iter_mut().zip(&self.output_slots) {
                 out[start..start + count].copy_from_slice(&arena[slot * TILE..slot * TILE + count]);
             }
         }
+        laps.lap(Phase::Elementwise);
+        laps.finish();
 
         for (seg, acc) in self.segments.iter().zip(&accums) {
             if let Some(seg) = seg {

@@ -68,6 +68,8 @@ pub struct StepResult {
     pub coarse_loss: Option<f32>,
     /// ∂loss/∂θ for the parameters θ of the field (length `vjp.n_params()`).
     pub param_grads: Vec<f32>,
+    /// Samples the field was evaluated at (both passes; skipped samples not counted).
+    pub samples: usize,
 }
 
 /// The fine pass of hierarchical sampling: a second field evaluated at the coarse depths plus
@@ -107,10 +109,33 @@ struct Job<'a> {
     scale: f32,
 }
 
+/// What a tile of rays adds to a step besides its gradient.
+#[derive(Clone, Copy, Default)]
+struct TileTotals {
+    /// Summed squared error of the coarse pass, then of the fine pass if there is one.
+    squared_error: [f64; 2],
+    /// Samples evaluated.
+    samples: usize,
+}
+
+impl std::ops::AddAssign for TileTotals {
+    fn add_assign(&mut self, other: TileTotals) {
+        self.squared_error[0] += other.squared_error[0];
+        self.squared_error[1] += other.squared_error[1];
+        self.samples += other.samples;
+    }
+}
+
 /// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
-/// summed squared error (of the coarse pass, then of the fine pass if there is one). Jitter, if
-/// any, comes from a generator seeded with `seed`.
-fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, grads: &mut [f32]) -> [f64; 2] {
+/// totals. Jitter, if any, comes from a generator seeded with `seed`.
+fn train_tile(
+    job: &Job,
+    s: &mut Scratch,
+    first: usize,
+    n: usize,
+    seed: u64,
+    grads: &mut [f32],
+) -> TileTotals {
     let samples = job.settings.samples;
     let len = n * samples;
     s.reserve(len, n);
@@ -134,16 +159,22 @@ fn train_tile(job: &Job, s: &mut Scratch, first: usize, n: usize, seed: u64, gra
             }
         }
     }
-    let coarse = run_pass(job, job.field, job.vjp, job.settings, s, first, n, grads);
+    let (coarse, coarse_samples) = run_pass(job, job.field, job.vjp, job.settings, s, first, n, grads);
     let Some((fine, fine_settings)) = &job.fine else {
-        return [coarse, 0.0];
+        return TileTotals {
+            squared_error: [coarse, 0.0],
+            samples: coarse_samples,
+        };
     };
     let jitter = job.fixed_depths.is_none().then_some(&mut rng);
     let fine_depths = importance_depths(job.settings, fine.importance, s, n, jitter);
     s.reserve(fine_depths.len(), n);
     s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
-    let fine_error = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
-    [coarse, fine_error]
+    let (fine_error, fine_samples) = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
+    TileTotals {
+        squared_error: [coarse, fine_error],
+        samples: coarse_samples + fine_samples,
+    }
 }
 
 /// The fine depths of the tile's `n` rays (sample-major): the coarse depths in `s.depths` merged with
@@ -181,7 +212,8 @@ fn importance_depths(
 }
 
 /// Evaluates `field` at the depths in `s.depths` of rays `first..first + n`, composites, and adds
-/// the gradient of the MSE through `vjp` to `grads`; returns the summed squared error.
+/// the gradient of the MSE through `vjp` to `grads`; returns the summed squared error and the number of
+/// samples evaluated.
 #[allow(clippy::too_many_arguments)]
 fn run_pass(
     job: &Job,
@@ -192,7 +224,7 @@ fn run_pass(
     first: usize,
     n: usize,
     grads: &mut [f32],
-) -> f64 {
+) -> (f64, usize) {
     let len = n * settings.samples;
     let view_dependent = field.n_inputs() == 6;
     let Scratch {
@@ -258,6 +290,7 @@ fn run_pass(
         },
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
+    let samples = evaluated.as_ref().map_or(len, Vec::len);
     let backward = match (compositor.early_termination, evaluated) {
         // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
         (Some(_), Some(index)) => {
@@ -270,7 +303,7 @@ fn run_pass(
         None => vjp.vjp(len, inputs, &cotangents, grads),
         Some(index) => vjp_at(vjp, inputs, &index, &cotangents, grads),
     }
-    squared_error
+    (squared_error, samples)
 }
 
 /// Evaluates `field` at the tile's samples (sample-major, `n` rays) that can contribute, writing zeros
@@ -461,31 +494,29 @@ pub fn volume_step_with(
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
     let n_tasks = n_chunks.min(ACCUMULATORS);
     let n_params = vjp.n_params();
-    let tasks: Vec<([f64; 2], Vec<f32>)> = (0..n_tasks)
+    let tasks: Vec<(TileTotals, Vec<f32>)> = (0..n_tasks)
         .into_par_iter()
         .map(|task| {
             let mut grads = accumulator(n_params);
-            let mut squared_error = [0.0; 2];
+            let mut totals = TileTotals::default();
             with_scratch(|s| {
                 for c in (task..n_chunks).step_by(n_tasks) {
                     let tiles = c * tiles_per_chunk..((c + 1) * tiles_per_chunk).min(n_tiles);
                     for t in tiles {
                         let first = t * tile;
                         let n = tile.min(rays.len() - first);
-                        let [coarse, fine] = train_tile(&job, s, first, n, seeds[t], &mut grads);
-                        squared_error[0] += coarse;
-                        squared_error[1] += fine;
+                        totals += train_tile(&job, s, first, n, seeds[t], &mut grads);
                     }
                 }
             });
-            (squared_error, grads)
+            (totals, grads)
         })
         .collect();
-    let mut squared_error = [0.0; 2];
-    for (e, _) in &tasks {
-        squared_error[0] += e[0];
-        squared_error[1] += e[1];
+    let mut totals = TileTotals::default();
+    for (t, _) in &tasks {
+        totals += *t;
     }
+    let squared_error = totals.squared_error;
     let mut accumulators = tasks.into_iter().map(|(_, grads)| grads);
     let mut param_grads = accumulators.next().unwrap_or_else(|| vec![0.0; n_params]);
     let rest: Vec<Vec<f32>> = accumulators.collect();
@@ -512,6 +543,7 @@ pub fn volume_step_with(
         psnr: psnr(loss),
         coarse_loss,
         param_grads,
+        samples: totals.samples,
     })
 }
 
@@ -683,6 +715,11 @@ mod tests {
         let skipped = volume_step_with(&rays, &targets, &field, &vjp, &settings, options, None).unwrap();
         let some = evaluated.load(Ordering::Relaxed);
         assert!(some * 3 < all, "{some} of {all} samples evaluated");
+        assert_eq!(
+            (exact.samples, skipped.samples),
+            (all, some),
+            "the steps count what they evaluate"
+        );
         assert!((skipped.loss - exact.loss).abs() <= 1e-6 * exact.loss.max(1.0));
         for (a, b) in skipped.param_grads.iter().zip(&exact.param_grads) {
             assert!((a - b).abs() <= 1e-5 * b.abs().max(1e-3), "{a} vs {b}");
