@@ -1,6 +1,7 @@
 //! `nerfjit ir`: the IR of a function's kernel of any kind and the Cranelift IR of its code.
 
-use nerfjit_dsl::kernels;
+use nerfjit_dsl::kernels::{self, SdfLoss};
+use nerfjit_dsl::Type;
 use nerfjit_jit::{Kernel, Options};
 
 use crate::failure::{Failure, Result};
@@ -19,6 +20,9 @@ pub enum KernelKind {
     SecondOrder,
     /// Interval bounds of the values over boxes of inputs (low corners, then high corners).
     Bounds,
+    /// The SDF regularizers' loss kernel (scalar functions of a point): the near-surface term
+    /// exp(−100·|f|) and the eikonal term (|∇ₓf| − 1)² per point, unit weights, and their param gradient.
+    Regularizers,
 }
 
 /// Prints the IR and node statistics, then (unless `graph_only`) the Cranelift IR.
@@ -41,6 +45,18 @@ pub fn run(path: &str, function: &str, kind: KernelKind, graph_only: bool) -> Re
             (
                 kernels::second_order(&lowered, n_params),
                 "second-order param gradient",
+            )
+        }
+        KernelKind::Regularizers => {
+            crate::field::check_signature(&program, function, &[&[Type::Vec(3)]], &Type::F32)?;
+            let loss = SdfLoss::Regularizers {
+                near: 1.0,
+                sharpness: 100.0,
+                eikonal: 1.0,
+            };
+            (
+                kernels::sdf_loss(&lowered, n_params, loss),
+                "near-surface and eikonal terms and their param gradient",
             )
         }
     };

@@ -2,9 +2,11 @@
 //! `train`: a near-surface penalty w_near · mean exp(−α|d|) and the eikonal term
 //! w_eik · mean (|∇ₓd| − 1)², whose param gradient comes from the JIT's second-order kernel.
 
-use nerfjit_dsl::ir::Op;
-use nerfjit_dsl::{kernels, Program, Type};
-use nerfjit_jit::{Kernel, Options};
+use std::sync::Arc;
+
+use nerfjit_dsl::kernels::{self, SdfLoss};
+use nerfjit_dsl::{Program, Type};
+use nerfjit_jit::{Kernel, KernelCache, Options};
 use nerfjit_runtime::volume::occupancy::OccupancyGrid;
 use nerfjit_runtime::Rng;
 
@@ -28,34 +30,28 @@ pub struct Regularizers {
 /// The compiled loss kernel of an SDF for the regularizers: the weighted near-surface and eikonal terms
 /// per point and their param gradient (second order for the eikonal term), in one pass.
 pub struct RegularizerKernels {
-    loss: Kernel,
+    loss: Arc<Kernel>,
 }
 
 impl RegularizerKernels {
-    /// Compiles the kernel of `fn name(p: vec3) -> f32` for the weights and point count of `reg`.
-    pub fn compile(program: &Program, name: &str, reg: &Regularizers) -> Result<RegularizerKernels> {
+    /// The kernel of `fn name(p: vec3) -> f32` for the weights and point count of `reg`, from `cache`.
+    pub fn compile(
+        program: &Program,
+        name: &str,
+        reg: &Regularizers,
+        cache: &KernelCache,
+    ) -> Result<RegularizerKernels> {
         crate::field::check_signature(program, name, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(name)?;
         let m = reg.points as f64;
-        let graph = kernels::loss_gradient(&lowered, program.n_params(), |g, d, grad| {
-            let sharpness = g.constant(-f64::from(reg.near_sharpness));
-            let near_weight = g.constant(f64::from(reg.near_weight) / m);
-            let eikonal_weight = g.constant(f64::from(reg.eikonal_weight) / m);
-            let one = g.constant(1.0);
-            // w_near/m · exp(−α|d|)
-            let abs = g.push(Op::Abs(d));
-            let scaled = g.push(Op::Mul(sharpness, abs));
-            let e = g.push(Op::Exp(scaled));
-            let near = g.push(Op::Mul(near_weight, e));
-            // w_eik/m · (|∇d| − 1)²
-            let norm = g.length(grad);
-            let off = g.push(Op::Sub(norm, one));
-            let off2 = g.push(Op::Mul(off, off));
-            let eikonal = g.push(Op::Mul(eikonal_weight, off2));
-            vec![near, eikonal]
-        });
+        let loss = SdfLoss::Regularizers {
+            near: f64::from(reg.near_weight) / m,
+            sharpness: f64::from(reg.near_sharpness),
+            eikonal: f64::from(reg.eikonal_weight) / m,
+        };
+        let graph = kernels::sdf_loss(&lowered, program.n_params(), loss);
         Ok(RegularizerKernels {
-            loss: Kernel::compile(&graph, Options::default())?,
+            loss: cache.get(&graph, Options::default())?,
         })
     }
 }

@@ -209,7 +209,7 @@ impl Session {
             Plan::Volume(p) => p.run(program, params, cache, &frames),
             Plan::Train(p) => p.run(program, params, cache, observer.resume, observer.live),
             Plan::Viz(p) => p.run(),
-            Plan::FitSdf(p) => p.run(program, params, observer.resume),
+            Plan::FitSdf(p) => p.run(program, params, cache, observer.resume),
             Plan::Mesh(p) => p.run(program, params, cache),
         }
     }

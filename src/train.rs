@@ -560,7 +560,12 @@ impl TrainPlan {
         let fields = VolumeFields::compile(program, cache, self.importance)?;
         let field = &fields.fine;
         let regularizer_kernels = match &self.eikonal {
-            Some(e) => Some(RegularizerKernels::compile(program, &e.sdf, &e.regularizers)?),
+            Some(e) => Some(RegularizerKernels::compile(
+                program,
+                &e.sdf,
+                &e.regularizers,
+                cache,
+            )?),
             None => None,
         };
         let compile_s = t.elapsed().as_secs_f64();

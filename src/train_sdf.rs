@@ -6,11 +6,12 @@
 //! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)².
 
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
-use nerfjit_dsl::ir::{Op, V};
-use nerfjit_dsl::{kernels, Diagnostic, Program, Type};
-use nerfjit_jit::{Kernel, Options};
+use nerfjit_dsl::kernels::{self, SdfLoss};
+use nerfjit_dsl::{Diagnostic, Program, Type};
+use nerfjit_jit::{Kernel, KernelCache, Options};
 use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng, Schedule};
 
 use crate::block::Block;
@@ -57,9 +58,9 @@ pub struct SdfTrainPlan {
 /// The loss kernels of one SDF: each gives its per-point loss terms and their param gradient in one pass.
 struct Kernels {
     /// (d(y) − (|y| − r))² / m on random points: pre-training toward a sphere.
-    sphere: Kernel,
+    sphere: Arc<Kernel>,
     /// |d(x)| / n on cloud points.
-    surface: Kernel,
+    surface: Arc<Kernel>,
     regularizers: RegularizerKernels,
     /// The eikonal term alone at the batch's cloud points moved by Gaussian noise, when asked for.
     jittered: Option<RegularizerKernels>,
@@ -116,37 +117,28 @@ impl SdfTrainPlan {
         Ok(plan)
     }
 
-    fn compile(&self, program: &Program) -> Result<Kernels> {
+    fn compile(&self, program: &Program, cache: &KernelCache) -> Result<Kernels> {
         crate::field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(&self.function)?;
-        let n = program.n_params();
-        let opts = Options::default();
-        let (m, nb, r) = (
-            self.random as f64,
-            self.batch as f64,
-            f64::from(self.pretrain_radius),
-        );
-        let sphere = kernels::loss_gradient(&lowered, n, |g, d, _| {
-            let p: Vec<V> = (0..3).map(|i| g.input(i)).collect();
-            let length = g.length(&p);
-            let radius = g.constant(r);
-            let target = g.push(Op::Sub(length, radius));
-            let error = g.push(Op::Sub(d, target));
-            let squared = g.push(Op::Mul(error, error));
-            let scale = g.constant(1.0 / m);
-            vec![g.push(Op::Mul(scale, squared))]
-        });
-        let surface = kernels::loss_gradient(&lowered, n, |g, d, _| {
-            let abs = g.push(Op::Abs(d));
-            let scale = g.constant(1.0 / nb);
-            vec![g.push(Op::Mul(scale, abs))]
-        });
+        let loss = |loss: SdfLoss| {
+            cache.get(
+                &kernels::sdf_loss(&lowered, program.n_params(), loss),
+                Options::default(),
+            )
+        };
+        let sphere = SdfLoss::Sphere {
+            radius: f64::from(self.pretrain_radius),
+            scale: 1.0 / self.random as f64,
+        };
+        let surface = SdfLoss::Surface {
+            scale: 1.0 / self.batch as f64,
+        };
         Ok(Kernels {
-            sphere: Kernel::compile(&sphere, opts)?,
-            surface: Kernel::compile(&surface, opts)?,
-            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers())?,
+            sphere: loss(sphere)?,
+            surface: loss(surface)?,
+            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers(), cache)?,
             jittered: match self.jittered() {
-                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg)?),
+                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg, cache)?),
                 None => None,
             },
         })
@@ -164,12 +156,19 @@ impl SdfTrainPlan {
             points_gif: None,
             ..self
         };
-        let line = quiet.run(program, params, false)?;
+        let line = quiet.run(program, params, &KernelCache::new(), false)?;
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
-    /// Trains `params` in place; returns a summary.
-    pub fn run(&self, program: &Program, params: &mut Vec<f32>, resume: bool) -> Result<String> {
+    /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`);
+    /// returns a summary.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &mut Vec<f32>,
+        cache: &KernelCache,
+        resume: bool,
+    ) -> Result<String> {
         let (cloud, mean) = mean_center(&read_points(&self.data, self.key.as_deref())?);
         if cloud.is_empty() {
             return Err(Failure::Message(format!(
@@ -181,7 +180,7 @@ impl SdfTrainPlan {
             write_points_gif(path, &cloud)?;
         }
         let t = Instant::now();
-        let k = self.compile(program)?;
+        let k = self.compile(program, cache)?;
         let compile_s = t.elapsed().as_secs_f64();
         let (mut adam, first) = crate::checkpoint::resume_or_start(
             program,

@@ -13,7 +13,9 @@
 //! - [`interval`]: lower and upper bounds of the outputs over boxes of inputs.
 //! - [`loss_gradient`]: for a scalar function f, a per-point loss built from f and ∇ₓf in the IR itself;
 //!   outputs the loss terms; reductions their param gradient. One kernel instead of a forward pass, a
-//!   loss on the host and a backward pass (the eikonal and surface losses of neural SDFs).
+//!   loss on the host and a backward pass.
+//! - [`sdf_loss`]: the named loss kernels of fitting a signed distance ([`SdfLoss`]: the surface term,
+//!   pre-training toward a sphere, the near-surface and eikonal regularizers), built by [`loss_gradient`].
 //!
 //! In the kinds with param gradients, the gradients of dense layers' matrices are the graph's outer
 //! products ([`crate::ir::Outer`]) and those of grid encodings' tables its scatters
@@ -134,6 +136,74 @@ pub fn loss_gradient(
     g.reductions = gradients(&mut g, &seeds, &[], n_params).1;
     g.outputs = terms;
     g.compact()
+}
+
+/// A loss of fitting a signed distance f of a point p: vec3, with its weights (which the kernel holds as
+/// constants, so each set of weights is its own kernel).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SdfLoss {
+    /// `scale · |f(p)|` at points of the cloud: they lie on the surface.
+    Surface {
+        /// Usually 1 / the batch size.
+        scale: f64,
+    },
+    /// `scale · (f(p) − (|p| − radius))²`: f as the sphere of `radius` (pre-training).
+    Sphere {
+        /// The sphere's radius.
+        radius: f64,
+        /// Usually 1 / the number of points.
+        scale: f64,
+    },
+    /// Two terms: `near · exp(−sharpness · |f(p)|)` (no surface away from the points) and
+    /// `eikonal · (|∇ₓf(p)| − 1)²` (a distance has a unit gradient; its param gradient is second order).
+    Regularizers {
+        /// The weight of the near-surface term (divided by the number of points).
+        near: f64,
+        /// How fast the near-surface term falls off with |f|.
+        sharpness: f64,
+        /// The weight of the eikonal term (divided by the number of points).
+        eikonal: f64,
+    },
+}
+
+/// The loss kernel of `loss` for the scalar function f of a point: outputs the loss's terms per point and
+/// reduces their param gradient (see [`loss_gradient`]).
+pub fn sdf_loss(f: &Lowered, n_params: usize, loss: SdfLoss) -> Graph {
+    loss_gradient(f, n_params, |g, d, grad| match loss {
+        SdfLoss::Surface { scale } => {
+            let abs = g.push(Op::Abs(d));
+            let scale = g.constant(scale);
+            vec![g.push(Op::Mul(scale, abs))]
+        }
+        SdfLoss::Sphere { radius, scale } => {
+            let p = inputs(g, 3);
+            let length = g.length(&p);
+            let radius = g.constant(radius);
+            let target = g.push(Op::Sub(length, radius));
+            let error = g.push(Op::Sub(d, target));
+            let squared = g.push(Op::Mul(error, error));
+            let scale = g.constant(scale);
+            vec![g.push(Op::Mul(scale, squared))]
+        }
+        SdfLoss::Regularizers {
+            near,
+            sharpness,
+            eikonal,
+        } => {
+            let sharpness = g.constant(-sharpness);
+            let (near, eikonal, one) = (g.constant(near), g.constant(eikonal), g.constant(1.0));
+            // near · exp(−sharpness · |d|)
+            let abs = g.push(Op::Abs(d));
+            let scaled = g.push(Op::Mul(sharpness, abs));
+            let falloff = g.push(Op::Exp(scaled));
+            let near_term = g.push(Op::Mul(near, falloff));
+            // eikonal · (|∇d| − 1)²
+            let norm = g.length(grad);
+            let off = g.push(Op::Sub(norm, one));
+            let off2 = g.push(Op::Mul(off, off));
+            vec![near_term, g.push(Op::Mul(eikonal, off2))]
+        }
+    })
 }
 
 /// The second-order kernel of a scalar function (see the module docs).
