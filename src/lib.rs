@@ -52,6 +52,7 @@ pub mod settings;
 pub mod tensorboard;
 pub mod train;
 pub mod train_sdf;
+pub mod training_loop;
 pub mod transmittance;
 pub mod viewer;
 pub mod views;

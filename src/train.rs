@@ -4,7 +4,6 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
@@ -15,12 +14,11 @@ use nerfjit_runtime::{
 
 use crate::block::Block;
 use crate::data_source::{data_path, data_set, DataKind, DataSet};
-use crate::failure::{Failure, Result};
+use crate::failure::Result;
 use crate::field::{VolumeField, VolumeFields};
-use crate::interrupt::Watch;
-use crate::metrics_log::RunLog;
 use crate::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
+use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 use crate::viewer::Live;
 
 /// The columns of a volume training run's metrics log.
@@ -550,16 +548,9 @@ impl TrainPlan {
         live: Option<&Live>,
     ) -> Result<String> {
         let (views, val_views) = self.load_views()?;
-        let mut history: Vec<serde_json::Value> = Vec::new();
-        let mut val_message = String::new();
-        let mut train_seconds = 0.0f64;
-        // Samples evaluated by the steps of this run.
-        let mut samples = 0usize;
-
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance)?;
-        let field = &fields.fine;
-        let regularizer_kernels = match &self.eikonal {
+        let regularizers = match &self.eikonal {
             Some(e) => Some(RegularizerKernels::compile(
                 program,
                 &e.sdf,
@@ -569,319 +560,68 @@ impl TrainPlan {
             None => None,
         };
         let compile_s = t.elapsed().as_secs_f64();
-        let threads = rayon::current_num_threads();
-        let mut eikonal_loss = 0.0f32;
-        let settings = self.settings(field);
-        let step_settings = VolumeSettings {
-            early_termination: self.early_termination,
-            ..settings
+        let settings = self.settings(&fields.fine);
+        let mut objective = VolumeObjective {
+            plan: self,
+            views: &views,
+            val_views: val_views.as_ref(),
+            fields: &fields,
+            regularizers: regularizers.as_ref(),
+            settings,
+            step_settings: VolumeSettings {
+                early_termination: self.early_termination,
+                ..settings
+            },
+            live,
+            rng: Rng::new(self.seed ^ 0x5eed),
+            grid: None,
+            ema: None,
+            ema_rng: Rng::new(self.seed ^ 0x0cc0),
+            psnr: f32::NAN,
+            eikonal_loss: 0.0,
+            history: Vec::new(),
+            next_val_time: 0,
         };
-        // The params before a step, to restore if the step makes one non-finite (kept between steps).
-        let mut before = Vec::with_capacity(params.len());
-        let (mut adam, first) = crate::checkpoint::resume_or_start(
-            program,
-            self.checkpoint.as_deref(),
+        let loop_settings = LoopSettings {
+            steps: self.steps,
+            schedule: &self.schedule,
+            optimizer: self.optimizer,
+            time_limit: self.time_limit,
+            checkpoint: self.checkpoint.as_deref(),
+            checkpoint_every: self.checkpoint_every,
             resume,
-            params,
-            self.optimizer,
-            |k| self.schedule.lr(k),
-        )?;
-        let mut log = RunLog::open(
-            self.log.as_deref(),
-            self.tensorboard.as_deref(),
-            LOG_COLUMNS,
-            first > 0,
-        )?;
-        let watch = Watch::start();
-        let bar = step_bar(self.steps, "training");
-        bar.set_position(u64::from(first));
-        let mut rng = Rng::new(self.seed ^ 0x5eed);
-        let start = Instant::now();
-        let mut grid: Option<OccupancyGrid> = match &self.grid {
-            Some(
-                g @ TrainingGrid {
-                    seed: Some(dilation), ..
-                },
-            ) if first < g.warmup => {
-                let points = self.data.sparse_points()?;
-                let seeded =
-                    OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &points, *dilation)?;
-                let line = format!(
-                    "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
-                    points.len(),
-                    100.0 * seeded.occupancy(),
-                    g.warmup
-                );
-                report(&bar, line);
-                Some(seeded)
-            }
-            _ => None,
+            log: self.log.as_deref(),
+            tensorboard: self.tensorboard.as_deref(),
+            log_columns: LOG_COLUMNS,
+            verb: "training",
         };
-        // The running occupancy of `grid_update: ema` and the random points of its updates.
-        let mut ema: Option<DensityEma> = None;
-        let mut ema_rng = Rng::new(self.seed ^ 0x0cc0);
-        let (mut loss, mut psnr) = (f32::NAN, f32::NAN);
-        let mut done = first;
-        let mut next_val_time = 0;
-        for step in first..self.steps {
-            let step_start = Instant::now();
-            let view = if self.random_views {
-                rng.below(views.len() as u64) as usize
-            } else {
-                step as usize % views.len()
-            };
-            let (rays, targets) =
-                views.random_rays(view, self.batch, self.seed.wrapping_add(u64::from(step)))?;
-            let (forward, backward) = field.bind(params);
-            if let Some(g) = &self.grid {
-                // Rebuilt on schedule, and at once when a resumed run starts past the warm-up.
-                if step >= g.warmup && (grid.is_none() || (step - g.warmup) % g.every == 0) {
-                    let t = Instant::now();
-                    let density = field.bind_density(params);
-                    let (bounds, resolution) = (g.grid.bounds, g.grid.resolution);
-                    let built = match (g.update, &mut ema) {
-                        (GridUpdate::Rebuild, _) => OccupancyGrid::build_for_training(
-                            &density,
-                            bounds,
-                            resolution,
-                            settings.mode,
-                            g.grid.threshold,
-                        )?,
-                        (GridUpdate::Ema { decay, fraction }, Some(state)) => {
-                            state.update(&density, decay, fraction, &mut ema_rng)?;
-                            state.grid(settings.mode, g.grid.threshold)?
-                        }
-                        (GridUpdate::Ema { .. }, state @ None) => state
-                            .insert(DensityEma::sampled(&density, bounds, resolution, &mut ema_rng)?)
-                            .grid(settings.mode, g.grid.threshold)?,
-                    };
-                    // Every rebuild is reported; running updates every 16th time.
-                    let updates = (step - g.warmup) / g.every;
-                    if g.update == GridUpdate::Rebuild || updates % 16 == 0 {
-                        let verb = match g.update {
-                            GridUpdate::Rebuild => "rebuilt",
-                            GridUpdate::Ema { .. } => "updated",
-                        };
-                        let line = format!(
-                            "step {step}: occupancy grid {verb} in {:.2} s, {:.1}% of the cells occupied",
-                            t.elapsed().as_secs_f64(),
-                            100.0 * built.occupancy()
-                        );
-                        report(&bar, line);
-                    }
-                    grid = Some(built);
-                }
-            }
-            let jitter = if self.jitter { Some(&mut rng) } else { None };
-            let mut result = match &fields.coarse {
-                None => {
-                    let options = StepOptions {
-                        fine: None,
-                        grid: grid.as_ref(),
-                    };
-                    volume_step_with(
-                        &rays,
-                        &targets,
-                        &forward,
-                        &backward,
-                        &step_settings,
-                        options,
-                        jitter,
-                    )?
-                }
-                Some((coarse, importance)) => {
-                    let (coarse_forward, coarse_backward) = coarse.bind(params);
-                    let fine = FinePass {
-                        field: &forward,
-                        vjp: &backward,
-                        importance: *importance,
-                    };
-                    let options = StepOptions {
-                        fine: Some(&fine),
-                        grid: grid.as_ref(),
-                    };
-                    volume_step_with(
-                        &rays,
-                        &targets,
-                        &coarse_forward,
-                        &coarse_backward,
-                        &step_settings,
-                        options,
-                        jitter,
-                    )?
-                }
-            };
-            if let (Some(e), Some(k)) = (&self.eikonal, &regularizer_kernels) {
-                let reg = &e.regularizers;
-                let points = match &grid {
-                    Some(grid) if e.occupied => occupied_points(&mut rng, reg.points, reg.bound, grid),
-                    _ => uniform_points(&mut rng, reg.points, reg.bound),
-                };
-                let [_, eikonal] = reg.add_at(k, &points, params, &mut result.param_grads, threads);
-                eikonal_loss = eikonal;
-            }
-            if !result.loss.is_finite() || result.param_grads.iter().any(|g| !g.is_finite()) {
-                bar.abandon();
-                return Err(crate::checkpoint::diverged(
-                    program,
-                    step,
-                    result.loss,
-                    &result.param_grads,
-                    self.checkpoint.as_deref(),
-                ));
-            }
-            adam.lr = self.schedule.lr(step);
-            before.clear();
-            before.extend_from_slice(params);
-            let update = std::time::Instant::now();
-            adam.step(params, &result.param_grads)?;
-            nerfjit_jit::profile::record(nerfjit_jit::profile::Phase::Optimizer, update.elapsed());
-            samples += result.samples;
-            if params.iter().any(|p| !p.is_finite()) {
-                params.copy_from_slice(&before);
-                return Err(Failure::Message(format!(
-                    "training diverged at step {step}: a param became non-finite"
-                )));
-            }
-            (loss, psnr) = (result.loss, result.psnr);
-            nerfjit_runtime::volume::train::recycle(result.param_grads);
-            let step_time = step_start.elapsed();
-            nerfjit_jit::profile::record(nerfjit_jit::profile::Phase::Steps, step_time);
-            train_seconds += step_time.as_secs_f64();
-            done = step + 1;
-            let out_of_time = self.time_limit.is_some_and(|limit| train_seconds >= limit);
-            let interrupted = watch.requested();
-            let last = done == self.steps || out_of_time || interrupted;
-            if let (Some(v), Some(val)) = (&self.validation, &val_views) {
-                let marks_before = next_val_time;
-                while v
-                    .at_seconds
-                    .get(next_val_time)
-                    .is_some_and(|&t| train_seconds >= t)
-                {
-                    next_val_time += 1;
-                }
-                let time_mark = next_val_time > marks_before;
-                // An interrupted run stops at once: it is not validated.
-                if done % v.every == 0 || time_mark || (last && !interrupted) {
-                    let (p, s) = crate::views::means(&crate::views::score(
-                        val,
-                        &fields,
-                        params,
-                        &step_settings,
-                        grid.as_ref(),
-                    )?);
-                    val_message = format!(" val {p:.2} dB");
-                    let line = format!(
-                        "step {done}: val PSNR {p:.2} dB, SSIM {s:.4} ({} views) after {train_seconds:.0} s of training",
-                        val.cameras.len()
-                    );
-                    report(&bar, line);
-                    history.push(serde_json::json!({
-                        "step": done, "train_seconds": train_seconds, "val_psnr": p, "val_ssim": s,
-                    }));
-                    let (step, seconds) = (Some(f64::from(done)), Some(train_seconds));
-                    log.record(&[step, seconds, None, None, None, None, Some(p), Some(s)])?;
-                }
-            }
-            let mut record = None;
-            if done % 10 == 0 || last {
-                let elapsed = start.elapsed().as_secs_f64();
-                let steps_per_s = f64::from(done - first) / elapsed;
-                record = Some(serde_json::json!({
-                    "step": done, "steps": self.steps, "loss": loss, "psnr": psnr,
-                    "val_psnr": history.last().and_then(|h| h["val_psnr"].as_f64()),
-                    "train_seconds": train_seconds, "steps_per_s": steps_per_s,
-                    "eta_seconds": f64::from(self.steps - done) / steps_per_s,
-                }));
-                let eikonal = self.eikonal.is_some().then_some(f64::from(eikonal_loss));
-                log.record(&[
-                    Some(f64::from(done)),
-                    Some(train_seconds),
-                    Some(f64::from(adam.lr)),
-                    Some(f64::from(loss)),
-                    Some(f64::from(psnr)),
-                    eikonal,
-                    None,
-                    None,
-                ])?;
-                let rays_per_s = steps_per_s * self.batch as f64;
-                bar.set_message(format!(
-                    "loss {loss:.5} PSNR {psnr:.2} dB{val_message}{} {:.0}k rays/s",
-                    if self.eikonal.is_some() {
-                        format!(" eikonal {eikonal_loss:.5}")
-                    } else {
-                        String::new()
-                    },
-                    rays_per_s / 1e3
-                ));
-            }
-            bar.set_position(u64::from(done));
-            if let Some(live) = live {
-                live.after_step(done, last, params, record, &watch);
-            }
-            if let Some(path) = &self.checkpoint {
-                if done % self.checkpoint_every == 0 || last {
-                    crate::checkpoint::write(path, program, done, params, &adam)?;
-                }
-            }
-            if let Some(path) = &self.preview {
-                if done % self.preview_every == 0 || (last && !interrupted) {
-                    self.write_preview(path, &views, &fields, params, &settings)?;
-                }
-            }
-            if interrupted {
-                break;
-            }
-            if out_of_time {
-                report(
-                    &bar,
-                    format!(
-                        "stopped at step {done}: the time limit of {:.1} minutes is reached",
-                        train_seconds / 60.0
-                    ),
-                );
-                break;
-            }
-        }
-        bar.finish_and_clear();
-        let seconds = start.elapsed().as_secs_f64();
-        let trained = done - first;
-        // Validation and previews are not training: the rate counts the steps alone.
-        let ms_per_step = if trained > 0 {
-            1e3 * train_seconds / f64::from(trained)
-        } else {
-            0.0
-        };
-        let samples_per_s = if train_seconds > 0.0 {
-            samples as f64 / train_seconds
-        } else {
-            0.0
-        };
-        let values = describe_params(program, params);
+        let end = training_loop::train(program, params, &loop_settings, &mut objective)?;
+        let (loss, psnr) = (end.loss, objective.psnr);
+        let (ms_per_step, samples_per_s) = (end.ms_per_step(), end.samples_per_s());
         if let Some(path) = &self.summary {
             let json = serde_json::json!({
                 "data": self.data.path.display().to_string(),
-                "steps": done,
-                "resumed_from": first,
+                "steps": end.done,
+                "resumed_from": end.first,
                 "final_loss": loss,
                 "final_psnr": psnr,
-                "seconds": seconds,
+                "seconds": end.wall_seconds,
                 "ms_per_step": ms_per_step,
                 "samples_per_s": samples_per_s,
                 "compile_seconds": compile_s,
-                "train_seconds": train_seconds,
-                "validation": history,
+                "train_seconds": end.train_seconds,
+                "validation": objective.history,
                 "params": params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
         }
-        if watch.requested() {
-            return Err(crate::interrupt::stopped(done, self.checkpoint.as_deref()));
-        }
+        end.stopped(self.checkpoint.as_deref())?;
         Ok(format!(
-            "trained {trained} steps in {seconds:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{values}",
-            samples_per_s * 1e-6
+            "trained {} steps in {:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
+            end.trained(),
+            end.wall_seconds,
+            samples_per_s * 1e-6,
+            describe_params(program, params)
         ))
     }
 
@@ -912,23 +652,265 @@ impl TrainPlan {
     }
 }
 
-/// The progress bar of a training loop of `steps` steps: `verb` (e.g. "training"), the steps, the loop's
-/// message, the time taken and the time to go.
-pub(crate) fn step_bar(steps: u32, verb: &str) -> ProgressBar {
-    ProgressBar::new(u64::from(steps)).with_style(
-        ProgressStyle::with_template(&format!(
-            "{{spinner}} {verb} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}}, {{eta}} to go"
-        ))
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    )
+/// A `train` block's objective: the photometric loss of random rays of the training views (with the
+/// eikonal term of VolSDF-style training), the occupancy grid kept up to date before the steps, and
+/// validation, previews, log records and the live viewer after them.
+struct VolumeObjective<'a> {
+    plan: &'a TrainPlan,
+    views: &'a Views,
+    val_views: Option<&'a Views>,
+    fields: &'a VolumeFields,
+    regularizers: Option<&'a RegularizerKernels>,
+    /// Previews' settings (every sample).
+    settings: VolumeSettings,
+    /// The steps' and validation's settings (with early termination when asked).
+    step_settings: VolumeSettings,
+    live: Option<&'a Live>,
+    rng: Rng,
+    grid: Option<OccupancyGrid>,
+    /// The running occupancy of `grid_update: ema` and the random points of its updates.
+    ema: Option<DensityEma>,
+    ema_rng: Rng,
+    /// The last step's training PSNR and eikonal term.
+    psnr: f32,
+    eikonal_loss: f32,
+    /// Every validation's scores, for the summary.
+    history: Vec<serde_json::Value>,
+    /// The first of the block's validation times not reached yet.
+    next_val_time: usize,
 }
 
-/// Prints a line above the progress bar, or to standard error when the bar is hidden (not a terminal).
-fn report(bar: &ProgressBar, line: String) {
-    if bar.is_hidden() {
-        eprintln!("{line}");
-    } else {
-        bar.println(line);
+impl VolumeObjective<'_> {
+    /// Rebuilds (or updates) the occupancy grid when its schedule says so, and at once when a resumed
+    /// run starts past the warm-up.
+    fn update_grid(&mut self, step: u32, params: &[f32], ui: &Ui) -> Result<()> {
+        let Some(g) = &self.plan.grid else {
+            return Ok(());
+        };
+        if step < g.warmup || (self.grid.is_some() && !(step - g.warmup).is_multiple_of(g.every)) {
+            return Ok(());
+        }
+        let t = Instant::now();
+        let density = self.fields.fine.bind_density(params);
+        let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.settings.mode);
+        let built = match (g.update, &mut self.ema) {
+            (GridUpdate::Rebuild, _) => {
+                OccupancyGrid::build_for_training(&density, bounds, resolution, mode, g.grid.threshold)?
+            }
+            (GridUpdate::Ema { decay, fraction }, Some(state)) => {
+                state.update(&density, decay, fraction, &mut self.ema_rng)?;
+                state.grid(mode, g.grid.threshold)?
+            }
+            (GridUpdate::Ema { .. }, state @ None) => state
+                .insert(DensityEma::sampled(
+                    &density,
+                    bounds,
+                    resolution,
+                    &mut self.ema_rng,
+                )?)
+                .grid(mode, g.grid.threshold)?,
+        };
+        // Every rebuild is reported; running updates every 16th time.
+        let updates = (step - g.warmup) / g.every;
+        if g.update == GridUpdate::Rebuild || updates.is_multiple_of(16) {
+            let verb = match g.update {
+                GridUpdate::Rebuild => "rebuilt",
+                GridUpdate::Ema { .. } => "updated",
+            };
+            ui.report(format!(
+                "step {step}: occupancy grid {verb} in {:.2} s, {:.1}% of the cells occupied",
+                t.elapsed().as_secs_f64(),
+                100.0 * built.occupancy()
+            ));
+        }
+        self.grid = Some(built);
+        Ok(())
+    }
+
+    /// Scores the held-out views when the block's validation is due after `p`'s step.
+    fn validate(&mut self, p: &Progress, params: &[f32], ui: &mut Ui) -> Result<()> {
+        let (Some(v), Some(val)) = (&self.plan.validation, self.val_views) else {
+            return Ok(());
+        };
+        let marks_before = self.next_val_time;
+        while v
+            .at_seconds
+            .get(self.next_val_time)
+            .is_some_and(|&t| p.train_seconds >= t)
+        {
+            self.next_val_time += 1;
+        }
+        let time_mark = self.next_val_time > marks_before;
+        // An interrupted run stops at once: it is not validated.
+        if !(p.done.is_multiple_of(v.every) || time_mark || (p.last && !p.interrupted)) {
+            return Ok(());
+        }
+        let scores = crate::views::score(val, self.fields, params, &self.step_settings, self.grid.as_ref())?;
+        let (psnr, ssim) = crate::views::means(&scores);
+        ui.report(format!(
+            "step {}: val PSNR {psnr:.2} dB, SSIM {ssim:.4} ({} views) after {:.0} s of training",
+            p.done,
+            val.cameras.len(),
+            p.train_seconds
+        ));
+        self.history.push(serde_json::json!({
+            "step": p.done, "train_seconds": p.train_seconds, "val_psnr": psnr, "val_ssim": ssim,
+        }));
+        let (step, seconds) = (Some(f64::from(p.done)), Some(p.train_seconds));
+        ui.record(&[step, seconds, None, None, None, None, Some(psnr), Some(ssim)])
+    }
+
+    /// The progress record of `p`'s step (every 10th step and the last), logged and shown on the bar.
+    fn record(&self, p: &Progress, ui: &mut Ui) -> Result<Option<serde_json::Value>> {
+        if !(p.done.is_multiple_of(10) || p.last) {
+            return Ok(None);
+        }
+        let steps_per_s = f64::from(p.done - p.first) / p.wall_seconds;
+        let val_psnr = self.history.last().and_then(|h| h["val_psnr"].as_f64());
+        let record = serde_json::json!({
+            "step": p.done, "steps": p.steps, "loss": p.loss, "psnr": self.psnr,
+            "val_psnr": val_psnr, "train_seconds": p.train_seconds, "steps_per_s": steps_per_s,
+            "eta_seconds": f64::from(p.steps - p.done) / steps_per_s,
+        });
+        let eikonal = self
+            .plan
+            .eikonal
+            .is_some()
+            .then_some(f64::from(self.eikonal_loss));
+        ui.record(&[
+            Some(f64::from(p.done)),
+            Some(p.train_seconds),
+            Some(f64::from(p.lr)),
+            Some(f64::from(p.loss)),
+            Some(f64::from(self.psnr)),
+            eikonal,
+            None,
+            None,
+        ])?;
+        ui.message(format!(
+            "loss {:.5} PSNR {:.2} dB{}{} {:.0}k rays/s",
+            p.loss,
+            self.psnr,
+            val_psnr.map_or(String::new(), |v| format!(" val {v:.2} dB")),
+            eikonal.map_or(String::new(), |e| format!(" eikonal {e:.5}")),
+            steps_per_s * self.plan.batch as f64 / 1e3
+        ));
+        Ok(Some(record))
+    }
+}
+
+impl Objective for VolumeObjective<'_> {
+    fn start(&mut self, first: u32, _params: &[f32], ui: &Ui) -> Result<()> {
+        let Some(
+            g @ TrainingGrid {
+                seed: Some(dilation), ..
+            },
+        ) = &self.plan.grid
+        else {
+            return Ok(());
+        };
+        if first >= g.warmup {
+            return Ok(());
+        }
+        let points = self.plan.data.sparse_points()?;
+        let seeded = OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &points, *dilation)?;
+        ui.report(format!(
+            "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
+            points.len(),
+            100.0 * seeded.occupancy(),
+            g.warmup
+        ));
+        self.grid = Some(seeded);
+        Ok(())
+    }
+
+    fn before_step(&mut self, step: u32, params: &[f32], ui: &Ui) -> Result<()> {
+        self.update_grid(step, params, ui)
+    }
+
+    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+        let plan = self.plan;
+        let view = if plan.random_views {
+            self.rng.below(self.views.len() as u64) as usize
+        } else {
+            step as usize % self.views.len()
+        };
+        let (rays, targets) =
+            self.views
+                .random_rays(view, plan.batch, plan.seed.wrapping_add(u64::from(step)))?;
+        let (forward, backward) = self.fields.fine.bind(params);
+        let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
+        let grid = self.grid.as_ref();
+        let mut result = match &self.fields.coarse {
+            None => {
+                let options = StepOptions { fine: None, grid };
+                volume_step_with(
+                    &rays,
+                    &targets,
+                    &forward,
+                    &backward,
+                    &self.step_settings,
+                    options,
+                    jitter,
+                )?
+            }
+            Some((coarse, importance)) => {
+                let (coarse_forward, coarse_backward) = coarse.bind(params);
+                let fine = FinePass {
+                    field: &forward,
+                    vjp: &backward,
+                    importance: *importance,
+                };
+                let options = StepOptions {
+                    fine: Some(&fine),
+                    grid,
+                };
+                volume_step_with(
+                    &rays,
+                    &targets,
+                    &coarse_forward,
+                    &coarse_backward,
+                    &self.step_settings,
+                    options,
+                    jitter,
+                )?
+            }
+        };
+        if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
+            let reg = &e.regularizers;
+            let points = match &self.grid {
+                Some(grid) if e.occupied => occupied_points(&mut self.rng, reg.points, reg.bound, grid),
+                _ => uniform_points(&mut self.rng, reg.points, reg.bound),
+            };
+            let threads = rayon::current_num_threads();
+            let [_, eikonal] = reg.add_at(k, &points, params, &mut result.param_grads, threads);
+            self.eikonal_loss = eikonal;
+        }
+        self.psnr = result.psnr;
+        Ok(Gradient {
+            loss: result.loss,
+            grads: result.param_grads,
+            samples: result.samples,
+        })
+    }
+
+    fn recycle(&mut self, grads: Vec<f32>) {
+        nerfjit_runtime::volume::train::recycle(grads);
+    }
+
+    fn after_step(&mut self, p: &Progress, params: &[f32], ui: &mut Ui) -> Result<()> {
+        self.validate(p, params, ui)?;
+        let record = self.record(p, ui)?;
+        if let Some(live) = self.live {
+            live.after_step(p.done, p.last, params, record, ui.watch());
+        }
+        if let Some(path) = &self.plan.preview {
+            if p.done.is_multiple_of(self.plan.preview_every) || (p.last && !p.interrupted) {
+                self.plan
+                    .write_preview(path, self.views, self.fields, params, &self.settings)?;
+            }
+        }
+        Ok(())
     }
 }
 

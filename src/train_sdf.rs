@@ -16,10 +16,9 @@ use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::interrupt::Watch;
-use crate::metrics_log::RunLog;
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
+use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 
 /// The columns of a point-cloud fit's metrics log.
 const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near", "eikonal"];
@@ -180,103 +179,39 @@ impl SdfTrainPlan {
             write_points_gif(path, &cloud)?;
         }
         let t = Instant::now();
-        let k = self.compile(program, cache)?;
+        let kernels = self.compile(program, cache)?;
         let compile_s = t.elapsed().as_secs_f64();
-        let (mut adam, first) = crate::checkpoint::resume_or_start(
-            program,
-            self.checkpoint.as_deref(),
-            resume,
-            params,
-            self.optimizer,
-            |k| self.schedule.lr(k),
-        )?;
-        let threads = rayon::current_num_threads();
-        let mut rng = Rng::new(self.seed ^ 0xB0_77);
-        let total = self.pretrain_steps + self.steps;
-        let mut log = RunLog::open(
-            self.log.as_deref(),
-            self.tensorboard.as_deref(),
-            LOG_COLUMNS,
-            first > 0,
-        )?;
-        let watch = Watch::start();
-        let bar = crate::train::step_bar(total, "fitting");
-        bar.set_position(u64::from(first));
-        let start = Instant::now();
-        let mut terms = [f32::NAN; 3];
-        let mut done = first;
-        for step in first..total {
-            let mut grads = vec![0.0f32; params.len()];
-            if step < self.pretrain_steps {
-                terms = [
-                    self.sphere_step(&k, params, &mut grads, &mut rng, threads),
-                    0.0,
-                    0.0,
-                ];
-            } else {
-                terms = self.fit_step(&k, params, &mut grads, &cloud, &mut rng, threads);
-            }
-            let loss: f32 = terms.iter().sum();
-            if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
-                bar.abandon();
-                return Err(crate::checkpoint::diverged(
-                    program,
-                    step,
-                    loss,
-                    &grads,
-                    self.checkpoint.as_deref(),
-                ));
-            }
-            adam.lr = self.schedule.lr(step);
-            adam.step(params, &grads)?;
-            done = step + 1;
-            let last = done == total || watch.requested();
-            if done % 10 == 0 || last {
-                let mut record = vec![
-                    Some(f64::from(done)),
-                    Some(start.elapsed().as_secs_f64()),
-                    Some(f64::from(adam.lr)),
-                    Some(f64::from(loss)),
-                ];
-                record.extend(terms.map(|t| Some(f64::from(t))));
-                log.record(&record)?;
-                bar.set_message(format!(
-                    "surface {:.5} near {:.5} eikonal {:.5}{}",
-                    terms[0],
-                    terms[1],
-                    terms[2],
-                    if done <= self.pretrain_steps {
-                        " (pre-training)"
-                    } else {
-                        ""
-                    }
-                ));
-            }
-            bar.set_position(u64::from(done));
-            if let Some(path) = &self.checkpoint {
-                if done % self.checkpoint_every == 0 || last {
-                    crate::checkpoint::write(path, program, done, params, &adam)?;
-                }
-            }
-            if watch.requested() {
-                break;
-            }
-        }
-        bar.finish_and_clear();
-        let seconds = start.elapsed().as_secs_f64();
-        let trained = done - first;
-        let ms = if trained > 0 {
-            1e3 * seconds / f64::from(trained)
-        } else {
-            0.0
+        let mut objective = SdfObjective {
+            plan: self,
+            kernels: &kernels,
+            cloud: &cloud,
+            rng: Rng::new(self.seed ^ 0xB0_77),
+            threads: rayon::current_num_threads(),
+            terms: [f32::NAN; 3],
         };
+        let settings = LoopSettings {
+            steps: self.pretrain_steps + self.steps,
+            schedule: &self.schedule,
+            optimizer: self.optimizer,
+            time_limit: None,
+            checkpoint: self.checkpoint.as_deref(),
+            checkpoint_every: self.checkpoint_every,
+            resume,
+            log: self.log.as_deref(),
+            tensorboard: self.tensorboard.as_deref(),
+            log_columns: LOG_COLUMNS,
+            verb: "fitting",
+        };
+        let end = training_loop::train(program, params, &settings, &mut objective)?;
+        let terms = objective.terms;
+        let (seconds, ms) = (end.train_seconds, end.ms_per_step());
         if let Some(path) = &self.summary {
             let json = serde_json::json!({
                 "data": self.data.display().to_string(),
                 "points": cloud.len(),
                 "mean_centered_by": mean,
-                "steps": done,
-                "resumed_from": first,
+                "steps": end.done,
+                "resumed_from": end.first,
                 "surface_loss": terms[0],
                 "near_loss": terms[1],
                 "eikonal_loss": terms[2],
@@ -287,14 +222,13 @@ impl SdfTrainPlan {
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
         }
-        if watch.requested() {
-            return Err(crate::interrupt::stopped(done, self.checkpoint.as_deref()));
-        }
+        end.stopped(self.checkpoint.as_deref())?;
         Ok(format!(
-            "fitted '{}' to {} points in {trained} steps, {seconds:.1} s ({ms:.2} ms/step, JIT compile {compile_s:.2} s): \
+            "fitted '{}' to {} points in {} steps, {seconds:.1} s ({ms:.2} ms/step, JIT compile {compile_s:.2} s): \
              mean |d| on the points {:.5}, near-surface term {:.5}, eikonal term {:.5}\n{}",
             self.function,
             cloud.len(),
+            end.trained(),
             terms[0],
             terms[1],
             terms[2],
@@ -382,6 +316,61 @@ impl SdfTrainPlan {
             near_sharpness: self.near_sharpness,
             eikonal_weight: self.eikonal_weight,
         }
+    }
+}
+
+/// A `train sdf` block's objective: pre-training toward a sphere for the first `pretrain_steps`, then the
+/// fit's three terms; each step's terms are logged and shown on the progress bar.
+struct SdfObjective<'a> {
+    plan: &'a SdfTrainPlan,
+    kernels: &'a Kernels,
+    cloud: &'a [[f32; 3]],
+    rng: Rng,
+    threads: usize,
+    /// The last step's surface, near-surface and eikonal terms.
+    terms: [f32; 3],
+}
+
+impl Objective for SdfObjective<'_> {
+    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+        let (plan, k, threads) = (self.plan, self.kernels, self.threads);
+        let mut grads = vec![0.0f32; params.len()];
+        self.terms = if step < plan.pretrain_steps {
+            let sphere = plan.sphere_step(k, params, &mut grads, &mut self.rng, threads);
+            [sphere, 0.0, 0.0]
+        } else {
+            plan.fit_step(k, params, &mut grads, self.cloud, &mut self.rng, threads)
+        };
+        Ok(Gradient {
+            loss: self.terms.iter().sum(),
+            grads,
+            samples: 0,
+        })
+    }
+
+    fn after_step(&mut self, p: &Progress, _params: &[f32], ui: &mut Ui) -> Result<()> {
+        if !(p.done.is_multiple_of(10) || p.last) {
+            return Ok(());
+        }
+        let terms = self.terms;
+        let mut record = vec![
+            Some(f64::from(p.done)),
+            Some(p.train_seconds),
+            Some(f64::from(p.lr)),
+            Some(f64::from(p.loss)),
+        ];
+        record.extend(terms.map(|t| Some(f64::from(t))));
+        ui.record(&record)?;
+        let pretraining = if p.done <= self.plan.pretrain_steps {
+            " (pre-training)"
+        } else {
+            ""
+        };
+        ui.message(format!(
+            "surface {:.5} near {:.5} eikonal {:.5}{pretraining}",
+            terms[0], terms[1], terms[2]
+        ));
+        Ok(())
     }
 }
 
