@@ -53,23 +53,6 @@ pub struct RayOutput {
     pub opacity: f32,
 }
 
-/// A ray being composited run by run ([`Compositor::add`]).
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct RayState {
-    out: RayOutput,
-    transmittance: f32,
-}
-
-impl Default for RayState {
-    /// A ray before its first sample: nothing seen, transmittance 1.
-    fn default() -> RayState {
-        RayState {
-            out: RayOutput::default(),
-            transmittance: 1.0,
-        }
-    }
-}
-
 /// The samples of one ray: depths, the field's first output (density or opacity) and colors.
 #[derive(Debug, Clone, Copy)]
 pub struct Samples<'a> {
@@ -172,7 +155,7 @@ impl Compositor {
     }
 
     /// A ray stops before a sample whose transmittance is below this.
-    fn threshold(&self) -> f32 {
+    pub(crate) fn threshold(&self) -> f32 {
         self.early_termination.unwrap_or(f32::NEG_INFINITY)
     }
 
@@ -187,45 +170,22 @@ impl Compositor {
 
     /// Composites one ray.
     pub fn forward(&self, samples: &Samples) -> RayOutput {
-        let mut ray = RayState::default();
-        self.add(&mut ray, samples.t, 0, samples.raw, samples.rgb);
-        self.finish(ray)
-    }
-
-    /// Composites samples `first..first + raw.len()` of a ray whose depths are `t` (all of them: δ of
-    /// the last is [`LAST_DELTA`]) into `ray`, with their values `raw` and colors `rgb`. Adding a
-    /// ray's samples run by run, in order, then [`Compositor::finish`], gives [`Compositor::forward`]
-    /// of all of them, bit for bit.
-    pub(crate) fn add(&self, ray: &mut RayState, t: &[f32], first: usize, raw: &[f32], rgb: [&[f32]; 3]) {
         let threshold = self.threshold();
-        let RayState { out, transmittance } = ray;
-        for (i, (&raw, k)) in raw.iter().zip(first..).enumerate() {
-            if *transmittance < threshold {
+        let mut out = RayOutput::default();
+        let mut transmittance = 1.0f32;
+        for i in 0..samples.len() {
+            if transmittance < threshold {
                 break;
             }
-            let delta = t.get(k + 1).map_or(LAST_DELTA, |next| next - t[k]);
-            let (alpha, keep) = self.alpha(raw, delta);
-            let w = *transmittance * alpha;
-            for (acc, c) in out.rgb.iter_mut().zip(&rgb) {
+            let (alpha, keep) = self.alpha(samples.raw[i], samples.delta(i));
+            let w = transmittance * alpha;
+            for (acc, c) in out.rgb.iter_mut().zip(&samples.rgb) {
                 *acc += w * c[i];
             }
-            out.depth += w * t[k];
+            out.depth += w * samples.t[i];
             out.opacity += w;
-            *transmittance *= keep;
+            transmittance *= keep;
         }
-    }
-
-    /// Whether `ray` is still live: its transmittance is not below the early-termination threshold.
-    pub(crate) fn is_live(&self, ray: &RayState) -> bool {
-        ray.transmittance >= self.threshold()
-    }
-
-    /// The composited ray, with the background seen through its remaining transmittance.
-    pub(crate) fn finish(&self, ray: RayState) -> RayOutput {
-        let RayState {
-            mut out,
-            transmittance,
-        } = ray;
         self.add_background(&mut out, transmittance);
         out
     }
@@ -488,6 +448,73 @@ impl Lanes {
         self.transmittance[k] = trans;
         [self.rgb[0][k], self.rgb[1][k], self.rgb[2][k]] = [acc_r, acc_g, acc_b];
         (self.depth[k], self.opacity[k]) = (depth, opacity);
+    }
+
+    /// Adds every sample of the rays when each sample has a depth of its own: `t` holds them,
+    /// sample-major like `raw` and `rgb`, each ray's last sample with δ = [`LAST_DELTA`]. The
+    /// result is that of [`Compositor::forward`] on each ray, bit for bit (given finite colors).
+    pub(crate) fn add_rows(&mut self, c: &Compositor, t: &[f32], raw: &[f32], rgb: [&[f32]; 3]) {
+        let threshold = c.threshold();
+        match (c.mode, c.early_termination.is_some()) {
+            (Mode::Density, true) => self.add_rows_with::<true>(threshold, density_alpha, t, raw, rgb),
+            (Mode::Density, false) => self.add_rows_with::<false>(threshold, density_alpha, t, raw, rgb),
+            (Mode::Opacity, true) => self.add_rows_with::<true>(threshold, opacity_alpha, t, raw, rgb),
+            (Mode::Opacity, false) => self.add_rows_with::<false>(threshold, opacity_alpha, t, raw, rgb),
+        }
+    }
+
+    /// [`Lanes::add_rows`] with alphas from `alpha_of(raw, δ)`, the operations of
+    /// [`Lanes::add_with`] with a depth and δ per sample.
+    #[inline(always)]
+    fn add_rows_with<const STOP: bool>(
+        &mut self,
+        threshold: f32,
+        alpha_of: impl Fn(f32, f32) -> (f32, f32),
+        t: &[f32],
+        raw: &[f32],
+        [r, g, b]: [&[f32]; 3],
+    ) {
+        let n = self.transmittance.len();
+        if n == 0 {
+            return;
+        }
+        let rows = t.len() / n;
+        let Lanes {
+            transmittance,
+            rgb: [acc_r, acc_g, acc_b],
+            depth,
+            opacity,
+        } = self;
+        let (transmittance, depth, opacity) = (&mut transmittance[..n], &mut depth[..n], &mut opacity[..n]);
+        let (acc_r, acc_g, acc_b) = (&mut acc_r[..n], &mut acc_g[..n], &mut acc_b[..n]);
+        for j in 0..rows {
+            let row = j * n..(j + 1) * n;
+            let (here, raw, r, g, b) = (
+                &t[row.clone()],
+                &raw[row.clone()],
+                &r[row.clone()],
+                &g[row.clone()],
+                &b[row],
+            );
+            let next = (j + 1 < rows).then(|| &t[(j + 1) * n..(j + 2) * n]);
+            for k in 0..n {
+                let delta = next.map_or(LAST_DELTA, |next| next[k] - here[k]);
+                let trans = transmittance[k];
+                let (alpha, keep) = alpha_of(raw[k], delta);
+                let (alpha, keep) = if !STOP || trans >= threshold {
+                    (alpha, keep)
+                } else {
+                    (0.0, 1.0)
+                };
+                let w = trans * alpha;
+                acc_r[k] += w * r[k];
+                acc_g[k] += w * g[k];
+                acc_b[k] += w * b[k];
+                depth[k] += w * here[k];
+                opacity[k] += w;
+                transmittance[k] = trans * keep;
+            }
+        }
     }
 
     /// Composites the rays started by [`Lanes::reset`] over all their samples and back-

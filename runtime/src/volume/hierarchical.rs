@@ -1,11 +1,13 @@
 //! Volume rendering with hierarchical sampling: a coarse field at `linspace(near, far, samples)`,
 //! then a fine field at those depths and `importance` more per ray drawn from the coarse weights
-//! (at the centers of equal-probability bins: a deterministic render). With an occupancy grid, both
-//! passes evaluate only the samples in its occupied cells (the others are empty space, so no
-//! importance sample is drawn there either); with early termination, the fine samples are evaluated
-//! [`CHUNK_SAMPLES`] at a time per ray, for the rays whose transmittance is still above the threshold. The counterpart of
-//! [`crate::volume::train::volume_step_with`]. Samples are laid out ray-major here (ray k's samples at
-//! `k·samples..`), so that each ray composites from contiguous slices.
+//! (at the centers of equal-probability bins: a deterministic render). Both passes are the volume
+//! pass of training (`volume::pass`), tile by tile of rays: with an occupancy grid they
+//! evaluate only the samples in its occupied cells (the others are empty space, so no importance
+//! sample is drawn there either); with early termination, both evaluate the samples
+//! [`CHUNK_SAMPLES`](crate::volume::render::CHUNK_SAMPLES) depths at a time, for the rays whose
+//! transmittance is still above the threshold (the coarse samples past a ray's end are empty space
+//! to the importance sampling, as in training). The render of what
+//! [`crate::volume::train::volume_step_with`] trains.
 
 use rayon::prelude::*;
 
@@ -13,61 +15,9 @@ use crate::cameras::camera::Camera;
 use crate::cameras::rays::RayBatch;
 use crate::error::{Error, Result};
 use crate::field::BatchFn;
-use crate::volume::composite::RayState;
-use crate::volume::importance;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::render::{check_field, VolumeFrame, VolumeSettings, CHUNK_SAMPLES};
-
-/// Rays per parallel tile.
-const TILE_RAYS: usize = 64;
-
-/// The field's outputs (value, r, g, b) at `samples`, each a ray of `rays` and a depth along it; with
-/// a `grid`, only the points in its occupied cells are evaluated, and the others are empty space (all
-/// outputs 0).
-fn evaluate(
-    field: &dyn BatchFn,
-    rays: &RayBatch,
-    samples: &[(usize, f32)],
-    grid: Option<&OccupancyGrid>,
-) -> [Vec<f32>; 4] {
-    let len = samples.len();
-    let mut inputs: [Vec<f32>; 6] = Default::default();
-    for input in &mut inputs {
-        input.reserve(len);
-    }
-    // Which samples are evaluated (all without a grid), in order.
-    let mut kept = Vec::with_capacity(len);
-    for (i, &(r, t)) in samples.iter().enumerate() {
-        let o = [rays.ox[r], rays.oy[r], rays.oz[r]];
-        let d = [rays.dx[r], rays.dy[r], rays.dz[r]];
-        let p = [0, 1, 2].map(|c| o[c] + t * d[c]);
-        if grid.is_some_and(|g| !g.occupied(p)) {
-            continue;
-        }
-        kept.push(i);
-        for c in 0..3 {
-            inputs[c].push(p[c]);
-            inputs[3 + c].push(d[c]);
-        }
-    }
-    let n = kept.len();
-    let refs: Vec<&[f32]> = inputs[..field.n_inputs()].iter().map(Vec::as_slice).collect();
-    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; n]);
-    let mut out_refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
-    if n > 0 {
-        field.eval(n, &refs, &mut out_refs);
-    }
-    if n == len {
-        return packed;
-    }
-    let mut outputs: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; len]);
-    for (output, values) in outputs.iter_mut().zip(&packed) {
-        for (&i, &v) in kept.iter().zip(values) {
-            output[i] = v;
-        }
-    }
-    outputs
-}
+use crate::volume::pass;
+use crate::volume::render::{check_field, with_scratch, VolumeFrame, VolumeSettings};
 
 /// The two fields of hierarchical sampling and the importance samples drawn per ray.
 #[derive(Clone, Copy)]
@@ -104,66 +54,47 @@ pub fn render_hierarchical(
     }
     let rays = RayBatch::full_image(camera, width, height)?;
     let m = settings.samples;
-    let total = m + importance;
-    let mut t = vec![0.0; m];
-    settings.fixed_depths(&mut t);
-    let mut u = Vec::new();
-    importance::quantiles(importance, None, &mut u);
-    let compositor = settings.compositor();
-    let run = match settings.early_termination {
-        Some(_) => CHUNK_SAMPLES.min(total),
-        None => total,
+    let mut fixed = vec![0.0; m];
+    settings.fixed_depths(&mut fixed);
+    let fine_settings = VolumeSettings {
+        samples: m + importance,
+        ..*settings
     };
-    let n = rays.len();
-    let mut rgb = vec![[0.0f32; 3]; n];
-    let mut depth = vec![0.0f32; n];
-    let mut opacity = vec![0.0f32; n];
-    rgb.par_chunks_mut(TILE_RAYS)
-        .zip(depth.par_chunks_mut(TILE_RAYS))
-        .zip(opacity.par_chunks_mut(TILE_RAYS))
+    let compositor = settings.compositor();
+    let tile = settings.rays_per_tile();
+    let pixels = rays.len();
+    let mut rgb = vec![[0.0f32; 3]; pixels];
+    let mut depth = vec![0.0f32; pixels];
+    let mut opacity = vec![0.0f32; pixels];
+    rgb.par_chunks_mut(tile)
+        .zip(depth.par_chunks_mut(tile))
+        .zip(opacity.par_chunks_mut(tile))
         .enumerate()
-        .for_each(|(tile, ((rgb, depth), opacity))| {
-            let first = tile * TILE_RAYS;
-            let count = rgb.len();
-            let coarse_samples: Vec<(usize, f32)> = (first..first + count)
-                .flat_map(|r| t.iter().map(move |&t| (r, t)))
-                .collect();
-            let [raw, ..] = evaluate(coarse, &rays, &coarse_samples, grid);
-            let mut fine_depths = vec![0.0; count * total];
-            let (mut w, mut drawn) = (vec![0.0; m], vec![0.0; importance]);
-            for k in 0..count {
-                importance::ray_weights(&compositor, &t, &raw[k * m..(k + 1) * m], &mut w);
-                importance::inverse_cdf(settings.near, settings.far, &t, &w, &u, &mut drawn);
-                importance::merge_sorted(&t, &drawn, &mut fine_depths[k * total..(k + 1) * total]);
-            }
-            // The fine samples run by run (all at once without early termination), each run only
-            // for the rays still live.
-            let mut states = vec![RayState::default(); count];
-            let mut live: Vec<usize> = (0..count).collect();
-            for start in (0..total).step_by(run) {
-                live.retain(|&k| compositor.is_live(&states[k]));
-                if live.is_empty() {
-                    break;
+        .for_each(|(index, ((rgb, depth), opacity))| {
+            with_scratch(|s| {
+                let (first, n) = (index * tile, rgb.len());
+                s.reserve(n * fine_settings.samples, n);
+                for (row, &t) in s.depths[..n * m].chunks_exact_mut(n).zip(&fixed) {
+                    row.fill(t);
                 }
-                let end = (start + run).min(total);
-                let along = |k: usize| &fine_depths[k * total..(k + 1) * total];
-                let samples: Vec<(usize, f32)> = live
-                    .iter()
-                    .flat_map(|&k| along(k)[start..end].iter().map(move |&t| (first + k, t)))
-                    .collect();
-                let [raw, r, g, b] = evaluate(fine, &rays, &samples, grid);
-                for (i, &k) in live.iter().enumerate() {
-                    let s = i * (end - start)..(i + 1) * (end - start);
-                    let colors = [&r[s.clone()], &g[s.clone()], &b[s.clone()]];
-                    compositor.add(&mut states[k], along(k), start, &raw[s], colors);
+                pass::forward(coarse, settings, grid, (&rays, first, n), s);
+                let fine_depths = pass::importance_depths(settings, importance, s, n, None);
+                s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
+                pass::forward(fine, &fine_settings, grid, (&rays, first, n), s);
+                let len = fine_depths.len();
+                let [raw, r, g, b] = &s.outputs;
+                s.lanes.reset(n);
+                s.lanes.add_rows(
+                    &compositor,
+                    &s.depths[..len],
+                    &raw[..len],
+                    [&r[..len], &g[..len], &b[..len]],
+                );
+                for k in 0..n {
+                    let out = s.lanes.output(&compositor, k);
+                    (rgb[k], depth[k], opacity[k]) = (out.rgb, out.depth, out.opacity);
                 }
-            }
-            for (k, state) in states.into_iter().enumerate() {
-                let out = compositor.finish(state);
-                rgb[k] = out.rgb;
-                depth[k] = out.depth;
-                opacity[k] = out.opacity;
-            }
+            })
         });
     Ok(VolumeFrame {
         width,

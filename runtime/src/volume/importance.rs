@@ -8,10 +8,17 @@ use crate::volume::composite::Compositor;
 const WEIGHT_FLOOR: f32 = 1e-5;
 
 /// The compositing weights wⱼ = Tⱼ·αⱼ of one ray's samples at sorted depths `t` with field values `raw`
-/// (densities or opacities, as `compositor` reads them), written to `weights`.
+/// (densities or opacities, as `compositor` reads them), written to `weights`. With early termination
+/// the weights are those of the truncated composite: 0 from the first sample whose Tⱼ is below the
+/// threshold on (so the samples past a ray's end, evaluated or not, place no importance sample).
 pub fn ray_weights(compositor: &Compositor, t: &[f32], raw: &[f32], weights: &mut [f32]) {
+    let threshold = compositor.threshold();
     let mut transmittance = 1.0f32;
     for j in 0..t.len() {
+        if transmittance < threshold {
+            weights[j..t.len()].fill(0.0);
+            return;
+        }
         let delta = t
             .get(j + 1)
             .map_or(crate::volume::composite::LAST_DELTA, |next| next - t[j]);

@@ -20,10 +20,10 @@ use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
-use crate::volume::composite::{Compositor, RayOutput, LAST_DELTA};
-use crate::volume::importance;
+use crate::volume::composite::RayOutput;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::render::{check_field, with_scratch, Scratch, VolumeSettings, CHUNK_SAMPLES};
+use crate::volume::pass;
+use crate::volume::render::{check_field, with_scratch, Scratch, VolumeSettings};
 use crate::volume::sampler::jittered_depth;
 
 /// Sample points per chunk of tiles.
@@ -167,7 +167,7 @@ fn train_tile(
         };
     };
     let jitter = job.fixed_depths.is_none().then_some(&mut rng);
-    let fine_depths = importance_depths(job.settings, fine.importance, s, n, jitter);
+    let fine_depths = pass::importance_depths(job.settings, fine.importance, s, n, jitter);
     s.reserve(fine_depths.len(), n);
     s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
     let (fine_error, fine_samples) = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
@@ -175,40 +175,6 @@ fn train_tile(
         squared_error: [coarse, fine_error],
         samples: coarse_samples + fine_samples,
     }
-}
-
-/// The fine depths of the tile's `n` rays (sample-major): the coarse depths in `s.depths` merged with
-/// `importance` depths drawn from the coarse weights (stratified with `jitter`, else at bin centers).
-fn importance_depths(
-    coarse: &VolumeSettings,
-    importance: usize,
-    s: &Scratch,
-    n: usize,
-    mut jitter: Option<&mut Rng>,
-) -> Vec<f32> {
-    let m = coarse.samples;
-    let compositor = coarse.compositor();
-    let total = m + importance;
-    let mut fine = vec![0.0; n * total];
-    let (mut t, mut raw, mut w) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
-    let (mut u, mut drawn, mut merged) = (Vec::new(), vec![0.0; importance], vec![0.0; total]);
-    for k in 0..n {
-        for j in 0..m {
-            t[j] = s.depths[j * n + k];
-            raw[j] = s.outputs[0][j * n + k];
-        }
-        importance::ray_weights(&compositor, &t, &raw, &mut w);
-        match jitter.as_deref_mut() {
-            Some(rng) => importance::quantiles(importance, Some(&mut || rng.next_f32()), &mut u),
-            None => importance::quantiles(importance, None, &mut u),
-        }
-        importance::inverse_cdf(coarse.near, coarse.far, &t, &w, &u, &mut drawn);
-        importance::merge_sorted(&t, &drawn, &mut merged);
-        for (j, &d) in merged.iter().enumerate() {
-            fine[j * n + k] = d;
-        }
-    }
-    fine
 }
 
 /// Evaluates `field` at the depths in `s.depths` of rays `first..first + n`, composites, and adds
@@ -226,9 +192,9 @@ fn run_pass(
     grads: &mut [f32],
 ) -> (f64, usize) {
     let len = n * settings.samples;
-    let view_dependent = field.n_inputs() == 6;
+    let evaluated = pass::forward(field, settings, job.grid, (job.rays, first, n), s);
     let Scratch {
-        inputs: [x, y, z, vx, vy, vz],
+        inputs,
         outputs: [raw, r, g, b],
         cotangents: [g_raw, g_r, g_g, g_b],
         depths,
@@ -236,36 +202,8 @@ fn run_pass(
         ..
     } = s;
     let depths = &depths[..len];
-    let rays = first..first + n;
-    let rb = job.rays;
-    let (ox, oy, oz) = (&rb.ox[rays.clone()], &rb.oy[rays.clone()], &rb.oz[rays.clone()]);
-    let (dx, dy, dz) = (&rb.dx[rays.clone()], &rb.dy[rays.clone()], &rb.dz[rays]);
-    for (j, t) in depths.chunks_exact(n).enumerate() {
-        let row = j * n..(j + 1) * n;
-        let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
-        for k in 0..n {
-            x[k] = ox[k] + dx[k] * t[k];
-            y[k] = oy[k] + dy[k] * t[k];
-            z[k] = oz[k] + dz[k] * t[k];
-        }
-        if view_dependent {
-            vx[row.clone()].copy_from_slice(dx);
-            vy[row.clone()].copy_from_slice(dy);
-            vz[row].copy_from_slice(dz);
-        }
-    }
-    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
-    let inputs = &inputs[..if view_dependent { 6 } else { 3 }];
+    let inputs: Vec<&[f32]> = inputs[..field.n_inputs()].iter().map(|c| &c[..len]).collect();
     let compositor = settings.compositor();
-    let evaluated = evaluate(
-        field,
-        &compositor,
-        job.grid,
-        inputs,
-        depths,
-        n,
-        [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
-    );
     let mut squared_error = 0.0f64;
     lanes.reset(n);
     lanes.forward_backward(
@@ -299,107 +237,8 @@ fn run_pass(
         }
         (_, index) => index,
     };
-    match backward {
-        None => vjp.vjp(len, inputs, &cotangents, grads),
-        Some(index) => vjp_at(vjp, inputs, &index, &cotangents, grads),
-    }
+    pass::backward(vjp, &inputs, backward.as_deref(), &cotangents, grads);
     (squared_error, samples)
-}
-
-/// Evaluates `field` at the tile's samples (sample-major, `n` rays) that can contribute, writing zeros
-/// (empty space) for the others; returns the indices evaluated, or `None` if all were. With a grid,
-/// samples in its empty cells are skipped. With early termination, the depths go in groups of
-/// [`CHUNK_SAMPLES`] and a group evaluates only the rays whose transmittance before it is still at the
-/// threshold: every sample the compositor counts is evaluated.
-fn evaluate(
-    field: &dyn BatchFn,
-    compositor: &Compositor,
-    grid: Option<&OccupancyGrid>,
-    inputs: &[&[f32]],
-    depths: &[f32],
-    n: usize,
-    mut outputs: [&mut [f32]; 4],
-) -> Option<Vec<usize>> {
-    let len = depths.len();
-    let occupied = |i: usize| grid.is_none_or(|g| g.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]));
-    let Some(threshold) = compositor.early_termination else {
-        if grid.is_none() {
-            let [raw, r, g, b] = outputs;
-            field.eval(len, inputs, &mut [raw, r, g, b]);
-            return None;
-        }
-        let index: Vec<usize> = (0..len).filter(|&i| occupied(i)).collect();
-        eval_at(field, inputs, &index, outputs);
-        return Some(index);
-    };
-    let rows = len / n;
-    let mut transmittance = vec![1.0f32; n];
-    let mut index = Vec::with_capacity(len);
-    for group in (0..rows).step_by(CHUNK_SAMPLES) {
-        let group = group..(group + CHUNK_SAMPLES).min(rows);
-        let start = index.len();
-        for j in group.clone() {
-            let live = (0..n).filter(|&k| transmittance[k] >= threshold);
-            index.extend(live.map(|k| j * n + k).filter(|&i| occupied(i)));
-        }
-        let span = group.start * n..group.end * n;
-        let part = outputs.each_mut().map(|o| &mut o[span.clone()]);
-        let local: Vec<usize> = index[start..].iter().map(|&i| i - span.start).collect();
-        let inputs_here: Vec<&[f32]> = inputs.iter().map(|c| &c[span.clone()]).collect();
-        eval_at(field, &inputs_here, &local, part);
-        for j in group {
-            for (k, trans) in transmittance.iter_mut().enumerate() {
-                let i = j * n + k;
-                let delta = if j + 1 < rows {
-                    depths[i + n] - depths[i]
-                } else {
-                    LAST_DELTA
-                };
-                *trans *= compositor.alpha(outputs[0][i], delta).1;
-            }
-        }
-    }
-    Some(index)
-}
-
-/// Evaluates `field` at the samples `index` of the columns `inputs` (gathered into one dense call) and
-/// scatters the results into `outputs`, which are zero elsewhere.
-fn eval_at(field: &dyn BatchFn, inputs: &[&[f32]], index: &[usize], outputs: [&mut [f32]; 4]) {
-    let m = index.len();
-    let gathered = gather(inputs, index);
-    let ins: Vec<&[f32]> = gathered.iter().map(Vec::as_slice).collect();
-    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
-    let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
-    field.eval(m, &ins, &mut refs);
-    for (out, values) in outputs.into_iter().zip(&packed) {
-        out.fill(0.0);
-        for (&i, &v) in index.iter().zip(values) {
-            out[i] = v;
-        }
-    }
-}
-
-/// The backward pass of the samples `index` only.
-fn vjp_at(
-    vjp: &dyn BatchVjp,
-    inputs: &[&[f32]],
-    index: &[usize],
-    cotangents: &[&[f32]; 4],
-    grads: &mut [f32],
-) {
-    let ins = gather(inputs, index);
-    let cots = gather(cotangents, index);
-    let ins: Vec<&[f32]> = ins.iter().map(Vec::as_slice).collect();
-    let cots: Vec<&[f32]> = cots.iter().map(Vec::as_slice).collect();
-    vjp.vjp(index.len(), &ins, &cots, grads);
-}
-
-/// The entries `index` of each column.
-fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
-    columns
-        .iter()
-        .map(|c| index.iter().map(|&i| c[i]).collect())
-        .collect()
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
