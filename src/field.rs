@@ -244,7 +244,7 @@ impl Specialize for Specializer {
 }
 
 /// A [`Tape`] as the runtime's [`BatchFn`].
-struct TapeFn(Tape);
+pub(crate) struct TapeFn(pub(crate) Tape);
 
 impl BatchFn for TapeFn {
     fn n_inputs(&self) -> usize {

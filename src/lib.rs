@@ -28,6 +28,8 @@ pub mod cameras;
 pub mod check;
 pub mod checkpoint;
 pub mod compare;
+#[cfg(test)]
+mod conformance;
 pub mod data_check;
 pub mod data_source;
 pub mod eval;
