@@ -9,7 +9,7 @@ use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Rays, S
 use nerfjit_runtime::surfaces::march::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
-use nerfjit_runtime::{BatchFn, BatchVjp};
+use nerfjit_runtime::{BatchFn, BatchVjp, TrainableModel, VolumeModel};
 
 use crate::failure::{Failure, Result};
 
@@ -451,34 +451,27 @@ impl VolumeFields {
         Ok(VolumeFields { fine, coarse })
     }
 
+    /// The fields bound to `params`, each with its backward pass.
+    pub fn bind<'a>(&'a self, params: &'a [f32]) -> BoundFields<'a> {
+        BoundFields {
+            fine: self.fine.bind(params),
+            coarse: self
+                .coarse
+                .as_ref()
+                .map(|(coarse, importance)| (coarse.bind(params), *importance)),
+        }
+    }
+
     /// [`VolumeFields::render`], skipping the cells `grid` marks empty when given.
     pub fn render_with(
         &self,
         camera: &nerfjit_runtime::Camera,
-        (width, height): (u32, u32),
+        size: (u32, u32),
         params: &[f32],
         settings: &nerfjit_runtime::VolumeSettings,
         grid: Option<&nerfjit_runtime::OccupancyGrid>,
     ) -> Result<nerfjit_runtime::volume::render::VolumeFrame> {
-        let (fine, _) = self.fine.bind(params);
-        Ok(match &self.coarse {
-            None => nerfjit_runtime::render_volume_with(camera, width, height, &fine, settings, grid)?,
-            Some((coarse, importance)) => {
-                let (coarse, _) = coarse.bind(params);
-                let fields = nerfjit_runtime::volume::hierarchical::CoarseFine {
-                    coarse: &coarse,
-                    fine: &fine,
-                    importance: *importance,
-                };
-                nerfjit_runtime::volume::hierarchical::render_hierarchical(
-                    camera,
-                    (width, height),
-                    fields,
-                    settings,
-                    grid,
-                )?
-            }
-        })
+        Ok(self.bind(params).model().render(camera, size, settings, grid)?)
     }
 
     /// Renders one view (`settings.samples` coarse samples, plus the importance samples).
@@ -491,5 +484,32 @@ impl VolumeFields {
         settings: &nerfjit_runtime::VolumeSettings,
     ) -> Result<nerfjit_runtime::volume::render::VolumeFrame> {
         self.render_with(camera, (width, height), params, settings, None)
+    }
+}
+
+/// [`VolumeFields`] bound to param values: the runtime's models of them.
+pub struct BoundFields<'a> {
+    fine: (Bound<'a>, BoundVjp<'a>),
+    coarse: Option<((Bound<'a>, BoundVjp<'a>), usize)>,
+}
+
+impl BoundFields<'_> {
+    /// The volume as rendered.
+    pub fn model(&self) -> VolumeModel<'_> {
+        VolumeModel {
+            field: &self.fine.0,
+            coarse: self.coarse.as_ref().map(|((c, _), n)| (c as &dyn BatchFn, *n)),
+        }
+    }
+
+    /// The volume as trained.
+    pub fn trainable(&self) -> TrainableModel<'_> {
+        TrainableModel {
+            field: (&self.fine.0, &self.fine.1),
+            coarse: self
+                .coarse
+                .as_ref()
+                .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
+        }
     }
 }

@@ -8,8 +8,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    load_blender_views, rgb_image, save_png, volume_step_with, DensityEma, DepthSpacing, FinePass,
-    OccupancyGrid, Quantize, Rng, Schedule, StepOptions, Views, VolumeSettings,
+    load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Rng,
+    Schedule, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -838,44 +838,12 @@ impl Objective for VolumeObjective<'_> {
         let (rays, targets) =
             self.views
                 .random_rays(view, plan.batch, plan.seed.wrapping_add(u64::from(step)))?;
-        let (forward, backward) = self.fields.fine.bind(params);
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
-        let grid = self.grid.as_ref();
-        let mut result = match &self.fields.coarse {
-            None => {
-                let options = StepOptions { fine: None, grid };
-                volume_step_with(
-                    &rays,
-                    &targets,
-                    &forward,
-                    &backward,
-                    &self.step_settings,
-                    options,
-                    jitter,
-                )?
-            }
-            Some((coarse, importance)) => {
-                let (coarse_forward, coarse_backward) = coarse.bind(params);
-                let fine = FinePass {
-                    field: &forward,
-                    vjp: &backward,
-                    importance: *importance,
-                };
-                let options = StepOptions {
-                    fine: Some(&fine),
-                    grid,
-                };
-                volume_step_with(
-                    &rays,
-                    &targets,
-                    &coarse_forward,
-                    &coarse_backward,
-                    &self.step_settings,
-                    options,
-                    jitter,
-                )?
-            }
-        };
+        let fields = self.fields.bind(params);
+        let mut result =
+            fields
+                .trainable()
+                .step((&rays, &targets), &self.step_settings, self.grid.as_ref(), jitter)?;
         if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
             let reg = &e.regularizers;
             let points = match &self.grid {

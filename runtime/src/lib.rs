@@ -55,6 +55,7 @@ pub use training::denormals::flush_denormals;
 pub use training::metrics::{mse, psnr, ssim};
 pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
+pub use volume::model::{TrainableModel, VolumeModel};
 pub use volume::occupancy::OccupancyGrid;
 pub use volume::occupancy_ema::DensityEma;
 pub use volume::render::render_volume_with;

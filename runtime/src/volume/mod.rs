@@ -2,11 +2,12 @@
 //! space ([`occupancy`], [`occupancy_ema`]), the compositor and its backward pass ([`composite`]), the
 //! volume pass of a tile of rays with depths of their own (`pass`) that the training step ([`train`]) and
 //! hierarchical rendering ([`hierarchical`]) run, and rendering with depths shared by all rays
-//! ([`render`]); plus [`transmittance`] through piecewise-constant media, the course's first exercise.
+//! ([`render`]); [`model`] chooses between plain and hierarchical rendering and training; plus [`transmittance`] through piecewise-constant media, the course's first exercise.
 
 pub mod composite;
 pub mod hierarchical;
 pub mod importance;
+pub mod model;
 pub mod occupancy;
 pub mod occupancy_ema;
 pub(crate) mod pass;

@@ -228,10 +228,9 @@ mod tests {
     use crate::cameras::camera::Camera;
     use crate::field::{ClosureFn, ClosureVjp};
     use crate::volume::composite::{Mode, RayOutput, Samples};
-    use crate::volume::hierarchical::{render_hierarchical, CoarseFine};
-    use crate::volume::render::{render_volume_with, VolumeFrame};
+    use crate::volume::model::{TrainableModel, VolumeModel};
+    use crate::volume::render::VolumeFrame;
     use crate::volume::sampler::DepthSpacing;
-    use crate::volume::train::{volume_step_with, FinePass, StepOptions};
     use glam::{Vec2, Vec3};
 
     /// A view-dependent field: a dense ball (density 30 within 0.7 of the center) in a faint halo
@@ -385,18 +384,22 @@ mod tests {
                         assert_eq!(got, (e.rgb, e.depth, e.opacity), "{what}, {case}, ray {k}");
                     }
                 };
+                let plain = VolumeModel {
+                    field: &fine,
+                    coarse: None,
+                };
+                let hierarchical = VolumeModel {
+                    field: &fine,
+                    coarse: Some((&coarse, importance)),
+                };
+                let size = (width, height);
                 same(
-                    &render_volume_with(&camera, width, height, &fine, &settings, grid).unwrap(),
+                    &plain.render(&camera, size, &settings, grid).unwrap(),
                     &exact,
                     "render",
                 );
-                let fields = CoarseFine {
-                    coarse: &coarse,
-                    fine: &fine,
-                    importance,
-                };
                 same(
-                    &render_hierarchical(&camera, (width, height), fields, &settings, grid).unwrap(),
+                    &hierarchical.render(&camera, size, &settings, grid).unwrap(),
                     &exact_fine,
                     "hierarchical render",
                 );
@@ -409,26 +412,24 @@ mod tests {
                         .sum();
                     (sum / (3.0 * rays.len() as f64)) as f32
                 };
-                let options = StepOptions { fine: None, grid };
-                let step =
-                    volume_step_with(&rays, &targets, &fine, &no_vjp, &settings, options, None).unwrap();
+                let plain = TrainableModel {
+                    field: (&fine, &no_vjp),
+                    coarse: None,
+                };
+                let step = plain.step((&rays, &targets), &settings, grid, None).unwrap();
                 assert!(
                     (step.loss - mse(&exact)).abs() <= 1e-6 * mse(&exact),
                     "training, {case}: {} vs {}",
                     step.loss,
                     mse(&exact)
                 );
-                let pass = FinePass {
-                    field: &fine,
-                    vjp: &no_vjp,
-                    importance,
+                let hierarchical = TrainableModel {
+                    field: (&fine, &no_vjp),
+                    coarse: Some((&coarse, &no_vjp, importance)),
                 };
-                let options = StepOptions {
-                    fine: Some(&pass),
-                    grid,
-                };
-                let step =
-                    volume_step_with(&rays, &targets, &coarse, &no_vjp, &settings, options, None).unwrap();
+                let step = hierarchical
+                    .step((&rays, &targets), &settings, grid, None)
+                    .unwrap();
                 let want = mse(&exact_fine);
                 assert!(
                     (step.loss - want).abs() <= 1e-6 * want,

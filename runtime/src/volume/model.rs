@@ -1,0 +1,89 @@
+//! What a volume is rendered and trained from, so that no caller branches on hierarchical sampling: one
+//! field, or NeRF's coarse field whose compositing weights place `importance` more samples per ray for
+//! the fine field.
+
+use crate::cameras::camera::Camera;
+use crate::cameras::rays::RayBatch;
+use crate::error::Result;
+use crate::field::{BatchFn, BatchVjp};
+use crate::rng::Rng;
+use crate::volume::hierarchical::{render_hierarchical, CoarseFine};
+use crate::volume::occupancy::OccupancyGrid;
+use crate::volume::render::{render_volume_with, VolumeFrame, VolumeSettings};
+use crate::volume::train::{volume_step_with, FinePass, StepOptions, StepResult};
+
+/// A volume as rendered: its field (the fine one with hierarchical sampling), and with hierarchical
+/// sampling the coarse field and the importance samples per ray.
+#[derive(Clone, Copy)]
+pub struct VolumeModel<'a> {
+    /// The field that makes the image.
+    pub field: &'a dyn BatchFn,
+    /// The coarse field, sampled at the fixed depths, and the samples per ray drawn from its weights.
+    pub coarse: Option<(&'a dyn BatchFn, usize)>,
+}
+
+impl VolumeModel<'_> {
+    /// Renders a `width`×`height` view ([`render_volume_with`] or [`render_hierarchical`]), skipping the
+    /// cells `grid` marks empty when given.
+    pub fn render(
+        &self,
+        camera: &Camera,
+        (width, height): (u32, u32),
+        settings: &VolumeSettings,
+        grid: Option<&OccupancyGrid>,
+    ) -> Result<VolumeFrame> {
+        match self.coarse {
+            None => render_volume_with(camera, width, height, self.field, settings, grid),
+            Some((coarse, importance)) => {
+                let fields = CoarseFine {
+                    coarse,
+                    fine: self.field,
+                    importance,
+                };
+                render_hierarchical(camera, (width, height), fields, settings, grid)
+            }
+        }
+    }
+}
+
+/// A volume as trained: each field with its backward pass.
+#[derive(Clone, Copy)]
+pub struct TrainableModel<'a> {
+    /// The field that makes the image, and its backward pass.
+    pub field: (&'a dyn BatchFn, &'a dyn BatchVjp),
+    /// With hierarchical sampling: the coarse field, its backward pass, and the importance samples per ray.
+    pub coarse: Option<(&'a dyn BatchFn, &'a dyn BatchVjp, usize)>,
+}
+
+impl TrainableModel<'_> {
+    /// One training step on `rays` toward `targets` ([`volume_step_with`]: both fields trained with
+    /// hierarchical sampling), skipping the cells `grid` marks empty when given, with stratified depths
+    /// drawn from `jitter` when given.
+    pub fn step(
+        &self,
+        (rays, targets): (&RayBatch, &[[f32; 3]]),
+        settings: &VolumeSettings,
+        grid: Option<&OccupancyGrid>,
+        jitter: Option<&mut Rng>,
+    ) -> Result<StepResult> {
+        let (field, vjp) = self.field;
+        match self.coarse {
+            None => {
+                let options = StepOptions { fine: None, grid };
+                volume_step_with(rays, targets, field, vjp, settings, options, jitter)
+            }
+            Some((coarse, coarse_vjp, importance)) => {
+                let fine = FinePass {
+                    field,
+                    vjp,
+                    importance,
+                };
+                let options = StepOptions {
+                    fine: Some(&fine),
+                    grid,
+                };
+                volume_step_with(rays, targets, coarse, coarse_vjp, settings, options, jitter)
+            }
+        }
+    }
+}
