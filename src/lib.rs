@@ -19,8 +19,9 @@
 //! A [`session::Session`] keeps a checked script, its params and one kernel cache between calls: its
 //! blocks run one at a time, and the params a `train` block learned can be read, changed and rendered
 //! with (a field trained and then rendered or meshed is compiled once); its documentation trains the
-//! course's box from Rust. The other modules are the commands' work (one function per command or block
-//! kind).
+//! course's box from Rust. Both kinds of training run [`training_loop::train`], each block an
+//! [`training_loop::Objective`]. The other modules are the commands' work (one function per command or
+//! block kind).
 
 pub mod bench;
 pub mod block;
