@@ -78,10 +78,9 @@ pub fn render_hierarchical(
                     row.fill(t);
                 }
                 pass::forward(coarse, settings, grid, (&rays, first, n), s);
-                let fine_depths = pass::importance_depths(settings, importance, s, n, None);
-                s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
+                pass::draw_fine_depths(settings, importance, s, n, None);
                 pass::forward(fine, &fine_settings, grid, (&rays, first, n), s);
-                let len = fine_depths.len();
+                let len = n * fine_settings.samples;
                 let [raw, r, g, b] = &s.outputs;
                 s.lanes.reset(n);
                 s.lanes.add_rows(

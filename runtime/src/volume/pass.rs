@@ -8,7 +8,7 @@
 //! transmittance is still above the threshold, [`CHUNK_SAMPLES`] depths at a time (the other samples are
 //! empty space: all outputs 0); [`forward`] does both. The samples are then composited across rays by
 //! the compositor's `Lanes`: forward only in hierarchical renders, forward and backward in training,
-//! whose field gradient [`backward`] takes at the evaluated samples. [`importance_depths`] draws the fine
+//! whose field gradient [`backward`] takes at the evaluated samples. [`draw_fine_depths`] draws the fine
 //! depths of hierarchical sampling from a coarse pass.
 
 use crate::cameras::rays::RayBatch;
@@ -185,20 +185,21 @@ fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
         .collect()
 }
 
-/// The fine depths of the tile's `n` rays (sample-major): the coarse depths in `s.depths` merged with
-/// `importance` depths drawn from the coarse weights (the coarse values in `s.outputs[0]`), stratified
-/// with `jitter`, else at the centers of equal-probability bins.
-pub(crate) fn importance_depths(
+/// Replaces the coarse depths of the tile's `n` rays in `s.depths` (sample-major) by their fine depths:
+/// merged with `importance` depths drawn from the coarse weights (the coarse values in `s.outputs[0]`),
+/// stratified with `jitter`, else at the centers of equal-probability bins. Each ray's column is read
+/// whole before it is written, so the other rays' coarse depths stay in place.
+pub(crate) fn draw_fine_depths(
     coarse: &VolumeSettings,
     importance: usize,
-    s: &Scratch,
+    s: &mut Scratch,
     n: usize,
     mut jitter: Option<&mut Rng>,
-) -> Vec<f32> {
+) {
     let m = coarse.samples;
     let compositor = coarse.compositor();
     let total = m + importance;
-    let mut fine = vec![0.0; n * total];
+    s.reserve(n * total, n);
     let (mut t, mut raw, mut w) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
     let (mut u, mut drawn, mut merged) = (Vec::new(), vec![0.0; importance], vec![0.0; total]);
     if jitter.is_none() {
@@ -216,10 +217,9 @@ pub(crate) fn importance_depths(
         importance::inverse_cdf(coarse.near, coarse.far, &t, &w, &u, &mut drawn);
         importance::merge_sorted(&t, &drawn, &mut merged);
         for (j, &d) in merged.iter().enumerate() {
-            fine[j * n + k] = d;
+            s.depths[j * n + k] = d;
         }
     }
-    fine
 }
 
 #[cfg(test)]

@@ -167,9 +167,7 @@ fn train_tile(
         };
     };
     let jitter = job.fixed_depths.is_none().then_some(&mut rng);
-    let fine_depths = pass::importance_depths(job.settings, fine.importance, s, n, jitter);
-    s.reserve(fine_depths.len(), n);
-    s.depths[..fine_depths.len()].copy_from_slice(&fine_depths);
+    pass::draw_fine_depths(job.settings, fine.importance, s, n, jitter);
     let (fine_error, fine_samples) = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
     TileTotals {
         squared_error: [coarse, fine_error],
