@@ -305,6 +305,82 @@ fn backward_row<const DENSITY: bool>(
     }
 }
 
+/// The depths of one ray's samples, and their δ: the gap to the next depth, [`LAST_DELTA`] for the last.
+pub(crate) trait RayDepths: Copy {
+    /// Depth `j`.
+    fn at(&self, j: usize) -> f32;
+    /// The δ of sample `j`.
+    fn delta(&self, j: usize) -> f32;
+}
+
+/// Depths shared by every ray, with their δ.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SharedDepths<'a> {
+    /// The depths.
+    pub(crate) t: &'a [f32],
+    /// Their δ.
+    pub(crate) delta: &'a [f32],
+}
+
+impl RayDepths for SharedDepths<'_> {
+    #[inline(always)]
+    fn at(&self, j: usize) -> f32 {
+        self.t[j]
+    }
+
+    #[inline(always)]
+    fn delta(&self, j: usize) -> f32 {
+        self.delta[j]
+    }
+}
+
+/// The depths of one ray of a sample-major tile: `len` of them at `t[first + j·stride]`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct DepthColumn<'a> {
+    /// Where the depths are.
+    pub(crate) t: &'a [f32],
+    /// The index of the first.
+    pub(crate) first: usize,
+    /// From one depth to the next.
+    pub(crate) stride: usize,
+    /// How many.
+    pub(crate) len: usize,
+}
+
+impl RayDepths for DepthColumn<'_> {
+    #[inline(always)]
+    fn at(&self, j: usize) -> f32 {
+        self.t[self.first + j * self.stride]
+    }
+
+    #[inline(always)]
+    fn delta(&self, j: usize) -> f32 {
+        if j + 1 < self.len {
+            self.at(j + 1) - self.at(j)
+        } else {
+            LAST_DELTA
+        }
+    }
+}
+
+impl DepthColumn<'_> {
+    /// The number of depths below `t` (at most `t` if `inclusive`): the partition point of the
+    /// sorted depths, by bisection.
+    pub(crate) fn count_below(&self, t: f32, inclusive: bool) -> usize {
+        let below = |d: f32| d < t || (inclusive && d == t);
+        let (mut lo, mut hi) = (0, self.len);
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if below(self.at(mid)) {
+                lo = mid + 1;
+            } else {
+                hi = mid;
+            }
+        }
+        lo
+    }
+}
+
 /// The accumulators of several rays composited together, sample by sample across rays.
 ///
 /// Samples come in sample-major order (sample j of ray k at `j·rays + k`) so that the inner
@@ -390,21 +466,21 @@ impl Lanes {
         }
     }
 
-    /// Adds samples `index` (increasing) of ray `k`, whose depths and δ are in `(t, delta)`,
-    /// with values `raw` and colors `rgb` (one per index). The samples left out have alpha
-    /// 0: the result is that of [`Lanes::add`] with zero values (and finite colors) there,
-    /// bit for bit, as such samples leave the ray unchanged.
+    /// Adds samples `index` (increasing) of ray `k`, whose depths are `t`, with values `raw`
+    /// and colors `rgb` (one per index). The samples left out have alpha 0: the result is that
+    /// of [`Lanes::add`] with zero values (and finite colors) there, bit for bit, as such
+    /// samples leave the ray unchanged.
     pub(crate) fn add_sparse(
         &mut self,
         c: &Compositor,
         k: usize,
         index: &[u32],
-        (t, delta): (&[f32], &[f32]),
+        t: impl RayDepths,
         raw: &[f32],
         rgb: [&[f32]; 3],
     ) {
         let threshold = c.threshold();
-        let (ray, samples) = ((k, index), (t, delta, raw, rgb));
+        let (ray, samples) = ((k, index), (t, raw, rgb));
         match (c.mode, c.early_termination.is_some()) {
             (Mode::Density, true) => self.add_sparse_with::<true>(threshold, density_alpha, ray, samples),
             (Mode::Density, false) => self.add_sparse_with::<false>(threshold, density_alpha, ray, samples),
@@ -422,7 +498,7 @@ impl Lanes {
         threshold: f32,
         alpha_of: impl Fn(f32, f32) -> (f32, f32),
         (k, index): (usize, &[u32]),
-        (t, delta, raw, [r, g, b]): (&[f32], &[f32], &[f32], [&[f32]; 3]),
+        (t, raw, [r, g, b]): (impl RayDepths, &[f32], [&[f32]; 3]),
     ) {
         let mut trans = self.transmittance[k];
         let [mut acc_r, mut acc_g, mut acc_b] = [self.rgb[0][k], self.rgb[1][k], self.rgb[2][k]];
@@ -431,7 +507,7 @@ impl Lanes {
         let (raw, r, g, b) = (&raw[..n], &r[..n], &g[..n], &b[..n]);
         for (i, &j) in index.iter().enumerate() {
             let j = j as usize;
-            let (alpha, keep) = alpha_of(raw[i], delta[j]);
+            let (alpha, keep) = alpha_of(raw[i], t.delta(j));
             let (alpha, keep) = if !STOP || trans >= threshold {
                 (alpha, keep)
             } else {
@@ -441,7 +517,7 @@ impl Lanes {
             acc_r += w * r[i];
             acc_g += w * g[i];
             acc_b += w * b[i];
-            depth += w * t[j];
+            depth += w * t.at(j);
             opacity += w;
             trans *= keep;
         }
@@ -450,35 +526,40 @@ impl Lanes {
         (self.depth[k], self.opacity[k]) = (depth, opacity);
     }
 
-    /// Adds every sample of the rays when each sample has a depth of its own: `t` holds them,
-    /// sample-major like `raw` and `rgb`, each ray's last sample with δ = [`LAST_DELTA`]. The
-    /// result is that of [`Compositor::forward`] on each ray, bit for bit (given finite colors).
-    pub(crate) fn add_rows(&mut self, c: &Compositor, t: &[f32], raw: &[f32], rgb: [&[f32]; 3]) {
+    /// Adds the next samples of every ray when each sample has a depth `t` and δ `delta` of its
+    /// own, sample-major like `raw` and `rgb`: the operations of [`Lanes::add`], whose depths and δ
+    /// are shared by the rays.
+    pub(crate) fn add_each(
+        &mut self,
+        c: &Compositor,
+        t: &[f32],
+        delta: &[f32],
+        raw: &[f32],
+        rgb: [&[f32]; 3],
+    ) {
         let threshold = c.threshold();
+        let samples = (t, delta, raw, rgb);
         match (c.mode, c.early_termination.is_some()) {
-            (Mode::Density, true) => self.add_rows_with::<true>(threshold, density_alpha, t, raw, rgb),
-            (Mode::Density, false) => self.add_rows_with::<false>(threshold, density_alpha, t, raw, rgb),
-            (Mode::Opacity, true) => self.add_rows_with::<true>(threshold, opacity_alpha, t, raw, rgb),
-            (Mode::Opacity, false) => self.add_rows_with::<false>(threshold, opacity_alpha, t, raw, rgb),
+            (Mode::Density, true) => self.add_each_with::<true>(threshold, density_alpha, samples),
+            (Mode::Density, false) => self.add_each_with::<false>(threshold, density_alpha, samples),
+            (Mode::Opacity, true) => self.add_each_with::<true>(threshold, opacity_alpha, samples),
+            (Mode::Opacity, false) => self.add_each_with::<false>(threshold, opacity_alpha, samples),
         }
     }
 
-    /// [`Lanes::add_rows`] with alphas from `alpha_of(raw, δ)`, the operations of
-    /// [`Lanes::add_with`] with a depth and δ per sample.
+    /// [`Lanes::add_each`] with alphas from `alpha_of(raw, δ)`.
     #[inline(always)]
-    fn add_rows_with<const STOP: bool>(
+    #[allow(clippy::type_complexity)]
+    fn add_each_with<const STOP: bool>(
         &mut self,
         threshold: f32,
         alpha_of: impl Fn(f32, f32) -> (f32, f32),
-        t: &[f32],
-        raw: &[f32],
-        [r, g, b]: [&[f32]; 3],
+        (t, delta, raw, [r, g, b]): (&[f32], &[f32], &[f32], [&[f32]; 3]),
     ) {
         let n = self.transmittance.len();
         if n == 0 {
             return;
         }
-        let rows = t.len() / n;
         let Lanes {
             transmittance,
             rgb: [acc_r, acc_g, acc_b],
@@ -487,20 +568,13 @@ impl Lanes {
         } = self;
         let (transmittance, depth, opacity) = (&mut transmittance[..n], &mut depth[..n], &mut opacity[..n]);
         let (acc_r, acc_g, acc_b) = (&mut acc_r[..n], &mut acc_g[..n], &mut acc_b[..n]);
-        for j in 0..rows {
+        for j in 0..t.len() / n {
             let row = j * n..(j + 1) * n;
-            let (here, raw, r, g, b) = (
-                &t[row.clone()],
-                &raw[row.clone()],
-                &r[row.clone()],
-                &g[row.clone()],
-                &b[row],
-            );
-            let next = (j + 1 < rows).then(|| &t[(j + 1) * n..(j + 2) * n]);
+            let (here, delta, raw) = (&t[row.clone()], &delta[row.clone()], &raw[row.clone()]);
+            let (r, g, b) = (&r[row.clone()], &g[row.clone()], &b[row]);
             for k in 0..n {
-                let delta = next.map_or(LAST_DELTA, |next| next[k] - here[k]);
                 let trans = transmittance[k];
-                let (alpha, keep) = alpha_of(raw[k], delta);
+                let (alpha, keep) = alpha_of(raw[k], delta[k]);
                 let (alpha, keep) = if !STOP || trans >= threshold {
                     (alpha, keep)
                 } else {

@@ -1,12 +1,12 @@
 //! Volume rendering with hierarchical sampling: a coarse field at `linspace(near, far, samples)`,
 //! then a fine field at those depths and `importance` more per ray drawn from the coarse weights
 //! (at the centers of equal-probability bins: a deterministic render). Both passes are the volume
-//! pass of training (`volume::pass`), tile by tile of rays: with an occupancy grid they
+//! pass of renders and training (`volume::pass`), tile by tile of rays: with an occupancy grid they
 //! evaluate only the samples in its occupied cells (the others are empty space, so no importance
-//! sample is drawn there either); with early termination, both evaluate the samples
-//! [`CHUNK_SAMPLES`](crate::volume::render::CHUNK_SAMPLES) depths at a time, for the rays whose
-//! transmittance is still above the threshold (the coarse samples past a ray's end are empty space
-//! to the importance sampling, as in training). The render of what
+//! sample is drawn there either); with early termination, both evaluate a few depths at a time for
+//! the rays whose transmittance is still above the threshold (the coarse samples past a ray's end are
+//! empty space to the importance sampling, as in training). The coarse pass keeps its samples (the
+//! coarse values at every depth); the fine pass composites each ray. The render of what
 //! [`crate::volume::train::volume_step_with`] trains.
 
 use rayon::prelude::*;
@@ -15,9 +15,10 @@ use crate::cameras::camera::Camera;
 use crate::cameras::rays::RayBatch;
 use crate::error::{Error, Result};
 use crate::field::BatchFn;
+use crate::volume::composite::SharedDepths;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::pass;
-use crate::volume::render::{check_field, with_scratch, VolumeFrame, VolumeSettings};
+use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, RayOutputs};
+use crate::volume::render::{check_field, VolumeFrame, VolumeSettings};
 
 /// The two fields of hierarchical sampling and the importance samples drawn per ray.
 #[derive(Clone, Copy)]
@@ -56,11 +57,26 @@ pub fn render_hierarchical(
     let m = settings.samples;
     let mut fixed = vec![0.0; m];
     settings.fixed_depths(&mut fixed);
+    let deltas = pass::deltas(&fixed);
+    let shared = SharedDepths {
+        t: &fixed,
+        delta: &deltas,
+    };
     let fine_settings = VolumeSettings {
         samples: m + importance,
         ..*settings
     };
-    let compositor = settings.compositor();
+    let coarse_pass = Pass {
+        field: coarse,
+        compositor: settings.compositor(),
+        grid,
+        samples: m,
+    };
+    let fine_pass = Pass {
+        field: fine,
+        samples: fine_settings.samples,
+        ..coarse_pass
+    };
     let tile = settings.rays_per_tile();
     let pixels = rays.len();
     let mut rgb = vec![[0.0f32; 3]; pixels];
@@ -77,22 +93,21 @@ pub fn render_hierarchical(
                 for (row, &t) in s.depths[..n * m].chunks_exact_mut(n).zip(&fixed) {
                     row.fill(t);
                 }
-                pass::forward(coarse, settings, grid, (&rays, first, n), s);
+                s.load_rays(&rays, first, n);
+                let (mut inputs, mut outputs) =
+                    (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
+                let samples = Output::Samples {
+                    inputs: &mut inputs[..coarse.n_inputs()],
+                    outputs: &mut outputs,
+                };
+                pass::run(&coarse_pass, Depths::Shared(shared), s, samples);
+                (s.inputs, s.outputs) = (inputs, outputs);
                 pass::draw_fine_depths(settings, importance, s, n, None);
-                pass::forward(fine, &fine_settings, grid, (&rays, first, n), s);
-                let len = n * fine_settings.samples;
-                let [raw, r, g, b] = &s.outputs;
-                s.lanes.reset(n);
-                s.lanes.add_rows(
-                    &compositor,
-                    &s.depths[..len],
-                    &raw[..len],
-                    [&r[..len], &g[..len], &b[..len]],
-                );
-                for k in 0..n {
-                    let out = s.lanes.output(&compositor, k);
-                    (rgb[k], depth[k], opacity[k]) = (out.rgb, out.depth, out.opacity);
-                }
+                s.load_rays(&rays, first, n);
+                let depths = std::mem::take(&mut s.depths);
+                let rays = RayOutputs { rgb, depth, opacity };
+                pass::run(&fine_pass, Depths::PerRay(&depths), s, Output::Rays(rays));
+                s.depths = depths;
             })
         });
     Ok(VolumeFrame {

@@ -279,19 +279,20 @@ impl OccupancyGrid {
         (t0 <= t1).then_some((t0, t1))
     }
 
-    /// [`OccupancyGrid::ray_interval`] of the rays from `o` in directions (dx, dy, dz)[k] to
-    /// (t0, t1)[k], with t0 > t1 (or NaN) for rays that miss; all slices of one length.
+    /// [`OccupancyGrid::ray_interval`] of the rays from (ox, oy, oz)[k] in directions (dx, dy, dz)[k]
+    /// to (t0, t1)[k], with t0 > t1 (or NaN) for rays that miss, for k below the length of `ox`.
     pub(crate) fn ray_intervals(
         &self,
-        o: [f32; 3],
+        [ox, oy, oz]: [&[f32]; 3],
         [dx, dy, dz]: [&[f32]; 3],
         t0: &mut [f32],
         t1: &mut [f32],
     ) {
-        let n = t0.len();
-        let (dx, dy, dz, t1) = (&dx[..n], &dy[..n], &dz[..n], &mut t1[..n]);
+        let n = ox.len();
+        let (oy, oz, dx, dy, dz) = (&oy[..n], &oz[..n], &dx[..n], &dy[..n], &dz[..n]);
+        let (t0, t1) = (&mut t0[..n], &mut t1[..n]);
         for k in 0..n {
-            (t0[k], t1[k]) = self.interval(o, [dx[k], dy[k], dz[k]]);
+            (t0[k], t1[k]) = self.interval([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]]);
         }
     }
 

@@ -1,160 +1,682 @@
-//! The volume pass of a tile of rays with depths of their own: the work that training steps
-//! ([`crate::volume::train`]) and hierarchical renders ([`crate::volume::hierarchical`]) share.
+//! The volume pass: the one engine that samples, evaluates and composites a tile of rays for renders
+//! ([`crate::volume::render`]), hierarchical renders ([`crate::volume::hierarchical`]) and training
+//! steps ([`crate::volume::train`]).
 //!
-//! A tile is `n` consecutive rays of a [`RayBatch`] with `m` depths each, laid out sample-major
-//! (sample j of ray k at `j·n + k`) in the worker's [`Scratch`]. [`sample_points`] turns the depths into
-//! the field's inputs; [`evaluate`] calls the field at the samples that can contribute: with an
-//! [`OccupancyGrid`] only those in occupied cells, with early termination only those of rays whose
-//! transmittance is still above the threshold, [`CHUNK_SAMPLES`] depths at a time (the other samples are
-//! empty space: all outputs 0); [`forward`] does both. The samples are then composited across rays by
-//! the compositor's `Lanes`: forward only in hierarchical renders, forward and backward in training,
-//! whose field gradient [`backward`] takes at the evaluated samples. [`draw_fine_depths`] draws the fine
-//! depths of hierarchical sampling from a coarse pass.
+//! A tile is `n` rays (origins and unit directions, loaded into the worker's [`Scratch`]) with
+//! `samples` depths each, shared by all rays or each ray's own ([`Depths`]). [`run`] evaluates the
+//! field at the samples that can contribute and composites them:
+//! - With an [`OccupancyGrid`], rays that miss the grid's box are done without any work; for the
+//!   others, the samples between where the ray enters and leaves the box are looked up in the grid, and
+//!   the occupied ones are packed ray by ray into one dense field call (the other samples are empty
+//!   space: all outputs 0, alpha 0) and composited ray by ray.
+//! - Without a grid, the samples go to the field sample-major (sample j of ray k at `j·n + k`) and are
+//!   composited across rays, a loop that vectorizes.
+//! - With early termination, the samples go [`CHUNK_SAMPLES`] depths at a time ([`PACKED_CHUNK_SAMPLES`]
+//!   with a grid): the rays whose transmittance fell below the threshold are done, and the next field
+//!   call sees the live rays only (compaction). Every sample the compositor counts is evaluated.
+//!
+//! What a pass gives ([`Output`]) is either each ray's composite (renders) or the field's inputs and
+//! outputs at every sample of the tile, sample-major, zero where the field was not evaluated, with the
+//! list of samples evaluated (training, whose field gradient [`backward`] takes there, and the coarse
+//! pass of hierarchical sampling, from which [`draw_fine_depths`] draws the fine depths). Evaluated
+//! samples are at exactly the points and depths of the exact composite and composited with the same
+//! operations: a render is, bit for bit, the exact composite of the field with its outputs set to 0
+//! where the grid marks empty space (given finite colors).
+
+use std::cell::RefCell;
+use std::ops::Range;
 
 use crate::cameras::rays::RayBatch;
 use crate::field::{BatchFn, BatchVjp};
 use crate::rng::Rng;
-use crate::volume::composite::{Compositor, LAST_DELTA};
+use crate::volume::composite::{
+    Compositor, DepthColumn, Lanes, RayDepths, RayOutput, SharedDepths, LAST_DELTA,
+};
 use crate::volume::importance;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::render::{Scratch, VolumeSettings, CHUNK_SAMPLES};
+use crate::volume::render::{VolumeSettings, CHUNK_SAMPLES, PACKED_CHUNK_SAMPLES};
 
-/// Writes the field inputs of the tile's `len` samples (rays `first..first + n`, depths
-/// `s.depths[..len]`) into `s.inputs`: the points, then the ray directions when `view_dependent`.
-fn sample_points(rays: &RayBatch, first: usize, n: usize, len: usize, view_dependent: bool, s: &mut Scratch) {
-    let Scratch {
-        inputs: [x, y, z, vx, vy, vz],
-        depths,
-        ..
-    } = s;
-    let tile = first..first + n;
-    let (ox, oy, oz) = (
-        &rays.ox[tile.clone()],
-        &rays.oy[tile.clone()],
-        &rays.oz[tile.clone()],
-    );
-    let (dx, dy, dz) = (&rays.dx[tile.clone()], &rays.dy[tile.clone()], &rays.dz[tile]);
-    for (j, t) in depths[..len].chunks_exact(n).enumerate() {
-        let row = j * n..(j + 1) * n;
-        let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
-        for k in 0..n {
-            x[k] = ox[k] + dx[k] * t[k];
-            y[k] = oy[k] + dy[k] * t[k];
-            z[k] = oz[k] + dz[k] * t[k];
+/// Per-worker buffers of the volume pass, grown on demand and reused across tiles, frames and steps.
+#[derive(Debug, Default)]
+pub(crate) struct Scratch {
+    /// The tile's field inputs at every sample, sample-major: x, y, z, then the view direction
+    /// (training and the coarse pass of hierarchical sampling).
+    pub(crate) inputs: [Vec<f32>; 6],
+    /// The tile's field outputs at every sample, sample-major: density or opacity, r, g, b.
+    pub(crate) outputs: [Vec<f32>; 4],
+    /// Cotangents of the field outputs (training).
+    pub(crate) cotangents: [Vec<f32>; 4],
+    /// Depths of the tile's samples, sample-major (training and hierarchical sampling).
+    pub(crate) depths: Vec<f32>,
+    /// Accumulators of the rays of the tile.
+    pub(crate) lanes: Lanes,
+    /// Origin of each live ray of the tile.
+    origins: [Vec<f32>; 3],
+    /// The origin of every ray of the tile, if they share one.
+    shared_origin: Option<[f32; 3]>,
+    /// Unit direction of each live ray of the tile.
+    directions: [Vec<f32>; 3],
+    /// Index in the tile of each live ray.
+    ids: Vec<usize>,
+    /// Field inputs of one field call.
+    call_inputs: [Vec<f32>; 6],
+    /// Field outputs of one field call.
+    call_outputs: [Vec<f32>; 4],
+    /// Depth and δ of each sample of one field call (depths of their own, without a grid).
+    call_depths: [Vec<f32>; 2],
+    /// Sample index of each packed (occupied) sample (with a grid).
+    samples: Vec<u32>,
+    /// Grid cells of the samples of one ray (with a grid).
+    cells: Vec<u32>,
+    /// End of the packed samples of each ray (with a grid).
+    ends: Vec<u32>,
+    /// Depths where each ray enters and leaves the grid's box (with a grid).
+    intervals: [Vec<f32>; 2],
+    /// Samples `first..end` of each ray that may be inside the grid (with a grid).
+    spans: Vec<[u32; 2]>,
+}
+
+/// Grows `v` to at least `n` entries.
+fn grow<T: Clone + Default>(v: &mut Vec<T>, n: usize) {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+}
+
+impl Scratch {
+    /// Makes the per-sample buffers of a tile at least `points` and its per-ray buffers at least
+    /// `rays` long.
+    pub(crate) fn reserve(&mut self, points: usize, rays: usize) {
+        for v in self
+            .inputs
+            .iter_mut()
+            .chain(&mut self.outputs)
+            .chain(&mut self.cotangents)
+        {
+            grow(v, points);
         }
-        if view_dependent {
-            vx[row.clone()].copy_from_slice(dx);
-            vy[row.clone()].copy_from_slice(dy);
-            vz[row].copy_from_slice(dz);
+        grow(&mut self.depths, points);
+        self.reserve_rays(rays);
+    }
+
+    /// Makes the per-ray buffers at least `rays` long.
+    fn reserve_rays(&mut self, rays: usize) {
+        for v in self.origins.iter_mut().chain(&mut self.directions) {
+            grow(v, rays);
+        }
+    }
+
+    /// Loads rays `first..first + n` of `rays` as the tile's rays.
+    pub(crate) fn load_rays(&mut self, rays: &RayBatch, first: usize, n: usize) {
+        self.reserve_rays(n);
+        let tile = first..first + n;
+        let sources = [&rays.ox, &rays.oy, &rays.oz, &rays.dx, &rays.dy, &rays.dz];
+        let [ox, oy, oz] = &mut self.origins;
+        let [dx, dy, dz] = &mut self.directions;
+        for (to, from) in [ox, oy, oz, dx, dy, dz].into_iter().zip(sources) {
+            to[..n].copy_from_slice(&from[tile.clone()]);
+        }
+        self.ids.clear();
+        self.ids.extend(0..n);
+        self.shared_origin = None;
+    }
+
+    /// Loads `n` rays from `origin` as the tile's rays, ray k in direction `direction(k)` (called for k
+    /// in order).
+    pub(crate) fn load_rays_from(
+        &mut self,
+        origin: [f32; 3],
+        n: usize,
+        mut direction: impl FnMut(usize) -> [f32; 3],
+    ) {
+        self.reserve_rays(n);
+        for (o, &value) in self.origins.iter_mut().zip(&origin) {
+            o[..n].fill(value);
+        }
+        let [dx, dy, dz] = &mut self.directions;
+        for k in 0..n {
+            [dx[k], dy[k], dz[k]] = direction(k);
+        }
+        self.ids.clear();
+        self.ids.extend(0..n);
+        self.shared_origin = Some(origin);
+    }
+}
+
+thread_local! {
+    /// The buffers of this thread, reused across tiles, frames and steps.
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// Runs `f` with this thread's buffers (fresh ones if they are in use, which happens only if
+/// a field runs parallel work that makes this thread run another tile).
+pub(crate) fn with_scratch<T>(f: impl FnOnce(&mut Scratch) -> T) -> T {
+    SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut scratch) => f(&mut scratch),
+        Err(_) => f(&mut Scratch::default()),
+    })
+}
+
+/// The sample depths of a tile's rays.
+#[derive(Clone, Copy)]
+pub(crate) enum Depths<'a> {
+    /// The same depths on every ray, with their δ ([`deltas`]).
+    Shared(SharedDepths<'a>),
+    /// Depths of each ray's own, sample-major over the tile's rays (sample j of ray k at `j·n + k`).
+    PerRay(&'a [f32]),
+}
+
+/// A volume pass: what to evaluate and how to composite.
+pub(crate) struct Pass<'a> {
+    /// The field: a point, maybe a view direction → density or opacity, r, g, b.
+    pub(crate) field: &'a dyn BatchFn,
+    /// How samples composite.
+    pub(crate) compositor: Compositor,
+    /// Skip the samples in its empty cells.
+    pub(crate) grid: Option<&'a OccupancyGrid>,
+    /// Depths per ray.
+    pub(crate) samples: usize,
+}
+
+impl Pass<'_> {
+    /// Sample rows per field call.
+    fn chunk(&self) -> usize {
+        match (self.compositor.early_termination, self.grid) {
+            (Some(_), None) => CHUNK_SAMPLES.min(self.samples),
+            (Some(_), Some(_)) => PACKED_CHUNK_SAMPLES.min(self.samples),
+            (None, _) => self.samples,
         }
     }
 }
 
-/// The forward pass of `field` over the tile's rays `first..first + n` at the `settings.samples` depths
-/// each in `s.depths`: the inputs into `s.inputs`, the outputs into `s.outputs` (see [`evaluate`]);
-/// returns the samples evaluated (`None`: all).
-pub(crate) fn forward(
-    field: &dyn BatchFn,
-    settings: &VolumeSettings,
-    grid: Option<&OccupancyGrid>,
-    (rays, first, n): (&RayBatch, usize, usize),
-    s: &mut Scratch,
-) -> Option<Vec<usize>> {
-    let len = n * settings.samples;
-    let n_inputs = field.n_inputs();
-    sample_points(rays, first, n, len, n_inputs == 6, s);
-    let Scratch {
-        inputs,
-        outputs: [raw, r, g, b],
-        depths,
-        ..
-    } = s;
-    let inputs: Vec<&[f32]> = inputs[..n_inputs].iter().map(|c| &c[..len]).collect();
-    let outputs = [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]];
-    evaluate(
-        field,
-        &settings.compositor(),
-        grid,
-        &inputs,
-        &depths[..len],
-        n,
-        outputs,
-    )
+/// What a pass gives.
+pub(crate) enum Output<'a> {
+    /// Each ray's composite, at its index in the tile.
+    Rays(RayOutputs<'a>),
+    /// The field's inputs and outputs at every sample of the tile, sample-major (the outputs zero
+    /// where the field was not evaluated; the inputs only meaningful where it was).
+    Samples {
+        /// At least `n · samples` long each; as many columns as the field has inputs.
+        inputs: &'a mut [Vec<f32>],
+        /// At least `n · samples` long each.
+        outputs: &'a mut [Vec<f32>; 4],
+    },
 }
 
-/// Evaluates `field` at the tile's samples (sample-major, `n` rays) that can contribute, writing zeros
-/// (empty space) for the others; returns the indices evaluated, or `None` if all were. With a grid,
-/// samples in its empty cells are skipped. With early termination, the depths go in groups of
-/// [`CHUNK_SAMPLES`] and a group evaluates only the rays whose transmittance before it is still at the
-/// threshold: every sample the compositor counts is evaluated.
-pub(crate) fn evaluate(
-    field: &dyn BatchFn,
-    compositor: &Compositor,
-    grid: Option<&OccupancyGrid>,
-    inputs: &[&[f32]],
-    depths: &[f32],
+/// The composites of a tile's rays, one entry per ray.
+pub(crate) struct RayOutputs<'a> {
+    /// Colors.
+    pub(crate) rgb: &'a mut [[f32; 3]],
+    /// Expected depths.
+    pub(crate) depth: &'a mut [f32],
+    /// Opacities.
+    pub(crate) opacity: &'a mut [f32],
+}
+
+impl RayOutputs<'_> {
+    /// Writes `ray` as the composite of ray `id`.
+    #[inline(always)]
+    fn write(&mut self, id: usize, ray: RayOutput) {
+        (self.rgb[id], self.depth[id], self.opacity[id]) = (ray.rgb, ray.depth, ray.opacity);
+    }
+}
+
+/// Where the tile's depths are, and the δ of shared ones.
+struct TileDepths<'a> {
+    depths: Depths<'a>,
+    /// Rays in the tile.
     n: usize,
-    mut outputs: [&mut [f32]; 4],
-) -> Option<Vec<usize>> {
-    let len = depths.len();
-    let occupied = |i: usize| grid.is_none_or(|g| g.occupied([inputs[0][i], inputs[1][i], inputs[2][i]]));
-    let Some(threshold) = compositor.early_termination else {
-        if grid.is_none() {
-            let [raw, r, g, b] = outputs;
-            field.eval(len, inputs, &mut [raw, r, g, b]);
-            return None;
+    samples: usize,
+}
+
+impl TileDepths<'_> {
+    /// The depths of the tile's ray `id`.
+    #[inline(always)]
+    fn column(&self, id: usize) -> DepthColumn<'_> {
+        match self.depths {
+            Depths::Shared(SharedDepths { t, .. }) => DepthColumn {
+                t,
+                first: 0,
+                stride: 1,
+                len: self.samples,
+            },
+            Depths::PerRay(t) => DepthColumn {
+                t,
+                first: id,
+                stride: self.n,
+                len: self.samples,
+            },
         }
-        let index: Vec<usize> = (0..len).filter(|&i| occupied(i)).collect();
-        eval_at(field, inputs, &index, outputs);
-        return Some(index);
-    };
-    let rows = len / n;
-    let mut transmittance = vec![1.0f32; n];
-    let mut index = Vec::with_capacity(len);
-    for group in (0..rows).step_by(CHUNK_SAMPLES) {
-        let group = group..(group + CHUNK_SAMPLES).min(rows);
-        let start = index.len();
-        for j in group.clone() {
-            let live = (0..n).filter(|&k| transmittance[k] >= threshold);
-            index.extend(live.map(|k| j * n + k).filter(|&i| occupied(i)));
+    }
+
+    /// The samples of ray `id` whose depths are in [t0, t1], as a range of sample indices.
+    fn span(&self, id: usize, t0: f32, t1: f32) -> Range<usize> {
+        // A miss: t0 > t1, or NaN.
+        if t0.partial_cmp(&t1).is_none_or(|order| order.is_gt()) {
+            return 0..0;
         }
-        let span = group.start * n..group.end * n;
-        let part = outputs.each_mut().map(|o| &mut o[span.clone()]);
-        let local: Vec<usize> = index[start..].iter().map(|&i| i - span.start).collect();
-        let inputs_here: Vec<&[f32]> = inputs.iter().map(|c| &c[span.clone()]).collect();
-        eval_at(field, &inputs_here, &local, part);
-        for j in group {
-            for (k, trans) in transmittance.iter_mut().enumerate() {
-                let i = j * n + k;
-                let delta = if j + 1 < rows {
-                    depths[i + n] - depths[i]
-                } else {
-                    LAST_DELTA
-                };
-                *trans *= compositor.alpha(outputs[0][i], delta).1;
+        match self.depths {
+            Depths::Shared(SharedDepths { t, .. }) => {
+                samples_before(t, t0, false)..samples_before(t, t1, true)
+            }
+            Depths::PerRay(_) => {
+                let column = self.column(id);
+                column.count_below(t0, false)..column.count_below(t1, true)
             }
         }
     }
+}
+
+/// The number of the sorted, about evenly spaced `depths` below `t` (at most `t` if `inclusive`),
+/// found from a guess.
+fn samples_before(depths: &[f32], t: f32, inclusive: bool) -> usize {
+    let below = |d: f32| d < t || (inclusive && d == t);
+    let n = depths.len();
+    let inv_step = (n - 1) as f32 / (depths[n - 1] - depths[0]);
+    // Depth t is about `position` steps from the first: the guess is its ceiling.
+    let position = ((t - depths[0]) * inv_step).clamp(0.0, n as f32);
+    let mut i = (position as usize + 1).min(n);
+    while i > 0 && !below(depths[i - 1]) {
+        i -= 1;
+    }
+    while i < n && below(depths[i]) {
+        i += 1;
+    }
+    i
+}
+
+/// Runs `pass` over the tile's rays loaded in `s` ([`Scratch::load_rays`]) at `depths`: gives each
+/// ray's composite or the samples (see [`Output`]). With [`Output::Samples`], returns the indices
+/// (sample-major, increasing) of the samples evaluated, or `None` if all were.
+pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Output) -> Option<Vec<usize>> {
+    let n_tile = s.ids.len();
+    let m = pass.samples;
+    let c = &pass.compositor;
+    let tile = TileDepths {
+        depths,
+        n: n_tile,
+        samples: m,
+    };
+    let chunk = pass.chunk();
+    for v in s.call_inputs.iter_mut().chain(&mut s.call_outputs) {
+        grow(v, chunk * n_tile);
+    }
+    let keep_samples = matches!(output, Output::Samples { .. });
+    // The samples not evaluated are empty space; without a grid and early termination, all are.
+    if let Output::Samples { outputs, .. } = &mut output {
+        if pass.grid.is_some() || c.early_termination.is_some() {
+            for o in outputs.iter_mut() {
+                o[..n_tile * m].fill(0.0);
+            }
+        }
+    }
+    let mut index = Vec::new();
+    let mut all_evaluated = pass.grid.is_none();
+    let mut rows = 0..m;
+    if let Some(grid) = pass.grid {
+        rows = cull_rays(pass, grid, &tile, s, &mut output);
+        grow(&mut s.samples, chunk * n_tile);
+        grow(&mut s.cells, chunk * n_tile);
+    }
+    let mut n = s.ids.len();
+    s.lanes.reset(n);
+    // Without rays to report, the composite only tells which rays stop.
+    let composite = !keep_samples || c.early_termination.is_some();
+    for first in rows.clone().step_by(chunk) {
+        if n == 0 {
+            break;
+        }
+        let rows = first..(first + chunk).min(rows.end);
+        match pass.grid {
+            None => {
+                let direct = n == n_tile;
+                all_evaluated &= direct;
+                dense_call(pass, &tile, rows.clone(), s, &mut output, composite);
+                if keep_samples {
+                    let ids = &s.ids[..n];
+                    if direct {
+                        index.extend(rows.start * n_tile..rows.end * n_tile);
+                    } else {
+                        index.extend(rows.flat_map(|j| ids.iter().map(move |&id| j * n_tile + id)));
+                    }
+                }
+            }
+            Some(grid) => packed_call(pass, grid, &tile, rows, s, &mut output, (composite, &mut index)),
+        }
+        if c.early_termination.is_some() {
+            n = compact(c, s, pass.grid.is_some(), &mut output);
+        }
+    }
+    if let Output::Rays(rays) = &mut output {
+        for k in 0..n {
+            rays.write(s.ids[k], s.lanes.output(c, k));
+        }
+    }
+    if !keep_samples || all_evaluated {
+        return None;
+    }
+    index.sort_unstable();
     Some(index)
 }
 
-/// Evaluates `field` at the samples `index` of the columns `inputs` (gathered into one dense call) and
-/// scatters the results into `outputs`, which are zero elsewhere.
-fn eval_at(field: &dyn BatchFn, inputs: &[&[f32]], index: &[usize], outputs: [&mut [f32]; 4]) {
-    let m = index.len();
-    let gathered = gather(inputs, index);
-    let ins: Vec<&[f32]> = gathered.iter().map(Vec::as_slice).collect();
-    let mut packed: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0; m]);
-    let mut refs: Vec<&mut [f32]> = packed.iter_mut().map(Vec::as_mut_slice).collect();
-    if m > 0 {
-        field.eval(m, &ins, &mut refs);
+/// The δ of each of `depths`: the gap to the next one, [`LAST_DELTA`] for the last.
+pub(crate) fn deltas(depths: &[f32]) -> Vec<f32> {
+    let mut deltas: Vec<f32> = depths.windows(2).map(|w| w[1] - w[0]).collect();
+    deltas.push(LAST_DELTA);
+    deltas
+}
+
+/// Drops the rays of the tile that have no sample inside the grid's box (done: the empty ray) and
+/// notes the samples each remaining ray may have inside (`s.spans`); returns the samples where some
+/// ray of the tile may be inside.
+fn cull_rays(
+    pass: &Pass,
+    grid: &OccupancyGrid,
+    tile: &TileDepths,
+    s: &mut Scratch,
+    output: &mut Output,
+) -> Range<usize> {
+    let n = s.ids.len();
+    grow(&mut s.spans, n);
+    for v in &mut s.intervals {
+        grow(v, n);
     }
-    for (out, values) in outputs.into_iter().zip(&packed) {
-        out.fill(0.0);
-        for (&i, &v) in index.iter().zip(values) {
-            out[i] = v;
+    let [ox, oy, oz] = &mut s.origins;
+    let [dx, dy, dz] = &mut s.directions;
+    let [t0, t1] = &mut s.intervals;
+    grid.ray_intervals(
+        [&ox[..n], &oy[..n], &oz[..n]],
+        [&dx[..n], &dy[..n], &dz[..n]],
+        t0,
+        t1,
+    );
+    let (mut lo, mut hi) = (usize::MAX, 0);
+    let mut live = 0;
+    for k in 0..n {
+        let id = s.ids[k];
+        let span = tile.span(id, t0[k], t1[k]);
+        if span.start < span.end {
+            for v in [&mut *ox, &mut *oy, &mut *oz, &mut *dx, &mut *dy, &mut *dz] {
+                v[live] = v[k];
+            }
+            s.ids[live] = id;
+            s.spans[live] = [span.start as u32, span.end as u32];
+            (lo, hi) = (lo.min(span.start), hi.max(span.end));
+            live += 1;
+        } else if let Output::Rays(rays) = output {
+            rays.write(id, pass.compositor.empty_ray());
         }
     }
+    s.ids.truncate(live);
+    lo.min(hi)..hi
+}
+
+/// Evaluates the field at the samples `rows` of the tile's live rays, sample-major, and composites
+/// them across rays (if `composite`) or keeps them ([`Output::Samples`]): straight into the tile's
+/// buffers while no ray has stopped, else scattered there.
+fn dense_call(
+    pass: &Pass,
+    tile: &TileDepths,
+    rows: Range<usize>,
+    s: &mut Scratch,
+    output: &mut Output,
+    composite: bool,
+) {
+    let n = s.ids.len();
+    let len = rows.len() * n;
+    let n_inputs = pass.field.n_inputs();
+    let direct = n == tile.n;
+    let Scratch {
+        origins: [ox, oy, oz],
+        shared_origin,
+        directions: [dx, dy, dz],
+        ids,
+        call_inputs,
+        call_outputs,
+        call_depths: [call_t, call_delta],
+        lanes,
+        ..
+    } = s;
+    if matches!(tile.depths, Depths::PerRay(_)) && composite {
+        grow(call_t, len);
+        grow(call_delta, len);
+    }
+    {
+        let (mut inputs, mut outputs): ([&mut [f32]; 6], [&mut [f32]; 4]) = match output {
+            Output::Samples { inputs, outputs } if direct => {
+                let span = rows.start * n..rows.end * n;
+                (
+                    slices(inputs.iter_mut(), span.clone()),
+                    slices(outputs.iter_mut(), span),
+                )
+            }
+            _ => (
+                slices(call_inputs[..n_inputs].iter_mut(), 0..len),
+                slices(call_outputs.iter_mut(), 0..len),
+            ),
+        };
+        let [x, y, z, vx, vy, vz] = &mut inputs;
+        for (jj, j) in rows.clone().enumerate() {
+            let row = jj * n..(jj + 1) * n;
+            // Slices of length n, so that the loops below have no bounds checks and vectorize.
+            let (x, y, z) = (&mut x[row.clone()][..n], &mut y[row.clone()][..n], &mut z[row.clone()][..n]);
+            let (ox, oy, oz, dx, dy, dz) = (&ox[..n], &oy[..n], &oz[..n], &dx[..n], &dy[..n], &dz[..n]);
+            match tile.depths {
+                Depths::Shared(SharedDepths { t, .. }) => {
+                    let t = t[j];
+                    if let Some(o) = shared_origin {
+                        for k in 0..n {
+                            x[k] = o[0] + dx[k] * t;
+                            y[k] = o[1] + dy[k] * t;
+                            z[k] = o[2] + dz[k] * t;
+                        }
+                    } else {
+                        for k in 0..n {
+                            x[k] = ox[k] + dx[k] * t;
+                            y[k] = oy[k] + dy[k] * t;
+                            z[k] = oz[k] + dz[k] * t;
+                        }
+                    }
+                }
+                Depths::PerRay(_) => {
+                    for k in 0..n {
+                        let column = tile.column(ids[k]);
+                        let t = column.at(j);
+                        x[k] = ox[k] + dx[k] * t;
+                        y[k] = oy[k] + dy[k] * t;
+                        z[k] = oz[k] + dz[k] * t;
+                        if composite {
+                            (call_t[jj * n + k], call_delta[jj * n + k]) = (t, column.delta(j));
+                        }
+                    }
+                }
+            }
+            if n_inputs == 6 {
+                vx[row.clone()].copy_from_slice(dx);
+                vy[row.clone()].copy_from_slice(dy);
+                vz[row].copy_from_slice(dz);
+            }
+        }
+        let ins = inputs.each_ref().map(|c| &**c);
+        pass.field.eval(len, &ins[..n_inputs], &mut outputs);
+        if composite {
+            let (raw, rgb) = (&*outputs[0], [&*outputs[1], &*outputs[2], &*outputs[3]]);
+            match tile.depths {
+                Depths::Shared(SharedDepths { t, delta }) => {
+                    lanes.add(&pass.compositor, &t[rows.clone()], &delta[rows.clone()], raw, rgb)
+                }
+                Depths::PerRay(_) => {
+                    lanes.add_each(&pass.compositor, &call_t[..len], &call_delta[..len], raw, rgb)
+                }
+            }
+        }
+    }
+    if let Output::Samples { inputs, outputs } = output {
+        if !direct {
+            for (jj, j) in rows.enumerate() {
+                for (k, &id) in ids[..n].iter().enumerate() {
+                    let (to, from) = (j * tile.n + id, jj * n + k);
+                    for (dense, call) in inputs.iter_mut().zip(call_inputs.iter()) {
+                        dense[to] = call[from];
+                    }
+                    for (dense, call) in outputs.iter_mut().zip(call_outputs.iter()) {
+                        dense[to] = call[from];
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Evaluates the field at the samples `rows` of the tile's live rays where the grid is occupied (only
+/// those in the rays' spans can be), packed ray by ray into one call, and composites them ray by ray
+/// (if `composite`; the skipped samples have alpha 0, which changes nothing) or keeps them
+/// ([`Output::Samples`], their indices added to `index`).
+fn packed_call(
+    pass: &Pass,
+    grid: &OccupancyGrid,
+    tile: &TileDepths,
+    rows: Range<usize>,
+    s: &mut Scratch,
+    output: &mut Output,
+    (composite, index): (bool, &mut Vec<usize>),
+) {
+    let n = s.ids.len();
+    let n_inputs = pass.field.n_inputs();
+    let Scratch {
+        origins: [ox, oy, oz],
+        directions: [dx, dy, dz],
+        ids,
+        spans,
+        call_inputs,
+        call_outputs,
+        samples,
+        cells,
+        ends,
+        lanes,
+        ..
+    } = s;
+    let [x, y, z, vx, vy, vz] = call_inputs;
+    let mut packed = 0;
+    ends.clear();
+    // Ray by ray, the points of the rows in its span, of which the grid keeps the occupied;
+    // the packed samples of ray k end at ends[k].
+    for k in 0..n {
+        let [a, b] = spans[k];
+        let (a, b) = ((a as usize).max(rows.start), (b as usize).min(rows.end));
+        if a < b {
+            let end = packed + b - a;
+            let (x, y, z) = (&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]);
+            let (o, d) = ([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]]);
+            let mut point =
+                |i: usize, t: f32| (x[i], y[i], z[i]) = (o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t);
+            match tile.depths {
+                Depths::Shared(SharedDepths { t, .. }) => {
+                    t[a..b].iter().enumerate().for_each(|(i, &t)| point(i, t))
+                }
+                Depths::PerRay(_) => {
+                    let column = tile.column(ids[k]);
+                    (a..b).enumerate().for_each(|(i, j)| point(i, column.at(j)));
+                }
+            }
+            let here = grid.pack_occupied(
+                [x, y, z],
+                &mut samples[packed..end],
+                a as u32,
+                &mut cells[..b - a],
+            );
+            if n_inputs == 6 {
+                vx[packed..packed + here].fill(dx[k]);
+                vy[packed..packed + here].fill(dy[k]);
+                vz[packed..packed + here].fill(dz[k]);
+            }
+            packed += here;
+        }
+        ends.push(packed as u32);
+    }
+    if packed == 0 {
+        return;
+    }
+    let inputs = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..packed]);
+    let inputs = &inputs[..n_inputs];
+    pass.field.eval(
+        packed,
+        inputs,
+        &mut slices::<4>(call_outputs.iter_mut(), 0..packed),
+    );
+    let [raw, r, g, b] = call_outputs;
+    let mut start = 0;
+    for (k, &end) in ends.iter().enumerate() {
+        let end = end as usize;
+        if start < end {
+            let at = start..end;
+            if composite {
+                let (index, raw) = (&samples[at.clone()], &raw[at.clone()]);
+                let rgb = [&r[at.clone()], &g[at.clone()], &b[at.clone()]];
+                match tile.depths {
+                    Depths::Shared(t) => lanes.add_sparse(&pass.compositor, k, index, t, raw, rgb),
+                    Depths::PerRay(_) => {
+                        lanes.add_sparse(&pass.compositor, k, index, tile.column(ids[k]), raw, rgb)
+                    }
+                }
+            }
+            if let Output::Samples {
+                inputs: dense_inputs,
+                outputs: dense_outputs,
+            } = output
+            {
+                for i in at {
+                    let to = samples[i] as usize * tile.n + ids[k];
+                    index.push(to);
+                    for (dense, call) in dense_inputs.iter_mut().zip(inputs) {
+                        dense[to] = call[i];
+                    }
+                    for (dense, call) in dense_outputs.iter_mut().zip([&*raw, &*r, &*g, &*b]) {
+                        dense[to] = call[i];
+                    }
+                }
+            }
+        }
+        start = end;
+    }
+}
+
+/// The entries `range` of `columns`, then empty slices up to `N`.
+fn slices<'a, const N: usize>(
+    columns: impl Iterator<Item = &'a mut Vec<f32>>,
+    range: Range<usize>,
+) -> [&'a mut [f32]; N] {
+    let mut out: [&mut [f32]; N] = std::array::from_fn(|_| <&mut [f32]>::default());
+    for (slice, column) in out.iter_mut().zip(columns) {
+        *slice = &mut column[range.clone()];
+    }
+    out
+}
+
+/// Compaction: the rays that have stopped are done; the others move to the front, so that the next
+/// field call sees live rays only. Returns the number of live rays.
+fn compact(c: &Compositor, s: &mut Scratch, spans: bool, output: &mut Output) -> usize {
+    let n = s.ids.len();
+    let mut live = 0;
+    for k in 0..n {
+        let id = s.ids[k];
+        if s.lanes.is_live(c, k) {
+            s.lanes.move_ray(k, live);
+            s.ids[live] = id;
+            for v in s.origins.iter_mut().chain(&mut s.directions) {
+                v[live] = v[k];
+            }
+            if spans {
+                s.spans[live] = s.spans[k];
+            }
+            live += 1;
+        } else if let Output::Rays(rays) = output {
+            rays.write(id, s.lanes.output(c, k));
+        }
+    }
+    s.lanes.truncate(live);
+    s.ids.truncate(live);
+    live
 }
 
 /// The backward pass of `vjp` at the samples `index` only (all of them for `None`), with the samples'
@@ -314,6 +836,44 @@ mod tests {
         let mut merged = vec![0.0; t.len() + importance];
         importance::merge_sorted(&t, &drawn, &mut merged);
         merged
+    }
+
+    /// The samples of a ray inside an interval: the partition points of its depths, shared (found
+    /// from a guess) or its own (by bisection, in a sample-major tile).
+    #[test]
+    fn sample_spans_are_partition_points_of_the_depths() {
+        for (near, far, samples) in [(0.0, 5.0, 64), (1.0, 5.0, 96), (0.3, 0.7, 2), (2.0, 1e4, 1000)] {
+            let mut depths = vec![0.0; samples];
+            crate::volume::sampler::linspace(near, far, &mut depths);
+            // Ray 1 of a tile of 3 rays: its own depths between two other rays' depths.
+            let tile: Vec<f32> = depths.iter().flat_map(|&d| [d - 0.5, d, d + 0.5]).collect();
+            let column = DepthColumn {
+                t: &tile,
+                first: 1,
+                stride: 3,
+                len: samples,
+            };
+            let mut ts: Vec<f32> = depths
+                .iter()
+                .flat_map(|&d| [d, d.next_up(), d.next_down()])
+                .collect();
+            ts.extend([
+                -1.0,
+                near - 1.0,
+                far + 1.0,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                0.5 * (near + far),
+            ]);
+            for t in ts {
+                let below = depths.partition_point(|&d| d < t);
+                let at_most = depths.partition_point(|&d| d <= t);
+                assert_eq!(samples_before(&depths, t, false), below, "{t}");
+                assert_eq!(samples_before(&depths, t, true), at_most, "{t}");
+                assert_eq!(column.count_below(t, false), below, "{t}");
+                assert_eq!(column.count_below(t, true), at_most, "{t}");
+            }
+        }
     }
 
     /// Every caller of the volume pass (render, hierarchical render, training step), with and without an

@@ -5,12 +5,11 @@
 //! (dx, dy, dz), to 4 outputs: density σ or opacity a (see [`Mode`]), then r, g, b. Each ray
 //! samples `linspace(near, far, samples)`.
 //!
-//! The image is cut into tiles of about [`TILE_POINTS`] sample points, rendered in parallel
-//! with buffers allocated once per worker. A tile lays its points out sample-major (sample j
-//! of ray k at `j·rays + k`), evaluates them in one field call and composites across rays,
-//! a loop that vectorizes. With early termination, a tile goes [`CHUNK_SAMPLES`] samples at
-//! a time and drops the rays that have stopped after each step, so that the field is only
-//! evaluated where it still matters.
+//! The image is cut into tiles of about [`TILE_POINTS`] sample points, rendered in parallel by the
+//! volume pass that training runs too (`volume::pass`), with buffers allocated once per worker. A
+//! tile evaluates its points sample-major in one field call and composites across rays, a loop that
+//! vectorizes. With early termination, a tile goes [`CHUNK_SAMPLES`] samples at a time and drops the
+//! rays that have stopped after each step, so that the field is only evaluated where it still matters.
 //!
 //! With an [`OccupancyGrid`] ([`render_volume_with`]), a sample whose point lies in an empty
 //! cell (or outside the grid's bounds) is not evaluated and gets alpha = 0: it changes
@@ -22,24 +21,21 @@
 //! few samples of a ray to evaluate, such a tile takes many more rays (up to
 //! [`PACKED_TILE_RAYS`]) so that the field calls stay large, and early termination goes
 //! [`PACKED_CHUNK_SAMPLES`] samples at a time, so that few samples past a ray's end are
-//! evaluated. Evaluated
-//! samples are at exactly the points and depths of the exact render and composited with
-//! the same operations, so the result is, bit for bit, the exact render of the field with
-//! its first output set to 0 in the empty cells (given finite colors): the two renders
+//! evaluated. Evaluated samples are at exactly the points and depths of the exact render and
+//! composited with the same operations, so the result is, bit for bit, the exact render of the
+//! field with its first output set to 0 in the empty cells (given finite colors): the two renders
 //! differ only by what the skipped samples would have added. Note the course's last δ of
 //! 1e10: in [`Mode::Density`] a last sample of tiny σ has alpha ≈ 1 and would take the
 //! remaining transmittance; skipped, it contributes nothing.
-
-use std::cell::RefCell;
-use std::ops::Range;
 
 use rayon::prelude::*;
 
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::BatchFn;
-use crate::volume::composite::{Compositor, Lanes, Mode, RayOutput, LAST_DELTA};
+use crate::volume::composite::{Compositor, Mode, SharedDepths};
 use crate::volume::occupancy::OccupancyGrid;
+use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, RayOutputs};
 use crate::volume::sampler::{linspace, DepthSpacing};
 
 /// About this many sample points are evaluated per field call.
@@ -137,370 +133,6 @@ pub struct VolumeFrame {
     pub opacity: Vec<f32>,
 }
 
-/// Per-worker buffers of the volume renderer and trainer, grown on demand and reused. Point
-/// buffers are sample-major (sample j of ray k at `j·rays + k`).
-#[derive(Debug, Default)]
-pub(crate) struct Scratch {
-    /// Field inputs: x, y, z, then the view direction.
-    pub(crate) inputs: [Vec<f32>; 6],
-    /// Field outputs: density or opacity, r, g, b.
-    pub(crate) outputs: [Vec<f32>; 4],
-    /// Cotangents of the field outputs (training).
-    pub(crate) cotangents: [Vec<f32>; 4],
-    /// Depth of each sample (training).
-    pub(crate) depths: Vec<f32>,
-    /// Unit direction of each ray of the tile (rendering).
-    pub(crate) directions: [Vec<f32>; 3],
-    /// Pixel in the tile of each ray of the tile (rendering).
-    pub(crate) pixels: Vec<usize>,
-    /// Accumulators of the rays of the tile.
-    pub(crate) lanes: Lanes,
-    /// Sample index of each packed (occupied) sample (rendering with a grid).
-    pub(crate) samples: Vec<u32>,
-    /// Grid cells of the samples of one ray (rendering with a grid).
-    pub(crate) cells: Vec<u32>,
-    /// End of the packed samples of each ray (rendering with a grid).
-    pub(crate) ends: Vec<u32>,
-    /// Depths where each ray enters and leaves the grid's box (rendering with a grid).
-    pub(crate) intervals: [Vec<f32>; 2],
-    /// Samples `first..end` of each ray that may be inside the grid (rendering with a grid).
-    pub(crate) spans: Vec<[u32; 2]>,
-}
-
-impl Scratch {
-    /// Makes every point buffer at least `points` and every ray buffer at least `rays` long.
-    pub(crate) fn reserve(&mut self, points: usize, rays: usize) {
-        let grow = |v: &mut Vec<f32>, n: usize| {
-            if v.len() < n {
-                v.resize(n, 0.0);
-            }
-        };
-        for v in self
-            .inputs
-            .iter_mut()
-            .chain(&mut self.outputs)
-            .chain(&mut self.cotangents)
-        {
-            grow(v, points);
-        }
-        grow(&mut self.depths, points);
-        for v in &mut self.directions {
-            grow(v, rays);
-        }
-    }
-
-    /// Also makes the buffers of rendering with a grid long enough.
-    fn reserve_packed(&mut self, points: usize, rays: usize) {
-        for v in [&mut self.samples, &mut self.cells] {
-            if v.len() < points {
-                v.resize(points, 0);
-            }
-        }
-        if self.spans.len() < rays {
-            self.spans.resize(rays, [0, 0]);
-        }
-        for v in &mut self.intervals {
-            if v.len() < rays {
-                v.resize(rays, 0.0);
-            }
-        }
-    }
-}
-
-thread_local! {
-    /// The buffers of this thread, reused across tiles, frames and steps.
-    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
-}
-
-/// Runs `f` with this thread's buffers (fresh ones if they are in use, which happens only if
-/// a field runs parallel work that makes this thread render another tile).
-pub(crate) fn with_scratch<T>(f: impl FnOnce(&mut Scratch) -> T) -> T {
-    SCRATCH.with(|cell| match cell.try_borrow_mut() {
-        Ok(mut scratch) => f(&mut scratch),
-        Err(_) => f(&mut Scratch::default()),
-    })
-}
-
-/// What every tile of a frame needs to know.
-struct Job<'a> {
-    camera: &'a Camera,
-    width: usize,
-    /// View-space x of each column's pixel centers.
-    xs: Vec<f32>,
-    /// View-space y of each row's pixel centers.
-    ys: Vec<f32>,
-    field: &'a dyn BatchFn,
-    view_dependent: bool,
-    compositor: Compositor,
-    /// Sample depths (shared by all rays) and their δ.
-    depths: Vec<f32>,
-    deltas: Vec<f32>,
-    /// 1 / (mean gap between depths).
-    inv_step: f32,
-    /// Samples per field call.
-    chunk: usize,
-    /// Skip the samples in its empty cells.
-    grid: Option<&'a OccupancyGrid>,
-    /// What a ray without any sample composites to.
-    empty: RayOutput,
-}
-
-impl Job<'_> {
-    /// The number of sample depths below `t` (or at most `t` if `inclusive`), that is the
-    /// partition point of the sorted depths, found from a guess as they are about evenly
-    /// spaced.
-    fn samples_before(&self, t: f32, inclusive: bool) -> usize {
-        let depths = &self.depths;
-        let below = |d: f32| d < t || (inclusive && d == t);
-        let n = depths.len();
-        // Depth t is about `position` steps from the first: the guess is its ceiling.
-        let position = ((t - depths[0]) * self.inv_step).clamp(0.0, n as f32);
-        let mut i = (position as usize + 1).min(n);
-        while i > 0 && !below(depths[i - 1]) {
-            i -= 1;
-        }
-        while i < n && below(depths[i]) {
-            i += 1;
-        }
-        i
-    }
-}
-
-/// The part of the frame one tile writes.
-struct TileOut<'a> {
-    rgb: &'a mut [[f32; 3]],
-    depth: &'a mut [f32],
-    opacity: &'a mut [f32],
-}
-
-impl TileOut<'_> {
-    /// Writes `ray` as pixel `pixel` of the tile.
-    fn write(&mut self, pixel: usize, ray: RayOutput) {
-        (self.rgb[pixel], self.depth[pixel], self.opacity[pixel]) = (ray.rgb, ray.depth, ray.opacity);
-    }
-}
-
-/// Renders the pixels `start..start + out.rgb.len()` into `out`.
-fn render_tile(job: &Job, s: &mut Scratch, start: usize, mut out: TileOut) {
-    let mut n = out.rgb.len();
-    s.reserve(job.chunk * n, n);
-    let [dx, dy, dz] = &mut s.directions;
-    let (mut row, mut col) = (start / job.width, start % job.width);
-    for ((dx, dy), dz) in dx[..n].iter_mut().zip(&mut dy[..n]).zip(&mut dz[..n]) {
-        let d = job.camera.direction(job.xs[col], job.ys[row]);
-        (*dx, *dy, *dz) = (d.x, d.y, d.z);
-        col += 1;
-        if col == job.width {
-            (row, col) = (row + 1, 0);
-        }
-    }
-    s.pixels.clear();
-    s.pixels.extend(0..n);
-    let mut rows = 0..job.depths.len();
-    if let Some(grid) = job.grid {
-        s.reserve_packed(job.chunk * n, n);
-        rows = cull_rays(job, grid, s, &mut out);
-        n = s.pixels.len();
-    }
-    s.lanes.reset(n);
-    let n_inputs = if job.view_dependent { 6 } else { 3 };
-    for first in rows.clone().step_by(job.chunk) {
-        if n == 0 {
-            break;
-        }
-        let m = job.chunk.min(rows.end - first);
-        let len = m * n;
-        let depths = &job.depths[first..first + m];
-        match job.grid {
-            None => {
-                eval_dense(job, s, depths, n, n_inputs);
-                let [raw, r, g, b] = &s.outputs;
-                s.lanes.add(
-                    &job.compositor,
-                    depths,
-                    &job.deltas[first..first + m],
-                    &raw[..len],
-                    [&r[..len], &g[..len], &b[..len]],
-                );
-            }
-            Some(grid) => march_packed(job, grid, s, first..first + m, n, n_inputs),
-        }
-        if job.compositor.early_termination.is_some() {
-            // Compaction: stopped rays are written out; the others move to `live`, which
-            // advances only for them, so the next field call sees live rays only.
-            let mut live = 0;
-            for k in 0..n {
-                let pixel = s.pixels[k];
-                if s.lanes.is_live(&job.compositor, k) {
-                    s.lanes.move_ray(k, live);
-                    s.pixels[live] = pixel;
-                    for d in &mut s.directions {
-                        d[live] = d[k];
-                    }
-                    if job.grid.is_some() {
-                        s.spans[live] = s.spans[k];
-                    }
-                    live += 1;
-                } else {
-                    out.write(pixel, s.lanes.output(&job.compositor, k));
-                }
-            }
-            s.lanes.truncate(live);
-            n = live;
-        }
-    }
-    for k in 0..n {
-        out.write(s.pixels[k], s.lanes.output(&job.compositor, k));
-    }
-}
-
-/// Evaluates the field at `depths` on the `n` rays of the tile, sample-major, into the
-/// outputs of `s`.
-fn eval_dense(job: &Job, s: &mut Scratch, depths: &[f32], n: usize, n_inputs: usize) {
-    let o = job.camera.position();
-    let len = depths.len() * n;
-    let [x, y, z, vx, vy, vz] = &mut s.inputs;
-    let [dx, dy, dz] = &s.directions;
-    for (j, &t) in depths.iter().enumerate() {
-        let row = j * n..(j + 1) * n;
-        let (x, y, z) = (&mut x[row.clone()], &mut y[row.clone()], &mut z[row.clone()]);
-        for ((((x, y), z), dx), (dy, dz)) in x.iter_mut().zip(y).zip(z).zip(&dx[..n]).zip(dy.iter().zip(dz)) {
-            *x = o.x + dx * t;
-            *y = o.y + dy * t;
-            *z = o.z + dz * t;
-        }
-        if job.view_dependent {
-            vx[row.clone()].copy_from_slice(&dx[..n]);
-            vy[row.clone()].copy_from_slice(&dy[..n]);
-            vz[row].copy_from_slice(&dz[..n]);
-        }
-    }
-    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..len]);
-    let [raw, r, g, b] = &mut s.outputs;
-    job.field.eval(
-        len,
-        &inputs[..n_inputs],
-        &mut [&mut raw[..len], &mut r[..len], &mut g[..len], &mut b[..len]],
-    );
-}
-
-/// Drops the rays of the tile that have no sample inside the grid's box, writing the empty
-/// ray for them, and notes the samples each remaining ray may have inside (`s.spans`);
-/// returns the samples where some ray of the tile may be inside.
-fn cull_rays(job: &Job, grid: &OccupancyGrid, s: &mut Scratch, out: &mut TileOut) -> Range<usize> {
-    let n = s.pixels.len();
-    let [dx, dy, dz] = &mut s.directions;
-    let [t0, t1] = &mut s.intervals;
-    let (t0, t1) = (&mut t0[..n], &mut t1[..n]);
-    let o = job.camera.position().to_array();
-    grid.ray_intervals(o, [&dx[..n], &dy[..n], &dz[..n]], t0, t1);
-    let (mut lo, mut hi) = (usize::MAX, 0);
-    let mut live = 0;
-    for k in 0..n {
-        let (first, end) = if t0[k] <= t1[k] {
-            (job.samples_before(t0[k], false), job.samples_before(t1[k], true))
-        } else {
-            (0, 0)
-        };
-        if first < end {
-            (dx[live], dy[live], dz[live]) = (dx[k], dy[k], dz[k]);
-            s.pixels[live] = s.pixels[k];
-            s.spans[live] = [first as u32, end as u32];
-            (lo, hi) = (lo.min(first), hi.max(end));
-            live += 1;
-        } else {
-            out.write(s.pixels[k], job.empty);
-        }
-    }
-    s.pixels.truncate(live);
-    lo.min(hi)..hi
-}
-
-/// Evaluates the field at the samples `rows` of the `n` rays of the tile where the grid is
-/// occupied (only those in the rays' spans can be), packed into one call, and composites
-/// them ray by ray: the skipped samples have alpha 0, which changes nothing.
-fn march_packed(
-    job: &Job,
-    grid: &OccupancyGrid,
-    s: &mut Scratch,
-    rows: Range<usize>,
-    n: usize,
-    n_inputs: usize,
-) {
-    let o = job.camera.position();
-    let [x, y, z, vx, vy, vz] = &mut s.inputs;
-    let [dx, dy, dz] = &s.directions;
-    let mut packed = 0;
-    s.ends.clear();
-    // Ray by ray, the points of the rows in its span, of which the grid keeps the occupied;
-    // the packed samples of ray k end at ends[k].
-    let rays = s.spans[..n].iter().zip(dx.iter().zip(dy).zip(dz));
-    for (&[a, b], ((&dx, &dy), &dz)) in rays {
-        let (a, b) = ((a as usize).max(rows.start), (b as usize).min(rows.end));
-        if a < b {
-            let end = packed + b - a;
-            let (x, y, z) = (&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]);
-            for (((x, y), z), t) in x
-                .iter_mut()
-                .zip(y.iter_mut())
-                .zip(z.iter_mut())
-                .zip(&job.depths[a..b])
-            {
-                *x = o.x + dx * t;
-                *y = o.y + dy * t;
-                *z = o.z + dz * t;
-            }
-            let samples = &mut s.samples[packed..end];
-            let here = grid.pack_occupied([x, y, z], samples, a as u32, &mut s.cells[..b - a]);
-            if job.view_dependent {
-                vx[packed..packed + here].fill(dx);
-                vy[packed..packed + here].fill(dy);
-                vz[packed..packed + here].fill(dz);
-            }
-            packed += here;
-        }
-        s.ends.push(packed as u32);
-    }
-    if packed == 0 {
-        return;
-    }
-    let inputs: [&[f32]; 6] = [&*x, &*y, &*z, &*vx, &*vy, &*vz].map(|c| &c[..packed]);
-    let [raw, r, g, b] = &mut s.outputs;
-    job.field.eval(
-        packed,
-        &inputs[..n_inputs],
-        &mut [
-            &mut raw[..packed],
-            &mut r[..packed],
-            &mut g[..packed],
-            &mut b[..packed],
-        ],
-    );
-    let mut start = 0;
-    for (k, &end) in s.ends.iter().enumerate() {
-        let end = end as usize;
-        if start < end {
-            let samples = start..end;
-            s.lanes.add_sparse(
-                &job.compositor,
-                k,
-                &s.samples[samples.clone()],
-                (&job.depths, &job.deltas),
-                &raw[samples.clone()],
-                [&r[samples.clone()], &g[samples.clone()], &b[samples]],
-            );
-        }
-        start = end;
-    }
-}
-
-/// The δ of each of `depths`: the gap to the next one, [`LAST_DELTA`] for the last.
-fn deltas(depths: &[f32]) -> Vec<f32> {
-    let mut deltas: Vec<f32> = depths.windows(2).map(|w| w[1] - w[0]).collect();
-    deltas.push(LAST_DELTA);
-    deltas
-}
-
 /// Volume renders a `width`×`height` image of `field` seen by `camera`: `settings.samples`
 /// samples at `linspace(near, far, samples)` along each pixel's unit ray. See the module
 /// docs for the field's inputs and outputs.
@@ -527,32 +159,28 @@ pub fn render_volume_with(
 ) -> Result<VolumeFrame> {
     check_size(width, height)?;
     settings.check()?;
-    let view_dependent = check_field(field)?;
+    check_field(field)?;
     let mut depths = vec![0.0; settings.samples];
     settings.fixed_depths(&mut depths);
-    let job = Job {
-        camera,
-        width: width as usize,
-        xs: (0..width)
-            .map(|col| camera.view_x(col as f32 + 0.5, width, height))
-            .collect(),
-        ys: (0..height)
-            .map(|row| camera.view_y(row as f32 + 0.5, width, height))
-            .collect(),
-        field,
-        view_dependent,
-        compositor: settings.compositor(),
-        deltas: deltas(&depths),
-        depths,
-        chunk: match (settings.early_termination, grid) {
-            (Some(_), None) => CHUNK_SAMPLES.min(settings.samples),
-            (Some(_), Some(_)) => PACKED_CHUNK_SAMPLES.min(settings.samples),
-            (None, _) => settings.samples,
-        },
-        inv_step: (settings.samples - 1) as f32 / (settings.far - settings.near),
-        grid,
-        empty: settings.compositor().empty_ray(),
+    let deltas = pass::deltas(&depths);
+    let shared = SharedDepths {
+        t: &depths,
+        delta: &deltas,
     };
+    let pass = Pass {
+        field,
+        compositor: settings.compositor(),
+        grid,
+        samples: settings.samples,
+    };
+    // View-space x of each column's and y of each row's pixel centers.
+    let xs: Vec<f32> = (0..width)
+        .map(|col| camera.view_x(col as f32 + 0.5, width, height))
+        .collect();
+    let ys: Vec<f32> = (0..height)
+        .map(|row| camera.view_y(row as f32 + 0.5, width, height))
+        .collect();
+    let origin = camera.position().to_array();
     let n = width as usize * height as usize;
     let mut frame = VolumeFrame {
         width,
@@ -572,9 +200,22 @@ pub fn render_volume_with(
         .zip(frame.depth.par_chunks_mut(tile))
         .zip(frame.opacity.par_chunks_mut(tile))
         .enumerate()
-        .for_each(|(k, ((rgb, depth), opacity))| {
-            let out = TileOut { rgb, depth, opacity };
-            with_scratch(|s| render_tile(&job, s, k * tile, out));
+        .for_each(|(index, ((rgb, depth), opacity))| {
+            let start = index * tile;
+            with_scratch(|s| {
+                // The tile's pixels in order, from its first one's row and column.
+                let (mut row, mut col) = (start / xs.len(), start % xs.len());
+                s.load_rays_from(origin, rgb.len(), |_| {
+                    let d = camera.direction(xs[col], ys[row]).to_array();
+                    col += 1;
+                    if col == xs.len() {
+                        (row, col) = (row + 1, 0);
+                    }
+                    d
+                });
+                let rays = RayOutputs { rgb, depth, opacity };
+                pass::run(&pass, Depths::Shared(shared), s, Output::Rays(rays));
+            });
         });
     Ok(frame)
 }
@@ -849,53 +490,6 @@ mod tests {
                     render_volume_with(&camera(), width, height, &field, &settings, Some(&grid)).unwrap();
                 let reference = render_volume(&camera(), width, height, &cut, &settings).unwrap();
                 assert_eq!(fast, reference, "{mode:?} {width}×{height} {early_termination:?}");
-            }
-        }
-    }
-
-    #[test]
-    fn sample_spans_are_partition_points_of_the_depths() {
-        for (near, far, samples) in [(0.0, 5.0, 64), (1.0, 5.0, 96), (0.3, 0.7, 2), (2.0, 1e4, 1000)] {
-            let mut depths = vec![0.0; samples];
-            linspace(near, far, &mut depths);
-            let job = Job {
-                camera: &camera(),
-                width: 1,
-                xs: vec![],
-                ys: vec![],
-                field: &ClosureFn::new(3, 4, |_, _| {}),
-                view_dependent: false,
-                compositor: settings(Mode::Opacity).compositor(),
-                deltas: deltas(&depths),
-                inv_step: (samples - 1) as f32 / (far - near),
-                depths: depths.clone(),
-                chunk: samples,
-                grid: None,
-                empty: RayOutput::default(),
-            };
-            let mut ts: Vec<f32> = depths
-                .iter()
-                .flat_map(|&d| [d, d.next_up(), d.next_down()])
-                .collect();
-            ts.extend([
-                -1.0,
-                near - 1.0,
-                far + 1.0,
-                f32::INFINITY,
-                f32::NEG_INFINITY,
-                0.5 * (near + far),
-            ]);
-            for t in ts {
-                assert_eq!(
-                    job.samples_before(t, false),
-                    depths.partition_point(|&d| d < t),
-                    "{t}"
-                );
-                assert_eq!(
-                    job.samples_before(t, true),
-                    depths.partition_point(|&d| d <= t),
-                    "{t}"
-                );
             }
         }
     }

@@ -20,10 +20,10 @@ use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
-use crate::volume::composite::RayOutput;
+use crate::volume::composite::{RayOutput, SharedDepths};
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::pass;
-use crate::volume::render::{check_field, with_scratch, Scratch, VolumeSettings};
+use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, Scratch};
+use crate::volume::render::{check_field, VolumeSettings};
 use crate::volume::sampler::jittered_depth;
 
 /// Sample points per chunk of tiles.
@@ -103,8 +103,8 @@ struct Job<'a> {
     /// The fine pass and its settings (samples = coarse + importance), if sampling is hierarchical.
     fine: Option<(&'a FinePass<'a>, VolumeSettings)>,
     grid: Option<&'a OccupancyGrid>,
-    /// The depths of every ray when they are not jittered.
-    fixed_depths: Option<Vec<f32>>,
+    /// The depths of every ray when they are not jittered, and their δ.
+    fixed_depths: Option<(Vec<f32>, Vec<f32>)>,
     /// ∂loss/∂color = scale·(color − target).
     scale: f32,
 }
@@ -142,7 +142,7 @@ fn train_tile(
     let mut rng = Rng::new(seed);
     let depths = &mut s.depths[..len];
     match &job.fixed_depths {
-        Some(fixed) => {
+        Some((fixed, _)) => {
             for (row, &t) in depths.chunks_exact_mut(n).zip(fixed) {
                 row.fill(t);
             }
@@ -159,7 +159,19 @@ fn train_tile(
             }
         }
     }
-    let (coarse, coarse_samples) = run_pass(job, job.field, job.vjp, job.settings, s, first, n, grads);
+    let shared = job
+        .fixed_depths
+        .as_ref()
+        .map(|(t, delta)| SharedDepths { t, delta });
+    let (coarse, coarse_samples) = run_pass(
+        job,
+        (job.field, job.vjp, shared),
+        job.settings,
+        s,
+        first,
+        n,
+        grads,
+    );
     let Some((fine, fine_settings)) = &job.fine else {
         return TileTotals {
             squared_error: [coarse, 0.0],
@@ -168,21 +180,27 @@ fn train_tile(
     };
     let jitter = job.fixed_depths.is_none().then_some(&mut rng);
     pass::draw_fine_depths(job.settings, fine.importance, s, n, jitter);
-    let (fine_error, fine_samples) = run_pass(job, fine.field, fine.vjp, fine_settings, s, first, n, grads);
+    let (fine_error, fine_samples) = run_pass(
+        job,
+        (fine.field, fine.vjp, None),
+        fine_settings,
+        s,
+        first,
+        n,
+        grads,
+    );
     TileTotals {
         squared_error: [coarse, fine_error],
         samples: coarse_samples + fine_samples,
     }
 }
 
-/// Evaluates `field` at the depths in `s.depths` of rays `first..first + n`, composites, and adds
-/// the gradient of the MSE through `vjp` to `grads`; returns the summed squared error and the number of
-/// samples evaluated.
-#[allow(clippy::too_many_arguments)]
+/// Evaluates `field` at the depths in `s.depths` of rays `first..first + n` (the same as
+/// `shared_depths` on every ray, when given), composites, and adds the gradient of the MSE through
+/// `vjp` to `grads`; returns the summed squared error and the number of samples evaluated.
 fn run_pass(
     job: &Job,
-    field: &dyn BatchFn,
-    vjp: &dyn BatchVjp,
+    (field, vjp, shared_depths): (&dyn BatchFn, &dyn BatchVjp, Option<SharedDepths>),
     settings: &VolumeSettings,
     s: &mut Scratch,
     first: usize,
@@ -190,7 +208,24 @@ fn run_pass(
     grads: &mut [f32],
 ) -> (f64, usize) {
     let len = n * settings.samples;
-    let evaluated = pass::forward(field, settings, job.grid, (job.rays, first, n), s);
+    let pass = Pass {
+        field,
+        compositor: settings.compositor(),
+        grid: job.grid,
+        samples: settings.samples,
+    };
+    s.load_rays(job.rays, first, n);
+    let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
+    let depths = std::mem::take(&mut s.depths);
+    let samples = Output::Samples {
+        inputs: &mut inputs[..field.n_inputs()],
+        outputs: &mut outputs,
+    };
+    let evaluated = match shared_depths {
+        Some(shared) => pass::run(&pass, Depths::Shared(shared), s, samples),
+        None => pass::run(&pass, Depths::PerRay(&depths[..len]), s, samples),
+    };
+    (s.inputs, s.outputs, s.depths) = (inputs, outputs, depths);
     let Scratch {
         inputs,
         outputs: [raw, r, g, b],
@@ -313,7 +348,8 @@ pub fn volume_step_with(
         None => {
             let mut depths = vec![0.0; settings.samples];
             settings.fixed_depths(&mut depths);
-            (Some(depths), vec![0; n_tiles])
+            let deltas = pass::deltas(&depths);
+            (Some((depths, deltas)), vec![0; n_tiles])
         }
     };
     let job = Job {
