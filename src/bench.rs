@@ -11,10 +11,10 @@ use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
 use crate::block::first_block;
 use crate::failure::{Failure, Result};
-use crate::field::JitFn;
-use crate::render::RenderPlan;
+use crate::jit_field::JitFn;
 use crate::schema::Kind;
 use crate::script;
+use crate::sphere_trace_block::RenderPlan;
 
 /// A benchmark workload.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -125,8 +125,8 @@ fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
 }
 
 /// The value, gradient and bounds kernels of a benchmark script's `sdf`.
-fn mesh_kernels(compiler: &crate::field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
-    let kernels = crate::mesh::MeshKernels::compile(compiler, "sdf", true)?;
+fn mesh_kernels(compiler: &crate::jit_field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
+    let kernels = crate::mesh_command::MeshKernels::compile(compiler, "sdf", true)?;
     let bounds = kernels
         .bounds
         .ok_or_else(|| Failure::Message("the script's interval bounds are constant".into()))?;
@@ -137,7 +137,7 @@ fn mesh(reps: usize) -> Result<()> {
     const RESOLUTION: usize = 512;
     let program = script::load("examples/complex_scene.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = crate::field::Compiler {
+    let compiler = crate::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -195,7 +195,7 @@ fn mesh(reps: usize) -> Result<()> {
 /// The pruned mesh of a script's `sdf` with its regions specialized (the specialization is part of the
 /// time).
 fn specialized_mesh(
-    compiler: &crate::field::Compiler,
+    compiler: &crate::jit_field::Compiler,
     value: &JitFn,
     gradient: &JitFn,
     bounds_of: &JitFn,
@@ -240,7 +240,7 @@ fn large(reps: usize) -> Result<()> {
         ));
     }
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = crate::field::Compiler {
+    let compiler = crate::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -324,7 +324,7 @@ fn w1(reps: usize) -> Result<()> {
     let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let compiler = crate::field::Compiler {
+    let compiler = crate::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -383,10 +383,10 @@ fn w1(reps: usize) -> Result<()> {
 /// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
-    let plan = crate::volume::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
+    let plan = crate::volume_block::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let field = crate::field::VolumeField::compile(&program, &cache)?;
+    let field = crate::jit_field::VolumeField::compile(&program, &cache)?;
     let compile_s = t.elapsed().as_secs_f64();
     let (forward, _) = field.bind(&program.param_values);
     let settings = plan.settings(&field);
@@ -453,7 +453,7 @@ fn w2(reps: usize) -> Result<()> {
 
 fn w3(reps: usize) -> Result<()> {
     let program = script::load("examples/train_box.sdf")?;
-    let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+    let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
     let steps = 50 * reps.max(1);
     let mut params = program.param_values.clone();
     let t = Instant::now();
@@ -564,7 +564,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
 /// line.
 fn volume_training(script: &str, steps: u32) -> Result<String> {
     let program = script::load(script)?;
-    let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
+    let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
     plan.run_steps(&program, &mut params, steps)
 }
@@ -577,7 +577,7 @@ fn w4(reps: usize) -> Result<()> {
     ));
     let program = script::load("examples/nerf_lego.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
-    let field = crate::field::VolumeField::compile(&program, &cache)?;
+    let field = crate::jit_field::VolumeField::compile(&program, &cache)?;
     let (forward, _) = field.bind(&program.param_values);
     let settings = nerfjit_runtime::VolumeSettings {
         near: 2.0,
@@ -609,7 +609,7 @@ fn w8(reps: usize) -> Result<()> {
         let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
         let overrides = [format!("train.batch={batch}")];
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
-        let plan = crate::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+        let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
         profile::take();
         profile::enable(true);
@@ -646,7 +646,7 @@ fn time_shares(times: &profile::Times) -> String {
 
 fn w5(reps: usize) -> Result<()> {
     let program = script::load("examples/neural_sdf_bunny.sdf")?;
-    let plan = crate::train_sdf::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
+    let plan = crate::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
     let summary = plan.run_steps(&program, &mut params, steps)?;

@@ -183,7 +183,7 @@ impl<'p> Block<'p> {
         let Some(v) = self.take_checked("spacing")? else {
             return Ok(nerfjit_runtime::DepthSpacing::Linear);
         };
-        let spacing = crate::volume::depth_spacing(&v).map_err(|d| self.error(d))?;
+        let spacing = crate::volume_block::depth_spacing(&v).map_err(|d| self.error(d))?;
         spacing.check(near, far).map_err(|e| {
             self.error(Diagnostic::new(v.span, e.to_string()).with_hint("raise near above 0 or the split"))
         })?;
@@ -236,7 +236,7 @@ impl<'p> Block<'p> {
 
     /// The cameras a camera value describes (at least one).
     pub fn cameras_of(&self, v: &Spanned) -> Result<Vec<Camera>> {
-        let made = crate::cameras::cameras(v, &self.script_dir).map_err(|d| self.error(d))?;
+        let made = crate::camera_setting::cameras(v, &self.script_dir).map_err(|d| self.error(d))?;
         let cameras = made.map_err(|e| self.error(Diagnostic::new(v.span, e)))?;
         if cameras.is_empty() {
             return Err(self.error(Diagnostic::new(v.span, "these settings give no camera")));

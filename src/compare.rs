@@ -9,7 +9,7 @@ use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
 use nerfjit_runtime::{load_blender_views, mse, psnr, rgb_image, save_png, ImageF32, Quantize};
 
 use crate::failure::{Failure, Result};
-use crate::field::VolumeFields;
+use crate::jit_field::VolumeFields;
 use crate::views::ViewArgs;
 
 /// One row of the grid: its label and one script or checkpoint per column.

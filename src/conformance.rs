@@ -10,7 +10,7 @@ use nerfjit_jit::{KernelCache, Tape};
 use nerfjit_runtime::surfaces::sphere_trace::{sphere_trace, Shading, TraceSettings};
 use nerfjit_runtime::{BatchFn, Camera, ClosureFn, Rng};
 
-use crate::field::{Compiler, Kind, TapeFn};
+use crate::jit_field::{Compiler, Kind, TapeFn};
 
 /// The functions of the shipped examples the suite evaluates: elementwise SDFs and colors, CSG,
 /// dense layers, hash grids with spherical harmonics.

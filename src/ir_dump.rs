@@ -48,7 +48,7 @@ pub fn run(path: &str, function: &str, kind: KernelKind, graph_only: bool) -> Re
             )
         }
         KernelKind::Regularizers => {
-            crate::field::check_signature(&program, function, &[&[Type::Vec(3)]], &Type::F32)?;
+            crate::jit_field::check_signature(&program, function, &[&[Type::Vec(3)]], &Type::F32)?;
             let loss = SdfLoss::Regularizers {
                 near: 1.0,
                 sharpness: 100.0,

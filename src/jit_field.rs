@@ -5,8 +5,8 @@ use std::sync::{Arc, OnceLock};
 use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_dsl::{kernels, Lowered, Program, Signature, Type};
-use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Rays, Stop, Tape};
-use nerfjit_runtime::surfaces::march::{MarchRays, RayMarcher};
+use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Stop, Tape};
+use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{BatchFn, BatchVjp, TrainableModel, VolumeModel};
@@ -27,13 +27,7 @@ impl RayMarcher for JitFn {
             .marcher
             .as_ref()
             .expect("as_marcher returns Some only with a marcher");
-        let rays = Rays {
-            origin: rays.origin,
-            direction: rays.direction,
-            t0: rays.t0,
-            t1: rays.t1,
-        };
-        marcher.march(n, &rays, &self.params, Stop { eps, max_steps }, t, hit);
+        marcher.march(n, rays, &self.params, Stop { eps, max_steps }, t, hit);
     }
 }
 

@@ -25,7 +25,7 @@
 
 pub mod bench;
 pub mod block;
-pub mod cameras;
+pub mod camera_setting;
 pub mod check;
 pub mod checkpoint;
 pub mod compare;
@@ -35,32 +35,32 @@ pub mod data_check;
 pub mod data_source;
 pub mod eval;
 pub mod failure;
-pub mod field;
 pub mod import;
 pub mod interrupt;
 pub mod ir_dump;
+pub mod jit_field;
 pub mod large_model;
-pub mod mesh;
+pub mod mesh_command;
 pub mod metrics_log;
 pub mod nonfinite;
 pub mod output;
 pub mod points;
 pub mod regularizers;
-pub mod render;
 pub mod run;
 pub mod schema;
 pub mod script;
 pub mod session;
 pub mod settings;
+pub mod sphere_trace_block;
 pub mod tensorboard;
-pub mod train;
-pub mod train_sdf;
+pub mod train_block;
+pub mod train_sdf_block;
 pub mod training_loop;
-pub mod transmittance;
+pub mod transmittance_command;
 pub mod viewer;
 pub mod views;
-pub mod viz;
-pub mod volume;
+pub mod viz_block;
+pub mod volume_block;
 
 /// The stack of the thread that does the work: deep (but limited) expressions make the compiler's
 /// passes recurse deeply; the pages are only committed as they are used.

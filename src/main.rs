@@ -5,8 +5,8 @@ use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::{
-    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh, points, run,
-    schema, script, transmittance, viewer, views, WORK_STACK_BYTES,
+    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points,
+    run, schema, script, transmittance_command, viewer, views, WORK_STACK_BYTES,
 };
 use nerfjit_dsl::budget;
 
@@ -414,7 +414,7 @@ fn run_command(cli: Cli) -> ExitCode {
             run::run(&script, &set, out.as_deref(), resume, view.as_ref())
         }
         Command::Transmittance { segments, from, to } => {
-            transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
+            transmittance_command::run(&segments, from.zip(to)).map(|text| emit(&text))
         }
         Command::Check { script } => check::run(&script).map(|text| emit(&text)),
         Command::Eval {
@@ -455,10 +455,10 @@ fn run_command(cli: Cli) -> ExitCode {
             gif,
             up,
             no_prune,
-        } => mesh::parse_bounds(&bounds)
+        } => mesh_command::parse_bounds(&bounds)
             .map_err(failure::Failure::Message)
             .and_then(|bounds| {
-                let args = mesh::MeshArgs {
+                let args = mesh_command::MeshArgs {
                     function: &function,
                     resolution: res,
                     bounds,
@@ -469,7 +469,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     prune: !no_prune,
                     color: color.as_deref(),
                 };
-                mesh::run(&script, &args)
+                mesh_command::run(&script, &args)
             })
             .map(|text| emit(&format!("{text}\n"))),
         Command::Render {

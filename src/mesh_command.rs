@@ -14,7 +14,7 @@ use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera,
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::field::{check_signature, Compiler, JitFn, Kind};
+use crate::jit_field::{check_signature, Compiler, JitFn, Kind};
 use crate::settings::CallArgs;
 
 /// What to extract and where to write it.
@@ -444,7 +444,7 @@ mod tests {
 
     /// Restrictions with an op a tape does not take (`tanh`, which kernels approximate) give no fields: every
     /// region is evaluated by the full kernels. (`nerfjit mesh` does not restrict such a function at all:
-    /// see [`crate::field::Specializer::pays`].)
+    /// see [`crate::jit_field::Specializer::pays`].)
     #[test]
     fn restrictions_with_approximated_ops_leave_the_full_kernels() {
         let script = city().replacen("fn sdf(", "fn city(", 1)

@@ -10,7 +10,7 @@ use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{Camera, Mesh};
 
 use crate::failure::{Failure, Result};
-use crate::field::VolumeFields;
+use crate::jit_field::VolumeFields;
 use crate::views::{CameraSource, ViewArgs};
 
 /// The most points a cloud may hold (views × pixels are checked against it before rendering).
@@ -35,7 +35,7 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         Some((cameras, _)) => cameras,
         None => {
             let folder = Path::new(args.view.source).parent().unwrap_or(Path::new(""));
-            crate::train::data_cameras(&program, folder).ok_or_else(|| {
+            crate::train_block::data_cameras(&program, folder).ok_or_else(|| {
                 Failure::Message(format!(
                     "{} trains on no data whose cameras can be read here: give --cameras FILE or --path 'orbit(...)'",
                     args.view.source

@@ -41,7 +41,7 @@ impl RegularizerKernels {
         reg: &Regularizers,
         cache: &KernelCache,
     ) -> Result<RegularizerKernels> {
-        crate::field::check_signature(program, name, &[&[Type::Vec(3)]], &Type::F32)?;
+        crate::jit_field::check_signature(program, name, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(name)?;
         let m = reg.points as f64;
         let loss = SdfLoss::Regularizers {

@@ -651,35 +651,35 @@ pub const VIZ: BlockSchema = BlockSchema {
 };
 
 fn check_spacing(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::volume::depth_spacing(v).map(drop)
+    crate::volume_block::depth_spacing(v).map(drop)
 }
 
 fn check_skip_empty(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::volume::skip_empty(v).map(drop)
+    crate::volume_block::skip_empty(v).map(drop)
 }
 
 fn check_schedule(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train::schedule(Some(v.clone()), 1.0).map(drop)
+    crate::train_block::schedule(Some(v.clone()), 1.0).map(drop)
 }
 
 fn check_optimizer(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train::optimizer(Some(v.clone())).map(drop)
+    crate::train_block::optimizer(Some(v.clone())).map(drop)
 }
 
 fn check_grid_update(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train::grid_update(Some(v.clone())).map(drop)
+    crate::train_block::grid_update(Some(v.clone())).map(drop)
 }
 
 fn check_grid_seed(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train::grid_seed(v).map(drop)
+    crate::train_block::grid_seed(v).map(drop)
 }
 
 fn check_minutes(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train::minutes_list(v).map(drop)
+    crate::train_block::minutes_list(v).map(drop)
 }
 
 fn check_bounding_sphere(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::render::bounding_sphere(v).map(drop)
+    crate::sphere_trace_block::bounding_sphere(v).map(drop)
 }
 
 /// Every block kind, in the order of the language reference.

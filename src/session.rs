@@ -43,15 +43,15 @@ use nerfjit_jit::KernelCache;
 
 use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
-use crate::mesh::MeshPlan;
-use crate::render::RenderPlan;
+use crate::mesh_command::MeshPlan;
 use crate::schema::Kind;
 use crate::script;
-use crate::train::TrainPlan;
-use crate::train_sdf::SdfTrainPlan;
+use crate::sphere_trace_block::RenderPlan;
+use crate::train_block::TrainPlan;
+use crate::train_sdf_block::SdfTrainPlan;
 use crate::viewer::Live;
-use crate::viz::VizPlan;
-use crate::volume::VolumePlan;
+use crate::viz_block::VizPlan;
+use crate::volume_block::VolumePlan;
 
 /// What one block of a script does, with its settings read and checked.
 enum Plan {

@@ -13,7 +13,7 @@ use nerfjit_runtime::{
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
-use crate::field::{Compiler, JitFn, Kind};
+use crate::jit_field::{Compiler, JitFn, Kind};
 use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
 use crate::settings::{triple, CallArgs};

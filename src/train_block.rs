@@ -15,7 +15,7 @@ use nerfjit_runtime::{
 use crate::block::Block;
 use crate::data_source::{data_path, data_set, DataKind, DataSet};
 use crate::failure::Result;
-use crate::field::{VolumeField, VolumeFields};
+use crate::jit_field::{VolumeField, VolumeFields};
 use crate::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
@@ -92,7 +92,7 @@ struct Eikonal {
 /// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
 #[derive(Clone, Copy, Debug)]
 struct TrainingGrid {
-    grid: crate::volume::SkipEmpty,
+    grid: crate::volume_block::SkipEmpty,
     every: u32,
     warmup: u32,
     update: GridUpdate,
@@ -413,7 +413,7 @@ impl TrainPlan {
         let importance = b.whole("importance")? as usize;
         let skip_empty = match b.take("skip_empty") {
             None => None,
-            Some(v) => crate::volume::skip_empty(&v).map_err(|d| b.error(d))?,
+            Some(v) => crate::volume_block::skip_empty(&v).map_err(|d| b.error(d))?,
         };
         let every = b.whole("grid_every")? as u32;
         let warmup = b.whole("grid_warmup")? as u32;

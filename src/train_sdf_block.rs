@@ -35,7 +35,7 @@ pub struct SdfTrainPlan {
     /// Adam's learning rate over the steps (pre-training included).
     schedule: Schedule,
     /// Adam's decay rates and ε.
-    optimizer: crate::train::AdamSettings,
+    optimizer: crate::train_block::AdamSettings,
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
@@ -86,8 +86,8 @@ impl SdfTrainPlan {
         }
         let function = b.function("function")?;
         let lr = b.number("lr")? as f32;
-        let schedule = crate::train::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
-        let optimizer = crate::train::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
+        let schedule = crate::train_block::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = crate::train_block::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let plan = SdfTrainPlan {
             data,
             key,
@@ -117,7 +117,7 @@ impl SdfTrainPlan {
     }
 
     fn compile(&self, program: &Program, cache: &KernelCache) -> Result<Kernels> {
-        crate::field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
+        crate::jit_field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(&self.function)?;
         let loss = |loss: SdfLoss| {
             cache.get(
@@ -218,7 +218,7 @@ impl SdfTrainPlan {
                 "seconds": seconds,
                 "ms_per_step": ms,
                 "compile_seconds": compile_s,
-                "params": crate::train::params_json(program, params),
+                "params": crate::train_block::params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
         }
@@ -232,7 +232,7 @@ impl SdfTrainPlan {
             terms[0],
             terms[1],
             terms[2],
-            crate::train::describe_params(program, params)
+            crate::train_block::describe_params(program, params)
         ))
     }
 
@@ -379,7 +379,7 @@ fn write_points_gif(path: &std::path::Path, points: &[[f32; 3]]) -> Result<()> {
     let Some(bounds) = bounding_box(points) else {
         return Ok(());
     };
-    let frames = crate::mesh::turntable(bounds, nerfjit_runtime::Up::Y)?
+    let frames = crate::mesh_command::turntable(bounds, nerfjit_runtime::Up::Y)?
         .iter()
         .map(|camera| render_points(camera, 256, 256, points, 1.5, [0.9, 0.8, 0.6], [0.1, 0.11, 0.14]))
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;

@@ -25,7 +25,7 @@ use nerfjit_runtime::Schedule;
 use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
 use crate::metrics_log::RunLog;
-use crate::train::AdamSettings;
+use crate::train_block::AdamSettings;
 
 /// How a block trains, whatever it trains.
 pub struct LoopSettings<'a> {

@@ -15,12 +15,12 @@ use nerfjit_runtime::{
 };
 
 use crate::block::MAX_PIXELS;
-use crate::cameras::FrameSize;
+use crate::camera_setting::FrameSize;
 use crate::failure::{at, Failure, Result};
-use crate::field::VolumeFields;
+use crate::jit_field::VolumeFields;
 use crate::output::write_images;
 use crate::settings::triple;
-use crate::volume::SkipEmpty;
+use crate::volume_block::SkipEmpty;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
 /// block (a checkpoint's script included): see [`ViewArgs::resolve`].
@@ -146,12 +146,12 @@ impl TrainedWith {
         let background = settings.take("background").and_then(|v| triple(&v).ok());
         let spacing = settings
             .take("spacing")
-            .and_then(|v| crate::volume::depth_spacing(&v).ok());
+            .and_then(|v| crate::volume_block::depth_spacing(&v).ok());
         let skip_empty = settings
             .take("skip_empty")
-            .and_then(|v| crate::volume::skip_empty(&v).ok().flatten());
-        let running_grid = crate::train::grid_update(settings.take("grid_update"))
-            .is_ok_and(|u| u != crate::train::GridUpdate::Rebuild);
+            .and_then(|v| crate::volume_block::skip_empty(&v).ok().flatten());
+        let running_grid = crate::train_block::grid_update(settings.take("grid_update"))
+            .is_ok_and(|u| u != crate::train_block::GridUpdate::Rebuild);
 
         TrainedWith {
             near: near.map(|x| x as f32),
@@ -201,7 +201,7 @@ impl Rendering {
 /// training.
 fn held_out_views(source: &str, program: &Program) -> Result<Views> {
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
-    let plan = crate::train::TrainPlan::new(crate::block::first_block(
+    let plan = crate::train_block::TrainPlan::new(crate::block::first_block(
         program,
         crate::schema::Kind::Train,
         folder,
@@ -245,7 +245,7 @@ impl CameraSource<'_> {
     /// The cameras of a file or a path with the file's frame size if it states one; `None` for the default.
     pub(crate) fn cameras(&self) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
         Ok(match self {
-            CameraSource::File(file) => Some(crate::cameras::camera_file(file, true)?),
+            CameraSource::File(file) => Some(crate::camera_setting::camera_file(file, true)?),
             CameraSource::Path(text) => Some((path_cameras(text)?, None)),
             CameraSource::Default => None,
         })
@@ -327,7 +327,7 @@ pub(crate) fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
         let Some(v) = settings.take("camera") else {
             continue;
         };
-        let made = crate::cameras::cameras(&v, Path::new(".")).map_err(|d| at(program, d))?;
+        let made = crate::camera_setting::cameras(&v, Path::new(".")).map_err(|d| at(program, d))?;
         let cameras = made.map_err(|e| at(program, Diagnostic::new(v.span, e)))?;
         return Ok(Some(cameras));
     }

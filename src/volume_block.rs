@@ -13,7 +13,7 @@ use nerfjit_runtime::{
 
 use crate::block::Block;
 use crate::failure::Result;
-use crate::field::{VolumeField, VolumeFields};
+use crate::jit_field::{VolumeField, VolumeFields};
 use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
 use crate::settings::CallArgs;

@@ -30,6 +30,7 @@ pub mod interval;
 pub mod ir;
 pub mod kernels;
 mod lexer;
+pub mod march_rays;
 mod overrides;
 mod parser;
 pub mod program;

@@ -22,7 +22,7 @@ mod codegen;
 mod encode;
 pub mod gemm;
 mod kernel;
-mod march;
+mod marcher;
 pub mod profile;
 mod simd;
 mod tape;
@@ -30,5 +30,6 @@ mod tiled;
 
 pub use cache::KernelCache;
 pub use kernel::{CompileStats, JitError, Kernel, Options};
-pub use march::{Marcher, Rays, Stop};
+pub use marcher::{Marcher, Stop};
+pub use nerfjit_dsl::march_rays::MarchRays;
 pub use tape::{fused_products, Tape};

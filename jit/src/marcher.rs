@@ -13,24 +13,13 @@ use cranelift_codegen::ir::{types, AbiParam, BlockArg, InstBuilder, MemFlagsData
 use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
 use cranelift_module::Module;
 use nerfjit_dsl::ir::Graph;
+use nerfjit_dsl::march_rays::MarchRays;
 
 use crate::codegen::GraphEmitter;
 use crate::kernel::{host_module, CompiledCode, JitError};
 use crate::simd::Simd;
 
 type MarchFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, i64, f32, i64);
-
-/// The ray columns a [`Marcher`] reads: origin, unit direction, and the interval [t0, t1] of each ray.
-pub struct Rays<'a> {
-    /// Origins x, y, z.
-    pub origin: [&'a [f32]; 3],
-    /// Unit directions x, y, z.
-    pub direction: [&'a [f32]; 3],
-    /// Where each ray starts marching.
-    pub t0: &'a [f32],
-    /// Past which each ray misses.
-    pub t1: &'a [f32],
-}
 
 /// When a ray stops: a hit once the distance is below `eps`; a miss after `max_steps` steps (or past t1).
 #[derive(Clone, Copy, Debug)]
@@ -94,7 +83,15 @@ impl Marcher {
 
     /// Marches rays `0..n`: writes the final `t` of each ray and 1.0 where it hit, 0.0 where it missed.
     /// Panics if a slice is shorter than `n` or `params` shorter than the SDF reads.
-    pub fn march(&self, n: usize, rays: &Rays, params: &[f32], stop: Stop, t: &mut [f32], hit: &mut [f32]) {
+    pub fn march(
+        &self,
+        n: usize,
+        rays: &MarchRays,
+        params: &[f32],
+        stop: Stop,
+        t: &mut [f32],
+        hit: &mut [f32],
+    ) {
         let Stop { eps, max_steps } = stop;
         let columns = [
             rays.origin[0],

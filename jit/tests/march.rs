@@ -2,7 +2,7 @@
 //! each step (with `o + t·d` fused the same way): hits, final `t`, and every partial group of rays.
 
 use nerfjit_dsl::{compile, kernels};
-use nerfjit_jit::{Kernel, Marcher, Options, Rays, Stop};
+use nerfjit_jit::{Kernel, MarchRays, Marcher, Options, Stop};
 use proptest::prelude::*;
 
 const SCENE: &str = "param r: f32 = 0.25\n\
@@ -73,7 +73,7 @@ proptest! {
             cols[6].push(0.5 * u().abs());
             cols[7].push(6.0);
         }
-        let rays = Rays {
+        let rays = MarchRays {
             origin: [&cols[0], &cols[1], &cols[2]],
             direction: [&cols[3], &cols[4], &cols[5]],
             t0: &cols[6],

@@ -17,7 +17,7 @@ pub trait BatchFn: Sync {
 
     /// A fused sphere tracer of this function, if it is an SDF that offers one; the sphere tracer then
     /// marches whole rays in one call instead of calling [`BatchFn::eval`] once per step.
-    fn as_marcher(&self) -> Option<&dyn crate::surfaces::march::RayMarcher> {
+    fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
         None
     }
 }

@@ -3,8 +3,8 @@
 //! format follows the file name: a `.json` name gets readable JSON (`json`), any other the binary
 //! safetensors format (`binary`); both are read whatever the name.
 
-mod binary;
-mod json;
+mod binary_format;
+mod json_format;
 
 use std::path::Path;
 
@@ -12,7 +12,7 @@ use nerfjit_dsl::{budget, Program, Type};
 use nerfjit_runtime::Adam;
 
 use crate::failure::{Failure, Result};
-use crate::train::AdamSettings;
+use crate::train_block::AdamSettings;
 
 /// The script a checkpoint holds: enough to compile its program again.
 pub struct Script {
@@ -76,9 +76,12 @@ fn is_json(path: &Path) -> bool {
 /// can use the checkpoint alone), in the format its name asks for.
 pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &Adam) -> Result<()> {
     if is_json(path) {
-        write_atomic(path, &json::encode(&Script::of(program), step, params, adam))
+        write_atomic(
+            path,
+            &json_format::encode(&Script::of(program), step, params, adam),
+        )
     } else {
-        binary::write(path, program, step, params, adam)
+        binary_format::write(path, program, step, params, adam)
     }
 }
 
@@ -97,10 +100,10 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     let opened = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut start));
     opened.map_err(|e| bad(&e.to_string()))?;
     if start[0] != b'{' {
-        return binary::read(path, &bad);
+        return binary_format::read(path, &bad);
     }
     let text = nerfjit_runtime::data::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
-    let saved = json::decode(&text, &bad)?;
+    let saved = json_format::decode(&text, &bad)?;
     let program = saved.script.compile()?;
     let n_params = program.n_params();
     if saved.params.len() != n_params {

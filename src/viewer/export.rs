@@ -9,7 +9,7 @@ use image::RgbImage;
 
 use super::scene::{Layer, Scene, ViewCamera};
 use crate::failure::{Failure, Result};
-use crate::mesh::{extract_and_write, MeshArgs};
+use crate::mesh_command::{extract_and_write, MeshArgs};
 
 /// What to export.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

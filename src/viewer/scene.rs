@@ -15,8 +15,8 @@ use nerfjit_runtime::{
 
 use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
-use crate::field::{Compiler, JitFn, Kind, VolumeFields};
-use crate::render::{RenderPlan, ShadingChoice};
+use crate::jit_field::{Compiler, JitFn, Kind, VolumeFields};
+use crate::sphere_trace_block::{RenderPlan, ShadingChoice};
 use crate::views::{script_cameras, Rendering};
 
 /// What a frame shows.
@@ -158,7 +158,7 @@ impl Scene {
         let mut cameras = labeled("script view", script_cameras(&program)?.unwrap_or_default());
         cameras.extend(labeled(
             "data view",
-            crate::train::data_cameras(&program, script_dir).unwrap_or_default(),
+            crate::train_block::data_cameras(&program, script_dir).unwrap_or_default(),
         ));
         Ok(Scene {
             consts: program.scalar_consts(),

@@ -1,14 +1,14 @@
-//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], and the fused marcher [`march`] compiled
+//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], and the fused marcher [`ray_marcher`] compiled
 //! kernels offer), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields
 //! specialized to regions of the grid in [`regions`]), triangle meshes and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
 //! rasterizer for previews ([`raster`]).
 
 mod bvh;
-pub mod march;
 pub mod marching;
 pub mod mesh;
 pub mod mesh_metrics;
 pub mod prune;
 pub mod raster;
+pub mod ray_marcher;
 pub mod regions;
 pub mod sphere_trace;

@@ -1,17 +1,7 @@
 //! Fused sphere tracing: a native loop that marches whole rays through an SDF, offered by compiled
 //! SDFs (see [`crate::BatchFn::as_marcher`]) and used by the sphere tracer in place of its step-by-step loop.
 
-/// The rays to march, in structure-of-arrays layout: origin, unit direction and interval of each ray.
-pub struct MarchRays<'a> {
-    /// Origins x, y, z.
-    pub origin: [&'a [f32]; 3],
-    /// Unit directions x, y, z.
-    pub direction: [&'a [f32]; 3],
-    /// Where each ray starts.
-    pub t0: &'a [f32],
-    /// Past which each ray misses.
-    pub t1: &'a [f32],
-}
+pub use nerfjit_dsl::march_rays::MarchRays;
 
 /// Sphere traces rays in one call, with exactly the per-ray semantics of [`crate::surfaces::sphere_trace`]: from
 /// `t = t0`, up to `max_steps` times, `p = o + t·d`, `dist = sdf(p)`; a hit when `dist < eps`, else

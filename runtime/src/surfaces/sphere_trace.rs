@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::{check_arity, BatchFn};
-use crate::surfaces::march::{MarchRays, RayMarcher};
+use crate::surfaces::ray_marcher::{MarchRays, RayMarcher};
 
 /// Number of pixels (consecutive in row-major order) traced together as one batch.
 pub const TILE: usize = 1024;
