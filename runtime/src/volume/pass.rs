@@ -311,6 +311,7 @@ pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Outp
         }
     }
     let mut index = Vec::new();
+    // Without a grid, every sample is evaluated unless rays stop before the last depths.
     let mut all_evaluated = pass.grid.is_none();
     let mut rows = 0..m;
     if let Some(grid) = pass.grid {
@@ -330,21 +331,32 @@ pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Outp
         match pass.grid {
             None => {
                 let direct = n == n_tile;
-                all_evaluated &= direct;
                 dense_call(pass, &tile, rows.clone(), s, &mut output, composite);
                 if keep_samples {
                     let ids = &s.ids[..n];
                     if direct {
                         index.extend(rows.start * n_tile..rows.end * n_tile);
                     } else {
-                        index.extend(rows.flat_map(|j| ids.iter().map(move |&id| j * n_tile + id)));
+                        index.extend(
+                            rows.clone()
+                                .flat_map(|j| ids.iter().map(move |&id| j * n_tile + id)),
+                        );
                     }
                 }
             }
-            Some(grid) => packed_call(pass, grid, &tile, rows, s, &mut output, (composite, &mut index)),
+            Some(grid) => packed_call(
+                pass,
+                grid,
+                &tile,
+                rows.clone(),
+                s,
+                &mut output,
+                (composite, &mut index),
+            ),
         }
         if c.early_termination.is_some() {
             n = compact(c, s, pass.grid.is_some(), &mut output);
+            all_evaluated &= n == n_tile || rows.end == m;
         }
     }
     if let Output::Rays(rays) = &mut output {
@@ -459,7 +471,11 @@ fn dense_call(
         for (jj, j) in rows.clone().enumerate() {
             let row = jj * n..(jj + 1) * n;
             // Slices of length n, so that the loops below have no bounds checks and vectorize.
-            let (x, y, z) = (&mut x[row.clone()][..n], &mut y[row.clone()][..n], &mut z[row.clone()][..n]);
+            let (x, y, z) = (
+                &mut x[row.clone()][..n],
+                &mut y[row.clone()][..n],
+                &mut z[row.clone()][..n],
+            );
             let (ox, oy, oz, dx, dy, dz) = (&ox[..n], &oy[..n], &oz[..n], &dx[..n], &dy[..n], &dz[..n]);
             match tile.depths {
                 Depths::Shared(SharedDepths { t, .. }) => {
@@ -872,6 +888,62 @@ mod tests {
                 assert_eq!(samples_before(&depths, t, true), at_most, "{t}");
                 assert_eq!(column.count_below(t, false), below, "{t}");
                 assert_eq!(column.count_below(t, true), at_most, "{t}");
+            }
+        }
+    }
+
+    /// Under early termination, a pass that keeps its samples lists exactly the samples it evaluated:
+    /// none past the chunk where every ray stopped, and all of them (`None`) only when nothing stopped
+    /// before the last depths.
+    #[test]
+    fn kept_samples_list_what_was_evaluated_when_rays_stop() {
+        let camera = Camera::look_at(
+            Vec3::new(0.0, 0.0, -3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::splat(1.0),
+            Vec2::ZERO,
+        )
+        .unwrap();
+        let rays = RayBatch::full_image(&camera, 8, 4).unwrap();
+        let n = rays.len();
+        let (m, stop) = (40, 1e-2);
+        let mut depths = vec![0.0; m];
+        crate::volume::sampler::linspace(2.0, 4.0, &mut depths);
+        let deltas = deltas(&depths);
+        let shared = SharedDepths {
+            t: &depths,
+            delta: &deltas,
+        };
+        for (density, stopped) in [(1e3, true), (1e-3, false)] {
+            let field = ClosureFn::new(3, 4, move |_, out| out.copy_from_slice(&[density, 0.5, 0.5, 0.5]));
+            let pass = Pass {
+                field: &field,
+                compositor: Compositor {
+                    mode: Mode::Density,
+                    background: None,
+                    early_termination: Some(stop),
+                },
+                grid: None,
+                samples: m,
+            };
+            let mut s = Scratch::default();
+            s.reserve(n * m, n);
+            s.load_rays(&rays, 0, n);
+            let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
+            let output = Output::Samples {
+                inputs: &mut inputs[..3],
+                outputs: &mut outputs,
+            };
+            let index = run(&pass, Depths::Shared(shared), &mut s, output);
+            if stopped {
+                // Every ray is opaque from its first sample: only the first chunk was evaluated.
+                let want: Vec<usize> = (0..CHUNK_SAMPLES * n).collect();
+                assert_eq!(index.as_deref(), Some(&want[..]));
+                assert!(outputs[0][CHUNK_SAMPLES * n..n * m].iter().all(|&v| v == 0.0));
+            } else {
+                assert_eq!(index, None);
+                assert!(outputs[0][..n * m].iter().all(|&v| v == density));
             }
         }
     }
