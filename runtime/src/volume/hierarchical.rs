@@ -94,20 +94,11 @@ pub fn render_hierarchical(
                     row.fill(t);
                 }
                 s.load_rays(&rays, first, n);
-                let (mut inputs, mut outputs) =
-                    (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
-                let samples = Output::Samples {
-                    inputs: &mut inputs[..coarse.n_inputs()],
-                    outputs: &mut outputs,
-                };
-                pass::run(&coarse_pass, Depths::Shared(shared), s, samples);
-                (s.inputs, s.outputs) = (inputs, outputs);
+                pass::run(&coarse_pass, Depths::Shared(shared), s, Output::Samples);
                 pass::draw_fine_depths(settings, importance, s, n, None);
                 s.load_rays(&rays, first, n);
-                let depths = std::mem::take(&mut s.depths);
                 let rays = RayOutputs { rgb, depth, opacity };
-                pass::run(&fine_pass, Depths::PerRay(&depths), s, Output::Rays(rays));
-                s.depths = depths;
+                pass::run(&fine_pass, Depths::PerRay, s, Output::Rays(rays));
             })
         });
     Ok(VolumeFrame {

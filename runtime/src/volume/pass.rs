@@ -15,7 +15,7 @@
 //!   with a grid): the rays whose transmittance fell below the threshold are done, and the next field
 //!   call sees the live rays only (compaction). Every sample the compositor counts is evaluated.
 //!
-//! What a pass gives ([`Output`]) is either each ray's composite (renders) or the field's inputs and
+//! What a pass gives ([`Sink`]) is either each ray's composite (renders) or the field's inputs and
 //! outputs at every sample of the tile, sample-major, zero where the field was not evaluated, with the
 //! list of samples evaluated (training, whose field gradient [`backward`] takes there, and the coarse
 //! pass of hierarchical sampling, from which [`draw_fine_depths`] draws the fine depths). Evaluated
@@ -162,7 +162,17 @@ pub(crate) fn with_scratch<T>(f: impl FnOnce(&mut Scratch) -> T) -> T {
 pub(crate) enum Depths<'a> {
     /// The same depths on every ray, with their δ ([`deltas`]).
     Shared(SharedDepths<'a>),
-    /// Depths of each ray's own, sample-major over the tile's rays (sample j of ray k at `j·n + k`).
+    /// Depths of each ray's own, in the scratch's `depths`, sample-major over the tile's rays (sample j
+    /// of ray k at `j·n + k`).
+    PerRay,
+}
+
+/// Where a running pass reads the depths.
+#[derive(Clone, Copy)]
+enum Source<'a> {
+    /// See [`Depths::Shared`].
+    Shared(SharedDepths<'a>),
+    /// See [`Depths::PerRay`]: the scratch's depths, taken out while the pass runs.
     PerRay(&'a [f32]),
 }
 
@@ -193,12 +203,20 @@ impl Pass<'_> {
 pub(crate) enum Output<'a> {
     /// Each ray's composite, at its index in the tile.
     Rays(RayOutputs<'a>),
-    /// The field's inputs and outputs at every sample of the tile, sample-major (the outputs zero
-    /// where the field was not evaluated; the inputs only meaningful where it was).
+    /// The field's inputs and outputs at every sample of the tile, sample-major, into the scratch's
+    /// `inputs` and `outputs` (the outputs zero where the field was not evaluated; the inputs only
+    /// meaningful where it was).
+    Samples,
+}
+
+/// Where a running pass puts what it gives.
+enum Sink<'a> {
+    /// See [`Output::Rays`].
+    Rays(RayOutputs<'a>),
+    /// See [`Output::Samples`]: the scratch's buffers, taken out while the pass runs.
     Samples {
-        /// At least `n · samples` long each; as many columns as the field has inputs.
+        /// As many columns as the field has inputs.
         inputs: &'a mut [Vec<f32>],
-        /// At least `n · samples` long each.
         outputs: &'a mut [Vec<f32>; 4],
     },
 }
@@ -223,7 +241,7 @@ impl RayOutputs<'_> {
 
 /// Where the tile's depths are, and the δ of shared ones.
 struct TileDepths<'a> {
-    depths: Depths<'a>,
+    depths: Source<'a>,
     /// Rays in the tile.
     n: usize,
     samples: usize,
@@ -234,13 +252,13 @@ impl TileDepths<'_> {
     #[inline(always)]
     fn column(&self, id: usize) -> DepthColumn<'_> {
         match self.depths {
-            Depths::Shared(SharedDepths { t, .. }) => DepthColumn {
+            Source::Shared(SharedDepths { t, .. }) => DepthColumn {
                 t,
                 first: 0,
                 stride: 1,
                 len: self.samples,
             },
-            Depths::PerRay(t) => DepthColumn {
+            Source::PerRay(t) => DepthColumn {
                 t,
                 first: id,
                 stride: self.n,
@@ -256,10 +274,10 @@ impl TileDepths<'_> {
             return 0..0;
         }
         match self.depths {
-            Depths::Shared(SharedDepths { t, .. }) => {
+            Source::Shared(SharedDepths { t, .. }) => {
                 samples_before(t, t0, false)..samples_before(t, t1, true)
             }
-            Depths::PerRay(_) => {
+            Source::PerRay(_) => {
                 let column = self.column(id);
                 column.count_below(t0, false)..column.count_below(t1, true)
             }
@@ -288,7 +306,27 @@ fn samples_before(depths: &[f32], t: f32, inclusive: bool) -> usize {
 /// Runs `pass` over the tile's rays loaded in `s` ([`Scratch::load_rays`]) at `depths`: gives each
 /// ray's composite or the samples (see [`Output`]). With [`Output::Samples`], returns the indices
 /// (sample-major, increasing) of the samples evaluated, or `None` if all were.
-pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Output) -> Option<Vec<usize>> {
+pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, output: Output) -> Option<Vec<usize>> {
+    let own_depths = std::mem::take(&mut s.depths);
+    let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
+    let source = match depths {
+        Depths::Shared(shared) => Source::Shared(shared),
+        Depths::PerRay => Source::PerRay(&own_depths[..s.ids.len() * pass.samples]),
+    };
+    let sink = match output {
+        Output::Rays(rays) => Sink::Rays(rays),
+        Output::Samples => Sink::Samples {
+            inputs: &mut inputs[..pass.field.n_inputs()],
+            outputs: &mut outputs,
+        },
+    };
+    let evaluated = run_tile(pass, source, s, sink);
+    (s.depths, s.inputs, s.outputs) = (own_depths, inputs, outputs);
+    evaluated
+}
+
+/// [`run`] with the depths and the place of what it gives out of the scratch.
+fn run_tile(pass: &Pass, depths: Source, s: &mut Scratch, mut output: Sink) -> Option<Vec<usize>> {
     let n_tile = s.ids.len();
     let m = pass.samples;
     let c = &pass.compositor;
@@ -301,9 +339,9 @@ pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Outp
     for v in s.call_inputs.iter_mut().chain(&mut s.call_outputs) {
         grow(v, chunk * n_tile);
     }
-    let keep_samples = matches!(output, Output::Samples { .. });
+    let keep_samples = matches!(output, Sink::Samples { .. });
     // The samples not evaluated are empty space; without a grid and early termination, all are.
-    if let Output::Samples { outputs, .. } = &mut output {
+    if let Sink::Samples { outputs, .. } = &mut output {
         if pass.grid.is_some() || c.early_termination.is_some() {
             for o in outputs.iter_mut() {
                 o[..n_tile * m].fill(0.0);
@@ -359,7 +397,7 @@ pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, mut output: Outp
             all_evaluated &= n == n_tile || rows.end == m;
         }
     }
-    if let Output::Rays(rays) = &mut output {
+    if let Sink::Rays(rays) = &mut output {
         for k in 0..n {
             rays.write(s.ids[k], s.lanes.output(c, k));
         }
@@ -386,7 +424,7 @@ fn cull_rays(
     grid: &OccupancyGrid,
     tile: &TileDepths,
     s: &mut Scratch,
-    output: &mut Output,
+    output: &mut Sink,
 ) -> Range<usize> {
     let n = s.ids.len();
     grow(&mut s.spans, n);
@@ -415,7 +453,7 @@ fn cull_rays(
             s.spans[live] = [span.start as u32, span.end as u32];
             (lo, hi) = (lo.min(span.start), hi.max(span.end));
             live += 1;
-        } else if let Output::Rays(rays) = output {
+        } else if let Sink::Rays(rays) = output {
             rays.write(id, pass.compositor.empty_ray());
         }
     }
@@ -424,14 +462,14 @@ fn cull_rays(
 }
 
 /// Evaluates the field at the samples `rows` of the tile's live rays, sample-major, and composites
-/// them across rays (if `composite`) or keeps them ([`Output::Samples`]): straight into the tile's
+/// them across rays (if `composite`) or keeps them ([`Sink::Samples`]): straight into the tile's
 /// buffers while no ray has stopped, else scattered there.
 fn dense_call(
     pass: &Pass,
     tile: &TileDepths,
     rows: Range<usize>,
     s: &mut Scratch,
-    output: &mut Output,
+    output: &mut Sink,
     composite: bool,
 ) {
     let n = s.ids.len();
@@ -449,13 +487,13 @@ fn dense_call(
         lanes,
         ..
     } = s;
-    if matches!(tile.depths, Depths::PerRay(_)) && composite {
+    if matches!(tile.depths, Source::PerRay(_)) && composite {
         grow(call_t, len);
         grow(call_delta, len);
     }
     {
         let (mut inputs, mut outputs): ([&mut [f32]; 6], [&mut [f32]; 4]) = match output {
-            Output::Samples { inputs, outputs } if direct => {
+            Sink::Samples { inputs, outputs } if direct => {
                 let span = rows.start * n..rows.end * n;
                 (
                     slices(inputs.iter_mut(), span.clone()),
@@ -478,7 +516,7 @@ fn dense_call(
             );
             let (ox, oy, oz, dx, dy, dz) = (&ox[..n], &oy[..n], &oz[..n], &dx[..n], &dy[..n], &dz[..n]);
             match tile.depths {
-                Depths::Shared(SharedDepths { t, .. }) => {
+                Source::Shared(SharedDepths { t, .. }) => {
                     let t = t[j];
                     if let Some(o) = shared_origin {
                         for k in 0..n {
@@ -494,7 +532,7 @@ fn dense_call(
                         }
                     }
                 }
-                Depths::PerRay(_) => {
+                Source::PerRay(_) => {
                     for k in 0..n {
                         let column = tile.column(ids[k]);
                         let t = column.at(j);
@@ -518,16 +556,16 @@ fn dense_call(
         if composite {
             let (raw, rgb) = (&*outputs[0], [&*outputs[1], &*outputs[2], &*outputs[3]]);
             match tile.depths {
-                Depths::Shared(SharedDepths { t, delta }) => {
+                Source::Shared(SharedDepths { t, delta }) => {
                     lanes.add(&pass.compositor, &t[rows.clone()], &delta[rows.clone()], raw, rgb)
                 }
-                Depths::PerRay(_) => {
+                Source::PerRay(_) => {
                     lanes.add_each(&pass.compositor, &call_t[..len], &call_delta[..len], raw, rgb)
                 }
             }
         }
     }
-    if let Output::Samples { inputs, outputs } = output {
+    if let Sink::Samples { inputs, outputs } = output {
         if !direct {
             for (jj, j) in rows.enumerate() {
                 for (k, &id) in ids[..n].iter().enumerate() {
@@ -547,14 +585,14 @@ fn dense_call(
 /// Evaluates the field at the samples `rows` of the tile's live rays where the grid is occupied (only
 /// those in the rays' spans can be), packed ray by ray into one call, and composites them ray by ray
 /// (if `composite`; the skipped samples have alpha 0, which changes nothing) or keeps them
-/// ([`Output::Samples`], their indices added to `index`).
+/// ([`Sink::Samples`], their indices added to `index`).
 fn packed_call(
     pass: &Pass,
     grid: &OccupancyGrid,
     tile: &TileDepths,
     rows: Range<usize>,
     s: &mut Scratch,
-    output: &mut Output,
+    output: &mut Sink,
     (composite, index): (bool, &mut Vec<usize>),
 ) {
     let n = s.ids.len();
@@ -587,10 +625,10 @@ fn packed_call(
             let mut point =
                 |i: usize, t: f32| (x[i], y[i], z[i]) = (o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t);
             match tile.depths {
-                Depths::Shared(SharedDepths { t, .. }) => {
+                Source::Shared(SharedDepths { t, .. }) => {
                     t[a..b].iter().enumerate().for_each(|(i, &t)| point(i, t))
                 }
-                Depths::PerRay(_) => {
+                Source::PerRay(_) => {
                     let column = tile.column(ids[k]);
                     (a..b).enumerate().for_each(|(i, j)| point(i, column.at(j)));
                 }
@@ -630,13 +668,13 @@ fn packed_call(
                 let (index, raw) = (&samples[at.clone()], &raw[at.clone()]);
                 let rgb = [&r[at.clone()], &g[at.clone()], &b[at.clone()]];
                 match tile.depths {
-                    Depths::Shared(t) => lanes.add_sparse(&pass.compositor, k, index, t, raw, rgb),
-                    Depths::PerRay(_) => {
+                    Source::Shared(t) => lanes.add_sparse(&pass.compositor, k, index, t, raw, rgb),
+                    Source::PerRay(_) => {
                         lanes.add_sparse(&pass.compositor, k, index, tile.column(ids[k]), raw, rgb)
                     }
                 }
             }
-            if let Output::Samples {
+            if let Sink::Samples {
                 inputs: dense_inputs,
                 outputs: dense_outputs,
             } = output
@@ -671,7 +709,7 @@ fn slices<'a, const N: usize>(
 
 /// Compaction: the rays that have stopped are done; the others move to the front, so that the next
 /// field call sees live rays only. Returns the number of live rays.
-fn compact(c: &Compositor, s: &mut Scratch, spans: bool, output: &mut Output) -> usize {
+fn compact(c: &Compositor, s: &mut Scratch, spans: bool, output: &mut Sink) -> usize {
     let n = s.ids.len();
     let mut live = 0;
     for k in 0..n {
@@ -686,7 +724,7 @@ fn compact(c: &Compositor, s: &mut Scratch, spans: bool, output: &mut Output) ->
                 s.spans[live] = s.spans[k];
             }
             live += 1;
-        } else if let Output::Rays(rays) = output {
+        } else if let Sink::Rays(rays) = output {
             rays.write(id, s.lanes.output(c, k));
         }
     }
@@ -930,12 +968,8 @@ mod tests {
             let mut s = Scratch::default();
             s.reserve(n * m, n);
             s.load_rays(&rays, 0, n);
-            let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
-            let output = Output::Samples {
-                inputs: &mut inputs[..3],
-                outputs: &mut outputs,
-            };
-            let index = run(&pass, Depths::Shared(shared), &mut s, output);
+            let index = run(&pass, Depths::Shared(shared), &mut s, Output::Samples);
+            let outputs = &s.outputs;
             if stopped {
                 // Every ray is opaque from its first sample: only the first chunk was evaluated.
                 let want: Vec<usize> = (0..CHUNK_SAMPLES * n).collect();

@@ -215,17 +215,8 @@ fn run_pass(
         samples: settings.samples,
     };
     s.load_rays(job.rays, first, n);
-    let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
-    let depths = std::mem::take(&mut s.depths);
-    let samples = Output::Samples {
-        inputs: &mut inputs[..field.n_inputs()],
-        outputs: &mut outputs,
-    };
-    let evaluated = match shared_depths {
-        Some(shared) => pass::run(&pass, Depths::Shared(shared), s, samples),
-        None => pass::run(&pass, Depths::PerRay(&depths[..len]), s, samples),
-    };
-    (s.inputs, s.outputs, s.depths) = (inputs, outputs, depths);
+    let depths = shared_depths.map_or(Depths::PerRay, Depths::Shared);
+    let evaluated = pass::run(&pass, depths, s, Output::Samples);
     let Scratch {
         inputs,
         outputs: [raw, r, g, b],
