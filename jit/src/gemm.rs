@@ -480,13 +480,15 @@ mod avx2 {
     unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32], t0: usize) {
         let k = x.len();
         let mut acc = [[_mm256_setzero_ps(); NV]; R];
+        // SAFETY: row r of A has k floats.
+        let rows: [*const f32; R] = std::array::from_fn(|r| unsafe { a.add(r * k) });
         for (kk, &xk) in x.iter().enumerate() {
-            // SAFETY: xk addresses TILE floats and t0 + 8·NV ≤ TILE; row r of A has k floats.
+            // SAFETY: xk addresses TILE floats and t0 + 8·NV ≤ TILE; kk < k.
             unsafe {
                 let p = xk.add(t0);
                 let b: [__m256; NV] = std::array::from_fn(|q| _mm256_loadu_ps(p.add(8 * q)));
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let w = _mm256_broadcast_ss(&*a.add(r * k + kk));
+                    let w = _mm256_broadcast_ss(&*rows[r].add(kk));
                     for q in 0..NV {
                         acc_r[q] = _mm256_fmadd_ps(w, b[q], acc_r[q]);
                     }
