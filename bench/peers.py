@@ -6,7 +6,9 @@ Runs the machine's FMA peak, then for each workload nerfjit's benchmark followed
 machine (../shared/bench/peak/quiet.sh), and prints a Markdown table of the figures and the ratios
 nerfjit / peer (< 1: nerfjit faster).
 
-    python3 bench/peers.py [--workloads W1,W2,W7] [--peers jax,drjit,fidget] [--bench ../shared/bench]
+    python3 bench/peers.py [--workloads W1,W2,W3,W4,W5,W6,W7] [--peers jax,drjit,fidget] [--bench ../shared/bench]
+
+W3 to W6 need ../shared/data (nerfjit's and JAX's runs read the course's box images, lego and the bunny).
 
 The peers must be installed as their run.sh files describe (jax 0.10.2, drjit 1.5.0 with libLLVM 19,
 tcmalloc); a peer that fails to run is reported as such and the others go on.
@@ -28,11 +30,24 @@ NERFJIT = os.path.join(ROOT, "target", "release", "nerfjit")
 FIGURES = {
     "W1": [("torus frame", "ms", r"^\s+([0-9.]+) ms/frame")],
     "W2": [("box volume frame (exact)", "ms", r"^\s+([0-9.]+) ms/frame")],
+    "W3": [("box training step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step")],
+    "W4": [
+        ("NeRF training step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step"),
+        ("NeRF render one 128² view", "s", r"([0-9.]+) s/view"),
+    ],
+    "W5": [("neural SDF step", "ms", r"\(([0-9.]+) ms/step")],
+    "W6": [("VolSDF step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step")],
     "W7": [
         ("distance, 2 threads", "ns/point", r"distance\s+2 threads:\s+([0-9.]+) ns/point"),
         ("distance + gradient, 2 threads", "ns/point", r"distance\+gradient\s+2 threads:\s+([0-9.]+) ns/point"),
     ],
 }
+
+# nerfjit's --reps per workload: W4 and W6 train 10 steps a rep (~1 s each), so fewer reps keep a run short.
+NERFJIT_REPS = {"W4": "3", "W6": "3"}
+
+# Dr.Jit's peer covers W1, W2 and W7 (its W4 runs drjit.nn at ~5 s a step; see its RESULTS.md).
+DRJIT_WORKLOADS = {"W1", "W2", "W7"}
 
 
 def locked(bench, cmd, env=None):
@@ -48,7 +63,11 @@ def json_lines(text):
 
 def peak(bench):
     """The FMA peak by vector width and threads. On a CPU without AVX-512 gcc refuses peak.c's 512-bit
-    kernel: a copy without it (the shared file untouched) measures the other widths."""
+    kernel: a copy without it (the shared file untouched) measures the other widths, with 12 accumulators
+    instead of 16. Without AVX-512 there are 16 vector registers, so 16 accumulators and the two operands
+    do not fit: gcc keeps three accumulators on the stack, and the store-to-load round trips of their
+    chains halve the measured rate (58.6 against 101 GFLOP/s on one thread on 2026-11-25). 12 chains are
+    still more than the 8 that two FMA pipes of latency 4 need."""
     source = os.path.join(bench, "peak", "peak.c")
     compile_peak = lambda src: subprocess.run(["gcc", "-O3", "-march=native", "-fopenmp", src, "-o",
                                                "/tmp/peak_bin"], capture_output=True)
@@ -57,6 +76,7 @@ def peak(bench):
             text = f.read()
         text = "".join(l for l in text.splitlines(True) if not l.startswith("KERNEL(fma512"))
         text = text.replace('{"fma512", fma512, 16}, ', "").replace("i < 3;", "i < (int)(sizeof ks / sizeof ks[0]);")
+        text = re.sub(r"#define CHAINS 16\b", "#define CHAINS 12", text)
         with open("/tmp/peak_no512.c", "w") as f:
             f.write(text)
         compile_peak("/tmp/peak_no512.c").check_returncode()
@@ -67,7 +87,7 @@ def peak(bench):
 
 
 def nerfjit(bench, workload):
-    text = locked(bench, [NERFJIT, "bench", workload.lower(), "--reps", "9"])
+    text = locked(bench, [NERFJIT, "bench", workload.lower(), "--reps", NERFJIT_REPS.get(workload, "9")])
     values = []
     for _, _, pattern in FIGURES[workload]:
         m = re.search(pattern, text, re.M)
@@ -80,6 +100,10 @@ def jax(bench, workload):
                                     "--reps", "10", "--wait-idle", "0"]))[-1]
     if workload == "W7":
         return [rec["dist_ns_per_point"], rec["dist_grad_ns_per_point"]]
+    if workload == "W4":
+        return [rec["train_step_ms"], rec["render_view_s"]]
+    if workload in ("W3", "W5", "W6"):
+        return [rec["step_ms"]]
     return [rec["frame_s"] * 1e3]
 
 
@@ -92,6 +116,8 @@ def drjit_env():
 
 
 def drjit(bench, workload):
+    if workload not in DRJIT_WORKLOADS:
+        return None
     rec = json_lines(locked(bench, ["python3", os.path.join(bench, "drjit", "peer.py"), "--only", workload,
                                     "--threads", "2", "--reps", "7"], env=drjit_env()))[-1]
     if workload == "W7":
@@ -117,7 +143,7 @@ PEERS = {"jax": jax, "drjit": drjit, "fidget": fidget}
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--workloads", default="W1,W2,W7")
+    ap.add_argument("--workloads", default="W1,W2,W3,W4,W5,W6,W7")
     ap.add_argument("--peers", default="jax,drjit,fidget")
     ap.add_argument("--bench", default=os.path.join(ROOT, "..", "shared", "bench"))
     args = ap.parse_args()
@@ -147,7 +173,7 @@ def main():
     head = "| workload | figure | nerfjit | " + " | ".join(peers) + " | " + " | ".join(f"÷ {p}" for p in peers) + " |"
     print(head)
     print("|" + "---|" * (3 + 2 * len(peers)))
-    fmt = lambda v: "—" if v is None else (v if isinstance(v, str) else f"{v:.3g}")
+    fmt = lambda v: "—" if v is None else (v if isinstance(v, str) else f"{v:.0f}" if v >= 100 else f"{v:.3g}")
     for w, figure, unit, ours, theirs in rows:
         ratios = [fmt(ours / theirs[p]) if isinstance(theirs.get(p), float) and ours else "—" for p in peers]
         print(f"| {w} | {figure}, {unit} | {fmt(ours)} | " + " | ".join(fmt(theirs.get(p)) for p in peers)
