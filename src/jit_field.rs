@@ -9,7 +9,7 @@ use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Stop, T
 use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
-use nerfjit_runtime::{BatchFn, BatchVjp, TrainableModel, VolumeModel};
+use nerfjit_runtime::{BatchFn, BatchVjp, OccupancyGrid, TrainableModel, VolumeModel};
 
 use crate::failure::{Failure, Result};
 
@@ -371,6 +371,42 @@ impl VolumeField {
         }
     }
 
+    /// The occupancy grid of the script's `density` (or `opacity`) with `params` in `resolution`³ cells
+    /// over `bounds`, occupied where it may exceed `threshold`: from its interval bounds where they bound
+    /// anything (a script's analytic field: the grid misses nothing, see
+    /// [`OccupancyGrid::from_bounds`]), else by probing the field ([`OccupancyGrid::build`]: dense layers
+    /// and grid reads have no useful bounds).
+    pub fn occupancy_grid(
+        &self,
+        program: &Program,
+        params: &[f32],
+        cache: &KernelCache,
+        (bounds, resolution, threshold): (([f32; 3], [f32; 3]), usize, f32),
+    ) -> Result<OccupancyGrid> {
+        let name = match self.mode {
+            Mode::Density => "density",
+            Mode::Opacity => "opacity",
+        };
+        let compiler = Compiler {
+            program,
+            params,
+            cache,
+        };
+        let grid = match compiler.bounds(name, &[Type::Vec(3)], &Type::F32)? {
+            Some(bounds_of) => {
+                OccupancyGrid::from_bounds(&bounds_of, bounds, resolution, self.mode, threshold)
+            }
+            None => OccupancyGrid::build(
+                &self.bind_density(params),
+                bounds,
+                resolution,
+                self.mode,
+                threshold,
+            ),
+        };
+        Ok(grid?)
+    }
+
     /// The forward and backward kernels bound to `params`.
     pub fn bind<'a>(&'a self, params: &'a [f32]) -> (Bound<'a>, BoundVjp<'a>) {
         (
@@ -505,5 +541,50 @@ impl BoundFields<'_> {
                 .as_ref()
                 .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A script whose density is a shell |p| = 0.6 of half-width 0.005: thinner than the spacing (0.125)
+    /// of the probes of an 8³ grid over [-1, 1]³, none of which lies on it.
+    const SHELL: &str = "
+        fn density(p: vec3) -> f32 = select(step(abs(length(p) - 0.6), 0.005), 10.0, 0.0)
+        fn color(p: vec3) -> vec3 = [1, 1, 1]
+    ";
+
+    #[test]
+    fn a_script_density_gets_its_occupancy_grid_from_its_bounds() {
+        let program = nerfjit_dsl::compile("shell.sdf", SHELL).unwrap();
+        let cache = KernelCache::new();
+        let field = VolumeField::compile(&program, &cache).unwrap();
+        let params = &program.param_values;
+        let unit = ([-1.0; 3], [1.0; 3]);
+        let probed = OccupancyGrid::build(&field.bind_density(params), unit, 8, Mode::Density, 0.5).unwrap();
+        assert_eq!(probed.occupied_cells(), 0, "a probe lies on the shell");
+        let grid = field
+            .occupancy_grid(&program, params, &cache, (unit, 8, 0.5))
+            .unwrap();
+        // Every cell the shell crosses (its nearest point to the origin closer than 0.605, its farthest
+        // farther than 0.595) is occupied.
+        let mut crossed = 0;
+        for cell in 0..512usize {
+            let index = [cell % 8, cell / 8 % 8, cell / 64];
+            let lo = index.map(|c| -1.0 + 0.25 * c as f32);
+            let nearest: f32 = (0..3).map(|i| 0.0f32.clamp(lo[i], lo[i] + 0.25).powi(2)).sum();
+            let farthest: f32 = (0..3)
+                .map(|i| lo[i].abs().max((lo[i] + 0.25).abs()).powi(2))
+                .sum();
+            if nearest.sqrt() < 0.605 && farthest.sqrt() > 0.595 {
+                let [x, y, z] = index;
+                assert!(grid.cell(x, y, z), "cell {index:?} holds part of the shell");
+                crossed += 1;
+            }
+        }
+        assert!(crossed > 100, "{crossed} cells crossed");
+        // Bounds of a shell over a box are loose but not useless: the cells far from it are empty.
+        assert!(!grid.occupied([0.0; 3]) && !grid.occupied([0.95; 3]));
     }
 }

@@ -7,9 +7,7 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::{
-    rgb_image, Camera, DepthSpacing, Mode, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
-};
+use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
 
 use crate::block::Block;
 use crate::failure::Result;
@@ -126,13 +124,9 @@ impl VolumePlan {
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
-            Some(s) => Some(OccupancyGrid::build(
-                &field.bind_density(params),
-                s.bounds,
-                s.resolution,
-                settings.mode,
-                s.threshold,
-            )?),
+            Some(s) => {
+                Some(field.occupancy_grid(program, params, cache, (s.bounds, s.resolution, s.threshold))?)
+            }
             None => None,
         };
         let mut frames = Vec::with_capacity(self.cameras.len());
