@@ -122,9 +122,11 @@ impl OccupancyGrid {
     /// The grid over `bounds` with `resolution`³ cells in which a cell is occupied unless `bounds_of`
     /// (the interval bounds of the field's first output over boxes: 6 inputs, a box's low and high
     /// corners, and 2 outputs, a lower and an upper bound) places the whole cell below `threshold`, by a
-    /// margin of 10⁻⁴ of the bound for rounding. Unlike [`OccupancyGrid::build`] this misses nothing
-    /// inside the bounds, however thin: every value of the field in an empty cell is at or below the
-    /// threshold, so no dilation is needed. Cells whose bounds are NaN are occupied.
+    /// margin of 10⁻⁴ of the bound for rounding. Each cell's box is widened by 10⁻⁴ of a cell on every
+    /// side, so that a point the grid places in a cell ([`OccupancyGrid::occupied`]) lies in its box
+    /// despite the rounding of either. Unlike [`OccupancyGrid::build`] this misses nothing inside the
+    /// bounds, however thin: every value of the field in an empty cell is at or below the threshold, so
+    /// no dilation is needed. Cells whose bounds are NaN are occupied.
     pub fn from_bounds(
         bounds_of: &dyn BatchFn,
         bounds: ([f32; 3], [f32; 3]),
@@ -142,12 +144,11 @@ impl OccupancyGrid {
             )));
         }
         let (res, (lo, hi)) = (resolution, bounds);
-        let plane = |axis: usize, k: usize| {
-            if k == res {
-                hi[axis]
-            } else {
-                lo[axis] + (hi[axis] - lo[axis]) * k as f32 / res as f32
-            }
+        let cell = [0, 1, 2].map(|axis| (hi[axis] - lo[axis]) / res as f32);
+        // Plane k along an axis, moved outwards (side 0: a low corner, side 1: a high one).
+        let plane = |axis: usize, k: usize, side: usize| {
+            let pad = 1e-4 * cell[axis];
+            lo[axis] + cell[axis] * k as f32 + if side == 0 { -pad } else { pad }
         };
         let mut empty = vec![false; res * res * res];
         empty
@@ -161,7 +162,10 @@ impl OccupancyGrid {
                     .map(|input| {
                         let (axis, side) = (input % 3, input / 3);
                         (first..first + n)
-                            .map(|i| plane(axis, [i % res, i / res % res, i / (res * res)][axis] + side))
+                            .map(|i| {
+                                let k = [i % res, i / res % res, i / (res * res)][axis];
+                                plane(axis, k + side, side)
+                            })
                             .collect()
                     })
                     .collect();
