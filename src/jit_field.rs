@@ -21,6 +21,13 @@ pub struct JitFn {
     params: Arc<[f32]>,
 }
 
+impl JitFn {
+    /// The number of IR nodes its kernel computes.
+    pub fn nodes(&self) -> usize {
+        self.kernel.stats().nodes
+    }
+}
+
 impl RayMarcher for JitFn {
     fn march(&self, n: usize, rays: &MarchRays, eps: f32, max_steps: u32, t: &mut [f32], hit: &mut [f32]) {
         let marcher = self

@@ -8,7 +8,8 @@ use nerfjit_dsl::config::Spanned;
 use nerfjit_dsl::{Diagnostic, Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
-    depth_image, normal_image, render_frames, rgb_image, Camera, Frame, Quantize, Shading, TraceSettings,
+    depth_image, normal_image, render_frames, rgb_image, BatchFn, Camera, Frame, Quantize, Shading,
+    TraceSettings, WithBounds,
 };
 
 use crate::block::Block;
@@ -106,15 +107,21 @@ impl RenderPlan {
         })
     }
 
-    /// Compiles the script's `sdf` and, for color shading, its `color`.
-    pub fn compile_fields(&self, compiler: &Compiler) -> Result<(JitFn, Option<JitFn>)> {
+    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay
+    /// ([`SKIP_EMPTY_SPACE_MIN_NODES`]) and, for color shading, its `color`.
+    pub fn compile_fields(&self, compiler: &Compiler) -> Result<TraceFields> {
         let vec3 = [Type::Vec(3)];
         let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
+        let bounds = if sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES {
+            compiler.bounds("sdf", &vec3, &Type::F32)?
+        } else {
+            None
+        };
         let color = match self.shading {
             ShadingChoice::Color => Some(compiler.function("color", &vec3, &Type::Vec(3), Kind::Value)?),
             ShadingChoice::Lambert { .. } => None,
         };
-        Ok((sdf, color))
+        Ok(TraceFields { sdf, bounds, color })
     }
 
     /// Compiles the script's functions (through `cache`) and renders every frame; writes the outputs and
@@ -132,7 +139,8 @@ impl RenderPlan {
             cache,
         };
         let compile_start = Instant::now();
-        let (sdf, color) = self.compile_fields(&compiler)?;
+        let fields = self.compile_fields(&compiler)?;
+        let (sdf, color) = (fields.traced_sdf(), &fields.color);
         let gradient = compiler.function("sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)?;
         let compile_s = compile_start.elapsed().as_secs_f64();
         let shading = match (&self.shading, &color) {
@@ -226,4 +234,57 @@ pub(crate) fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), D
         ));
     }
     Ok((Vec3::from_array(center), radius as f32))
+}
+
+/// SDFs of fewer IR nodes are traced without skipping the space their interval bounds prove empty: W1's
+/// torus traced a frame in 0.44–0.50 ms with skipping against 0.38–0.42 ms without (its fused marcher
+/// takes ~6 ns a ray), the 6,425-node city of `nerfjit bench large` in 0.62 of the time (2026-11-25).
+const SKIP_EMPTY_SPACE_MIN_NODES: usize = 1024;
+
+/// The compiled functions of a `render sphere_trace` block.
+pub struct TraceFields {
+    /// The SDF, with its fused marcher.
+    pub sdf: JitFn,
+    /// The SDF's interval bounds over boxes, where interval arithmetic bounds it: the sphere tracer skips
+    /// the space they prove empty.
+    pub bounds: Option<JitFn>,
+    /// The color, for color shading.
+    pub color: Option<JitFn>,
+}
+
+impl TraceFields {
+    /// The SDF with its bounds, as the sphere tracer takes it.
+    pub fn traced_sdf(&self) -> WithBounds<'_> {
+        WithBounds {
+            function: &self.sdf,
+            bounds: self.bounds.as_ref().map(|b| b as &dyn BatchFn),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::block::first_block;
+    use crate::schema::Kind as BlockKind;
+
+    #[test]
+    fn large_sdfs_are_traced_with_their_interval_bounds_and_small_ones_without() {
+        let city = crate::import::convert(&crate::large_model::city(), "city.vm").expect("converts");
+        let torus = std::fs::read_to_string("examples/torus.sdf").expect("the torus example");
+        let cache = KernelCache::new();
+        for (script, large) in [(city, true), (torus, false)] {
+            let program = nerfjit_dsl::compile("scene.sdf", &script).expect("compiles");
+            let block = first_block(&program, BlockKind::SphereTrace, ".").expect("a sphere-trace block");
+            let plan = RenderPlan::new(block).expect("valid settings");
+            let compiler = Compiler {
+                program: &program,
+                params: &program.param_values,
+                cache: &cache,
+            };
+            let fields = plan.compile_fields(&compiler).expect("compiles");
+            assert_eq!(fields.sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES, large);
+            assert_eq!(fields.traced_sdf().interval_bounds().is_some(), large);
+        }
+    }
 }

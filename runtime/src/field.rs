@@ -20,6 +20,44 @@ pub trait BatchFn: Sync {
     fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
         None
     }
+
+    /// Interval bounds of this function's first output over boxes of its inputs, if it offers them: a
+    /// function of a box's low corner then its high corner (twice the inputs) to a lower and an upper
+    /// bound of the output over the box. The sphere tracer uses them to skip the space they prove empty.
+    fn interval_bounds(&self) -> Option<&dyn BatchFn> {
+        None
+    }
+}
+
+/// A function with the interval bounds ([`BatchFn::interval_bounds`]) of its first output, given
+/// separately (e.g. a compiled SDF and its compiled interval kernel).
+pub struct WithBounds<'a> {
+    /// The function.
+    pub function: &'a dyn BatchFn,
+    /// Its bounds over boxes, if any.
+    pub bounds: Option<&'a dyn BatchFn>,
+}
+
+impl BatchFn for WithBounds<'_> {
+    fn n_inputs(&self) -> usize {
+        self.function.n_inputs()
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.function.n_outputs()
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        self.function.eval(n, inputs, outputs);
+    }
+
+    fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
+        self.function.as_marcher()
+    }
+
+    fn interval_bounds(&self) -> Option<&dyn BatchFn> {
+        self.bounds
+    }
 }
 
 /// Checks that `f` has the arity a renderer expects; `role` names the function in the error.

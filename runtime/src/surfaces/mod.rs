@@ -1,9 +1,10 @@
-//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], and the fused marcher [`ray_marcher`] compiled
-//! kernels offer), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields
+//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], the fused marcher [`ray_marcher`] compiled
+//! kernels offer, and empty space skipped by interval bounds in `empty_space`), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields
 //! specialized to regions of the grid in [`regions`]), triangle meshes and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
 //! rasterizer for previews ([`raster`]).
 
 mod bvh;
+mod empty_space;
 pub mod marching;
 pub mod mesh;
 pub mod mesh_metrics;

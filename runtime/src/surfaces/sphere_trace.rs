@@ -8,6 +8,12 @@
 //! rays in structure-of-arrays buffers, allocated once per worker, and compacts them after each
 //! step, so every SDF call gets a dense batch of live rays only. All of this leaves the
 //! per-ray arithmetic, hence the result, exactly that of a plain per-ray loop.
+//!
+//! An SDF that offers interval bounds ([`BatchFn::interval_bounds`]) has the empty space in front of
+//! each group of rays skipped first (`empty_space`): the rays start marching where the bounds stop
+//! proving that no ray of the group comes within `eps` of the surface, and the rays of a group proven
+//! empty all along miss without any SDF evaluation. Sphere tracing from a later start finds the same
+//! hits, at depths that agree up to the tracer's tolerance.
 
 use std::cell::RefCell;
 
@@ -17,6 +23,7 @@ use rayon::prelude::*;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::{check_arity, BatchFn};
+use crate::surfaces::empty_space::{self, GroupedRays, GROUP_COLUMNS};
 use crate::surfaces::ray_marcher::{MarchRays, RayMarcher};
 
 /// Number of pixels (consecutive in row-major order) traced together as one batch.
@@ -220,6 +227,9 @@ struct Tile {
     origin: [Vec<f32>; 3],
     t_end: Vec<f32>,
     hit_flag: Vec<f32>,
+    /// Group of each ray for empty space skipping: its block of pixel columns.
+    group: Vec<u32>,
+    empty_space: empty_space::Scratch,
 }
 
 impl Tile {
@@ -241,6 +251,8 @@ impl Tile {
             origin: [v(), v(), v()],
             t_end: v(),
             hit_flag: v(),
+            group: vec![0; TILE],
+            empty_space: empty_space::Scratch::default(),
         }
     }
 
@@ -303,7 +315,50 @@ impl Tile {
             }
             pixel += seg;
         }
-        n
+        match job.sdf.interval_bounds() {
+            Some(bounds) => self.skip_empty_space(job, bounds, start, n),
+            None => n,
+        }
+    }
+
+    /// Moves the starts of the first `n` rays past the space `bounds` proves empty ([`empty_space`]) and
+    /// drops the rays that miss; returns the number of rays left.
+    fn skip_empty_space(&mut self, job: &Job, bounds: &dyn BatchFn, start: usize, n: usize) -> usize {
+        let o = job.camera.position();
+        for (k, ray) in self.rays[..n].iter().enumerate() {
+            let column = (start + ray.pixel as usize) % job.width;
+            self.group[k] = (column / GROUP_COLUMNS) as u32;
+            (self.dirs[0][k], self.dirs[1][k], self.dirs[2][k]) = (ray.dx, ray.dy, ray.dz);
+            self.t_end[k] = ray.t_end;
+        }
+        let rays = GroupedRays {
+            origin: o,
+            direction: [&self.dirs[0][..n], &self.dirs[1][..n], &self.dirs[2][..n]],
+            t_end: &self.t_end[..n],
+            group: &self.group[..n],
+            groups: job.width.div_ceil(GROUP_COLUMNS),
+        };
+        empty_space::advance(
+            bounds,
+            &rays,
+            job.settings.eps,
+            &mut self.t[..n],
+            &mut self.empty_space,
+        );
+        let mut live = 0;
+        for k in 0..n {
+            let (ray, t) = (self.rays[k], self.t[k]);
+            if t > ray.t_end {
+                continue;
+            }
+            self.rays[live] = ray;
+            self.slots[live] = live as u16;
+            self.t[live] = t;
+            let p = o + Vec3::new(ray.dx, ray.dy, ray.dz) * t;
+            (self.points[0][live], self.points[1][live], self.points[2][live]) = (p.x, p.y, p.z);
+            live += 1;
+        }
+        live
     }
 
     /// Sphere traces the first `n` rays in one call of a fused marcher, recording hits.
@@ -509,6 +564,9 @@ pub fn sphere_trace_into(
 ) -> Result<()> {
     check_size(width, height)?;
     check_arity(sdf, "the SDF", 3, 1)?;
+    if let Some(bounds) = sdf.interval_bounds() {
+        check_arity(bounds, "the SDF's interval bounds", 6, 2)?;
+    }
     shading.check()?;
     settings.check()?;
     let job = Job {
@@ -573,7 +631,7 @@ pub fn render_frames(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::ClosureFn;
+    use crate::field::{ClosureFn, WithBounds};
     use glam::Vec2;
     use std::cell::Cell;
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -752,6 +810,68 @@ mod tests {
         }
     }
 
+    /// Bounds of [`torus_sdf`] over a box (6 inputs → 2 outputs).
+    fn torus_bounds(b: &[f32], out: &mut [f32]) {
+        let (low, high) = (Vec3::new(b[0], b[1], b[2]), Vec3::new(b[3], b[4], b[5]));
+        let abs_range = |lo: f32, hi: f32| {
+            let nearest = if lo <= 0.0 && hi >= 0.0 {
+                0.0
+            } else {
+                lo.abs().min(hi.abs())
+            };
+            (nearest, lo.abs().max(hi.abs()))
+        };
+        let (x, z) = (abs_range(low.x, high.x), abs_range(low.z, high.z));
+        let (ring_lo, ring_hi) = (x.0.hypot(z.0) - 1.0, x.1.hypot(z.1) - 1.0);
+        let (q, y) = (abs_range(ring_lo, ring_hi), abs_range(low.y, high.y));
+        out[0] = q.0.hypot(y.0) - 0.35;
+        out[1] = q.1.hypot(y.1) - 0.35;
+    }
+
+    #[test]
+    fn skipping_the_space_interval_bounds_prove_empty_finds_the_same_hits_with_fewer_evaluations() {
+        let evaluations = AtomicUsize::new(0);
+        let sdf = ClosureFn::new(3, 1, |p: &[f32], out: &mut [f32]| {
+            evaluations.fetch_add(1, Ordering::Relaxed);
+            torus_sdf(p, out);
+        });
+        let bounds = ClosureFn::new(6, 2, torus_bounds);
+        let bounded = WithBounds {
+            function: &sdf,
+            bounds: Some(&bounds),
+        };
+        let color = ClosureFn::new(3, 3, rainbow);
+        let shading = Shading::Color {
+            color: &color,
+            gradient: None,
+        };
+        let settings = TraceSettings {
+            max_steps: 200,
+            eps: 1e-5,
+            ..TraceSettings::default()
+        };
+        let plain = sphere_trace(&camera(), 96, 80, &sdf, &shading, &settings).unwrap();
+        let plain_evaluations = evaluations.swap(0, Ordering::Relaxed);
+        let skipped = sphere_trace(&camera(), 96, 80, &bounded, &shading, &settings).unwrap();
+        let skipped_evaluations = evaluations.load(Ordering::Relaxed);
+        let differing = plain.hit.iter().zip(&skipped.hit).filter(|(a, b)| a != b).count();
+        assert!(differing <= 2, "{differing} pixels differ");
+        let hits = plain.hit.iter().filter(|&&h| h).count();
+        assert!(hits > 1000, "{hits} hits");
+        for i in 0..plain.hit.len() {
+            if plain.hit[i] && skipped.hit[i] {
+                assert!((plain.depth[i] - skipped.depth[i]).abs() < 1e-3, "pixel {i}");
+                for c in 0..3 {
+                    assert!((plain.rgb[i][c] - skipped.rgb[i][c]).abs() < 1e-3, "pixel {i}");
+                }
+            }
+        }
+        assert!(
+            3 * skipped_evaluations < 2 * plain_evaluations,
+            "{skipped_evaluations} evaluations with bounds, {plain_evaluations} without"
+        );
+    }
+
     #[test]
     fn sphere_silhouette_depth_and_normals_are_analytic() {
         let sdf = ClosureFn::new(3, 1, sphere_sdf);
@@ -855,6 +975,15 @@ mod tests {
             gradient: None,
         };
         assert!(sphere_trace(&cam, 8, 8, &sdf, &wrong, &s).is_err());
+        let bounded = WithBounds {
+            function: &sdf,
+            bounds: Some(&sdf),
+        };
+        let e = sphere_trace(&cam, 8, 8, &bounded, &shading, &s).unwrap_err();
+        assert!(
+            e.to_string().contains("the SDF's interval bounds must map 6"),
+            "{e}"
+        );
         for bad in [
             TraceSettings { far: -1.0, ..s },
             TraceSettings { eps: 0.0, ..s },
