@@ -107,21 +107,9 @@ impl RenderPlan {
         })
     }
 
-    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay
-    /// ([`SKIP_EMPTY_SPACE_MIN_NODES`]) and, for color shading, its `color`.
+    /// Compiles the script's functions this block traces ([`TraceFields::compile`]).
     pub fn compile_fields(&self, compiler: &Compiler) -> Result<TraceFields> {
-        let vec3 = [Type::Vec(3)];
-        let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
-        let bounds = if sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES {
-            compiler.bounds("sdf", &vec3, &Type::F32)?
-        } else {
-            None
-        };
-        let color = match self.shading {
-            ShadingChoice::Color => Some(compiler.function("color", &vec3, &Type::Vec(3), Kind::Value)?),
-            ShadingChoice::Lambert { .. } => None,
-        };
-        Ok(TraceFields { sdf, bounds, color })
+        TraceFields::compile(compiler, &self.shading)
     }
 
     /// Compiles the script's functions (through `cache`) and renders every frame; writes the outputs and
@@ -253,6 +241,23 @@ pub struct TraceFields {
 }
 
 impl TraceFields {
+    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay
+    /// ([`SKIP_EMPTY_SPACE_MIN_NODES`]) and, for color shading, its `color`.
+    pub fn compile(compiler: &Compiler, shading: &ShadingChoice) -> Result<TraceFields> {
+        let vec3 = [Type::Vec(3)];
+        let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
+        let bounds = if sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES {
+            compiler.bounds("sdf", &vec3, &Type::F32)?
+        } else {
+            None
+        };
+        let color = match shading {
+            ShadingChoice::Color => Some(compiler.function("color", &vec3, &Type::Vec(3), Kind::Value)?),
+            ShadingChoice::Lambert { .. } => None,
+        };
+        Ok(TraceFields { sdf, bounds, color })
+    }
+
     /// The SDF with its bounds, as the sphere tracer takes it.
     pub fn traced_sdf(&self) -> WithBounds<'_> {
         WithBounds {

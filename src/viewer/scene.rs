@@ -16,7 +16,7 @@ use nerfjit_runtime::{
 use crate::block::{Block, Outputs};
 use crate::failure::{at, Failure, Result};
 use crate::jit_field::{Compiler, JitFn, Kind, VolumeFields};
-use crate::sphere_trace_block::{RenderPlan, ShadingChoice};
+use crate::sphere_trace_block::{RenderPlan, ShadingChoice, TraceFields};
 use crate::views::{script_cameras, Rendering};
 
 /// What a frame shows.
@@ -101,9 +101,8 @@ impl ViewCamera {
 
 /// Sphere tracing of a script's `sdf`, shaded as its first `render sphere_trace` block says.
 struct Surface {
-    sdf: JitFn,
+    fields: TraceFields,
     gradient: JitFn,
-    color: Option<JitFn>,
     shading: ShadingChoice,
     trace: TraceSettings,
 }
@@ -230,13 +229,12 @@ impl Scene {
         match &self.renderer {
             Renderer::Surface(surface) => {
                 let Surface {
-                    sdf,
+                    fields,
                     gradient,
-                    color,
                     shading,
                     trace,
                 } = surface.as_ref();
-                let shading = match (shading, color) {
+                let shading = match (shading, &fields.color) {
                     (ShadingChoice::Color, Some(color)) => Shading::Color {
                         color,
                         gradient: (layer == Layer::Normals)
@@ -249,7 +247,7 @@ impl Scene {
                     },
                     (ShadingChoice::Color, None) => unreachable!("a color kernel exists for color shading"),
                 };
-                let frame = sphere_trace(&camera, width, height, sdf, &shading, trace)?;
+                let frame = sphere_trace(&camera, width, height, &fields.traced_sdf(), &shading, trace)?;
                 Ok(match layer {
                     Layer::Color => rgb_image(width, height, &frame.rgb, Quantize::Truncate)?,
                     Layer::Depth => {
@@ -315,15 +313,9 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
             },
         ),
     };
-    let vec3 = [Type::Vec(3)];
-    let color = match shading {
-        ShadingChoice::Color => Some(compiler.function("color", &vec3, &Type::Vec(3), Kind::Value)?),
-        ShadingChoice::Lambert { .. } => None,
-    };
     Ok(Renderer::Surface(Box::new(Surface {
-        sdf: compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?,
-        gradient: compiler.function("sdf", &vec3, &Type::F32, Kind::Gradient)?,
-        color,
+        fields: TraceFields::compile(&compiler, &shading)?,
+        gradient: compiler.function("sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)?,
         shading,
         trace,
     })))
