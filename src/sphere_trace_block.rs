@@ -241,8 +241,8 @@ pub struct TraceFields {
 }
 
 impl TraceFields {
-    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay
-    /// ([`SKIP_EMPTY_SPACE_MIN_NODES`]) and, for color shading, its `color`.
+    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay (1,024 IR
+    /// nodes or more) and, for color shading, its `color`.
     pub fn compile(compiler: &Compiler, shading: &ShadingChoice) -> Result<TraceFields> {
         let vec3 = [Type::Vec(3)];
         let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
