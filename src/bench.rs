@@ -276,16 +276,24 @@ fn large(reps: usize) -> Result<()> {
         albedo: [0.85, 0.75, 0.6],
     };
     let (w, h) = plan.size;
-    let mut frame = nerfjit_runtime::Frame::empty();
-    let mut trace = |sdf: &dyn nerfjit_runtime::BatchFn| {
-        time_reps(reps.min(3), || {
+    let trace = |sdf: &dyn nerfjit_runtime::BatchFn| {
+        let mut frame = nerfjit_runtime::Frame::empty();
+        let seconds = time_reps(reps.min(3), || {
             sphere_trace_into(&plan.cameras[0], w, h, sdf, &shading, &plan.trace, &mut frame)
                 .expect("validated settings render");
-        })
+        });
+        (seconds, frame)
     };
-    let (trace_s, plain_s) = (trace(&sdf), trace(&fields.sdf));
+    let ((trace_s, skipped), (plain_s, plain)) = (trace(&sdf), trace(&fields.sdf));
+    let hits_differ = skipped.hit.iter().zip(&plain.hit).filter(|(a, b)| a != b).count();
+    let depth_differs = skipped
+        .depth
+        .iter()
+        .zip(&plain.depth)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
     crate::emit(&format!(
-        "  sphere trace one {w}×{h} frame {:7.3} s ({:.2} M rays/s; {:.3} s without skipping the space its bounds prove empty)\n",
+        "  sphere trace one {w}×{h} frame {:7.3} s ({:.2} M rays/s; {:.3} s without skipping the space its bounds prove empty: {hits_differ} hits differ, depths by {depth_differs:.1e} at most)\n",
         trace_s,
         f64::from(w * h) / trace_s / 1e6,
         plain_s

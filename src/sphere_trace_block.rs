@@ -224,10 +224,12 @@ pub(crate) fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), D
     Ok((Vec3::from_array(center), radius as f32))
 }
 
-/// SDFs of fewer IR nodes are traced without skipping the space their interval bounds prove empty: W1's
-/// torus traced a frame in 0.44–0.50 ms with skipping against 0.38–0.42 ms without (its fused marcher
-/// takes ~6 ns a ray), the 6,425-node city of `nerfjit bench large` in 0.62 of the time (2026-11-25).
-const SKIP_EMPTY_SPACE_MIN_NODES: usize = 1024;
+/// SDFs of fewer IR nodes are traced without skipping the space their interval bounds prove empty, which
+/// costs more than it saves where a step is cheap. Frames of 256² with skipping against without
+/// (2026-11-25, three runs each): W1's 16-node torus 0.44–0.50 against 0.38–0.42 ms, the 172-node
+/// `showcase.sdf` 6.9–7.7 against 6.0–7.2 ms, the 359-node `complex_scene.sdf` 6.1–7.9 against 8.4–10.1
+/// ms, the 6,425-node city of `nerfjit bench large` 84–96 against 136–139 ms.
+const SKIP_EMPTY_SPACE_MIN_NODES: usize = 256;
 
 /// The compiled functions of a `render sphere_trace` block.
 pub struct TraceFields {
@@ -241,7 +243,7 @@ pub struct TraceFields {
 }
 
 impl TraceFields {
-    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay (1,024 IR
+    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay (256 IR
     /// nodes or more) and, for color shading, its `color`.
     pub fn compile(compiler: &Compiler, shading: &ShadingChoice) -> Result<TraceFields> {
         let vec3 = [Type::Vec(3)];
