@@ -151,7 +151,7 @@ pub(crate) fn advance(bounds: &dyn BatchFn, rays: &GroupedRays, eps: f32, t: &mu
                 s.boxes[axis + 3][i] = high[axis];
             }
         }
-        let inputs: Vec<&[f32]> = s.boxes.iter().map(|c| &c[..n]).collect();
+        let inputs: [&[f32]; 6] = std::array::from_fn(|c| &s.boxes[c][..n]);
         let [lower, upper] = &mut s.bounds;
         bounds.eval(n, &inputs, &mut [&mut lower[..n], &mut upper[..n]]);
         for (i, &g) in s.active.iter().enumerate() {

@@ -307,32 +307,38 @@ impl Tile {
                 };
                 self.slots[n] = n as u16;
                 self.t[n] = t0;
-                let p = o + d * t0;
-                self.points[0][n] = p.x;
-                self.points[1][n] = p.y;
-                self.points[2][n] = p.z;
                 n += 1;
             }
             pixel += seg;
         }
-        match job.sdf.interval_bounds() {
-            Some(bounds) => self.skip_empty_space(job, bounds, start, n),
-            None => n,
+        if let Some(bounds) = job.sdf.interval_bounds() {
+            n = self.skip_empty_space(job, bounds, start, n);
+        }
+        for (k, ray) in self.rays[..n].iter().enumerate() {
+            let p = o + Vec3::new(ray.dx, ray.dy, ray.dz) * self.t[k];
+            (self.points[0][k], self.points[1][k], self.points[2][k]) = (p.x, p.y, p.z);
+        }
+        n
+    }
+
+    /// Copies the directions and ends of the first `n` rays into the columns `dirs` and `t_end`.
+    fn load_ray_columns(&mut self, n: usize) {
+        for (k, ray) in self.rays[..n].iter().enumerate() {
+            (self.dirs[0][k], self.dirs[1][k], self.dirs[2][k]) = (ray.dx, ray.dy, ray.dz);
+            self.t_end[k] = ray.t_end;
         }
     }
 
     /// Moves the starts of the first `n` rays past the space `bounds` proves empty ([`empty_space`]) and
     /// drops the rays that miss; returns the number of rays left.
     fn skip_empty_space(&mut self, job: &Job, bounds: &dyn BatchFn, start: usize, n: usize) -> usize {
-        let o = job.camera.position();
-        for (k, ray) in self.rays[..n].iter().enumerate() {
+        self.load_ray_columns(n);
+        for (group, ray) in self.group.iter_mut().zip(&self.rays[..n]) {
             let column = (start + ray.pixel as usize) % job.width;
-            self.group[k] = (column / GROUP_COLUMNS) as u32;
-            (self.dirs[0][k], self.dirs[1][k], self.dirs[2][k]) = (ray.dx, ray.dy, ray.dz);
-            self.t_end[k] = ray.t_end;
+            *group = (column / GROUP_COLUMNS) as u32;
         }
         let rays = GroupedRays {
-            origin: o,
+            origin: job.camera.position(),
             direction: [&self.dirs[0][..n], &self.dirs[1][..n], &self.dirs[2][..n]],
             t_end: &self.t_end[..n],
             group: &self.group[..n],
@@ -354,8 +360,6 @@ impl Tile {
             self.rays[live] = ray;
             self.slots[live] = live as u16;
             self.t[live] = t;
-            let p = o + Vec3::new(ray.dx, ray.dy, ray.dz) * t;
-            (self.points[0][live], self.points[1][live], self.points[2][live]) = (p.x, p.y, p.z);
             live += 1;
         }
         live
@@ -367,10 +371,7 @@ impl Tile {
         for (column, value) in self.origin.iter_mut().zip(o.to_array()) {
             column[..n].fill(value);
         }
-        for (k, ray) in self.rays[..n].iter().enumerate() {
-            (self.dirs[0][k], self.dirs[1][k], self.dirs[2][k]) = (ray.dx, ray.dy, ray.dz);
-            self.t_end[k] = ray.t_end;
-        }
+        self.load_ray_columns(n);
         let rays = MarchRays {
             origin: [&self.origin[0][..n], &self.origin[1][..n], &self.origin[2][..n]],
             direction: [&self.dirs[0][..n], &self.dirs[1][..n], &self.dirs[2][..n]],
