@@ -546,6 +546,7 @@ fn gflops(
 }
 
 fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
+    use nerfjit_jit::bf16;
     use nerfjit_jit::gemm::{self, TILE};
     const WIDTH: usize = 128;
     const PER_THREAD: usize = 4000;
@@ -579,6 +580,25 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             std::hint::black_box(&mut y);
         })
     };
+    let product_bf16 = move || -> Box<dyn FnMut()> {
+        let w: Vec<f32> = (0..WIDTH * WIDTH)
+            .map(|i| ((i * 7919) % 201) as f32 / 100.0 - 1.0)
+            .collect();
+        let w = bf16::Bf16Matrix::new(&w, WIDTH, WIDTH);
+        let mut x = columns(WIDTH);
+        let mut y = columns(WIDTH);
+        let xp: Vec<*const f32> = pointers(&mut x, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let yp = pointers(&mut y, WIDTH);
+        let mut scratch = bf16::Bf16Scratch::default();
+        Box::new(move || {
+            // SAFETY: every column holds TILE floats; x and y are separate buffers.
+            unsafe { bf16::matmul(&w, &xp, &yp, &mut scratch) };
+            std::hint::black_box(&mut y);
+        })
+    };
     let grad = move || -> Box<dyn FnMut()> {
         let mut l = columns(WIDTH);
         let mut r = columns(WIDTH);
@@ -608,6 +628,8 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
         );
     };
     run("forward product (W·x)", &product);
+    let unit = if bf16::uses_amx() { "AMX" } else { "rounded, f32 products" };
+    run(&format!("bf16 product (W·x, {unit})"), &product_bf16);
     run("weight gradient (Σ ȳ ⊗ x)", &grad);
     Ok(())
 }

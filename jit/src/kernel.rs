@@ -8,6 +8,7 @@ use cranelift_jit::{JITBuilder, JITModule};
 use cranelift_module::{default_libcall_names, Linkage, Module};
 use nerfjit_dsl::ir::{Graph, Op};
 
+use crate::bf16::Precision;
 use crate::codegen;
 use crate::tiled::Tiled;
 
@@ -18,6 +19,8 @@ type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const 
 pub struct Options {
     /// Keep the Cranelift IR text for `nerfjit ir`.
     pub keep_clif: bool,
+    /// The arithmetic of dense layers' products (forward and backward; weight gradients stay f32).
+    pub products: Precision,
 }
 
 /// What a compilation did, for reports.

@@ -17,6 +17,7 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod bf16;
 mod cache;
 mod codegen;
 mod encode;
@@ -28,6 +29,7 @@ mod simd;
 mod tape;
 mod tiled;
 
+pub use bf16::Precision;
 pub use cache::KernelCache;
 pub use kernel::{CompileStats, JitError, Kernel, Options};
 pub use marcher::{Marcher, Stop};

@@ -14,6 +14,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::ir::{Graph, Op, V};
 
+use crate::bf16::{self, Bf16Matrix, Bf16Scratch, Precision};
 use crate::encode::GridPlan;
 use crate::gemm::{self, TILE};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
@@ -82,6 +83,8 @@ pub(crate) struct Tiled {
     spare: usize,
     n_slots: usize,
     n_reductions: usize,
+    /// The arithmetic of the products.
+    precision: Precision,
     /// The compilation of all segments.
     pub stats: CompileStats,
 }
@@ -290,6 +293,7 @@ impl Tiled {
             spare,
             n_slots: slots.count,
             n_reductions: g.reductions.len(),
+            precision: options.products,
             stats,
         };
         plan.share_slots();
@@ -430,10 +434,10 @@ impl Tiled {
             };
             arena[slot * TILE..(slot + 1) * TILE].fill(value);
         }
-        let matrices: Vec<Vec<Vec<f32>>> = self
+        let matrices: Vec<Vec<Matrix>> = self
             .products
             .iter()
-            .map(|level| level.iter().map(|p| matrix(p, params)).collect())
+            .map(|level| level.iter().map(|p| matrix(p, params, self.precision)).collect())
             .collect();
         let mut accums: Vec<Vec<f32>> = self
             .segments
@@ -480,6 +484,7 @@ impl Tiled {
             .map(|sc| (sc.p.map(|s| column(s) as *const f32), reads(&sc.cotangent)))
             .collect();
         let mut scratch = Vec::new();
+        let mut bf16_scratch = Bf16Scratch::default();
         let mut laps = Laps::start();
 
         for start in (0..n).step_by(TILE) {
@@ -494,7 +499,12 @@ impl Tiled {
                 for (p, m) in product_io[s].iter().zip(&matrices[s]) {
                     // SAFETY: all columns are TILE floats in the arena; a product's outputs are picks, whose
                     // slots no input of the same product uses (its inputs precede it).
-                    unsafe { gemm::matmul(m, &p.0, &p.1) };
+                    unsafe {
+                        match m {
+                            Matrix::F32(m) => gemm::matmul(m, &p.0, &p.1),
+                            Matrix::Bf16(m) => bf16::matmul(m, &p.0, &p.1, &mut bf16_scratch),
+                        }
+                    };
                 }
                 laps.lap(Phase::Products);
                 for (step, (p, out)) in self.grids[s].iter().zip(&grid_io[s]) {
@@ -545,19 +555,30 @@ impl Tiled {
     }
 }
 
-/// The matrix a product multiplies by: W itself, or a transposed copy.
-fn matrix(p: &Product, params: &[f32]) -> Vec<f32> {
+/// A product's matrix, prepared for its arithmetic.
+enum Matrix {
+    F32(Vec<f32>),
+    Bf16(Bf16Matrix),
+}
+
+/// The matrix a product multiplies by (W itself, or a transposed copy), in `precision`.
+fn matrix(p: &Product, params: &[f32], precision: Precision) -> Matrix {
     let w = &params[p.w..p.w + p.rows * p.cols];
-    if !p.transposed {
-        return w.to_vec();
-    }
-    let mut t = vec![0.0; w.len()];
-    for i in 0..p.rows {
-        for j in 0..p.cols {
-            t[j * p.rows + i] = w[i * p.cols + j];
+    let (a, rows, cols) = if p.transposed {
+        let mut t = vec![0.0; w.len()];
+        for i in 0..p.rows {
+            for j in 0..p.cols {
+                t[j * p.rows + i] = w[i * p.cols + j];
+            }
         }
+        (t, p.cols, p.rows)
+    } else {
+        (w.to_vec(), p.rows, p.cols)
+    };
+    match precision {
+        Precision::F32 => Matrix::F32(a),
+        Precision::Bf16 => Matrix::Bf16(Bf16Matrix::new(&a, rows, cols)),
     }
-    t
 }
 
 /// The JIT kernel of level `s`'s elementwise nodes, or None if the level computes nothing.
