@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::{kernels, Type};
 use nerfjit_jit::profile::{self, Phase};
-use nerfjit_jit::{Kernel, Options};
+use nerfjit_jit::{Kernel, Options, Precision};
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
@@ -67,16 +67,16 @@ fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
-/// Runs a workload and prints its figures.
-pub fn run(workload: Workload, reps: usize, threads: Option<usize>) -> Result<()> {
+/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`.
+pub fn run(workload: Workload, reps: usize, threads: Option<usize>, products: Precision) -> Result<()> {
     match workload {
         Workload::W7 => w7(reps, threads),
         Workload::W1 => w1(reps),
         Workload::W2 => w2(reps),
         Workload::W3 => w3(reps),
-        Workload::W4 => w4(reps),
-        Workload::W5 => w5(reps),
-        Workload::W6 => w6(reps),
+        Workload::W4 => w4(reps, products),
+        Workload::W5 => w5(reps, products),
+        Workload::W6 => w6(reps, products),
         Workload::W8 => w8(reps),
         Workload::Mesh => mesh(reps),
         Workload::Large => large(reps),
@@ -403,7 +403,7 @@ fn w2(reps: usize) -> Result<()> {
     let plan = crate::volume_block::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let field = crate::jit_field::VolumeField::compile(&program, &cache)?;
+    let field = crate::jit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
     let compile_s = t.elapsed().as_secs_f64();
     let (forward, _) = field.bind(&program.param_values);
     let settings = plan.settings(&field);
@@ -636,22 +636,35 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
 
 /// Runs `steps` steps of the first `train` block of `script`, every sample evaluated; returns the summary
 /// line.
-fn volume_training(script: &str, steps: u32) -> Result<String> {
-    let program = script::load(script)?;
+fn volume_training(script: &str, steps: u32, products: Precision) -> Result<String> {
+    let program = script::load_with(script, &[products_override("train", products)])?;
     let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
-    plan.run_steps(&program, &mut params, steps)
+    profile::take();
+    profile::enable(true);
+    let summary = plan.run_steps(&program, &mut params, steps);
+    profile::enable(false);
+    Ok(format!("{}\n  {}", summary?, time_shares(&profile::take())))
 }
 
-fn w4(reps: usize) -> Result<()> {
+/// The `--set` override of a block's `products`.
+fn products_override(block: &str, products: Precision) -> String {
+    let name = match products {
+        Precision::F32 => "f32",
+        Precision::Bf16 => "bf16",
+    };
+    format!("{block}.products={name}")
+}
+
+fn w4(reps: usize, products: Precision) -> Result<()> {
     let steps = 10 * reps.max(1) as u32;
-    let summary = volume_training("examples/nerf_lego.sdf", steps)?;
+    let summary = volume_training("examples/nerf_lego.sdf", steps, products)?;
     crate::emit(&format!(
-        "W4 nerf_lego: {steps} steps of 1024 rays × 128 samples: {summary}\n"
+        "W4 nerf_lego: {steps} steps of 1024 rays × 128 samples ({products:?} products): {summary}\n"
     ));
     let program = script::load("examples/nerf_lego.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
-    let field = crate::jit_field::VolumeField::compile(&program, &cache)?;
+    let field = crate::jit_field::VolumeField::compile(&program, &cache, products)?;
     let (forward, _) = field.bind(&program.param_values);
     let settings = nerfjit_runtime::VolumeSettings {
         near: 2.0,
@@ -671,7 +684,7 @@ fn w4(reps: usize) -> Result<()> {
         std::hint::black_box(frame.is_ok());
     });
     crate::emit(&format!(
-        "W4 render: one 128×128 view, 128 samples per ray: {seconds:.2} s/view\n"
+        "W4 render: one 128×128 view, 128 samples per ray ({products:?} products): {seconds:.2} s/view\n"
     ));
     Ok(())
 }
@@ -718,23 +731,23 @@ fn time_shares(times: &profile::Times) -> String {
     )
 }
 
-fn w5(reps: usize) -> Result<()> {
-    let program = script::load("examples/neural_sdf_bunny.sdf")?;
+fn w5(reps: usize, products: Precision) -> Result<()> {
+    let program = script::load_with("examples/neural_sdf_bunny.sdf", &[products_override("train", products)])?;
     let plan = crate::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
     let summary = plan.run_steps(&program, &mut params, steps)?;
     crate::emit(&format!(
-        "W5 neural_sdf_bunny: {steps} steps of 4096 + 4096 points: {summary}\n"
+        "W5 neural_sdf_bunny: {steps} steps of 4096 + 4096 points ({products:?} products): {summary}\n"
     ));
     Ok(())
 }
 
-fn w6(reps: usize) -> Result<()> {
+fn w6(reps: usize, products: Precision) -> Result<()> {
     let steps = 10 * reps.max(1) as u32;
-    let summary = volume_training("examples/volsdf_lego.sdf", steps)?;
+    let summary = volume_training("examples/volsdf_lego.sdf", steps, products)?;
     crate::emit(&format!(
-        "W6 volsdf_lego: {steps} steps of 1024 rays × 128 samples + eikonal: {summary}\n"
+        "W6 volsdf_lego: {steps} steps of 1024 rays × 128 samples + eikonal ({products:?} products): {summary}\n"
     ));
     Ok(())
 }

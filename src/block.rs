@@ -8,6 +8,7 @@ use std::rc::Rc;
 use nerfjit_dsl::ast::ConfigBlock;
 use nerfjit_dsl::config::{Settings, Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program, Span};
+use nerfjit_jit::Precision;
 use nerfjit_runtime::Camera;
 
 use crate::failure::{at, Failure, Result};
@@ -210,6 +211,14 @@ impl<'p> Block<'p> {
             Some(v) => read::name_among(&v, choices).map(Some).map_err(|d| self.error(d)),
             None => Ok(default.map(str::to_string)),
         }
+    }
+
+    /// Setting `products`: the arithmetic of dense products.
+    pub fn products(&mut self) -> Result<Precision> {
+        Ok(match self.choice("products")?.as_deref() {
+            Some("bf16") => Precision::Bf16,
+            _ => Precision::F32,
+        })
     }
 
     /// Setting `key`, `true` or `false`, or its default.

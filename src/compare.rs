@@ -78,7 +78,7 @@ pub fn compare(
                 background,
                 ..args.resolve(&program)
             };
-            let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+            let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
             let settings = rendering.settings(fields.fine.mode);
             let grid = rendering.occupancy(&fields, &params)?;
             let f = fields.render_with(

@@ -5,7 +5,7 @@ use std::sync::{Arc, OnceLock};
 use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_dsl::{kernels, Lowered, Program, Signature, Type};
-use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Stop, Tape};
+use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Precision, Stop, Tape};
 use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
@@ -321,14 +321,23 @@ pub struct VolumeField {
 }
 
 impl VolumeField {
-    /// Finds and compiles the field functions of `program`.
-    pub fn compile(program: &Program, cache: &KernelCache) -> Result<VolumeField> {
-        Self::compile_prefixed(program, cache, "")
+    /// Finds and compiles the field functions of `program`, their dense products in `products`.
+    pub fn compile(program: &Program, cache: &KernelCache, products: Precision) -> Result<VolumeField> {
+        Self::compile_prefixed(program, cache, "", products)
     }
 
     /// Finds and compiles the field functions named with `prefix` (`coarse_density`, `coarse_color`
     /// for the coarse field of hierarchical sampling).
-    pub fn compile_prefixed(program: &Program, cache: &KernelCache, prefix: &str) -> Result<VolumeField> {
+    pub fn compile_prefixed(
+        program: &Program,
+        cache: &KernelCache,
+        prefix: &str,
+        products: Precision,
+    ) -> Result<VolumeField> {
+        let options = Options {
+            products,
+            ..Options::default()
+        };
         let has = |name: &str| program.signature(&format!("{prefix}{name}")).is_some();
         let (first, mode) = match (has("density"), has("opacity")) {
             (true, false) => (format!("{prefix}density"), Mode::Density),
@@ -355,12 +364,9 @@ impl VolumeField {
             &Type::Vec(3),
         )?;
         let lowered = program.lower_many(&[first.as_str(), color.as_str()])?;
-        let forward = cache.get(&kernels::value(&lowered), Options::default())?;
-        let backward = cache.get(
-            &kernels::param_vjp(&lowered, program.n_params()),
-            Options::default(),
-        )?;
-        let density = cache.get(&kernels::value(&program.lower(&first)?), Options::default())?;
+        let forward = cache.get(&kernels::value(&lowered), options)?;
+        let backward = cache.get(&kernels::param_vjp(&lowered, program.n_params()), options)?;
+        let density = cache.get(&kernels::value(&program.lower(&first)?), options)?;
         Ok(VolumeField {
             forward,
             backward,
@@ -468,13 +474,19 @@ pub struct VolumeFields {
 }
 
 impl VolumeFields {
-    /// Compiles the fields of `program`; hierarchical when `importance` > 0.
-    pub fn compile(program: &Program, cache: &KernelCache, importance: usize) -> Result<VolumeFields> {
-        let fine = VolumeField::compile(program, cache)?;
+    /// Compiles the fields of `program`, their dense products in `products`; hierarchical when
+    /// `importance` > 0.
+    pub fn compile(
+        program: &Program,
+        cache: &KernelCache,
+        importance: usize,
+        products: Precision,
+    ) -> Result<VolumeFields> {
+        let fine = VolumeField::compile(program, cache, products)?;
         let coarse = match importance {
             0 => None,
             n => {
-                let coarse = VolumeField::compile_prefixed(program, cache, "coarse_").map_err(|e| {
+                let coarse = VolumeField::compile_prefixed(program, cache, "coarse_", products).map_err(|e| {
                     Failure::Message(format!("importance sampling needs a coarse field: {e}"))
                 })?;
                 if coarse.mode != fine.mode {
@@ -566,7 +578,7 @@ mod tests {
     fn a_script_density_gets_its_occupancy_grid_from_its_bounds() {
         let program = nerfjit_dsl::compile("shell.sdf", SHELL).unwrap();
         let cache = KernelCache::new();
-        let field = VolumeField::compile(&program, &cache).unwrap();
+        let field = VolumeField::compile(&program, &cache, Precision::F32).unwrap();
         let params = &program.param_values;
         let unit = ([-1.0; 3], [1.0; 3]);
         let probed = OccupancyGrid::build(&field.bind_density(params), unit, 8, Mode::Density, 0.5).unwrap();

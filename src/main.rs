@@ -109,6 +109,10 @@ enum Command {
         /// Repetitions; the median is reported.
         #[arg(long, default_value_t = 9)]
         reps: usize,
+        /// The arithmetic of the networks' products in W4, W5 and W6: f32, or bf16 (bfloat16 operands,
+        /// f32 sums; on AMX where the CPU has it).
+        #[arg(long, default_value = "f32", value_parser = ["f32", "bf16"])]
+        products: String,
     },
     /// Extract the marching-cubes mesh of a script's function (its zero level set by default), or of a
     /// trained field from a checkpoint.
@@ -443,7 +447,20 @@ fn run_command(cli: Cli) -> ExitCode {
             let kind = if grad { ir_dump::KernelKind::Grad } else { kind };
             ir_dump::run(&script, &function, kind, graph_only).map(|text| emit(&text))
         }
-        Command::Bench { workload, reps } => bench::run(workload, reps, cli.threads),
+        Command::Bench {
+            workload,
+            reps,
+            products,
+        } => bench::run(
+            workload,
+            reps,
+            cli.threads,
+            if products == "bf16" {
+                nerfjit_jit::Precision::Bf16
+            } else {
+                nerfjit_jit::Precision::F32
+            },
+        ),
         Command::Mesh {
             script,
             function,

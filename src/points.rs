@@ -60,7 +60,7 @@ pub fn run(args: &PointsArgs) -> Result<String> {
     }
     let rendering = args.view.resolve(&program);
     let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let settings = rendering.settings(fields.fine.mode);
     let start = Instant::now();
     let mut cloud = Mesh {

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use nerfjit_dsl::kernels::{self, SdfLoss};
 use nerfjit_dsl::{Program, Type};
-use nerfjit_jit::{Kernel, KernelCache, Options};
+use nerfjit_jit::{Kernel, KernelCache, Options, Precision};
 use nerfjit_runtime::volume::occupancy::OccupancyGrid;
 use nerfjit_runtime::Rng;
 
@@ -34,12 +34,14 @@ pub struct RegularizerKernels {
 }
 
 impl RegularizerKernels {
-    /// The kernel of `fn name(p: vec3) -> f32` for the weights and point count of `reg`, from `cache`.
+    /// The kernel of `fn name(p: vec3) -> f32` for the weights and point count of `reg`, from `cache`,
+    /// its dense products in `products`.
     pub fn compile(
         program: &Program,
         name: &str,
         reg: &Regularizers,
         cache: &KernelCache,
+        products: Precision,
     ) -> Result<RegularizerKernels> {
         crate::jit_field::check_signature(program, name, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(name)?;
@@ -51,7 +53,13 @@ impl RegularizerKernels {
         };
         let graph = kernels::sdf_loss(&lowered, program.n_params(), loss);
         Ok(RegularizerKernels {
-            loss: cache.get(&graph, Options::default())?,
+            loss: cache.get(
+                &graph,
+                Options {
+                    products,
+                    ..Options::default()
+                },
+            )?,
         })
     }
 }

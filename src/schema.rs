@@ -307,6 +307,12 @@ const IMPORTANCE: Setting = whole(
     0,
     "hierarchical sampling: fine samples per ray drawn from the coarse field's weights (0: off)",
 );
+const PRODUCTS: Setting = choice(
+    "products",
+    &["f32", "bf16"],
+    Some("f32"),
+    "the arithmetic of dense layers' products: f32, or bfloat16 operands with f32 sums (on AMX tiles where the CPU has them; weight gradients stay f32)",
+);
 const SAMPLES: Setting = whole("samples", 2, 4096, 64, "samples per ray");
 const BACKGROUND: Setting = triple(
     "background",
@@ -416,6 +422,7 @@ pub const RENDER_VOLUME: BlockSchema = BlockSchema {
         SPACING,
         SKIP_EMPTY,
         IMPORTANCE,
+        PRODUCTS,
         output("out", IMAGES, "the frames: a GIF or MP4, or PNGs").required("out: \"volume.gif\""),
         output(
             "depth",
@@ -510,6 +517,7 @@ pub const TRAIN: BlockSchema = BlockSchema {
         ),
         IMPORTANCE,
         SKIP_EMPTY,
+        PRODUCTS,
         whole(
             "grid_every",
             1,
@@ -561,6 +569,7 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
         value("data", "points(\"file\", key: \"name\")", None, "the point cloud")
             .required("data: points(\"bunny_pointcloud.npz\", key: \"verts\")"),
         function("function", "the function fitted"),
+        PRODUCTS,
         STEPS,
         BATCH,
         whole("random", 1, 1 << 20, 4096, "uniform points per step"),

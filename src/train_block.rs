@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
-use nerfjit_jit::KernelCache;
+use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{
     load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Rng,
     Schedule, Views, VolumeSettings,
@@ -70,6 +70,8 @@ pub struct TrainPlan {
     validation: Option<Validation>,
     /// Importance samples per ray for hierarchical sampling (0: one field, no fine pass).
     importance: usize,
+    /// The arithmetic of the networks' products.
+    products: Precision,
     /// Empty-space skipping during training: an occupancy grid of the (fine) field, rebuilt every
     /// `every` steps from step `warmup` on.
     grid: Option<TrainingGrid>,
@@ -411,6 +413,7 @@ impl TrainPlan {
             None => None,
         };
         let importance = b.whole("importance")? as usize;
+        let products = b.products()?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
             Some(v) => crate::volume_block::skip_empty(&v).map_err(|d| b.error(d))?,
@@ -472,6 +475,7 @@ impl TrainPlan {
             eikonal,
             validation,
             importance,
+            products,
             grid,
         })
     }
@@ -549,13 +553,14 @@ impl TrainPlan {
     ) -> Result<String> {
         let (views, val_views) = self.load_views()?;
         let t = Instant::now();
-        let fields = VolumeFields::compile(program, cache, self.importance)?;
+        let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;
         let regularizers = match &self.eikonal {
             Some(e) => Some(RegularizerKernels::compile(
                 program,
                 &e.sdf,
                 &e.regularizers,
                 cache,
+                self.products,
             )?),
             None => None,
         };

@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::kernels::{self, SdfLoss};
 use nerfjit_dsl::{Diagnostic, Program, Type};
-use nerfjit_jit::{Kernel, KernelCache, Options};
+use nerfjit_jit::{Kernel, KernelCache, Options, Precision};
 use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng, Schedule};
 
 use crate::block::Block;
@@ -52,6 +52,8 @@ pub struct SdfTrainPlan {
     tensorboard: Option<PathBuf>,
     summary: Option<PathBuf>,
     points_gif: Option<PathBuf>,
+    /// The arithmetic of the network's products.
+    products: Precision,
 }
 
 /// The loss kernels of one SDF: each gives its per-point loss terms and their param gradient in one pass.
@@ -111,6 +113,7 @@ impl SdfTrainPlan {
             tensorboard: b.output("tensorboard")?,
             summary: b.output("summary")?,
             points_gif: b.output("points_gif")?,
+            products: b.products()?,
         };
         b.finish()?;
         Ok(plan)
@@ -119,12 +122,11 @@ impl SdfTrainPlan {
     fn compile(&self, program: &Program, cache: &KernelCache) -> Result<Kernels> {
         crate::jit_field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
         let lowered = program.lower(&self.function)?;
-        let loss = |loss: SdfLoss| {
-            cache.get(
-                &kernels::sdf_loss(&lowered, program.n_params(), loss),
-                Options::default(),
-            )
+        let options = Options {
+            products: self.products,
+            ..Options::default()
         };
+        let loss = |loss: SdfLoss| cache.get(&kernels::sdf_loss(&lowered, program.n_params(), loss), options);
         let sphere = SdfLoss::Sphere {
             radius: f64::from(self.pretrain_radius),
             scale: 1.0 / self.random as f64,
@@ -135,9 +137,9 @@ impl SdfTrainPlan {
         Ok(Kernels {
             sphere: loss(sphere)?,
             surface: loss(surface)?,
-            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers(), cache)?,
+            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers(), cache, self.products)?,
             jittered: match self.jittered() {
-                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg, cache)?),
+                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg, cache, self.products)?),
                 None => None,
             },
         })

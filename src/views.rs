@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
-use nerfjit_jit::KernelCache;
+use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{
     psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid, Quantize, Views,
@@ -64,6 +64,8 @@ pub struct Rendering {
     pub running_grid: bool,
     /// Transmittance below which a ray stops, as the script trains.
     pub early_termination: Option<f32>,
+    /// The arithmetic of the networks' products, as the script trains.
+    pub products: Precision,
 }
 
 impl ViewArgs<'_> {
@@ -82,6 +84,7 @@ impl ViewArgs<'_> {
             skip_empty: script.skip_empty.filter(|_| !self.exact),
             running_grid: script.running_grid,
             early_termination: script.early_termination.filter(|_| !self.exact),
+            products: script.products,
         }
     }
 }
@@ -101,6 +104,7 @@ impl Rendering {
             skip_empty: trained.skip_empty,
             running_grid: trained.running_grid,
             early_termination: trained.early_termination,
+            products: trained.products,
         }
     }
 }
@@ -118,6 +122,7 @@ struct TrainedWith {
     skip_empty: Option<SkipEmpty>,
     running_grid: bool,
     early_termination: Option<f32>,
+    products: Precision,
 }
 
 impl TrainedWith {
@@ -152,6 +157,10 @@ impl TrainedWith {
             .and_then(|v| crate::volume_block::skip_empty(&v).ok().flatten());
         let running_grid = crate::train_block::grid_update(settings.take("grid_update"))
             .is_ok_and(|u| u != crate::train_block::GridUpdate::Rebuild);
+        let products = match settings.take("products").map(|v| v.value) {
+            Some(Value::Name(n)) if n == "bf16" => Precision::Bf16,
+            _ => Precision::F32,
+        };
 
         TrainedWith {
             near: near.map(|x| x as f32),
@@ -163,6 +172,7 @@ impl TrainedWith {
             skip_empty,
             running_grid,
             early_termination,
+            products,
         }
     }
 }
@@ -289,7 +299,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     };
     let rendering = args.resolve(&program);
     let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let settings = rendering.settings(fields.fine.mode);
     let grid = rendering.occupancy(&fields, &params)?;
     let start = Instant::now();
@@ -375,7 +385,7 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
         None => held_out_views(args.source, &program)?,
     };
     let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, rendering.importance)?;
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let start = Instant::now();
     let grid = rendering.occupancy(&fields, &params)?;
     let scores = score(

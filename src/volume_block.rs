@@ -6,7 +6,7 @@ use std::time::Instant;
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
-use nerfjit_jit::KernelCache;
+use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
 
 use crate::block::Block;
@@ -49,6 +49,8 @@ pub struct VolumePlan {
     pub skip_empty: Option<SkipEmpty>,
     /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
     pub importance: usize,
+    /// The arithmetic of the networks' products.
+    pub products: Precision,
     /// Color frames.
     pub out: PathBuf,
     /// Depth frames.
@@ -76,6 +78,7 @@ impl VolumePlan {
         let depth = b.output("depth")?;
         let frame_ms = b.whole("frame_ms")? as u32;
         let importance = b.whole("importance")? as usize;
+        let products = b.products()?;
         b.finish()?;
         Ok(VolumePlan {
             cameras,
@@ -88,6 +91,7 @@ impl VolumePlan {
             spacing,
             skip_empty,
             importance,
+            products,
             out,
             depth,
             frame_ms,
@@ -117,7 +121,7 @@ impl VolumePlan {
         progress: &dyn Fn(usize),
     ) -> Result<String> {
         let t = Instant::now();
-        let fields = VolumeFields::compile(program, cache, self.importance)?;
+        let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;
         let field = &fields.fine;
         let compile_s = t.elapsed().as_secs_f64();
         let settings = self.settings(field);

@@ -141,7 +141,7 @@ impl Scene {
         } else {
             let rendering = Rendering::of_script(&program);
             Renderer::Volume {
-                fields: VolumeFields::compile(&program, &cache, rendering.importance)?,
+                fields: VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?,
                 rendering,
             }
         };
