@@ -618,6 +618,25 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             std::hint::black_box((&l, &r, &g));
         })
     };
+    let grad_bf16 = move || -> Box<dyn FnMut()> {
+        let mut l = columns(WIDTH);
+        let mut r = columns(WIDTH);
+        let lp: Vec<*const f32> = pointers(&mut l, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let rp: Vec<*const f32> = pointers(&mut r, WIDTH)
+            .into_iter()
+            .map(|p| p as *const f32)
+            .collect();
+        let mut g = vec![0.0f32; WIDTH * gemm::padded(WIDTH)];
+        let mut scratch = bf16::Bf16Scratch::default();
+        Box::new(move || {
+            // SAFETY: every column holds TILE floats.
+            unsafe { bf16::outer(&lp, &rp, TILE, &mut g, &mut scratch) };
+            std::hint::black_box((&l, &r, &g));
+        })
+    };
     let flops = (2 * WIDTH * WIDTH * TILE) as f64;
     let run = |name: &str, make: &(dyn Fn() -> Box<dyn FnMut()> + Sync)| {
         let one = gflops(reps, 1, PER_THREAD, flops, make);
@@ -628,9 +647,14 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
         );
     };
     run("forward product (W·x)", &product);
-    let unit = if bf16::uses_amx() { "AMX" } else { "rounded, f32 products" };
+    let unit = if bf16::uses_amx() {
+        "AMX"
+    } else {
+        "rounded, f32 products"
+    };
     run(&format!("bf16 product (W·x, {unit})"), &product_bf16);
     run("weight gradient (Σ ȳ ⊗ x)", &grad);
+    run(&format!("bf16 weight gradient (Σ ȳ ⊗ x, {unit})"), &grad_bf16);
     Ok(())
 }
 
@@ -732,7 +756,10 @@ fn time_shares(times: &profile::Times) -> String {
 }
 
 fn w5(reps: usize, products: Precision) -> Result<()> {
-    let program = script::load_with("examples/neural_sdf_bunny.sdf", &[products_override("train", products)])?;
+    let program = script::load_with(
+        "examples/neural_sdf_bunny.sdf",
+        &[products_override("train", products)],
+    )?;
     let plan = crate::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();

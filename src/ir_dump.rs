@@ -70,7 +70,13 @@ pub fn run(path: &str, function: &str, kind: KernelKind, graph_only: bool) -> Re
     if graph_only {
         return Ok(text);
     }
-    let kernel = Kernel::compile(&graph, Options { keep_clif: true, ..Options::default() })?;
+    let kernel = Kernel::compile(
+        &graph,
+        Options {
+            keep_clif: true,
+            ..Options::default()
+        },
+    )?;
     Ok(format!(
         "{text}; Cranelift IR ({} bytes of machine code, compiled in {:.1} ms)\n{}",
         kernel.stats().code_bytes,

@@ -486,9 +486,10 @@ impl VolumeFields {
         let coarse = match importance {
             0 => None,
             n => {
-                let coarse = VolumeField::compile_prefixed(program, cache, "coarse_", products).map_err(|e| {
-                    Failure::Message(format!("importance sampling needs a coarse field: {e}"))
-                })?;
+                let coarse =
+                    VolumeField::compile_prefixed(program, cache, "coarse_", products).map_err(|e| {
+                        Failure::Message(format!("importance sampling needs a coarse field: {e}"))
+                    })?;
                 if coarse.mode != fine.mode {
                     return Err(Failure::Message(
                         "the coarse and fine fields must both be densities or both opacities".into(),

@@ -311,7 +311,7 @@ const PRODUCTS: Setting = choice(
     "products",
     &["f32", "bf16"],
     Some("f32"),
-    "the arithmetic of dense layers' products: f32, or bfloat16 operands with f32 sums (on AMX tiles where the CPU has them; weight gradients stay f32)",
+    "the arithmetic of dense layers' products: f32, or bfloat16 operands with f32 sums (on AMX tiles where the CPU has them)",
 );
 const SAMPLES: Setting = whole("samples", 2, 4096, 64, "samples per ray");
 const BACKGROUND: Setting = triple(

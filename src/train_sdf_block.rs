@@ -137,9 +137,21 @@ impl SdfTrainPlan {
         Ok(Kernels {
             sphere: loss(sphere)?,
             surface: loss(surface)?,
-            regularizers: RegularizerKernels::compile(program, &self.function, &self.regularizers(), cache, self.products)?,
+            regularizers: RegularizerKernels::compile(
+                program,
+                &self.function,
+                &self.regularizers(),
+                cache,
+                self.products,
+            )?,
             jittered: match self.jittered() {
-                Some(reg) => Some(RegularizerKernels::compile(program, &self.function, &reg, cache, self.products)?),
+                Some(reg) => Some(RegularizerKernels::compile(
+                    program,
+                    &self.function,
+                    &reg,
+                    cache,
+                    self.products,
+                )?),
                 None => None,
             },
         })

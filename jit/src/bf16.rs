@@ -1,5 +1,5 @@
 //! Matrix products with bfloat16 operands and f32 sums, for the dense layers of kernels compiled with
-//! [`Precision::Bf16`].
+//! [`Precision::Bf16`]: [`matmul`] (forward and backward products) and [`outer`] (weight gradients).
 //!
 //! Both operands are rounded to bfloat16 (8 significant bits, to nearest, ties to even) and their products
 //! summed in f32, as mixed-precision training on GPUs does. Where the CPU has AMX (Intel's tile matrix unit,
@@ -99,6 +99,12 @@ pub struct Bf16Scratch {
     pairs: Vec<Line>,
     /// Four tiles of results.
     results: Vec<Line>,
+    /// The outer product's operands: the left one's rows, the right one transposed in pairs of points.
+    left: Vec<Line>,
+    right: Vec<Line>,
+    /// The outer product's accumulator padded to whole blocks of 16 rows, and the f32 product's scratch.
+    padded: Vec<f32>,
+    transposed: Vec<f32>,
 }
 
 /// `out[i][t] = Σ_k a[i][k] · x[k][t]` for t < [`TILE`], with both operands rounded to bfloat16 and the
@@ -108,10 +114,7 @@ pub struct Bf16Scratch {
 /// Every pointer of `x` must address [`TILE`] readable floats and every pointer of `out` [`TILE`]
 /// writable floats that no pointer of `x` overlaps.
 pub unsafe fn matmul(a: &Bf16Matrix, x: &[*const f32], out: &[*mut f32], scratch: &mut Bf16Scratch) {
-    assert!(
-        a.cols == x.len() && a.rows == out.len(),
-        "product shapes differ"
-    );
+    assert!(a.cols == x.len() && a.rows == out.len(), "product shapes differ");
     #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
     if !a.tiles.is_empty() {
         // SAFETY: AMX and AVX-512F run (the tiles exist only then); the buffers are as the caller guarantees.
@@ -130,6 +133,43 @@ pub unsafe fn matmul(a: &Bf16Matrix, x: &[*const f32], out: &[*mut f32], scratch
     unsafe { gemm::matmul(&a.rounded, &rounded, out) };
 }
 
+/// `g[i·stride + j] += Σ_{t < count} l[i][t] · r[j][t]` as [`gemm::outer`] (stride =
+/// [`gemm::padded`]`(r.len())`), with both operands rounded to bfloat16 and the sums in f32.
+///
+/// # Safety
+/// Every pointer of `l` and `r` must address `count` readable floats.
+pub unsafe fn outer(
+    l: &[*const f32],
+    r: &[*const f32],
+    count: usize,
+    g: &mut [f32],
+    scratch: &mut Bf16Scratch,
+) {
+    assert!(count <= TILE, "more points than a tile");
+    assert!(
+        g.len() >= l.len() * gemm::padded(r.len()),
+        "gradient buffer too small"
+    );
+    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+    if uses_amx() {
+        // SAFETY: AMX and AVX-512F run; the buffers are as the caller guarantees and checked above.
+        unsafe { amx::outer(l, r, count, g, scratch) };
+        return;
+    }
+    let columns = &mut scratch.columns;
+    columns.clear();
+    for &c in l.iter().chain(r) {
+        // SAFETY: c addresses `count` floats (caller).
+        let c = unsafe { std::slice::from_raw_parts(c, count) };
+        columns.extend(c.iter().map(|&v| round_bf16(v)));
+        columns.resize(columns.len() + TILE - count, 0.0);
+    }
+    let rounded: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
+    let (left, right) = rounded.split_at(l.len());
+    // SAFETY: the rounded columns hold TILE ≥ count floats each.
+    unsafe { gemm::outer(left, right, count, g, &mut scratch.transposed) };
+}
+
 #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
 mod amx {
     use std::arch::asm;
@@ -137,7 +177,8 @@ mod amx {
     use std::sync::OnceLock;
 
     use super::{Bf16Matrix, Bf16Scratch, Line};
-    use crate::gemm::{has_avx512, TILE};
+    use crate::gemm::avx512::transpose16;
+    use crate::gemm::{has_avx512, padded, TILE};
 
     /// The tile configuration (palette 1): tiles 0–7 all 16 rows of 64 bytes. Tiles 0–3 hold the four
     /// 16 × 16 blocks of results, 4–5 two blocks of the matrix (16 rows × 32 columns), 6–7 two blocks of
@@ -175,7 +216,9 @@ mod amx {
                 leaf.edx & (1 << 22) != 0 && leaf.edx & (1 << 24) != 0
             };
             // SAFETY: arch_prctl with this request only changes the process's permitted state components.
-            has_amx && unsafe { libc::syscall(libc::SYS_arch_prctl, ARCH_REQ_XCOMP_PERM, XFEATURE_XTILEDATA) } == 0
+            has_amx
+                && unsafe { libc::syscall(libc::SYS_arch_prctl, ARCH_REQ_XCOMP_PERM, XFEATURE_XTILEDATA) }
+                    == 0
         })
     }
 
@@ -185,7 +228,10 @@ mod amx {
     fn bf16_lanes(v: __m512) -> __m512i {
         let b = _mm512_castps_si512(v);
         let high = _mm512_srli_epi32::<16>(b);
-        let bias = _mm512_add_epi32(_mm512_and_si512(high, _mm512_set1_epi32(1)), _mm512_set1_epi32(0x7fff));
+        let bias = _mm512_add_epi32(
+            _mm512_and_si512(high, _mm512_set1_epi32(1)),
+            _mm512_set1_epi32(0x7fff),
+        );
         let rounded = _mm512_srli_epi32::<16>(_mm512_add_epi32(b, bias));
         let nan = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(v, v);
         _mm512_mask_blend_epi32(nan, rounded, _mm512_or_si512(high, _mm512_set1_epi32(0x40)))
@@ -229,7 +275,12 @@ mod amx {
     /// # Safety
     /// As [`super::matmul`]; [`available`] is true and `a` has its tiles.
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn matmul(a: &Bf16Matrix, x: &[*const f32], out: &[*mut f32], scratch: &mut Bf16Scratch) {
+    pub(super) unsafe fn matmul(
+        a: &Bf16Matrix,
+        x: &[*const f32],
+        out: &[*mut f32],
+        scratch: &mut Bf16Scratch,
+    ) {
         let (row_blocks, col_blocks) = (a.rows.div_ceil(16), a.cols.div_ceil(32));
         let lines = TILE / 16;
         scratch.pairs.clear();
@@ -321,6 +372,188 @@ mod amx {
             asm!("tilerelease", options(nostack, nomem));
         }
     }
+
+    /// The bfloat16 of the 32 points 32·b.. of a column of `count` floats (zero from `count` on), packed
+    /// in order: 16 words, each the pair of points (2p, 2p + 1).
+    ///
+    /// # Safety
+    /// `c` addresses `count` readable floats.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn point_pairs(c: *const f32, count: usize, b: usize) -> __m512i {
+        let half = |h: usize| {
+            let from = 32 * b + 16 * h;
+            let n = count.saturating_sub(from).min(16);
+            let mask = ((1u32 << n) - 1) as u16;
+            // SAFETY: the mask reads only points below `count` (caller).
+            let v = unsafe { _mm512_maskz_loadu_ps(mask, c.add(from.min(count))) };
+            _mm512_cvtepi32_epi16(bf16_lanes(v))
+        };
+        _mm512_inserti64x4::<1>(_mm512_castsi256_si512(half(0)), half(1))
+    }
+
+    /// See [`super::outer`].
+    ///
+    /// # Safety
+    /// As [`super::outer`], whose checks passed; [`available`] is true.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn outer(
+        l: &[*const f32],
+        r: &[*const f32],
+        count: usize,
+        g: &mut [f32],
+        scratch: &mut Bf16Scratch,
+    ) {
+        let stride = padded(r.len());
+        let (row_blocks, col_blocks, point_blocks) = (l.len().div_ceil(16), stride / 16, count.div_ceil(32));
+        if row_blocks == 0 || col_blocks == 0 || point_blocks == 0 {
+            return;
+        }
+        // The left operand: row i's points 32·b.. in line i·point_blocks + b (rows past l.len() zero).
+        let left = &mut scratch.left;
+        left.clear();
+        left.resize(row_blocks * 16 * point_blocks, Line::default());
+        for (i, &c) in l.iter().enumerate() {
+            for b in 0..point_blocks {
+                // SAFETY: c addresses `count` floats (caller); the line exists and is aligned.
+                unsafe {
+                    _mm512_store_si512(
+                        left[i * point_blocks + b].0.as_mut_ptr().cast(),
+                        point_pairs(c, count, b),
+                    )
+                };
+            }
+        }
+        // The right operand: for column block jb and point block b, 16 lines: line p holds the pairs of
+        // points (32·b + 2p, 32·b + 2p + 1) of the block's 16 columns (missing columns zero).
+        let right = &mut scratch.right;
+        right.clear();
+        right.resize(col_blocks * point_blocks * 16, Line::default());
+        for jb in 0..col_blocks {
+            for b in 0..point_blocks {
+                let words: [__m512; 16] = std::array::from_fn(|q| match r.get(16 * jb + q) {
+                    // SAFETY: c addresses `count` floats (caller).
+                    Some(&c) => _mm512_castsi512_ps(unsafe { point_pairs(c, count, b) }),
+                    None => _mm512_setzero_ps(),
+                });
+                for (p, v) in transpose16(words).iter().enumerate() {
+                    let line = &mut right[(jb * point_blocks + b) * 16 + p];
+                    // SAFETY: the line exists and is aligned.
+                    unsafe { _mm512_store_ps(line.0.as_mut_ptr().cast(), *v) };
+                }
+            }
+        }
+        // The accumulator in whole blocks of 16 rows: g itself, or a padded copy.
+        let whole = l.len() % 16 == 0;
+        if !whole {
+            scratch.padded.clear();
+            scratch.padded.extend_from_slice(&g[..l.len() * stride]);
+            scratch.padded.resize(row_blocks * 16 * stride, 0.0);
+        }
+        let acc = if whole {
+            g.as_mut_ptr()
+        } else {
+            scratch.padded.as_mut_ptr()
+        };
+        let (left, right) = (
+            scratch.left.as_ptr().cast::<u8>(),
+            scratch.right.as_ptr().cast::<u8>(),
+        );
+        let c_at = |ib: usize, jb: usize| acc.wrapping_add(16 * (ib * stride + jb));
+        let a_at = |ib: usize, b: usize| left.wrapping_add(64 * (16 * ib * point_blocks + b));
+        let b_at = |jb: usize, b: usize| right.wrapping_add(64 * 16 * (jb * point_blocks + b));
+        // Strides in bytes: the accumulator's rows, the left operand's rows, the right one's lines.
+        let (sc, sa, sb) = (4 * stride, 64 * point_blocks, 64usize);
+        // SAFETY (every block): the configuration is valid; each accumulator tile is 16 rows of 16 floats
+        // inside acc (row_blocks·16 rows of `stride` ≥ 16·(jb + 1) floats); each left tile 16 rows of 64
+        // bytes inside `left`, each right tile 16 lines inside `right`.
+        unsafe {
+            asm!("ldtilecfg [{}]", in(reg) &CONFIG, options(nostack, readonly));
+            for ib in (0..row_blocks).step_by(2) {
+                for jb in (0..col_blocks).step_by(2) {
+                    if ib + 1 < row_blocks && jb + 1 < col_blocks {
+                        asm!(
+                            "tileloadd tmm0, [{c00} + {sc}*1]",
+                            "tileloadd tmm1, [{c01} + {sc}*1]",
+                            "tileloadd tmm2, [{c10} + {sc}*1]",
+                            "tileloadd tmm3, [{c11} + {sc}*1]",
+                            c00 = in(reg) c_at(ib, jb),
+                            c01 = in(reg) c_at(ib, jb + 1),
+                            c10 = in(reg) c_at(ib + 1, jb),
+                            c11 = in(reg) c_at(ib + 1, jb + 1),
+                            sc = in(reg) sc,
+                            options(nostack, readonly)
+                        );
+                        for b in 0..point_blocks {
+                            asm!(
+                                "tileloadd tmm4, [{a0} + {sa}*1]",
+                                "tileloadd tmm5, [{a1} + {sa}*1]",
+                                "tileloadd tmm6, [{b0} + {sb}*1]",
+                                "tileloadd tmm7, [{b1} + {sb}*1]",
+                                "tdpbf16ps tmm0, tmm4, tmm6",
+                                "tdpbf16ps tmm1, tmm4, tmm7",
+                                "tdpbf16ps tmm2, tmm5, tmm6",
+                                "tdpbf16ps tmm3, tmm5, tmm7",
+                                a0 = in(reg) a_at(ib, b),
+                                a1 = in(reg) a_at(ib + 1, b),
+                                b0 = in(reg) b_at(jb, b),
+                                b1 = in(reg) b_at(jb + 1, b),
+                                sa = in(reg) sa,
+                                sb = in(reg) sb,
+                                options(nostack, readonly)
+                            );
+                        }
+                        asm!(
+                            "tilestored [{c00} + {sc}*1], tmm0",
+                            "tilestored [{c01} + {sc}*1], tmm1",
+                            "tilestored [{c10} + {sc}*1], tmm2",
+                            "tilestored [{c11} + {sc}*1], tmm3",
+                            c00 = in(reg) c_at(ib, jb),
+                            c01 = in(reg) c_at(ib, jb + 1),
+                            c10 = in(reg) c_at(ib + 1, jb),
+                            c11 = in(reg) c_at(ib + 1, jb + 1),
+                            sc = in(reg) sc,
+                            options(nostack)
+                        );
+                        continue;
+                    }
+                    // An edge: each of the (one or two) blocks on its own.
+                    for i in ib..(ib + 2).min(row_blocks) {
+                        for j in jb..(jb + 2).min(col_blocks) {
+                            asm!(
+                                "tileloadd tmm0, [{c} + {sc}*1]",
+                                c = in(reg) c_at(i, j),
+                                sc = in(reg) sc,
+                                options(nostack, readonly)
+                            );
+                            for b in 0..point_blocks {
+                                asm!(
+                                    "tileloadd tmm4, [{a} + {sa}*1]",
+                                    "tileloadd tmm6, [{b} + {sb}*1]",
+                                    "tdpbf16ps tmm0, tmm4, tmm6",
+                                    a = in(reg) a_at(i, b),
+                                    b = in(reg) b_at(j, b),
+                                    sa = in(reg) sa,
+                                    sb = in(reg) sb,
+                                    options(nostack, readonly)
+                                );
+                            }
+                            asm!(
+                                "tilestored [{c} + {sc}*1], tmm0",
+                                c = in(reg) c_at(i, j),
+                                sc = in(reg) sc,
+                                options(nostack)
+                            );
+                        }
+                    }
+                }
+            }
+            asm!("tilerelease", options(nostack, nomem));
+        }
+        if !whole {
+            g[..l.len() * stride].copy_from_slice(&scratch.padded[..l.len() * stride]);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -344,7 +577,10 @@ mod tests {
 
     fn values(seed: u32, len: usize) -> Vec<f32> {
         (0..len)
-            .map(|t| (((t as u32).wrapping_mul(2654435761) ^ seed.wrapping_mul(40503)) % 10_007) as f32 / 5003.0 - 1.0)
+            .map(|t| {
+                (((t as u32).wrapping_mul(2654435761) ^ seed.wrapping_mul(40503)) % 10_007) as f32 / 5003.0
+                    - 1.0
+            })
             .collect()
     }
 
@@ -353,7 +589,17 @@ mod tests {
     #[test]
     fn matmul_sums_the_products_of_rounded_operands() {
         let mut scratch = Bf16Scratch::default();
-        for (m, k) in [(1, 1), (3, 5), (16, 32), (17, 33), (40, 100), (128, 128), (256, 63), (5, 0), (0, 7)] {
+        for (m, k) in [
+            (1, 1),
+            (3, 5),
+            (16, 32),
+            (17, 33),
+            (40, 100),
+            (128, 128),
+            (256, 63),
+            (5, 0),
+            (0, 7),
+        ] {
             let a = values(7, m * k);
             let xs: Vec<Vec<f32>> = (0..k).map(|c| values(c as u32 + 11, TILE)).collect();
             let matrix = Bf16Matrix::new(&a, m, k);
@@ -364,11 +610,54 @@ mod tests {
             unsafe { matmul(&matrix, &xp, &op, &mut scratch) };
             for (i, row) in outs.iter().enumerate() {
                 for (t, &got) in row.iter().enumerate() {
-                    let terms = (0..k).map(|c| f64::from(round_bf16(a[i * k + c])) * f64::from(round_bf16(xs[c][t])));
+                    let terms =
+                        (0..k).map(|c| f64::from(round_bf16(a[i * k + c])) * f64::from(round_bf16(xs[c][t])));
                     let (want, size) = terms.fold((0.0, 0.0), |(s, z), v| (s + v, z + v.abs()));
                     assert!(
                         (f64::from(got) - want).abs() <= 1e-6 * (size + 1.0),
                         "amx {} {m}x{k} at ({i}, {t}): {got} vs {want}",
+                        uses_amx()
+                    );
+                }
+            }
+        }
+    }
+
+    /// On AMX and on the portable path alike: the outer product adds the sums over the valid points of
+    /// the products of the rounded operands.
+    #[test]
+    fn outer_adds_the_products_of_rounded_operands_over_the_valid_points() {
+        let mut scratch = Bf16Scratch::default();
+        for (m, n, count) in [
+            (1, 1, 1),
+            (3, 5, 7),
+            (16, 16, 32),
+            (17, 40, 100),
+            (64, 128, 128),
+            (33, 3, 128),
+            (6, 9, 0),
+        ] {
+            let ls: Vec<Vec<f32>> = (0..m).map(|c| values(c as u32 + 100, TILE)).collect();
+            let rs: Vec<Vec<f32>> = (0..n).map(|c| values(c as u32 + 300, TILE)).collect();
+            let stride = gemm::padded(n);
+            let mut g: Vec<f32> = values(5, m * stride);
+            let before = g.clone();
+            let lp: Vec<*const f32> = ls.iter().map(|c| c.as_ptr()).collect();
+            let rp: Vec<*const f32> = rs.iter().map(|c| c.as_ptr()).collect();
+            // SAFETY: every column holds TILE ≥ count floats.
+            unsafe { outer(&lp, &rp, count, &mut g, &mut scratch) };
+            for i in 0..m {
+                for j in 0..n {
+                    let terms =
+                        (0..count).map(|t| f64::from(round_bf16(ls[i][t])) * f64::from(round_bf16(rs[j][t])));
+                    let (sum, size) = terms.fold((0.0, 0.0), |(s, z), v| (s + v, z + v.abs()));
+                    let (got, want) = (
+                        f64::from(g[i * stride + j]),
+                        f64::from(before[i * stride + j]) + sum,
+                    );
+                    assert!(
+                        (got - want).abs() <= 1e-6 * (size + 2.0),
+                        "amx {} {m}x{n}x{count} at ({i}, {j}): {got} vs {want}",
                         uses_amx()
                     );
                 }

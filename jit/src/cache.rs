@@ -110,7 +110,15 @@ mod tests {
         assert!(Arc::ptr_eq(&plain, &again));
         assert_eq!(cache.len(), 1);
         // Asking for the Cranelift text is another kernel: the cached one kept none.
-        let with_text = cache.get(&square(), Options { keep_clif: true, ..Options::default() }).unwrap();
+        let with_text = cache
+            .get(
+                &square(),
+                Options {
+                    keep_clif: true,
+                    ..Options::default()
+                },
+            )
+            .unwrap();
         assert!(!Arc::ptr_eq(&plain, &with_text));
         assert!(plain.stats().clif.is_none());
         assert!(with_text.stats().clif.is_some());

@@ -220,7 +220,7 @@ fn transpose_plain(r: &[*const f32], j0: usize, t0: usize, count: usize, rt: &mu
 }
 
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
+pub(crate) mod avx512 {
     use std::arch::x86_64::*;
 
     use super::TILE;
@@ -354,7 +354,7 @@ mod avx512 {
     /// The transpose of a 16 × 16 block held as 16 rows.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    fn transpose16(r: [__m512; 16]) -> [__m512; 16] {
+    pub(crate) fn transpose16(r: [__m512; 16]) -> [__m512; 16] {
         // Interleave pairs of rows, then pairs of pairs (4 × 4 blocks inside each 128-bit lane), then
         // exchange 128-bit lanes twice.
         let t: [__m512; 16] = std::array::from_fn(|i| {

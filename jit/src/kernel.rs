@@ -19,7 +19,7 @@ type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const 
 pub struct Options {
     /// Keep the Cranelift IR text for `nerfjit ir`.
     pub keep_clif: bool,
-    /// The arithmetic of dense layers' products (forward and backward; weight gradients stay f32).
+    /// The arithmetic of dense layers' products: forward, backward and weight gradients.
     pub products: Precision,
 }
 

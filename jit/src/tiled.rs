@@ -521,7 +521,12 @@ impl Tiled {
             }
             for ((io, g), _) in outer_io.iter().zip(&mut grads).zip(&self.outer) {
                 // SAFETY: operand columns hold TILE ≥ count floats.
-                unsafe { gemm::outer(&io.0, &io.1, count, g, &mut scratch) };
+                unsafe {
+                    match self.precision {
+                        Precision::F32 => gemm::outer(&io.0, &io.1, count, g, &mut scratch),
+                        Precision::Bf16 => bf16::outer(&io.0, &io.1, count, g, &mut bf16_scratch),
+                    }
+                };
             }
             laps.lap(Phase::OuterProducts);
             for (sc, (p, cot)) in self.scatters.iter().zip(&scatter_io) {
