@@ -7,6 +7,10 @@ machine (../shared/bench/peak/quiet.sh), and prints a Markdown table of the figu
 nerfjit / peer (< 1: nerfjit faster).
 
     python3 bench/peers.py [--workloads W1,W2,W3,W4,W5,W6,W7] [--peers jax,drjit,fidget] [--bench ../shared/bench]
+                           [--bf16]
+
+--bf16 also runs nerfjit's networks (W4, W5, W6) with `--products bf16` (bfloat16 operands, f32 sums; on AMX
+where the CPU has it) and adds their rows beside the f32 ones.
 
 W3 to W6 need ../shared/data (nerfjit's and JAX's runs read the course's box images, lego and the bunny).
 
@@ -86,8 +90,13 @@ def peak(bench):
     return fma
 
 
-def nerfjit(bench, workload):
-    text = locked(bench, [NERFJIT, "bench", workload.lower(), "--reps", NERFJIT_REPS.get(workload, "9")])
+# The workloads whose networks can multiply in bf16.
+BF16_WORKLOADS = {"W4", "W5", "W6"}
+
+
+def nerfjit(bench, workload, products="f32"):
+    text = locked(bench, [NERFJIT, "bench", workload.lower(), "--reps", NERFJIT_REPS.get(workload, "9"),
+                          "--products", products])
     values = []
     for _, _, pattern in FIGURES[workload]:
         m = re.search(pattern, text, re.M)
@@ -146,6 +155,7 @@ def main():
     ap.add_argument("--workloads", default="W1,W2,W3,W4,W5,W6,W7")
     ap.add_argument("--peers", default="jax,drjit,fidget")
     ap.add_argument("--bench", default=os.path.join(ROOT, "..", "shared", "bench"))
+    ap.add_argument("--bf16", action="store_true", help="also nerfjit's W4-W6 with bf16 products")
     args = ap.parse_args()
     bench = os.path.abspath(args.bench)
     subprocess.run(["cargo", "build", "--release", "-q"], cwd=ROOT, check=True)
@@ -155,6 +165,7 @@ def main():
     rows = []
     for w in args.workloads.split(","):
         ours = nerfjit(bench, w)
+        ours_bf16 = nerfjit(bench, w, "bf16") if args.bf16 and w in BF16_WORKLOADS else None
         theirs = {}
         for p in peers:
             try:
@@ -163,8 +174,10 @@ def main():
                 print(f"[peers] {p} {w} failed: {e}", file=sys.stderr)
                 theirs[p] = "failed"
         for k, (figure, unit, _) in enumerate(FIGURES[w]):
-            rows.append((w, figure, unit, ours[k], {p: (v[k] if isinstance(v, list) else v)
-                                                    for p, v in theirs.items()}))
+            peer_figures = {p: (v[k] if isinstance(v, list) else v) for p, v in theirs.items()}
+            rows.append((w, figure, unit, ours[k], peer_figures))
+            if ours_bf16:
+                rows.append((w, figure + " (bf16 products)", unit, ours_bf16[k], peer_figures))
         print(f"[peers] {w} done", file=sys.stderr)
     peak_line = ", ".join(f"{bits}-bit {fma.get((f'fma{bits}', 1), '?')} / {fma.get((f'fma{bits}', 2), '?')}"
                           for bits in (512, 256))

@@ -559,14 +559,26 @@ fn occupied_eikonal_sampling_keeps_the_eikonal_points_where_the_grid_has_density
 fn a_neural_sdf_converges_to_points_on_a_sphere() {
     // A small ReLU network (on top of a sphere prior of the wrong radius) fitted with the course's loss:
     // its mesh lies on the points within 2% of the radius, in a few seconds.
-    let dir = scratch("neural_sdf");
+    fit_a_sphere("neural_sdf", "f32");
+}
+
+#[test]
+fn a_neural_sdf_with_bf16_products_converges_as_well() {
+    // The same fit with its products (second order included) in bfloat16 meets the same bounds.
+    fit_a_sphere("neural_sdf_bf16", "bf16");
+}
+
+fn fit_a_sphere(name: &str, products: &str) {
+    let dir = scratch(name);
     write_sphere_points(&dir);
-    let src = "param net: mlp<3, 32, 2> = linear_init(seed: 1)\n\
-               param w: mat<1, 32> = linear_init(seed: 2)\n\
-               fn sdf(p: vec3) -> f32 = dense(w, mlp(net, p))[0] + length(p) - 0.5\n\
-               train sdf { data: points(\"sphere.xyz\"), steps: 800, batch: 400, random: 512, bounds: 1.5, lr: 2e-3, \
-               eikonal_weight: 0.1, summary: \"fit.json\" }\n\
-               mesh { resolution: 48, bounds: 1.2, out: \"fit.ply\", compare: points(\"sphere.xyz\") }\n";
+    let src = format!(
+        "param net: mlp<3, 32, 2> = linear_init(seed: 1)\n\
+         param w: mat<1, 32> = linear_init(seed: 2)\n\
+         fn sdf(p: vec3) -> f32 = dense(w, mlp(net, p))[0] + length(p) - 0.5\n\
+         train sdf {{ data: points(\"sphere.xyz\"), steps: 800, batch: 400, random: 512, bounds: 1.5, lr: 2e-3, \
+         eikonal_weight: 0.1, summary: \"fit.json\", products: {products} }}\n\
+         mesh {{ resolution: 48, bounds: 1.2, out: \"fit.ply\", compare: points(\"sphere.xyz\") }}\n"
+    );
     std::fs::write(dir.join("fit.sdf"), src).unwrap();
     let (ok, out, err) = run(&dir, &["run", "fit.sdf"]);
     assert!(ok, "{err}");
