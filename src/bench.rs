@@ -547,20 +547,20 @@ fn gflops(
 
 fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
     use nerfjit_jit::bf16;
-    use nerfjit_jit::gemm::{self, TILE};
+    use nerfjit_jit::gemm::{self, COLUMN, TILE};
     const WIDTH: usize = 128;
     const PER_THREAD: usize = 4000;
     let all = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    // Columns of one 64-byte aligned block, as the tiled kernels' arena lays them out.
+    // Columns of one 64-byte aligned block, COLUMN floats apart, as the tiled kernels' arena lays them out.
     let columns = |n: usize| -> (Vec<f32>, usize) {
-        let v: Vec<f32> = (0..n * TILE + 16).map(|i| 0.01 * (i / TILE) as f32).collect();
+        let v: Vec<f32> = (0..n * COLUMN + 16).map(|i| 0.01 * (i / COLUMN) as f32).collect();
         let skip = v.as_ptr().align_offset(64);
         (v, skip)
     };
     let pointers = |(v, skip): &mut (Vec<f32>, usize), n: usize| -> Vec<*mut f32> {
-        // SAFETY: column c lies inside the buffer (n·TILE + 16 floats, skip < 16).
+        // SAFETY: column c lies inside the buffer (n·COLUMN + 16 floats, skip < 16).
         (0..n)
-            .map(|c| unsafe { v.as_mut_ptr().add(*skip + c * TILE) })
+            .map(|c| unsafe { v.as_mut_ptr().add(*skip + c * COLUMN) })
             .collect()
     };
     let product = move || -> Box<dyn FnMut()> {
@@ -664,9 +664,14 @@ fn volume_training(script: &str, steps: u32, products: Precision) -> Result<Stri
     let program = script::load_with(script, &[products_override("train", products)])?;
     let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
+    profiled(|| plan.run_steps(&program, &mut params, steps))
+}
+
+/// The summary of training steps run by `train`, and where their time went.
+fn profiled(train: impl FnOnce() -> Result<String>) -> Result<String> {
     profile::take();
     profile::enable(true);
-    let summary = plan.run_steps(&program, &mut params, steps);
+    let summary = train();
     profile::enable(false);
     Ok(format!("{}\n  {}", summary?, time_shares(&profile::take())))
 }
@@ -722,15 +727,9 @@ fn w8(reps: usize) -> Result<()> {
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
         let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
-        profile::take();
-        profile::enable(true);
-        let summary = plan.run_steps(&program, &mut params, steps);
-        profile::enable(false);
-        let times = profile::take();
+        let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
         crate::emit(&format!(
-            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {}\n  {}\n",
-            summary?,
-            time_shares(&times)
+            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {summary}\n"
         ));
     }
     Ok(())
@@ -763,7 +762,7 @@ fn w5(reps: usize, products: Precision) -> Result<()> {
     let plan = crate::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
-    let summary = plan.run_steps(&program, &mut params, steps)?;
+    let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
     crate::emit(&format!(
         "W5 neural_sdf_bunny: {steps} steps of 4096 + 4096 points ({products:?} products): {summary}\n"
     ));

@@ -20,13 +20,17 @@ pub enum Precision {
     Bf16,
 }
 
-/// The bfloat16 nearest `x` (ties to even) in the low 16 bits; NaN stays a (quiet) NaN.
+/// The bfloat16 nearest `x` (ties to even) in the low 16 bits; NaN stays a (quiet) NaN. Branch-free, so
+/// that loops of it vectorize.
 fn bf16_bits(x: f32) -> u16 {
     let b = x.to_bits();
+    let rounded = (b.wrapping_add(0x7fff + ((b >> 16) & 1)) >> 16) as u16;
+    let quiet = ((b >> 16) | 0x40) as u16;
     if x.is_nan() {
-        return ((b >> 16) | 0x40) as u16;
+        quiet
+    } else {
+        rounded
     }
-    (b.wrapping_add(0x7fff + ((b >> 16) & 1)) >> 16) as u16
 }
 
 /// `x` rounded to the nearest bfloat16 (ties to even), as an f32.
@@ -73,8 +77,12 @@ impl Bf16Matrix {
         let col_blocks = cols.div_ceil(32);
         let mut tiles = vec![0u16; rows.div_ceil(16) * col_blocks * 512];
         for (i, row) in a.chunks_exact(cols.max(1)).enumerate().take(rows) {
-            for (k, &v) in row.iter().enumerate() {
-                tiles[((i / 16) * col_blocks + k / 32) * 512 + (i % 16) * 32 + k % 32] = bf16_bits(v);
+            // Row i's 32 columns of block b are 32 consecutive values of block (i / 16, b).
+            for (b, part) in row.chunks(32).enumerate() {
+                let at = ((i / 16) * col_blocks + b) * 512 + (i % 16) * 32;
+                for (t, &v) in tiles[at..at + part.len()].iter_mut().zip(part) {
+                    *t = bf16_bits(v);
+                }
             }
         }
         Bf16Matrix {
@@ -444,7 +452,7 @@ mod amx {
             }
         }
         // The accumulator in whole blocks of 16 rows: g itself, or a padded copy.
-        let whole = l.len() % 16 == 0;
+        let whole = l.len().is_multiple_of(16);
         if !whole {
             scratch.padded.clear();
             scratch.padded.extend_from_slice(&g[..l.len() * stride]);

@@ -16,7 +16,7 @@ use nerfjit_dsl::ir::{Graph, Op, V};
 
 use crate::bf16::{self, Bf16Matrix, Bf16Scratch, Precision};
 use crate::encode::GridPlan;
-use crate::gemm::{self, TILE};
+use crate::gemm::{self, COLUMN, TILE};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
 use crate::profile::{Laps, Phase};
 
@@ -423,16 +423,19 @@ impl Tiled {
         params: &[f32],
         reductions: &mut [f32],
     ) {
-        let mut arena = vec![0.0f32; self.n_slots * TILE];
+        // Columns start on cache lines, COLUMN floats apart.
+        let mut buffer = vec![0.0f32; self.n_slots * COLUMN + 16];
+        let skip = buffer.as_ptr().align_offset(64).min(16);
+        let arena = &mut buffer[skip..];
         let base = arena.as_mut_ptr();
         // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
-        let column = |slot: usize| unsafe { base.add(slot * TILE) };
+        let column = |slot: usize| unsafe { base.add(slot * COLUMN) };
         for &(slot, fill) in &self.fills {
             let value = match fill {
                 Fill::Const(c) => c,
                 Fill::Param(k) => params[k],
             };
-            arena[slot * TILE..(slot + 1) * TILE].fill(value);
+            arena[slot * COLUMN..slot * COLUMN + TILE].fill(value);
         }
         let matrices: Vec<Vec<Matrix>> = self
             .products
@@ -491,7 +494,8 @@ impl Tiled {
             let count = TILE.min(n - start);
             for (k, slot) in self.input_slots.iter().enumerate() {
                 if let Some(slot) = *slot {
-                    arena[slot * TILE..slot * TILE + count].copy_from_slice(&inputs[k][start..start + count]);
+                    arena[slot * COLUMN..slot * COLUMN + count]
+                        .copy_from_slice(&inputs[k][start..start + count]);
                 }
             }
             laps.lap(Phase::Elementwise);
@@ -535,7 +539,7 @@ impl Tiled {
             }
             laps.lap(Phase::GridScatters);
             for (out, &slot) in outputs.iter_mut().zip(&self.output_slots) {
-                out[start..start + count].copy_from_slice(&arena[slot * TILE..slot * TILE + count]);
+                out[start..start + count].copy_from_slice(&arena[slot * COLUMN..slot * COLUMN + count]);
             }
         }
         laps.lap(Phase::Elementwise);
