@@ -184,8 +184,12 @@ pub unsafe fn outer_on(
     let stride = padded(r.len());
     assert!(count <= TILE, "more points than a tile");
     assert!(g.len() >= l.len() * stride, "gradient buffer too small");
+    // The transposed operand from a cache line's start: its rows (a multiple of 16 floats) then start on
+    // lines too, and no vector load straddles two lines.
     scratch.clear();
-    scratch.resize(count * stride, 0.0);
+    scratch.resize(count * stride + 16, 0.0);
+    let skip = scratch.as_ptr().align_offset(64).min(16);
+    let scratch = &mut scratch[skip..skip + count * stride];
     // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
     match backend {
         #[cfg(target_arch = "x86_64")]
@@ -232,9 +236,9 @@ pub(crate) mod avx512 {
     use super::TILE;
 
     /// Rows of A per register block of the product.
-    const MR: usize = 4;
+    const MR: usize = 6;
     /// Rows of G per register block of the outer product.
-    const GR: usize = 4;
+    const GR: usize = 6;
 
     /// Vectors of 16 points per register block of the product.
     const QV: usize = 4;
@@ -252,6 +256,8 @@ pub(crate) mod avx512 {
                     i += MR;
                 }
                 match out.len() - i {
+                    5 => matmul_block::<5>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                    4 => matmul_block::<4>(a.as_ptr().add(i * k), x, &out[i..], t0),
                     3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..], t0),
                     2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..], t0),
                     1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..], t0),
@@ -310,6 +316,14 @@ pub(crate) mod avx512 {
                         g: g.as_mut_ptr().add(i * stride + j),
                     };
                     match (rows, vecs) {
+                        (6, 4) => blk.run::<6, 4>(),
+                        (6, 3) => blk.run::<6, 3>(),
+                        (6, 2) => blk.run::<6, 2>(),
+                        (6, 1) => blk.run::<6, 1>(),
+                        (5, 4) => blk.run::<5, 4>(),
+                        (5, 3) => blk.run::<5, 3>(),
+                        (5, 2) => blk.run::<5, 2>(),
+                        (5, 1) => blk.run::<5, 1>(),
                         (4, 4) => blk.run::<4, 4>(),
                         (4, 3) => blk.run::<4, 3>(),
                         (4, 2) => blk.run::<4, 2>(),
