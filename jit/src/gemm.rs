@@ -3,11 +3,13 @@
 //! Activations are stored feature-major: one column of [`TILE`] floats per feature (the layout of the
 //! JIT kernels' buffers), so a layer's input is a list of column pointers and needs no packing.
 //! - [`matmul`]: `out_i = Σ_k A[i][k] · x_k` for a row-major matrix A (the forward product, and with Wᵀ
-//!   the backward product of a layer). The micro-kernel keeps a block of 4 rows × 64 points in 16
-//!   registers and streams the input columns: per input feature, 4 loads, 4 broadcasts and 16 FMAs.
+//!   the backward product of a layer). The micro-kernel keeps a block of 6 rows × 64 points in 24
+//!   registers and streams the input columns: per input feature, 4 loads, 6 broadcasts and 24 FMAs.
 //! - [`outer`]: `G[i][j] += Σ_t l_i[t] · r_j[t]` over the valid points of a tile (the gradient of a matrix).
-//!   The right operand is transposed to point-major rows first (16 × 16 blocks in registers), so that the
-//!   micro-kernel again broadcasts one operand and streams the other into 4 × 64 accumulators.
+//!   The right operand is transposed to point-major rows first (16 × 16 blocks in registers, into a
+//!   buffer that starts on a cache line), so that the micro-kernel again broadcasts one operand and
+//!   streams the other into 6 × 64 accumulators.
+//! - [`crate::bf16`] has the same two products with bfloat16 operands, on AMX tiles where the CPU has them.
 //!
 //! Both run the widest [`Backend`] the CPU has (checked once at run time): 512-bit micro-kernels with
 //! AVX-512F, 256-bit ones (6 rows × 16 points) with AVX2 and FMA, portable loops otherwise.
