@@ -563,28 +563,11 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             .map(|c| unsafe { v.as_mut_ptr().add(*skip + c * COLUMN) })
             .collect()
     };
-    let product = move || -> Box<dyn FnMut()> {
+    let product = move |precision: Precision| -> Box<dyn FnMut()> {
         let w: Vec<f32> = (0..WIDTH * WIDTH)
             .map(|i| ((i * 7919) % 201) as f32 / 100.0 - 1.0)
             .collect();
-        let mut x = columns(WIDTH);
-        let mut y = columns(WIDTH);
-        let xp: Vec<*const f32> = pointers(&mut x, WIDTH)
-            .into_iter()
-            .map(|p| p as *const f32)
-            .collect();
-        let yp = pointers(&mut y, WIDTH);
-        Box::new(move || {
-            // SAFETY: every column holds TILE floats; x and y are separate buffers.
-            unsafe { gemm::matmul(&w, &xp, &yp) };
-            std::hint::black_box(&mut y);
-        })
-    };
-    let product_bf16 = move || -> Box<dyn FnMut()> {
-        let w: Vec<f32> = (0..WIDTH * WIDTH)
-            .map(|i| ((i * 7919) % 201) as f32 / 100.0 - 1.0)
-            .collect();
-        let w = bf16::Bf16Matrix::new(&w, WIDTH, WIDTH);
+        let w_bf16 = bf16::Bf16Matrix::new(&w, WIDTH, WIDTH);
         let mut x = columns(WIDTH);
         let mut y = columns(WIDTH);
         let xp: Vec<*const f32> = pointers(&mut x, WIDTH)
@@ -595,11 +578,16 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
         let mut scratch = bf16::Bf16Scratch::default();
         Box::new(move || {
             // SAFETY: every column holds TILE floats; x and y are separate buffers.
-            unsafe { bf16::matmul(&w, &xp, &yp, &mut scratch) };
+            unsafe {
+                match precision {
+                    Precision::F32 => gemm::matmul(&w, &xp, &yp),
+                    Precision::Bf16 => bf16::matmul(&w_bf16, &xp, &yp, &mut scratch),
+                }
+            };
             std::hint::black_box(&mut y);
         })
     };
-    let grad = move || -> Box<dyn FnMut()> {
+    let grad = move |precision: Precision| -> Box<dyn FnMut()> {
         let mut l = columns(WIDTH);
         let mut r = columns(WIDTH);
         let lp: Vec<*const f32> = pointers(&mut l, WIDTH)
@@ -611,29 +599,15 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             .map(|p| p as *const f32)
             .collect();
         let mut g = vec![0.0f32; WIDTH * gemm::padded(WIDTH)];
-        let mut scratch = Vec::new();
+        let (mut scratch, mut scratch_bf16) = (Vec::new(), bf16::Bf16Scratch::default());
         Box::new(move || {
             // SAFETY: every column holds TILE floats.
-            unsafe { gemm::outer(&lp, &rp, TILE, &mut g, &mut scratch) };
-            std::hint::black_box((&l, &r, &g));
-        })
-    };
-    let grad_bf16 = move || -> Box<dyn FnMut()> {
-        let mut l = columns(WIDTH);
-        let mut r = columns(WIDTH);
-        let lp: Vec<*const f32> = pointers(&mut l, WIDTH)
-            .into_iter()
-            .map(|p| p as *const f32)
-            .collect();
-        let rp: Vec<*const f32> = pointers(&mut r, WIDTH)
-            .into_iter()
-            .map(|p| p as *const f32)
-            .collect();
-        let mut g = vec![0.0f32; WIDTH * gemm::padded(WIDTH)];
-        let mut scratch = bf16::Bf16Scratch::default();
-        Box::new(move || {
-            // SAFETY: every column holds TILE floats.
-            unsafe { bf16::outer(&lp, &rp, TILE, &mut g, &mut scratch) };
+            unsafe {
+                match precision {
+                    Precision::F32 => gemm::outer(&lp, &rp, TILE, &mut g, &mut scratch),
+                    Precision::Bf16 => bf16::outer(&lp, &rp, TILE, &mut g, &mut scratch_bf16),
+                }
+            };
             std::hint::black_box((&l, &r, &g));
         })
     };
@@ -646,15 +620,19 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
                 + "\n"),
         );
     };
-    run("forward product (W·x)", &product);
     let unit = if bf16::uses_amx() {
         "AMX"
     } else {
         "rounded, f32 products"
     };
-    run(&format!("bf16 product (W·x, {unit})"), &product_bf16);
-    run("weight gradient (Σ ȳ ⊗ x)", &grad);
-    run(&format!("bf16 weight gradient (Σ ȳ ⊗ x, {unit})"), &grad_bf16);
+    run("forward product (W·x)", &|| product(Precision::F32));
+    run(&format!("bf16 product (W·x, {unit})"), &|| {
+        product(Precision::Bf16)
+    });
+    run("weight gradient (Σ ȳ ⊗ x)", &|| grad(Precision::F32));
+    run(&format!("bf16 weight gradient (Σ ȳ ⊗ x, {unit})"), &|| {
+        grad(Precision::Bf16)
+    });
     Ok(())
 }
 

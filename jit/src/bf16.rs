@@ -264,6 +264,36 @@ mod amx {
         }
     }
 
+    /// One step of a 2 × 2 block of results: tiles 0–3 (results (0, 0), (0, 1), (1, 0), (1, 1)) add the
+    /// products of the two first-operand tiles at `a` (rows `a_stride` bytes apart) with the two
+    /// second-operand tiles at `b` (rows `b_stride` bytes apart).
+    ///
+    /// # Safety
+    /// The tile configuration is loaded; each pointer addresses 16 rows of 64 readable bytes at its stride.
+    #[inline(always)]
+    unsafe fn step_2x2(a: [*const u8; 2], a_stride: usize, b: [*const u8; 2], b_stride: usize) {
+        // SAFETY: as the caller guarantees.
+        unsafe {
+            asm!(
+                "tileloadd tmm4, [{a0} + {sa}*1]",
+                "tileloadd tmm5, [{a1} + {sa}*1]",
+                "tileloadd tmm6, [{b0} + {sb}*1]",
+                "tileloadd tmm7, [{b1} + {sb}*1]",
+                "tdpbf16ps tmm0, tmm4, tmm6",
+                "tdpbf16ps tmm1, tmm4, tmm7",
+                "tdpbf16ps tmm2, tmm5, tmm6",
+                "tdpbf16ps tmm3, tmm5, tmm7",
+                a0 = in(reg) a[0],
+                a1 = in(reg) a[1],
+                b0 = in(reg) b[0],
+                b1 = in(reg) b[1],
+                sa = in(reg) a_stride,
+                sb = in(reg) b_stride,
+                options(nostack, readonly)
+            );
+        }
+    }
+
     /// The bfloat16 of points 16·q.. of column k (zero if there is no such column), as [`bf16_lanes`].
     ///
     /// # Safety
@@ -322,22 +352,11 @@ mod amx {
                         let a0 = tiles.add((i * col_blocks + k) * 512);
                         let b0 = pairs.add(k * 16 * TILE + 16 * t);
                         if two {
-                            asm!(
-                                "tileloadd tmm4, [{a0} + {sa}*1]",
-                                "tileloadd tmm5, [{a1} + {sa}*1]",
-                                "tileloadd tmm6, [{b0} + {sb}*1]",
-                                "tileloadd tmm7, [{b1} + {sb}*1]",
-                                "tdpbf16ps tmm0, tmm4, tmm6",
-                                "tdpbf16ps tmm1, tmm4, tmm7",
-                                "tdpbf16ps tmm2, tmm5, tmm6",
-                                "tdpbf16ps tmm3, tmm5, tmm7",
-                                a0 = in(reg) a0,
-                                a1 = in(reg) a0.add(col_blocks * 512),
-                                b0 = in(reg) b0,
-                                b1 = in(reg) b0.add(16),
-                                sa = in(reg) a_stride,
-                                sb = in(reg) x_stride,
-                                options(nostack, readonly)
+                            step_2x2(
+                                [a0.cast(), a0.add(col_blocks * 512).cast()],
+                                a_stride,
+                                [b0.cast(), b0.add(16).cast()],
+                                x_stride,
                             );
                         } else {
                             asm!(
@@ -493,22 +512,11 @@ mod amx {
                             options(nostack, readonly)
                         );
                         for b in 0..point_blocks {
-                            asm!(
-                                "tileloadd tmm4, [{a0} + {sa}*1]",
-                                "tileloadd tmm5, [{a1} + {sa}*1]",
-                                "tileloadd tmm6, [{b0} + {sb}*1]",
-                                "tileloadd tmm7, [{b1} + {sb}*1]",
-                                "tdpbf16ps tmm0, tmm4, tmm6",
-                                "tdpbf16ps tmm1, tmm4, tmm7",
-                                "tdpbf16ps tmm2, tmm5, tmm6",
-                                "tdpbf16ps tmm3, tmm5, tmm7",
-                                a0 = in(reg) a_at(ib, b),
-                                a1 = in(reg) a_at(ib + 1, b),
-                                b0 = in(reg) b_at(jb, b),
-                                b1 = in(reg) b_at(jb + 1, b),
-                                sa = in(reg) sa,
-                                sb = in(reg) sb,
-                                options(nostack, readonly)
+                            step_2x2(
+                                [a_at(ib, b), a_at(ib + 1, b)],
+                                sa,
+                                [b_at(jb, b), b_at(jb + 1, b)],
+                                sb,
                             );
                         }
                         asm!(
