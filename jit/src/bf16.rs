@@ -188,6 +188,10 @@ mod amx {
     use crate::gemm::avx512::transpose16;
     use crate::gemm::{has_avx512, padded, TILE};
 
+    // The tile registers live from one `asm!` block to the next: nothing between them calls a function
+    // (the ABI leaves tiles to the caller to save), and each product configures the tiles on entry and
+    // releases them on exit, so a thread holds no tile state between products.
+
     /// The tile configuration (palette 1): tiles 0–7 all 16 rows of 64 bytes. Tiles 0–3 hold the four
     /// 16 × 16 blocks of results, 4–5 two blocks of the matrix (16 rows × 32 columns), 6–7 two blocks of
     /// the input (16 pairs of rows × 16 points).
