@@ -656,11 +656,7 @@ fn profiled(train: impl FnOnce() -> Result<String>) -> Result<String> {
 
 /// The `--set` override of a block's `products`.
 fn products_override(block: &str, products: Precision) -> String {
-    let name = match products {
-        Precision::F32 => "f32",
-        Precision::Bf16 => "bf16",
-    };
-    format!("{block}.products={name}")
+    format!("{block}.products={}", products.name())
 }
 
 fn w4(reps: usize, products: Precision) -> Result<()> {

@@ -215,10 +215,10 @@ impl<'p> Block<'p> {
 
     /// Setting `products`: the arithmetic of dense products.
     pub fn products(&mut self) -> Result<Precision> {
-        Ok(match self.choice("products")?.as_deref() {
-            Some("bf16") => Precision::Bf16,
-            _ => Precision::F32,
-        })
+        Ok(self
+            .choice("products")?
+            .and_then(|name| Precision::named(&name))
+            .unwrap_or_default())
     }
 
     /// Setting `key`, `true` or `false`, or its default.

@@ -455,11 +455,7 @@ fn run_command(cli: Cli) -> ExitCode {
             workload,
             reps,
             cli.threads,
-            if products == "bf16" {
-                nerfjit_jit::Precision::Bf16
-            } else {
-                nerfjit_jit::Precision::F32
-            },
+            nerfjit_jit::Precision::named(&products).unwrap_or_default(),
         ),
         Command::Mesh {
             script,

@@ -158,7 +158,7 @@ impl TrainedWith {
         let running_grid = crate::train_block::grid_update(settings.take("grid_update"))
             .is_ok_and(|u| u != crate::train_block::GridUpdate::Rebuild);
         let products = match settings.take("products").map(|v| v.value) {
-            Some(Value::Name(n)) if n == "bf16" => Precision::Bf16,
+            Some(Value::Name(n)) => Precision::named(&n).unwrap_or_default(),
             _ => Precision::F32,
         };
 

@@ -55,6 +55,13 @@ pub(crate) fn has_avx512_cd() -> bool {
     })
 }
 
+/// `len` floats of `buffer` (resized, its old values kept or zeroed) starting on a 64-byte cache line.
+pub(crate) fn line_aligned(buffer: &mut Vec<f32>, len: usize) -> &mut [f32] {
+    buffer.resize(len + 16, 0.0);
+    let skip = buffer.as_ptr().align_offset(64).min(16);
+    &mut buffer[skip..skip + len]
+}
+
 /// The width to which [`outer`] pads the right operand (and the rows of its accumulator).
 pub fn padded(n: usize) -> usize {
     n.div_ceil(16) * 16
@@ -189,9 +196,7 @@ pub unsafe fn outer_on(
     // The transposed operand from a cache line's start: its rows (a multiple of 16 floats) then start on
     // lines too, and no vector load straddles two lines.
     scratch.clear();
-    scratch.resize(count * stride + 16, 0.0);
-    let skip = scratch.as_ptr().align_offset(64).min(16);
-    let scratch = &mut scratch[skip..skip + count * stride];
+    let scratch = line_aligned(scratch, count * stride);
     // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
     match backend {
         #[cfg(target_arch = "x86_64")]

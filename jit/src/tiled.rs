@@ -424,9 +424,8 @@ impl Tiled {
         reductions: &mut [f32],
     ) {
         // Columns start on cache lines, COLUMN floats apart.
-        let mut buffer = vec![0.0f32; self.n_slots * COLUMN + 16];
-        let skip = buffer.as_ptr().align_offset(64).min(16);
-        let arena = &mut buffer[skip..];
+        let mut buffer = Vec::new();
+        let arena = gemm::line_aligned(&mut buffer, self.n_slots * COLUMN);
         let base = arena.as_mut_ptr();
         // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
         let column = |slot: usize| unsafe { base.add(slot * COLUMN) };
