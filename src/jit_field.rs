@@ -5,11 +5,11 @@ use std::sync::{Arc, OnceLock};
 use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_dsl::{kernels, Lowered, Program, Signature, Type};
-use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Precision, Stop, Tape};
+use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Passes, Precision, Stop, Tape};
 use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
-use nerfjit_runtime::{BatchFn, BatchVjp, OccupancyGrid, TrainableModel, VolumeModel};
+use nerfjit_runtime::{BatchFn, BatchVjp, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel};
 
 use crate::failure::{Failure, Result};
 
@@ -305,12 +305,38 @@ impl BatchVjp for BoundVjp<'_> {
 
     fn vjp(&self, n: usize, inputs: &[&[f32]], cotangents: &[&[f32]], param_grads: &mut [f32]) {
         let all: Vec<&[f32]> = inputs.iter().chain(cotangents).copied().collect();
-        self.kernel.eval(n, &all, &mut [], self.params, param_grads);
+        // A kernel that also gives the forward pass's values (for kept passes) writes them here.
+        let mut values = vec![vec![0.0; n]; self.kernel.n_outputs];
+        let mut values: Vec<&mut [f32]> = values.iter_mut().map(Vec::as_mut_slice).collect();
+        self.kernel.eval(n, &all, &mut values, self.params, param_grads);
+    }
+
+    fn kept_passes(&self) -> Option<Box<dyn KeptPasses + '_>> {
+        let passes = self.kernel.passes(self.params)?;
+        Some(Box::new(JitPasses(passes)))
+    }
+}
+
+/// A kernel's [`Passes`] as the runtime's [`KeptPasses`].
+struct JitPasses<'a>(Passes<'a>);
+
+impl KeptPasses for JitPasses<'_> {
+    fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        self.0.forward(n, inputs, outputs);
+    }
+
+    fn backward(&mut self, n: usize, cotangents: &[&[f32]], param_grads: &mut [f32]) {
+        self.0.backward(n, cotangents, param_grads);
+    }
+
+    fn finish(&mut self, param_grads: &mut [f32]) {
+        self.0.finish(param_grads);
     }
 }
 
 /// A volume field of a script: `density(p)` or `opacity(p)`, and `color(p)` or `color(p, d)`, compiled
-/// together forward (4 outputs) and backward (param gradients).
+/// together forward (4 outputs) and backward (param gradients, and the forward pass's values: see
+/// [`BatchVjp::kept_passes`]).
 pub struct VolumeField {
     forward: Arc<Kernel>,
     backward: Arc<Kernel>,
@@ -365,7 +391,14 @@ impl VolumeField {
         )?;
         let lowered = program.lower_many(&[first.as_str(), color.as_str()])?;
         let forward = cache.get(&kernels::value(&lowered), options)?;
-        let backward = cache.get(&kernels::param_vjp(&lowered, program.n_params()), options)?;
+        // The backward pass of training gives the forward pass's values too, so that it runs either as
+        // one kernel over the samples or, split after the field's inputs (a point, maybe a direction), as
+        // a forward pass that keeps what the backward pass reads.
+        let split = Options {
+            split: Some(lowered.graph.n_inputs),
+            ..options
+        };
+        let backward = cache.get(&kernels::forward_backward(&lowered, program.n_params()), split)?;
         let density = cache.get(&kernels::value(&program.lower(&first)?), options)?;
         Ok(VolumeField {
             forward,
@@ -560,6 +593,7 @@ impl BoundFields<'_> {
                 .coarse
                 .as_ref()
                 .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
+            recompute_forward: false,
         }
     }
 }

@@ -6,6 +6,8 @@
 //! - [`vjp`]: inputs followed by one cotangent per output; outputs, then the input gradient Σₖ cₖ ∂outₖ/∂x;
 //!   reductions: the param gradient Σₖ cₖ ∂outₖ/∂θ for every param.
 //! - [`param_vjp`]: as [`vjp`] without per-point outputs, for training.
+//! - [`forward_backward`]: as [`vjp`] with the function's values as its only outputs, for training that
+//!   keeps the forward pass's values for the backward pass.
 //! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
@@ -106,6 +108,17 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
 pub fn param_vjp(f: &Lowered, n_params: usize) -> Graph {
     let mut g = vjp(f, n_params);
     g.outputs.clear();
+    g.compact()
+}
+
+/// The forward and backward pass of training in one graph: inputs, then one cotangent per output;
+/// outputs the function's values (which read no cotangent); reductions Σₖ cₖ ∂outₖ/∂θ for every param.
+/// Compiled with a split after the function's inputs, it runs as a forward pass that keeps its values and
+/// a backward pass that reads them instead of recomputing them.
+pub fn forward_backward(f: &Lowered, n_params: usize) -> Graph {
+    let n_out = f.graph.outputs.len();
+    let mut g = vjp(f, n_params);
+    g.outputs.truncate(n_out);
     g.compact()
 }
 

@@ -10,7 +10,7 @@ use nerfjit_dsl::ir::{Graph, Op};
 
 use crate::bf16::Precision;
 use crate::codegen;
-use crate::tiled::Tiled;
+use crate::tiled::{self, Tiled};
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 
@@ -21,6 +21,10 @@ pub struct Options {
     pub keep_clif: bool,
     /// The arithmetic of dense layers' products: forward, backward and weight gradients.
     pub products: Precision,
+    /// For a backward-pass graph whose first `split` inputs are the forward pass's and the rest its
+    /// cotangents, and whose outputs read no cotangent: also run as a forward pass that keeps its values
+    /// and a backward pass over them ([`Kernel::passes`]).
+    pub split: Option<u32>,
 }
 
 /// What a compilation did, for reports.
@@ -348,6 +352,26 @@ impl Kernel {
         }
     }
 
+    /// The forward and the backward pass of this kernel run separately (on this thread), the backward
+    /// pass going on from the values the forward pass kept instead of recomputing them: for kernels with
+    /// dense nodes compiled with [`Options::split`]; `None` for others.
+    pub fn passes<'a>(&'a self, params: &'a [f32]) -> Option<Passes<'a>> {
+        match &self.body {
+            Body::Tiled(t) if t.is_split() => {
+                assert!(
+                    params.len() >= self.n_params,
+                    "kernel reads {} params",
+                    self.n_params
+                );
+                Some(Passes {
+                    kernel: self,
+                    passes: tiled::Passes::new(t, params),
+                })
+            }
+            _ => None,
+        }
+    }
+
     /// Like [`Kernel::eval`], with the points split over `threads` threads.
     pub fn eval_parallel(
         &self,
@@ -402,5 +426,78 @@ impl Kernel {
                 *r += x;
             }
         }
+    }
+}
+
+/// A kernel's forward and backward passes over the same points ([`Kernel::passes`]): [`Passes::forward`]
+/// over a batch of points, then [`Passes::backward`] over the same batch with the cotangents of the
+/// outputs, as often as wanted; [`Passes::finish`] adds what the backward passes summed.
+pub struct Passes<'a> {
+    kernel: &'a Kernel,
+    passes: tiled::Passes<'a>,
+}
+
+impl Passes<'_> {
+    /// Evaluates the outputs at points `0..n` of the forward pass's `inputs` and keeps what the backward
+    /// pass needs (about a tile arena per 128 points: call it on a few hundred points at a time so that
+    /// they stay in the cache). Panics if a slice is shorter than the kernel needs.
+    pub fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        let k = self.kernel;
+        assert_eq!(
+            inputs.len(),
+            self.passes.forward_inputs(),
+            "the forward pass takes {} inputs",
+            self.passes.forward_inputs()
+        );
+        assert_eq!(
+            outputs.len(),
+            k.n_outputs,
+            "kernel writes {} outputs",
+            k.n_outputs
+        );
+        assert!(
+            inputs.iter().all(|c| c.len() >= n),
+            "an input column is shorter than {n}"
+        );
+        assert!(
+            outputs.iter().all(|c| c.len() >= n),
+            "an output column is shorter than {n}"
+        );
+        self.passes.forward(n, inputs, outputs);
+    }
+
+    /// The backward pass at the points of the last [`Passes::forward`] (`n` of them) with the cotangents:
+    /// adds their reductions to `reductions`, some now, the rest at [`Passes::finish`]. Panics if the last
+    /// forward pass was not over `n` points or a slice is shorter than the kernel needs.
+    pub fn backward(&mut self, n: usize, cotangents: &[&[f32]], reductions: &mut [f32]) {
+        let k = self.kernel;
+        let expected = k.n_inputs - self.passes.forward_inputs();
+        assert_eq!(
+            cotangents.len(),
+            expected,
+            "the backward pass takes {expected} cotangents"
+        );
+        assert!(
+            cotangents.iter().all(|c| c.len() >= n),
+            "a cotangent column is shorter than {n}"
+        );
+        assert_eq!(
+            reductions.len(),
+            k.n_reductions,
+            "kernel sums {} reductions",
+            k.n_reductions
+        );
+        self.passes.backward(n, cotangents, reductions);
+    }
+
+    /// Adds the sums the backward passes keep until the end to `reductions`.
+    pub fn finish(&mut self, reductions: &mut [f32]) {
+        assert_eq!(
+            reductions.len(),
+            self.kernel.n_reductions,
+            "kernel sums {} reductions",
+            self.kernel.n_reductions
+        );
+        self.passes.finish(reductions);
     }
 }

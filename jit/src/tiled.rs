@@ -85,6 +85,11 @@ pub(crate) struct Tiled {
     n_reductions: usize,
     /// The arithmetic of the products.
     precision: Precision,
+    /// The inputs of the forward pass: all of them, or with [`Options::split`] those before the split (the
+    /// rest, the cotangents, are loaded for the backward pass).
+    forward_inputs: usize,
+    /// Stages `0..forward_stages` are the forward pass; the outputs are read after them.
+    forward_stages: usize,
     /// The compilation of all segments.
     pub stats: CompileStats,
 }
@@ -102,16 +107,35 @@ fn is_elementwise(op: &Op) -> bool {
     )
 }
 
-fn levels(g: &Graph) -> Vec<usize> {
-    let mut level = vec![0usize; g.len()];
+/// Every node's stage, and the number of stages of the forward pass. A node's level is the number of
+/// dense products and grid reads on the longest path from the inputs to it; with a split, the nodes that
+/// depend on the inputs from `split` on (the backward pass's cotangents) come after every node that does
+/// not: their stage is their level plus the forward pass's stages. Without a split every node is the
+/// forward pass's and its stage is its level.
+fn stages(g: &Graph, split: Option<u32>) -> (Vec<usize>, usize) {
+    let mut stage = vec![0usize; g.len()];
+    let mut backward = vec![false; g.len()];
     for (i, op) in g.ops().iter().enumerate() {
-        let highest = g.args(op).iter().map(|a| level[a.0 as usize]).max().unwrap_or(0);
-        level[i] = match op {
+        let args = g.args(op);
+        let highest = args.iter().map(|a| stage[a.0 as usize]).max().unwrap_or(0);
+        stage[i] = match op {
             Op::Dense(_) | Op::Grid(_) => highest + 1,
             _ => highest,
         };
+        backward[i] = match op {
+            Op::Input(k) => split.is_some_and(|s| *k >= s),
+            _ => args.iter().any(|a| backward[a.0 as usize]),
+        };
     }
-    level
+    let forward_stages = (0..g.len())
+        .filter(|&i| !backward[i])
+        .map(|i| stage[i] + 1)
+        .max()
+        .unwrap_or(0);
+    for (s, _) in stage.iter_mut().zip(&backward).filter(|(_, &b)| b) {
+        *s += forward_stages;
+    }
+    (stage, forward_stages)
 }
 
 struct Slots {
@@ -133,8 +157,11 @@ impl Tiled {
     /// Plans and compiles `g` (compacted, with dense nodes).
     pub(crate) fn compile(g: &Graph, options: Options) -> Result<Tiled, JitError> {
         let start = Instant::now();
-        let level = levels(g);
-        let n_levels = level.iter().max().map_or(1, |m| m + 1);
+        let (stage, forward_stages) = stages(g, options.split);
+        let n_stages = stage.iter().max().map_or(1, |m| m + 1);
+        if options.split.is_some() && g.outputs.iter().any(|o| stage[o.0 as usize] >= forward_stages) {
+            return Err(JitError("an output of a split kernel reads a cotangent".into()));
+        }
         let ops = g.ops();
         let mut slots = Slots {
             of: vec![None; g.len()],
@@ -159,7 +186,7 @@ impl Tiled {
                 _ if is_elementwise(op) => {
                     for a in op.args() {
                         let arg = &ops[a.0 as usize];
-                        if is_elementwise(arg) && level[a.0 as usize] != level[i] {
+                        if is_elementwise(arg) && stage[a.0 as usize] != stage[i] {
                             slots.get(a);
                         }
                     }
@@ -181,7 +208,7 @@ impl Tiled {
         let spare = slots.count;
         slots.count += 1;
 
-        let mut products: Vec<Vec<Product>> = (0..n_levels).map(|_| Vec::new()).collect();
+        let mut products: Vec<Vec<Product>> = (0..n_stages).map(|_| Vec::new()).collect();
         let mut picks: HashMap<(u32, u32), usize> = HashMap::new();
         for (i, op) in ops.iter().enumerate() {
             if let Op::Pick(d, k) = op {
@@ -190,7 +217,7 @@ impl Tiled {
         }
         for (i, op) in ops.iter().enumerate() {
             if let Op::Dense(d) = op {
-                products[level[i]].push(Product {
+                products[stage[i]].push(Product {
                     w: d.w as usize,
                     rows: d.rows as usize,
                     cols: d.cols as usize,
@@ -203,10 +230,10 @@ impl Tiled {
             }
         }
 
-        let mut grids: Vec<Vec<GridStep>> = (0..n_levels).map(|_| Vec::new()).collect();
+        let mut grids: Vec<Vec<GridStep>> = (0..n_stages).map(|_| Vec::new()).collect();
         for (i, op) in ops.iter().enumerate() {
             if let Op::Grid(r) = op {
-                grids[level[i]].push(GridStep {
+                grids[stage[i]].push(GridStep {
                     plan: GridPlan::new(r),
                     p: r.p.map(|a| slots.get(a)),
                     out: (0..r.spec.n_outputs() as u32)
@@ -231,10 +258,10 @@ impl Tiled {
             return Err(JitError("a scatter writes past the reductions".into()));
         }
 
-        let mut segments = Vec::with_capacity(n_levels);
+        let mut segments = Vec::with_capacity(n_stages);
         let mut stats = CompileStats::default();
-        for s in 0..n_levels {
-            let segment = build_segment(g, &level, &mut slots, s, options)?;
+        for s in 0..n_stages {
+            let segment = build_segment(g, &stage, &mut slots, s, options)?;
             if let Some(seg) = &segment {
                 let st = seg.kernel.stats();
                 stats.nodes += st.nodes;
@@ -294,6 +321,8 @@ impl Tiled {
             n_slots: slots.count,
             n_reductions: g.reductions.len(),
             precision: options.products,
+            forward_inputs: options.split.map_or(g.n_inputs, |k| k.min(g.n_inputs)) as usize,
+            forward_stages,
             stats,
         };
         plan.share_slots();
@@ -318,8 +347,11 @@ impl Tiled {
             touch(slot, 0);
             touch(slot, end);
         }
-        for slot in self.input_slots.iter().flatten() {
-            touch(*slot, 0);
+        let forward_end = 2 * self.forward_stages;
+        for (k, slot) in self.input_slots.iter().enumerate() {
+            if let Some(slot) = *slot {
+                touch(slot, if k < self.forward_inputs { 0 } else { forward_end });
+            }
         }
         for (s, products) in self.products.iter().enumerate() {
             for p in products {
@@ -353,7 +385,7 @@ impl Tiled {
             }
         }
         for &slot in &self.output_slots {
-            touch(slot, end);
+            touch(slot, forward_end);
         }
         // The spare column is written at every stage: it shares with nothing.
         touch(self.spare, 0);
@@ -414,7 +446,8 @@ impl Tiled {
         self.n_slots = columns;
     }
 
-    /// Evaluates points `0..n` on this thread (see [`Kernel::eval`]; sizes were checked by the caller).
+    /// Evaluates points `0..n` on this thread (see [`Kernel::eval`]; sizes were checked by the caller):
+    /// the forward and the backward pass of each tile in turn, in one arena.
     pub(crate) fn eval(
         &self,
         n: usize,
@@ -423,143 +456,345 @@ impl Tiled {
         params: &[f32],
         reductions: &mut [f32],
     ) {
-        // Columns start on cache lines, COLUMN floats apart.
-        let mut buffer = Vec::new();
-        let arena = gemm::line_aligned(&mut buffer, self.n_slots * COLUMN);
-        let base = arena.as_mut_ptr();
-        // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
-        let column = |slot: usize| unsafe { base.add(slot * COLUMN) };
-        for &(slot, fill) in &self.fills {
-            let value = match fill {
-                Fill::Const(c) => c,
-                Fill::Param(k) => params[k],
-            };
-            arena[slot * COLUMN..slot * COLUMN + TILE].fill(value);
-        }
-        let matrices: Vec<Vec<Matrix>> = self
-            .products
-            .iter()
-            .map(|level| level.iter().map(|p| matrix(p, params, self.precision)).collect())
-            .collect();
-        let mut accums: Vec<Vec<f32>> = self
-            .segments
-            .iter()
-            .map(|s| vec![0.0; 4 * s.as_ref().map_or(0, |s| s.reductions.len())])
-            .collect();
-        let mut grads: Vec<Vec<f32>> = self
-            .outer
-            .iter()
-            .map(|o| vec![0.0; o.left.len() * gemm::padded(o.right.len())])
-            .collect();
-        let columns = |slots: &[usize]| -> Vec<*mut f32> { slots.iter().map(|&s| column(s)).collect() };
-        let reads =
-            |slots: &[usize]| -> Vec<*const f32> { slots.iter().map(|&s| column(s) as *const f32).collect() };
-        let segment_io: Vec<Option<(Vec<*const f32>, Vec<*mut f32>)>> = self
-            .segments
-            .iter()
-            .map(|s| s.as_ref().map(|s| (reads(&s.reads), columns(&s.writes))))
-            .collect();
-        let product_io: Vec<Vec<(Vec<*const f32>, Vec<*mut f32>)>> = self
-            .products
-            .iter()
-            .map(|level| level.iter().map(|p| (reads(&p.x), columns(&p.out))).collect())
-            .collect();
-        let outer_io: Vec<(Vec<*const f32>, Vec<*const f32>)> = self
-            .outer
-            .iter()
-            .map(|o| (reads(&o.left), reads(&o.right)))
-            .collect();
-        let grid_io: Vec<Vec<([*const f32; 3], Vec<*mut f32>)>> = self
-            .grids
-            .iter()
-            .map(|level| {
-                let point = |p: [usize; 3]| p.map(|s| column(s) as *const f32);
-                level
-                    .iter()
-                    .map(|step| (point(step.p), columns(&step.out)))
-                    .collect()
-            })
-            .collect();
-        let scatter_io: Vec<([*const f32; 3], Vec<*const f32>)> = self
-            .scatters
-            .iter()
-            .map(|sc| (sc.p.map(|s| column(s) as *const f32), reads(&sc.cotangent)))
-            .collect();
-        let mut scratch = Vec::new();
-        let mut bf16_scratch = Bf16Scratch::default();
+        let mut w = Workspace::new(self, params);
+        w.reserve_arenas(1);
         let mut laps = Laps::start();
-
         for start in (0..n).step_by(TILE) {
             let count = TILE.min(n - start);
-            for (k, slot) in self.input_slots.iter().enumerate() {
-                if let Some(slot) = *slot {
-                    arena[slot * COLUMN..slot * COLUMN + count]
-                        .copy_from_slice(&inputs[k][start..start + count]);
-                }
-            }
-            laps.lap(Phase::Elementwise);
-            for s in 0..self.segments.len() {
-                for (p, m) in product_io[s].iter().zip(&matrices[s]) {
-                    // SAFETY: all columns are TILE floats in the arena; a product's outputs are picks, whose
-                    // slots no input of the same product uses (its inputs precede it).
-                    unsafe {
-                        match m {
-                            Matrix::F32(m) => gemm::matmul(m, &p.0, &p.1),
-                            Matrix::Bf16(m) => bf16::matmul(m, &p.0, &p.1, &mut bf16_scratch),
-                        }
-                    };
-                }
-                laps.lap(Phase::Products);
-                for (step, (p, out)) in self.grids[s].iter().zip(&grid_io[s]) {
-                    // SAFETY: all columns are TILE ≥ count floats in the arena; the outputs are picks,
-                    // whose slots the point (read before them) does not share.
-                    unsafe { step.plan.read(*p, out, params, count) };
-                }
-                laps.lap(Phase::GridReads);
-                if let (Some(seg), Some((ins, outs))) = (&self.segments[s], &segment_io[s]) {
-                    // SAFETY: the segment's columns are TILE ≥ count rounded up to 4 floats each.
-                    unsafe { seg.kernel.call_raw(ins, outs, params, &mut accums[s], count) };
-                }
-                laps.lap(Phase::Elementwise);
-            }
-            for ((io, g), _) in outer_io.iter().zip(&mut grads).zip(&self.outer) {
-                // SAFETY: operand columns hold TILE ≥ count floats.
-                unsafe {
-                    match self.precision {
-                        Precision::F32 => gemm::outer(&io.0, &io.1, count, g, &mut scratch),
-                        Precision::Bf16 => bf16::outer(&io.0, &io.1, count, g, &mut bf16_scratch),
-                    }
-                };
-            }
-            laps.lap(Phase::OuterProducts);
-            for (sc, (p, cot)) in self.scatters.iter().zip(&scatter_io) {
-                // SAFETY: operand columns hold TILE ≥ count floats.
-                unsafe { sc.plan.scatter(*p, cot, reductions, count) };
-            }
-            laps.lap(Phase::GridScatters);
-            for (out, &slot) in outputs.iter_mut().zip(&self.output_slots) {
-                out[start..start + count].copy_from_slice(&arena[slot * COLUMN..slot * COLUMN + count]);
+            let arena = w.arena(0);
+            // SAFETY: the arena holds n_slots columns of TILE ≥ count floats; sizes were checked.
+            unsafe {
+                self.load(arena, &inputs[..self.forward_inputs], 0, start, count);
+                w.run_stages(arena, 0..self.forward_stages, count, &mut laps);
+                self.store(arena, outputs, start, count);
+                self.load(
+                    arena,
+                    &inputs[self.forward_inputs..],
+                    self.forward_inputs,
+                    start,
+                    count,
+                );
+                w.run_stages(arena, self.forward_stages..self.segments.len(), count, &mut laps);
+                w.reduce_tile(arena, count, reductions, &mut laps);
             }
         }
         laps.lap(Phase::Elementwise);
         laps.finish();
+        w.finish(reductions);
+    }
 
-        for (seg, acc) in self.segments.iter().zip(&accums) {
+    /// Whether the plan was compiled with a split into a forward and a backward pass.
+    pub(crate) fn is_split(&self) -> bool {
+        self.forward_inputs < self.input_slots.len()
+    }
+
+    /// Copies points `start..start + count` of `columns` (inputs `first..`) into their slots.
+    ///
+    /// # Safety
+    /// `arena` must hold `n_slots` columns of [`COLUMN`] floats, `count` ≤ [`TILE`], and every column of
+    /// `columns` at least `start + count` floats.
+    unsafe fn load(&self, arena: *mut f32, columns: &[&[f32]], first: usize, start: usize, count: usize) {
+        for (column, slot) in columns.iter().zip(&self.input_slots[first..]) {
+            if let Some(slot) = *slot {
+                // SAFETY: as the caller guarantees.
+                unsafe {
+                    std::ptr::copy_nonoverlapping(
+                        column[start..start + count].as_ptr(),
+                        arena.add(slot * COLUMN),
+                        count,
+                    )
+                };
+            }
+        }
+    }
+
+    /// Copies the outputs' slots into points `start..start + count` of `outputs`.
+    ///
+    /// # Safety
+    /// As [`Tiled::load`].
+    unsafe fn store(&self, arena: *const f32, outputs: &mut [&mut [f32]], start: usize, count: usize) {
+        for (out, &slot) in outputs.iter_mut().zip(&self.output_slots) {
+            // SAFETY: as the caller guarantees.
+            unsafe {
+                std::ptr::copy_nonoverlapping(
+                    arena.add(slot * COLUMN),
+                    out[start..start + count].as_mut_ptr(),
+                    count,
+                )
+            };
+        }
+    }
+}
+
+/// What evaluating a plan with one set of params keeps between tiles: the matrices, the partial sums
+/// of the reductions and the arenas (one for a whole evaluation; one per tile of points when the forward
+/// pass keeps its values for the backward pass, see [`Passes`]).
+pub(crate) struct Workspace<'a> {
+    plan: &'a Tiled,
+    params: &'a [f32],
+    matrices: Vec<Vec<Matrix>>,
+    /// Each segment's reductions, 4 lanes each.
+    accums: Vec<Vec<f32>>,
+    /// Each outer product's sums, rows padded (see [`gemm::padded`]).
+    grads: Vec<Vec<f32>>,
+    scratch: Vec<f32>,
+    bf16_scratch: Bf16Scratch,
+    /// The arenas, `n_slots · COLUMN` floats each, from the first cache line of `buffer` on.
+    buffer: Vec<f32>,
+    arenas: usize,
+}
+
+impl<'a> Workspace<'a> {
+    fn new(plan: &'a Tiled, params: &'a [f32]) -> Workspace<'a> {
+        Workspace {
+            plan,
+            params,
+            matrices: plan
+                .products
+                .iter()
+                .map(|stage| stage.iter().map(|p| matrix(p, params, plan.precision)).collect())
+                .collect(),
+            accums: plan
+                .segments
+                .iter()
+                .map(|s| vec![0.0; 4 * s.as_ref().map_or(0, |s| s.reductions.len())])
+                .collect(),
+            grads: plan
+                .outer
+                .iter()
+                .map(|o| vec![0.0; o.left.len() * gemm::padded(o.right.len())])
+                .collect(),
+            scratch: Vec::new(),
+            bf16_scratch: Bf16Scratch::default(),
+            buffer: Vec::new(),
+            arenas: 0,
+        }
+    }
+
+    /// Makes room for `count` arenas, their constants and params filled in (what they held is lost
+    /// when they grow).
+    fn reserve_arenas(&mut self, count: usize) {
+        if count <= self.arenas {
+            return;
+        }
+        let size = self.plan.n_slots * COLUMN;
+        let all = gemm::line_aligned(&mut self.buffer, count * size);
+        for arena in all.chunks_exact_mut(size) {
+            for &(slot, fill) in &self.plan.fills {
+                let value = match fill {
+                    Fill::Const(c) => c,
+                    Fill::Param(k) => self.params[k],
+                };
+                arena[slot * COLUMN..slot * COLUMN + TILE].fill(value);
+            }
+        }
+        self.arenas = count;
+    }
+
+    /// The start of arena `k` (< the arenas reserved).
+    fn arena(&mut self, k: usize) -> *mut f32 {
+        let size = self.plan.n_slots * COLUMN;
+        gemm::line_aligned(&mut self.buffer, self.arenas * size)[k * size..].as_mut_ptr()
+    }
+
+    /// Runs `stages` (products, grid reads, then the segment of each) on the tile in `arena`.
+    ///
+    /// # Safety
+    /// `arena` must be one of this workspace's and `count` ≤ [`TILE`].
+    unsafe fn run_stages(
+        &mut self,
+        arena: *mut f32,
+        stages: std::ops::Range<usize>,
+        count: usize,
+        laps: &mut Laps,
+    ) {
+        let plan = self.plan;
+        // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
+        let column = |slot: usize| unsafe { arena.add(slot * COLUMN) };
+        let reads =
+            |slots: &[usize]| -> Vec<*const f32> { slots.iter().map(|&s| column(s) as *const f32).collect() };
+        let writes = |slots: &[usize]| -> Vec<*mut f32> { slots.iter().map(|&s| column(s)).collect() };
+        for s in stages {
+            for (p, m) in plan.products[s].iter().zip(&self.matrices[s]) {
+                let (x, out) = (reads(&p.x), writes(&p.out));
+                // SAFETY: all columns are TILE floats in the arena; a product's outputs are picks, whose
+                // slots no input of the same product uses (its inputs precede it).
+                unsafe {
+                    match m {
+                        Matrix::F32(m) => gemm::matmul(m, &x, &out),
+                        Matrix::Bf16(m) => bf16::matmul(m, &x, &out, &mut self.bf16_scratch),
+                    }
+                };
+            }
+            laps.lap(Phase::Products);
+            for step in &plan.grids[s] {
+                let point = step.p.map(|s| column(s) as *const f32);
+                // SAFETY: all columns are TILE ≥ count floats in the arena; the outputs are picks,
+                // whose slots the point (read before them) does not share.
+                unsafe { step.plan.read(point, &writes(&step.out), self.params, count) };
+            }
+            laps.lap(Phase::GridReads);
+            if let Some(seg) = &plan.segments[s] {
+                // SAFETY: the segment's columns are TILE ≥ count rounded up to 4 floats each.
+                unsafe {
+                    seg.kernel.call_raw(
+                        &reads(&seg.reads),
+                        &writes(&seg.writes),
+                        self.params,
+                        &mut self.accums[s],
+                        count,
+                    )
+                };
+            }
+            laps.lap(Phase::Elementwise);
+        }
+    }
+
+    /// Adds the tile's outer products to their sums and its scatters to `reductions`.
+    ///
+    /// # Safety
+    /// As [`Workspace::run_stages`].
+    unsafe fn reduce_tile(
+        &mut self,
+        arena: *const f32,
+        count: usize,
+        reductions: &mut [f32],
+        laps: &mut Laps,
+    ) {
+        // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
+        let reads = |slots: &[usize]| -> Vec<*const f32> {
+            slots.iter().map(|&s| unsafe { arena.add(s * COLUMN) }).collect()
+        };
+        for (o, g) in self.plan.outer.iter().zip(&mut self.grads) {
+            let (left, right) = (reads(&o.left), reads(&o.right));
+            // SAFETY: operand columns hold TILE ≥ count floats.
+            unsafe {
+                match self.plan.precision {
+                    Precision::F32 => gemm::outer(&left, &right, count, g, &mut self.scratch),
+                    Precision::Bf16 => bf16::outer(&left, &right, count, g, &mut self.bf16_scratch),
+                }
+            };
+        }
+        laps.lap(Phase::OuterProducts);
+        for sc in &self.plan.scatters {
+            let point = sc.p.map(|s| unsafe { arena.add(s * COLUMN) });
+            // SAFETY: operand columns hold TILE ≥ count floats.
+            unsafe { sc.plan.scatter(point, &reads(&sc.cotangent), reductions, count) };
+        }
+        laps.lap(Phase::GridScatters);
+    }
+
+    /// Adds the segments' reductions and the outer products' sums to `reductions`, and starts them again.
+    fn finish(&mut self, reductions: &mut [f32]) {
+        for (seg, acc) in self.plan.segments.iter().zip(&mut self.accums) {
             if let Some(seg) = seg {
                 for (&r, lanes) in seg.reductions.iter().zip(acc.chunks_exact(4)) {
                     reductions[r] += lane_sum(lanes);
                 }
             }
+            acc.fill(0.0);
         }
-        for (o, g) in self.outer.iter().zip(&grads) {
+        for (o, g) in self.plan.outer.iter().zip(&mut self.grads) {
             let (cols, stride) = (o.right.len(), gemm::padded(o.right.len()));
             for i in 0..o.left.len() {
                 for j in 0..cols {
                     reductions[o.target + i * cols + j] += g[i * stride + j];
                 }
             }
+            g.fill(0.0);
         }
-        debug_assert_eq!(reductions.len(), self.n_reductions);
+        debug_assert_eq!(reductions.len(), self.plan.n_reductions);
+    }
+}
+
+/// The forward and the backward pass of a kernel compiled with a split ([`Options::split`]) run
+/// separately over the same points: the forward pass keeps each tile's arena, the backward pass goes on
+/// in it after the caller has computed the cotangents from the outputs, so nothing is recomputed.
+pub(crate) struct Passes<'a> {
+    plan: &'a Tiled,
+    params: &'a [f32],
+    /// Made by the first forward pass.
+    workspace: Option<Workspace<'a>>,
+    /// The points of the last forward pass.
+    kept: Option<usize>,
+}
+
+impl<'a> Passes<'a> {
+    /// Passes of `plan` with `params` (nothing is prepared before the first forward pass).
+    pub(crate) fn new(plan: &'a Tiled, params: &'a [f32]) -> Passes<'a> {
+        Passes {
+            plan,
+            params,
+            workspace: None,
+            kept: None,
+        }
+    }
+
+    /// The forward pass over points `0..n` (sizes checked by the caller): writes the outputs, keeps a tile
+    /// arena per [`TILE`] points.
+    pub(crate) fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        let plan = self.plan;
+        let w = self
+            .workspace
+            .get_or_insert_with(|| Workspace::new(plan, self.params));
+        w.reserve_arenas(n.div_ceil(TILE).max(1));
+        let mut laps = Laps::start();
+        for (t, start) in (0..n).step_by(TILE).enumerate() {
+            let count = TILE.min(n - start);
+            let arena = w.arena(t);
+            // SAFETY: arena t exists; sizes were checked by the caller.
+            unsafe {
+                plan.load(arena, inputs, 0, start, count);
+                w.run_stages(arena, 0..plan.forward_stages, count, &mut laps);
+                plan.store(arena, outputs, start, count);
+            }
+        }
+        laps.lap(Phase::Elementwise);
+        laps.finish();
+        self.kept = Some(n);
+    }
+
+    /// The backward pass over the points of the last forward pass, `0..n`, with their `cotangents`; adds
+    /// grid scatters to `reductions` now and the rest at [`Passes::finish`].
+    ///
+    /// # Panics
+    /// If the last forward pass was not over `n` points.
+    pub(crate) fn backward(&mut self, n: usize, cotangents: &[&[f32]], reductions: &mut [f32]) {
+        assert_eq!(
+            self.kept.take(),
+            Some(n),
+            "a backward pass runs over the points of the forward pass"
+        );
+        let plan = self.plan;
+        let w = self
+            .workspace
+            .as_mut()
+            .expect("the forward pass made the workspace");
+        let mut laps = Laps::start();
+        for (t, start) in (0..n).step_by(TILE).enumerate() {
+            let count = TILE.min(n - start);
+            let arena = w.arena(t);
+            // SAFETY: the forward pass reserved arena t; sizes were checked by the caller.
+            unsafe {
+                plan.load(arena, cotangents, plan.forward_inputs, start, count);
+                w.run_stages(arena, plan.forward_stages..plan.segments.len(), count, &mut laps);
+                w.reduce_tile(arena, count, reductions, &mut laps);
+            }
+        }
+        laps.lap(Phase::Elementwise);
+        laps.finish();
+    }
+
+    /// Adds what the backward passes summed so far (segment reductions, outer products) to `reductions`.
+    pub(crate) fn finish(&mut self, reductions: &mut [f32]) {
+        if let Some(w) = &mut self.workspace {
+            w.finish(reductions);
+        }
+    }
+
+    /// The inputs of the forward pass.
+    pub(crate) fn forward_inputs(&self) -> usize {
+        self.plan.forward_inputs
     }
 }
 
@@ -589,10 +824,10 @@ fn matrix(p: &Product, params: &[f32], precision: Precision) -> Matrix {
     }
 }
 
-/// The JIT kernel of level `s`'s elementwise nodes, or None if the level computes nothing.
+/// The JIT kernel of stage `s`'s elementwise nodes, or None if the stage computes nothing.
 fn build_segment(
     g: &Graph,
-    level: &[usize],
+    stage: &[usize],
     slots: &mut Slots,
     s: usize,
     options: Options,
@@ -616,7 +851,7 @@ fn build_segment(
     };
     let mut writes = Vec::new();
     for (i, op) in ops.iter().enumerate() {
-        if level[i] != s || !is_elementwise(op) {
+        if stage[i] != s || !is_elementwise(op) {
             continue;
         }
         let mapped = op.map_args(|a| read(&mut sg, &local, slots, a));
@@ -630,7 +865,7 @@ fn build_segment(
     let mut reductions = Vec::new();
     for (r, &v) in g.reductions.iter().enumerate() {
         let op = &ops[v.0 as usize];
-        if level[v.0 as usize] != s || *op == Op::Const(0f64.to_bits()) {
+        if stage[v.0 as usize] != s || *op == Op::Const(0f64.to_bits()) {
             continue;
         }
         let value = read(&mut sg, &local, slots, v);

@@ -7,7 +7,7 @@ mod common;
 
 use common::{close, interp_eval, jit_eval};
 use nerfjit_dsl::{compile, interp, kernels, Program};
-use nerfjit_jit::{Options, Precision};
+use nerfjit_jit::{Kernel, Options, Precision};
 use proptest::prelude::*;
 
 /// An MLP of the given hidden widths on a harmonic embedding of p, with a skip connection into the last
@@ -103,6 +103,60 @@ proptest! {
         let (io, ir) = interp_eval(&g, &pts, &params);
         assert_outputs_match("second order", &jo, &io);
         assert_reductions_match("second order", &jr, &ir, n);
+    }
+
+    /// The training kernel split into a forward pass that keeps its values and a backward pass over them,
+    /// called on batches of any size: the outputs and reductions of the interpreter, and for one batch
+    /// the very bits of the unsplit kernel, which recomputes nothing differently.
+    #[test]
+    fn split_passes_match_the_unsplit_kernel_and_the_interpreter(
+        widths in prop::collection::vec(1usize..40, 1..4),
+        batches in prop::collection::vec(0usize..300, 1..4),
+        seed in any::<u64>(),
+        relu in any::<bool>(),
+        bf16 in any::<bool>(),
+    ) {
+        let p = network(&widths, if relu { "relu" } else { "tanh" });
+        let params = p.param_values_f64();
+        let both = p.lower_many(&["d", "c"]).unwrap();
+        let g = kernels::forward_backward(&both, p.n_params());
+        let products = if bf16 { Precision::Bf16 } else { Precision::F32 };
+        let split = Kernel::compile(&g, Options { products, split: Some(3), ..Options::default() }).unwrap();
+        let params32: Vec<f32> = params.iter().map(|&x| x as f32).collect();
+        let mut passes = split.passes(&params32).expect("a split network kernel runs as passes");
+        let n: usize = batches.iter().sum();
+        let pts = points(seed, n, 4);
+        let cols: Vec<Vec<f32>> = (0..7).map(|c| pts.iter().map(|p| p[c] as f32).collect()).collect();
+        let mut outs = vec![vec![0.0f32; n]; 4];
+        let mut reductions = vec![0.0f32; g.reductions.len()];
+        let mut start = 0;
+        for &b in &batches {
+            let ins: Vec<&[f32]> = cols[..3].iter().map(|c| &c[start..start + b]).collect();
+            let cots: Vec<&[f32]> = cols[3..].iter().map(|c| &c[start..start + b]).collect();
+            let mut out: Vec<&mut [f32]> = outs.iter_mut().map(|o| &mut o[start..start + b]).collect();
+            passes.forward(b, &ins, &mut out);
+            passes.backward(b, &cots, &mut reductions);
+            start += b;
+        }
+        passes.finish(&mut reductions);
+        let per_point: Vec<Vec<f32>> = (0..n).map(|i| outs.iter().map(|o| o[i]).collect()).collect();
+        let (io, ir) = interp_eval(&g, &pts, &params);
+        if bf16 {
+            for (got, want) in per_point.iter().flatten().zip(io.iter().flatten()) {
+                prop_assert!(close(*got, *want, 0.03, 1.0), "output {} vs {}", got, want);
+            }
+        } else {
+            assert_outputs_match("split passes", &per_point, &io);
+            assert_reductions_match("split passes", &reductions, &ir, n);
+        }
+        if batches.len() == 1 {
+            let (wo, wr) = jit_eval(&g, &pts, &params, Options { products, ..Options::default() });
+            prop_assert_eq!(&per_point, &wo);
+            prop_assert_eq!(&reductions, &wr);
+            let (so, sr) = jit_eval(&g, &pts, &params, Options { products, split: Some(3), ..Options::default() });
+            prop_assert_eq!(&so, &wo);
+            prop_assert_eq!(&sr, &wr);
+        }
     }
 
     #[test]

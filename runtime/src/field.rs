@@ -86,6 +86,65 @@ pub trait BatchVjp: Sync {
     /// Adds Σ_points Σ_k `cotangents[k][p]`·∂out_k(p)/∂θ to `param_grads` (length
     /// `n_params`) for points 0..n. `inputs[i]` and `cotangents[k]` each have length >= n.
     fn vjp(&self, n: usize, inputs: &[&[f32]], cotangents: &[&[f32]], param_grads: &mut [f32]);
+
+    /// The forward pass and this backward pass run separately, the backward pass reading what the forward
+    /// pass kept instead of recomputing it, if the field offers them (one per thread of work).
+    fn kept_passes(&self) -> Option<Box<dyn KeptPasses + '_>> {
+        None
+    }
+}
+
+/// A field's forward pass that keeps what its backward pass needs, and that backward pass
+/// ([`BatchVjp::kept_passes`]): [`KeptPasses::forward`] on a batch of points, then
+/// [`KeptPasses::backward`] on the same batch with the cotangents of the outputs, as often as wanted;
+/// [`KeptPasses::finish`] adds what the backward passes held back.
+pub trait KeptPasses: Send {
+    /// Evaluates points 0..n (as [`BatchFn::eval`]) and keeps what the backward pass needs.
+    fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]);
+    /// Adds Σ_points Σ_k `cotangents[k][p]`·∂out_k(p)/∂θ over the `n` points of the last forward pass to
+    /// `param_grads`, some of it now and the rest at [`KeptPasses::finish`].
+    fn backward(&mut self, n: usize, cotangents: &[&[f32]], param_grads: &mut [f32]);
+    /// Adds what the backward passes held back to `param_grads`.
+    fn finish(&mut self, param_grads: &mut [f32]);
+}
+
+/// A [`KeptPasses`]' forward pass as a [`BatchFn`], for code that evaluates fields through that trait
+/// (a volume pass that evaluates every sample in one call).
+pub(crate) struct KeptForward<'a, 'b> {
+    passes: std::sync::Mutex<&'a mut (dyn KeptPasses + 'b)>,
+    n_inputs: usize,
+    n_outputs: usize,
+}
+
+impl<'a, 'b> KeptForward<'a, 'b> {
+    /// The forward pass of `passes`, a field of `n_inputs` inputs and `n_outputs` outputs.
+    pub(crate) fn new(passes: &'a mut (dyn KeptPasses + 'b), n_inputs: usize, n_outputs: usize) -> Self {
+        KeptForward {
+            passes: std::sync::Mutex::new(passes),
+            n_inputs,
+            n_outputs,
+        }
+    }
+
+    /// The passes again, for their backward pass.
+    pub(crate) fn into_inner(self) -> &'a mut (dyn KeptPasses + 'b) {
+        self.passes.into_inner().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl BatchFn for KeptForward<'_, '_> {
+    fn n_inputs(&self) -> usize {
+        self.n_inputs
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.n_outputs
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        let mut passes = self.passes.lock().unwrap_or_else(|e| e.into_inner());
+        passes.forward(n, inputs, outputs);
+    }
 }
 
 /// Checks that `vjp` is the backward pass of a function of `inputs` inputs and `outputs`

@@ -53,6 +53,9 @@ pub struct TrainableModel<'a> {
     pub field: (&'a dyn BatchFn, &'a dyn BatchVjp),
     /// With hierarchical sampling: the coarse field, its backward pass, and the importance samples per ray.
     pub coarse: Option<(&'a dyn BatchFn, &'a dyn BatchVjp, usize)>,
+    /// Recompute the forward pass in the backward pass even where the fields could keep its values
+    /// ([`StepOptions::recompute_forward`]).
+    pub recompute_forward: bool,
 }
 
 impl TrainableModel<'_> {
@@ -69,7 +72,11 @@ impl TrainableModel<'_> {
         let (field, vjp) = self.field;
         match self.coarse {
             None => {
-                let options = StepOptions { fine: None, grid };
+                let options = StepOptions {
+                    fine: None,
+                    grid,
+                    recompute_forward: self.recompute_forward,
+                };
                 volume_step_with(rays, targets, field, vjp, settings, options, jitter)
             }
             Some((coarse, coarse_vjp, importance)) => {
@@ -81,6 +88,7 @@ impl TrainableModel<'_> {
                 let options = StepOptions {
                     fine: Some(&fine),
                     grid,
+                    recompute_forward: self.recompute_forward,
                 };
                 volume_step_with(rays, targets, coarse, coarse_vjp, settings, options, jitter)
             }

@@ -1081,6 +1081,7 @@ mod tests {
                 let plain = TrainableModel {
                     field: (&fine, &no_vjp),
                     coarse: None,
+                    recompute_forward: false,
                 };
                 let step = plain.step((&rays, &targets), &settings, grid, None).unwrap();
                 assert!(
@@ -1092,6 +1093,7 @@ mod tests {
                 let hierarchical = TrainableModel {
                     field: (&fine, &no_vjp),
                     coarse: Some((&coarse, &no_vjp, importance)),
+                    recompute_forward: false,
                 };
                 let step = hierarchical
                     .step((&rays, &targets), &settings, grid, None)

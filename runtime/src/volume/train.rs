@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::cameras::rays::RayBatch;
 use crate::error::{Error, Result};
-use crate::field::{check_vjp_arity, BatchFn, BatchVjp};
+use crate::field::{check_vjp_arity, BatchFn, BatchVjp, KeptForward, KeptPasses};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
 use crate::volume::composite::{RayOutput, SharedDepths};
@@ -28,6 +28,11 @@ use crate::volume::sampler::jittered_depth;
 
 /// Sample points per chunk of tiles.
 pub const CHUNK_POINTS: usize = 32768;
+
+/// Sample points per tile of rays when the backward pass reads the values the forward pass kept: few
+/// enough that they stay in the L2 cache between the two passes (a tile arena of the course's NeRF holds
+/// about 0.6 MB per 128 points).
+pub const KEPT_TILE_POINTS: usize = 512;
 
 /// Gradient accumulators of a step at most (its parallel tasks).
 pub const ACCUMULATORS: usize = 4;
@@ -91,6 +96,9 @@ pub struct StepOptions<'a> {
     /// Empty-space skipping: samples in the grid's empty cells (or outside it) are neither
     /// evaluated nor back-propagated; they composite as empty space.
     pub grid: Option<&'a OccupancyGrid>,
+    /// Recompute the fields' forward pass in their backward pass even where they could keep its values
+    /// (see [`volume_step_with`]), to compare.
+    pub recompute_forward: bool,
 }
 
 /// What every tile of a step needs to know.
@@ -107,6 +115,15 @@ struct Job<'a> {
     fixed_depths: Option<(Vec<f32>, Vec<f32>)>,
     /// ∂loss/∂color = scale·(color − target).
     scale: f32,
+    /// Whether the passes evaluate every sample and the fields' backward passes read the values their
+    /// forward passes kept.
+    keep: bool,
+}
+
+/// The kept passes ([`BatchVjp::kept_passes`]) of a task's coarse (or only) and fine field, if used.
+struct Kept<'a> {
+    coarse: Option<Box<dyn KeptPasses + 'a>>,
+    fine: Option<Box<dyn KeptPasses + 'a>>,
 }
 
 /// What a tile of rays adds to a step besides its gradient.
@@ -131,10 +148,10 @@ impl std::ops::AddAssign for TileTotals {
 fn train_tile(
     job: &Job,
     s: &mut Scratch,
-    first: usize,
-    n: usize,
+    (first, n): (usize, usize),
     seed: u64,
     grads: &mut [f32],
+    kept: &mut Kept,
 ) -> TileTotals {
     let samples = job.settings.samples;
     let len = n * samples;
@@ -168,9 +185,8 @@ fn train_tile(
         (job.field, job.vjp, shared),
         job.settings,
         s,
-        first,
-        n,
-        grads,
+        (first, n),
+        (grads, kept.coarse.as_deref_mut()),
     );
     let Some((fine, fine_settings)) = &job.fine else {
         return TileTotals {
@@ -185,9 +201,8 @@ fn train_tile(
         (fine.field, fine.vjp, None),
         fine_settings,
         s,
-        first,
-        n,
-        grads,
+        (first, n),
+        (grads, kept.fine.as_deref_mut()),
     );
     TileTotals {
         squared_error: [coarse, fine_error],
@@ -197,19 +212,21 @@ fn train_tile(
 
 /// Evaluates `field` at the depths in `s.depths` of rays `first..first + n` (the same as
 /// `shared_depths` on every ray, when given), composites, and adds the gradient of the MSE through
-/// `vjp` to `grads`; returns the summed squared error and the number of samples evaluated.
+/// `vjp` to `grads`; returns the summed squared error and the number of samples evaluated. With `kept`
+/// passes (a pass that evaluates every sample in one call), the forward pass is theirs and the backward
+/// pass goes on from what it kept.
 fn run_pass(
     job: &Job,
     (field, vjp, shared_depths): (&dyn BatchFn, &dyn BatchVjp, Option<SharedDepths>),
     settings: &VolumeSettings,
     s: &mut Scratch,
-    first: usize,
-    n: usize,
-    grads: &mut [f32],
+    (first, n): (usize, usize),
+    (grads, kept): (&mut [f32], Option<&mut (dyn KeptPasses + '_)>),
 ) -> (f64, usize) {
     let len = n * settings.samples;
+    let kept = kept.map(|k| KeptForward::new(k, field.n_inputs(), field.n_outputs()));
     let pass = Pass {
-        field,
+        field: kept.as_ref().map_or(field, |k| k as &dyn BatchFn),
         compositor: settings.compositor(),
         grid: job.grid,
         samples: settings.samples,
@@ -217,6 +234,7 @@ fn run_pass(
     s.load_rays(job.rays, first, n);
     let depths = shared_depths.map_or(Depths::PerRay, Depths::Shared);
     let evaluated = pass::run(&pass, depths, s, Output::Samples);
+    let kept = kept.map(KeptForward::into_inner);
     let Scratch {
         inputs,
         outputs: [raw, r, g, b],
@@ -253,6 +271,11 @@ fn run_pass(
     );
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
     let samples = evaluated.as_ref().map_or(len, Vec::len);
+    if let Some(kept) = kept {
+        debug_assert!(evaluated.is_none(), "kept passes evaluate every sample");
+        kept.backward(len, &cotangents, grads);
+        return (squared_error, samples);
+    }
     let backward = match (compositor.early_termination, evaluated) {
         // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
         (Some(_), Some(index)) => {
@@ -331,7 +354,18 @@ pub fn volume_step_with(
         };
         (f, fine_settings)
     });
-    let tile = settings.rays_per_tile();
+    // Passes that evaluate every sample in one call can keep the forward pass's values for the backward
+    // pass, on tiles small enough that they stay in the cache.
+    let keep = !options.recompute_forward
+        && options.grid.is_none()
+        && settings.early_termination.is_none()
+        && vjp.kept_passes().is_some();
+    let tile = if keep {
+        let samples = fine.as_ref().map_or(settings.samples, |(_, f)| f.samples);
+        (KEPT_TILE_POINTS / samples).clamp(1, 1024)
+    } else {
+        settings.rays_per_tile()
+    };
     let n_tiles = rays.len().div_ceil(tile);
     // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
     let (fixed_depths, seeds) = match jitter {
@@ -353,6 +387,7 @@ pub fn volume_step_with(
         grid: options.grid,
         fixed_depths,
         scale: 2.0 / (3.0 * rays.len() as f32),
+        keep,
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
@@ -363,16 +398,26 @@ pub fn volume_step_with(
         .map(|task| {
             let mut grads = accumulator(n_params);
             let mut totals = TileTotals::default();
+            let mut kept = Kept {
+                coarse: job.keep.then(|| job.vjp.kept_passes()).flatten(),
+                fine: job
+                    .fine
+                    .as_ref()
+                    .and_then(|(f, _)| job.keep.then(|| f.vjp.kept_passes()).flatten()),
+            };
             with_scratch(|s| {
                 for c in (task..n_chunks).step_by(n_tasks) {
                     let tiles = c * tiles_per_chunk..((c + 1) * tiles_per_chunk).min(n_tiles);
                     for t in tiles {
                         let first = t * tile;
                         let n = tile.min(rays.len() - first);
-                        totals += train_tile(&job, s, first, n, seeds[t], &mut grads);
+                        totals += train_tile(&job, s, (first, n), seeds[t], &mut grads, &mut kept);
                     }
                 }
             });
+            for passes in [&mut kept.coarse, &mut kept.fine].into_iter().flatten() {
+                passes.finish(&mut grads);
+            }
             (totals, grads)
         })
         .collect();
