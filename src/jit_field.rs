@@ -609,6 +609,81 @@ mod tests {
         fn color(p: vec3) -> vec3 = [1, 1, 1]
     ";
 
+    /// A small NeRF with a coarse field: two dense layers each, view-dependent color.
+    const NET: &str = "
+        param w1: mat<24, 15> = linear_init(seed: 1)
+        param b1: vec<24> = uniform(-0.1, 0.1, seed: 2)
+        param wd: mat<1, 24> = linear_init(seed: 3)
+        param wc: mat<3, 30> = linear_init(seed: 4)
+        param v1: mat<16, 15> = linear_init(seed: 5)
+        param vd: mat<1, 16> = linear_init(seed: 6)
+        fn h(p: vec3) -> vec<24> = relu(dense(w1, b1, harmonic(p, 2)))
+        fn density(p: vec3) -> f32 = softplus(dense(wd, h(p)))[0]
+        fn color(p: vec3, d: vec3) -> vec3 = sigmoid(dense(wc, concat(h(p), 2.0 * d, d)))
+        fn coarse_density(p: vec3) -> f32 = softplus(dense(vd, relu(dense(v1, harmonic(p, 2)))))[0]
+        fn coarse_color(p: vec3) -> vec3 = sigmoid(p)
+    ";
+
+    /// Training steps whose backward passes read what the forward passes kept give the steps that
+    /// recompute the forward pass (plain and hierarchical, f32 and bf16 products).
+    #[test]
+    fn kept_forward_passes_train_as_recomputed_ones() {
+        use nerfjit_runtime::{Camera, RayBatch, VolumeSettings};
+        let program = nerfjit_dsl::compile("net.sdf", NET).unwrap();
+        let cache = KernelCache::new();
+        let camera = Camera::look_at(
+            glam::Vec3::new(0.3, 0.5, -3.0),
+            glam::Vec3::ZERO,
+            glam::Vec3::Y,
+            glam::Vec2::splat(1.5),
+            glam::Vec2::ZERO,
+        )
+        .unwrap();
+        let rays = RayBatch::random_pixels(&camera, 16, 16, 40, 5).unwrap().0;
+        let targets: Vec<[f32; 3]> = (0..rays.len())
+            .map(|k| [0.1 * (k % 7) as f32, 0.5, 0.2])
+            .collect();
+        let settings = VolumeSettings {
+            spacing: nerfjit_runtime::DepthSpacing::Linear,
+            near: 2.0,
+            far: 4.0,
+            samples: 48,
+            mode: Mode::Density,
+            background: Some([0.0; 3]),
+            early_termination: None,
+        };
+        for (products, importance) in [(Precision::F32, 0), (Precision::F32, 40), (Precision::Bf16, 0)] {
+            let fields = VolumeFields::compile(&program, &cache, importance, products).unwrap();
+            let bound = fields.bind(&program.param_values);
+            assert!(
+                bound.fine.1.kept_passes().is_some(),
+                "a network field offers kept passes"
+            );
+            let step = |recompute_forward: bool| {
+                let model = TrainableModel {
+                    recompute_forward,
+                    ..bound.trainable()
+                };
+                model.step((&rays, &targets), &settings, None, None).unwrap()
+            };
+            let (kept, recomputed) = (step(false), step(true));
+            assert!(
+                (kept.loss - recomputed.loss).abs() <= 1e-6 * recomputed.loss,
+                "{products:?}: {} vs {}",
+                kept.loss,
+                recomputed.loss
+            );
+            let scale = recomputed.param_grads.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+            assert!(scale > 0.0);
+            for (k, (a, b)) in kept.param_grads.iter().zip(&recomputed.param_grads).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-5 * scale,
+                    "{products:?}, param {k}: {a} vs {b}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn a_script_density_gets_its_occupancy_grid_from_its_bounds() {
         let program = nerfjit_dsl::compile("shell.sdf", SHELL).unwrap();

@@ -518,6 +518,10 @@ pub const TRAIN: BlockSchema = BlockSchema {
         IMPORTANCE,
         SKIP_EMPTY,
         PRODUCTS,
+        flag(
+            "recompute_forward",
+            "recompute the networks' forward pass in their backward pass instead of keeping its values (where every sample is evaluated: slower, to compare)",
+        ),
         whole(
             "grid_every",
             1,

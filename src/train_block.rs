@@ -9,7 +9,7 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{
     load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Rng,
-    Schedule, Views, VolumeSettings,
+    Schedule, TrainableModel, Views, VolumeSettings,
 };
 
 use crate::block::Block;
@@ -72,6 +72,8 @@ pub struct TrainPlan {
     importance: usize,
     /// The arithmetic of the networks' products.
     products: Precision,
+    /// Recompute the networks' forward pass in their backward pass instead of keeping its values.
+    recompute_forward: bool,
     /// Empty-space skipping during training: an occupancy grid of the (fine) field, rebuilt every
     /// `every` steps from step `warmup` on.
     grid: Option<TrainingGrid>,
@@ -414,6 +416,7 @@ impl TrainPlan {
         };
         let importance = b.whole("importance")? as usize;
         let products = b.products()?;
+        let recompute_forward = b.flag("recompute_forward")?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
             Some(v) => crate::volume_block::skip_empty(&v).map_err(|d| b.error(d))?,
@@ -476,6 +479,7 @@ impl TrainPlan {
             validation,
             importance,
             products,
+            recompute_forward,
             grid,
         })
     }
@@ -845,10 +849,11 @@ impl Objective for VolumeObjective<'_> {
                 .random_rays(view, plan.batch, plan.seed.wrapping_add(u64::from(step)))?;
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
         let fields = self.fields.bind(params);
-        let mut result =
-            fields
-                .trainable()
-                .step((&rays, &targets), &self.step_settings, self.grid.as_ref(), jitter)?;
+        let model = TrainableModel {
+            recompute_forward: plan.recompute_forward,
+            ..fields.trainable()
+        };
+        let mut result = model.step((&rays, &targets), &self.step_settings, self.grid.as_ref(), jitter)?;
         if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
             let reg = &e.regularizers;
             let points = match &self.grid {

@@ -5,9 +5,8 @@
 //! - [`with_gradient`]: outputs, then ∂outₖ/∂inputs for each output k (the Jacobian, row by row).
 //! - [`vjp`]: inputs followed by one cotangent per output; outputs, then the input gradient Σₖ cₖ ∂outₖ/∂x;
 //!   reductions: the param gradient Σₖ cₖ ∂outₖ/∂θ for every param.
-//! - [`param_vjp`]: as [`vjp`] without per-point outputs, for training.
-//! - [`forward_backward`]: as [`vjp`] with the function's values as its only outputs, for training that
-//!   keeps the forward pass's values for the backward pass.
+//! - [`forward_backward`]: as [`vjp`] with the function's values as its only outputs, for training (run
+//!   whole, or split into a forward pass that keeps its values and a backward pass over them).
 //! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
 //!   ∇ₓf; outputs f and ∇ₓf; reductions ∂/∂θ (c_f f + c_g·∇ₓf). A loss on ∇ₓf (the eikonal loss) gets its
 //!   param gradient from this kernel.
@@ -100,14 +99,6 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
     let (input_grads, reductions) = gradients(&mut g, &seeds, &xs, n_params);
     g.outputs.extend(input_grads);
     g.reductions = reductions;
-    g.compact()
-}
-
-/// The param gradient alone: inputs, then one cotangent per output; no per-point outputs; reductions
-/// Σₖ cₖ ∂outₖ/∂θ for every param (the backward pass of training).
-pub fn param_vjp(f: &Lowered, n_params: usize) -> Graph {
-    let mut g = vjp(f, n_params);
-    g.outputs.clear();
     g.compact()
 }
 
