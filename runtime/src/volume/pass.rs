@@ -763,14 +763,14 @@ fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
 
 /// Replaces the coarse depths of the tile's `n` rays in `s.depths` (sample-major) by their fine depths:
 /// merged with `importance` depths drawn from the coarse weights (the coarse values in `s.outputs[0]`),
-/// stratified with `jitter`, else at the centers of equal-probability bins. Each ray's column is read
+/// stratified with `jitter` (a generator per ray), else at the centers of equal-probability bins. Each ray's column is read
 /// whole before it is written, so the other rays' coarse depths stay in place.
 pub(crate) fn draw_fine_depths(
     coarse: &VolumeSettings,
     importance: usize,
     s: &mut Scratch,
     n: usize,
-    mut jitter: Option<&mut Rng>,
+    mut jitter: Option<&mut [Rng]>,
 ) {
     let m = coarse.samples;
     let compositor = coarse.compositor();
@@ -787,7 +787,8 @@ pub(crate) fn draw_fine_depths(
             raw[j] = s.outputs[0][j * n + k];
         }
         importance::ray_weights(&compositor, &t, &raw, &mut w);
-        if let Some(rng) = jitter.as_deref_mut() {
+        if let Some(rngs) = jitter.as_deref_mut() {
+            let rng = &mut rngs[k];
             importance::quantiles(importance, Some(&mut || rng.next_f32()), &mut u);
         }
         importance::inverse_cdf(coarse.near, coarse.far, &t, &w, &u, &mut drawn);

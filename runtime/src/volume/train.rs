@@ -145,19 +145,19 @@ impl std::ops::AddAssign for TileTotals {
 }
 
 /// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
-/// totals. Jitter, if any, comes from a generator seeded with `seed`.
+/// totals. Jitter, if any, comes from a generator per ray seeded with the ray's entry of `seeds`.
 fn train_tile(
     job: &Job,
     s: &mut Scratch,
     (first, n): (usize, usize),
-    seed: u64,
+    seeds: &[u64],
     grads: &mut [f32],
     kept: &mut Kept,
 ) -> TileTotals {
     let samples = job.settings.samples;
     let len = n * samples;
     s.reserve(len, n);
-    let mut rng = Rng::new(seed);
+    let mut rngs: Vec<Rng> = seeds.iter().map(|&seed| Rng::new(seed)).collect();
     let depths = &mut s.depths[..len];
     match &job.fixed_depths {
         Some((fixed, _)) => {
@@ -170,7 +170,7 @@ fn train_tile(
                 near, far, spacing, ..
             } = *job.settings;
             let bin = (far - near) / samples as f32;
-            for k in 0..n {
+            for (k, rng) in rngs.iter_mut().enumerate() {
                 for j in 0..samples {
                     depths[j * n + k] = spacing.warp(near, far, jittered_depth(near, bin, j, rng.next_f32()));
                 }
@@ -195,7 +195,7 @@ fn train_tile(
             samples: coarse_samples,
         };
     };
-    let jitter = job.fixed_depths.is_none().then_some(&mut rng);
+    let jitter = job.fixed_depths.is_none().then_some(rngs.as_mut_slice());
     pass::draw_fine_depths(job.settings, fine.importance, s, n, jitter);
     let (fine_error, fine_samples) = run_pass(
         job,
@@ -368,14 +368,14 @@ pub fn volume_step_with(
         settings.rays_per_tile()
     };
     let n_tiles = rays.len().div_ceil(tile);
-    // One seed per tile, drawn in order: the jitter does not depend on the scheduling.
+    // One seed per ray, drawn in order: the jitter depends neither on the scheduling nor on the tiles.
     let (fixed_depths, seeds) = match jitter {
-        Some(rng) => (None, (0..n_tiles).map(|_| rng.next_u64()).collect()),
+        Some(rng) => (None, (0..rays.len()).map(|_| rng.next_u64()).collect()),
         None => {
             let mut depths = vec![0.0; settings.samples];
             settings.fixed_depths(&mut depths);
             let deltas = pass::deltas(&depths);
-            (Some((depths, deltas)), vec![0; n_tiles])
+            (Some((depths, deltas)), vec![0; rays.len()])
         }
     };
     let job = Job {
@@ -412,7 +412,8 @@ pub fn volume_step_with(
                     for t in tiles {
                         let first = t * tile;
                         let n = tile.min(rays.len() - first);
-                        totals += train_tile(&job, s, (first, n), seeds[t], &mut grads, &mut kept);
+                        let seeds = &seeds[first..first + n];
+                        totals += train_tile(&job, s, (first, n), seeds, &mut grads, &mut kept);
                     }
                 }
             });
@@ -592,7 +593,8 @@ mod tests {
     }
 
     /// Steps whose backward passes read what the forward passes kept give the steps that recompute
-    /// them, with and without hierarchical sampling; they run only where every sample is evaluated.
+    /// them, with and without hierarchical sampling, jittered (the same depths on tiles of other sizes)
+    /// or not; they run only where every sample is evaluated.
     #[test]
     fn kept_passes_give_the_step_of_recomputing_ones() {
         let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
@@ -608,10 +610,11 @@ mod tests {
             vjp: &kept,
             importance: 32,
         };
-        for (settings, hierarchical) in [
-            (blob_settings(None), false),
-            (blob_settings(None), true),
-            (blob_settings(Some(1e-3)), false),
+        for (settings, hierarchical, jitter) in [
+            (blob_settings(None), false, false),
+            (blob_settings(None), true, true),
+            (blob_settings(None), false, true),
+            (blob_settings(Some(1e-3)), false, false),
         ] {
             let run = |recompute_forward: bool| {
                 let options = StepOptions {
@@ -620,8 +623,10 @@ mod tests {
                     recompute_forward,
                 };
                 let before = kept.forwards.load(std::sync::atomic::Ordering::Relaxed);
+                let mut rng = Rng::new(3);
+                let jitter = jitter.then_some(&mut rng);
                 let step =
-                    volume_step_with(&rays, &targets, &field, &kept, &settings, options, None).unwrap();
+                    volume_step_with(&rays, &targets, &field, &kept, &settings, options, jitter).unwrap();
                 (
                     step,
                     kept.forwards.load(std::sync::atomic::Ordering::Relaxed) - before,
