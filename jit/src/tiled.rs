@@ -6,8 +6,8 @@
 //! between two products, bias + activation + whatever the script does, stays fused); the dense nodes of
 //! level L run, as [`gemm::matmul`], after segment L − 1 and before segment L. Values that cross a
 //! boundary live in slots: one column of [`TILE`] floats each, in an arena reused for every tile. The
-//! graph's outer products (the gradients of the matrices) run last, as [`gemm::outer`], and are summed
-//! over the whole batch. Constants and params are recomputed in every segment that reads them.
+//! graph's outer products (the gradients of the matrices) run as [`gemm::outer`] after the segment that
+//! writes the last of their operands, summed over the whole batch. Constants and params are recomputed in every segment that reads them.
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -41,6 +41,8 @@ struct Product {
 
 /// One outer product added to the reductions from `target` on.
 struct OuterProduct {
+    /// It runs after this stage's segment, the last to write its operands.
+    stage: usize,
     target: usize,
     left: Vec<usize>,
     right: Vec<usize>,
@@ -297,6 +299,13 @@ impl Tiled {
             .outer
             .iter()
             .map(|o| OuterProduct {
+                stage: o
+                    .left
+                    .iter()
+                    .chain(&o.right)
+                    .map(|v| stage[v.0 as usize])
+                    .max()
+                    .unwrap_or(0),
                 target: o.target as usize,
                 left: o.left.iter().map(|&v| slots.get(v)).collect(),
                 right: o.right.iter().map(|&v| slots.get(v)).collect(),
@@ -331,9 +340,11 @@ impl Tiled {
 
     /// Lets values whose lifetimes do not overlap share a column of the arena, so that a tile's arena
     /// holds what is live at once rather than every value that crosses a boundary (a network's forward
-    /// pass then fits in the L2 cache). Time runs over the stages: inputs are loaded at 0, stage s runs its
-    /// products at 2s + 1 and its segment at 2s + 2, outer products and outputs read at the end. A column
-    /// is reused only by a value written strictly after the column's last read.
+    /// pass then fits in the L2 cache). Time runs over the stages: the forward pass's inputs are loaded at
+    /// 0, stage s runs its products at 2s + 1 and its segment and then its outer products at 2s + 2, the
+    /// outputs are read and the cotangents loaded after the forward pass (at 2F for F forward stages),
+    /// grid scatters read at the end. A column is reused only by a value written strictly after the
+    /// column's last read.
     fn share_slots(&mut self) {
         const UNSET: usize = usize::MAX;
         let end = 2 * self.segments.len() + 1;
@@ -381,7 +392,7 @@ impl Tiled {
         }
         for o in &self.outer {
             for &slot in o.left.iter().chain(&o.right) {
-                touch(slot, end);
+                touch(slot, 2 * o.stage + 2);
             }
         }
         for &slot in &self.output_slots {
@@ -475,7 +486,7 @@ impl Tiled {
                     count,
                 );
                 w.run_stages(arena, self.forward_stages..self.segments.len(), count, &mut laps);
-                w.reduce_tile(arena, count, reductions, &mut laps);
+                w.scatter_tile(arena, count, reductions, &mut laps);
             }
         }
         laps.lap(Phase::Elementwise);
@@ -647,14 +658,30 @@ impl<'a> Workspace<'a> {
                 };
             }
             laps.lap(Phase::Elementwise);
+            for (o, g) in plan
+                .outer
+                .iter()
+                .zip(&mut self.grads)
+                .filter(|(o, _)| o.stage == s)
+            {
+                let (left, right) = (reads(&o.left), reads(&o.right));
+                // SAFETY: operand columns hold TILE ≥ count floats.
+                unsafe {
+                    match plan.precision {
+                        Precision::F32 => gemm::outer(&left, &right, count, g, &mut self.scratch),
+                        Precision::Bf16 => bf16::outer(&left, &right, count, g, &mut self.bf16_scratch),
+                    }
+                };
+            }
+            laps.lap(Phase::OuterProducts);
         }
     }
 
-    /// Adds the tile's outer products to their sums and its scatters to `reductions`.
+    /// Adds the tile's grid scatters to `reductions`.
     ///
     /// # Safety
     /// As [`Workspace::run_stages`].
-    unsafe fn reduce_tile(
+    unsafe fn scatter_tile(
         &mut self,
         arena: *const f32,
         count: usize,
@@ -662,24 +689,11 @@ impl<'a> Workspace<'a> {
         laps: &mut Laps,
     ) {
         // SAFETY: every slot index is < n_slots, so each column lies inside the arena.
-        let reads = |slots: &[usize]| -> Vec<*const f32> {
-            slots.iter().map(|&s| unsafe { arena.add(s * COLUMN) }).collect()
-        };
-        for (o, g) in self.plan.outer.iter().zip(&mut self.grads) {
-            let (left, right) = (reads(&o.left), reads(&o.right));
-            // SAFETY: operand columns hold TILE ≥ count floats.
-            unsafe {
-                match self.plan.precision {
-                    Precision::F32 => gemm::outer(&left, &right, count, g, &mut self.scratch),
-                    Precision::Bf16 => bf16::outer(&left, &right, count, g, &mut self.bf16_scratch),
-                }
-            };
-        }
-        laps.lap(Phase::OuterProducts);
+        let column = |s: usize| unsafe { arena.add(s * COLUMN) };
         for sc in &self.plan.scatters {
-            let point = sc.p.map(|s| unsafe { arena.add(s * COLUMN) });
+            let cotangent: Vec<*const f32> = sc.cotangent.iter().map(|&s| column(s)).collect();
             // SAFETY: operand columns hold TILE ≥ count floats.
-            unsafe { sc.plan.scatter(point, &reads(&sc.cotangent), reductions, count) };
+            unsafe { sc.plan.scatter(sc.p.map(column), &cotangent, reductions, count) };
         }
         laps.lap(Phase::GridScatters);
     }
@@ -778,7 +792,7 @@ impl<'a> Passes<'a> {
             unsafe {
                 plan.load(arena, cotangents, plan.forward_inputs, start, count);
                 w.run_stages(arena, plan.forward_stages..plan.segments.len(), count, &mut laps);
-                w.reduce_tile(arena, count, reductions, &mut laps);
+                w.scatter_tile(arena, count, reductions, &mut laps);
             }
         }
         laps.lap(Phase::Elementwise);
