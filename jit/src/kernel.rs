@@ -394,6 +394,11 @@ impl Kernel {
             return self.eval(n, inputs, outputs, params, reductions);
         }
         let chunk = n.div_ceil(threads).div_ceil(4) * 4;
+        // A tiled kernel's matrices are made once for all threads.
+        let matrices = match &self.body {
+            Body::Tiled(t) => Some(std::sync::Arc::new(t.prepare(params))),
+            Body::Plain { .. } => None,
+        };
         let mut out_parts: Vec<Vec<&mut [f32]>> = (0..threads).map(|_| Vec::new()).collect();
         for col in outputs.iter_mut() {
             for (t, piece) in col[..n].chunks_mut(chunk).enumerate() {
@@ -409,9 +414,15 @@ impl Kernel {
                     let start = (t * chunk).min(n);
                     let end = ((t + 1) * chunk).min(n);
                     let ins: Vec<&[f32]> = inputs.iter().map(|c| &c[start..end]).collect();
+                    let matrices = matrices.clone();
                     scope.spawn(move || {
                         let mut part = vec![0.0f32; self.n_reductions];
-                        self.eval(end - start, &ins, &mut outs, params, &mut part);
+                        match (&self.body, matrices) {
+                            (Body::Tiled(t), Some(m)) => {
+                                t.eval_with(m, end - start, (&ins, &mut outs), params, &mut part)
+                            }
+                            _ => self.eval(end - start, &ins, &mut outs, params, &mut part),
+                        }
                         part
                     })
                 })

@@ -10,6 +10,7 @@
 //! writes the last of their operands, summed over the whole batch. Constants and params are recomputed in every segment that reads them.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 use nerfjit_dsl::ir::{Graph, Op, V};
@@ -29,14 +30,20 @@ struct Segment {
     reductions: Vec<usize>,
 }
 
-/// One dense product: `out = A·x` with A = W or Wᵀ.
+/// One dense product: `out = A·x` with A the plan's matrix `matrix`.
 struct Product {
+    matrix: usize,
+    x: Vec<usize>,
+    out: Vec<usize>,
+}
+
+/// A matrix the products multiply by: the param matrix W (`rows × cols` from param `w` on) or Wᵀ.
+#[derive(Clone, Copy, PartialEq)]
+struct MatrixOf {
     w: usize,
     rows: usize,
     cols: usize,
     transposed: bool,
-    x: Vec<usize>,
-    out: Vec<usize>,
 }
 
 /// One outer product added to the reductions from `target` on.
@@ -74,6 +81,8 @@ pub(crate) struct Tiled {
     /// Segment `s` runs after the products of `products[s]`.
     segments: Vec<Option<Segment>>,
     products: Vec<Vec<Product>>,
+    /// The matrices the products multiply by, each once (a second-order kernel multiplies by most twice).
+    matrices: Vec<MatrixOf>,
     /// The grid reads of each stage, run with its products.
     grids: Vec<Vec<GridStep>>,
     outer: Vec<OuterProduct>,
@@ -217,13 +226,21 @@ impl Tiled {
                 picks.insert((d.0, *k), slots.of[i].expect("picks have slots"));
             }
         }
+        let mut matrices: Vec<MatrixOf> = Vec::new();
         for (i, op) in ops.iter().enumerate() {
             if let Op::Dense(d) = op {
-                products[stage[i]].push(Product {
+                let of = MatrixOf {
                     w: d.w as usize,
                     rows: d.rows as usize,
                     cols: d.cols as usize,
                     transposed: d.transposed,
+                };
+                let matrix = matrices.iter().position(|&m| m == of).unwrap_or_else(|| {
+                    matrices.push(of);
+                    matrices.len() - 1
+                });
+                products[stage[i]].push(Product {
+                    matrix,
                     x: g.list(d.x).iter().map(|&a| slots.get(a)).collect(),
                     out: (0..d.n_out() as u32)
                         .map(|k| picks.get(&(i as u32, k)).copied().unwrap_or(spare))
@@ -320,6 +337,7 @@ impl Tiled {
         let mut plan = Tiled {
             segments,
             products,
+            matrices,
             grids,
             outer,
             scatters,
@@ -467,7 +485,35 @@ impl Tiled {
         params: &[f32],
         reductions: &mut [f32],
     ) {
-        let mut w = Workspace::new(self, params);
+        self.eval_with(
+            Arc::new(self.prepare(params)),
+            n,
+            (inputs, outputs),
+            params,
+            reductions,
+        );
+    }
+
+    /// The matrices of the products with `params`, in the products' arithmetic.
+    pub(crate) fn prepare(&self, params: &[f32]) -> Matrices {
+        Matrices(
+            self.matrices
+                .iter()
+                .map(|m| matrix(m, params, self.precision))
+                .collect(),
+        )
+    }
+
+    /// [`Tiled::eval`] with the matrices [`Tiled::prepare`] made of `params`.
+    pub(crate) fn eval_with(
+        &self,
+        matrices: Arc<Matrices>,
+        n: usize,
+        (inputs, outputs): (&[&[f32]], &mut [&mut [f32]]),
+        params: &[f32],
+        reductions: &mut [f32],
+    ) {
+        let mut w = Workspace::new(self, params, matrices);
         w.reserve_arenas(1);
         let mut laps = Laps::start();
         for start in (0..n).step_by(TILE) {
@@ -537,13 +583,17 @@ impl Tiled {
     }
 }
 
+/// The matrices of a plan's products with one set of params ([`Tiled::prepare`]), shared by the threads
+/// of an evaluation.
+pub(crate) struct Matrices(Vec<Matrix>);
+
 /// What evaluating a plan with one set of params keeps between tiles: the matrices, the partial sums
 /// of the reductions and the arenas (one for a whole evaluation; one per tile of points when the forward
 /// pass keeps its values for the backward pass, see [`Passes`]).
 pub(crate) struct Workspace<'a> {
     plan: &'a Tiled,
     params: &'a [f32],
-    matrices: Vec<Vec<Matrix>>,
+    matrices: Arc<Matrices>,
     /// Each segment's reductions, 4 lanes each.
     accums: Vec<Vec<f32>>,
     /// Each outer product's sums, rows padded (see [`gemm::padded`]).
@@ -556,15 +606,11 @@ pub(crate) struct Workspace<'a> {
 }
 
 impl<'a> Workspace<'a> {
-    fn new(plan: &'a Tiled, params: &'a [f32]) -> Workspace<'a> {
+    fn new(plan: &'a Tiled, params: &'a [f32], matrices: Arc<Matrices>) -> Workspace<'a> {
         Workspace {
             plan,
             params,
-            matrices: plan
-                .products
-                .iter()
-                .map(|stage| stage.iter().map(|p| matrix(p, params, plan.precision)).collect())
-                .collect(),
+            matrices,
             accums: plan
                 .segments
                 .iter()
@@ -626,7 +672,8 @@ impl<'a> Workspace<'a> {
             |slots: &[usize]| -> Vec<*const f32> { slots.iter().map(|&s| column(s) as *const f32).collect() };
         let writes = |slots: &[usize]| -> Vec<*mut f32> { slots.iter().map(|&s| column(s)).collect() };
         for s in stages {
-            for (p, m) in plan.products[s].iter().zip(&self.matrices[s]) {
+            for p in &plan.products[s] {
+                let m = &self.matrices.0[p.matrix];
                 let (x, out) = (reads(&p.x), writes(&p.out));
                 // SAFETY: all columns are TILE floats in the arena; a product's outputs are picks, whose
                 // slots no input of the same product uses (its inputs precede it).
@@ -750,7 +797,7 @@ impl<'a> Passes<'a> {
         let plan = self.plan;
         let w = self
             .workspace
-            .get_or_insert_with(|| Workspace::new(plan, self.params));
+            .get_or_insert_with(|| Workspace::new(plan, self.params, Arc::new(plan.prepare(self.params))));
         w.reserve_arenas(n.div_ceil(TILE).max(1));
         let mut laps = Laps::start();
         for (t, start) in (0..n).step_by(TILE).enumerate() {
@@ -818,8 +865,8 @@ enum Matrix {
     Bf16(Bf16Matrix),
 }
 
-/// The matrix a product multiplies by (W itself, or a transposed copy), in `precision`.
-fn matrix(p: &Product, params: &[f32], precision: Precision) -> Matrix {
+/// The matrix `p` (W itself, or a transposed copy), in `precision`.
+fn matrix(p: &MatrixOf, params: &[f32], precision: Precision) -> Matrix {
     let w = &params[p.w..p.w + p.rows * p.cols];
     let (a, rows, cols) = if p.transposed {
         let mut t = vec![0.0; w.len()];
