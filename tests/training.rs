@@ -211,6 +211,7 @@ fn grid_update_settings_are_checked_where_they_are_written() {
 #[test]
 #[ignore = "needs valgrind and a few minutes; run by .ci/run"]
 fn training_steps_under_valgrind_make_no_memory_errors() {
+    // The box's steps: elementwise kernels.
     let dir = scratch("valgrind");
     make_views(&dir);
     std::fs::write(dir.join("train.sdf"), trainer(3)).unwrap();
@@ -227,6 +228,28 @@ fn training_steps_under_valgrind_make_no_memory_errors() {
         "valgrind reported errors or the run failed:\n{stderr}"
     );
     assert!(dir.join("summary.json").exists());
+    // A network's steps: tiled kernels whose backward passes read the arenas their forward passes kept.
+    let net = "param w1: mat<16, 3> = linear_init(seed: 1)\nparam b1: vec<16> = linear_init(fan_in: 3, seed: 2)\n\
+               param w2: mat<4, 16> = linear_init(seed: 3)\n\
+               fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, b1, p)))\n\
+               fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
+               fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
+               train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: 2, batch: 64, lr: 0.01, \
+               summary: \"net.json\" }\n";
+    std::fs::write(dir.join("net.sdf"), net).unwrap();
+    let out = std::process::Command::new("valgrind")
+        .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
+        .arg(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(["run", "net.sdf"])
+        .current_dir(&dir)
+        .output()
+        .expect("valgrind runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "valgrind reported errors or the network's run failed:\n{stderr}"
+    );
+    assert!(dir.join("net.json").exists());
 }
 
 #[test]
