@@ -211,23 +211,26 @@ fn grid_update_settings_are_checked_where_they_are_written() {
 #[test]
 #[ignore = "needs valgrind and a few minutes; run by .ci/run"]
 fn training_steps_under_valgrind_make_no_memory_errors() {
-    // The box's steps: elementwise kernels.
     let dir = scratch("valgrind");
     make_views(&dir);
+    let under_valgrind = |script: &str, summary: &str| {
+        let out = std::process::Command::new("valgrind")
+            .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
+            .arg(env!("CARGO_BIN_EXE_nerfjit"))
+            .args(["run", script])
+            .current_dir(&dir)
+            .output()
+            .expect("valgrind runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.success(),
+            "valgrind reported errors or the run of {script} failed:\n{stderr}"
+        );
+        assert!(dir.join(summary).exists());
+    };
+    // The box's steps: elementwise kernels.
     std::fs::write(dir.join("train.sdf"), trainer(3)).unwrap();
-    let out = std::process::Command::new("valgrind")
-        .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
-        .arg(env!("CARGO_BIN_EXE_nerfjit"))
-        .args(["run", "train.sdf"])
-        .current_dir(&dir)
-        .output()
-        .expect("valgrind runs");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        out.status.success(),
-        "valgrind reported errors or the run failed:\n{stderr}"
-    );
-    assert!(dir.join("summary.json").exists());
+    under_valgrind("train.sdf", "summary.json");
     // A network's steps: tiled kernels whose backward passes read the arenas their forward passes kept.
     let net = "param w1: mat<16, 3> = linear_init(seed: 1)\nparam b1: vec<16> = linear_init(fan_in: 3, seed: 2)\n\
                param w2: mat<4, 16> = linear_init(seed: 3)\n\
@@ -237,19 +240,7 @@ fn training_steps_under_valgrind_make_no_memory_errors() {
                train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: 2, batch: 64, lr: 0.01, \
                summary: \"net.json\" }\n";
     std::fs::write(dir.join("net.sdf"), net).unwrap();
-    let out = std::process::Command::new("valgrind")
-        .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
-        .arg(env!("CARGO_BIN_EXE_nerfjit"))
-        .args(["run", "net.sdf"])
-        .current_dir(&dir)
-        .output()
-        .expect("valgrind runs");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        out.status.success(),
-        "valgrind reported errors or the network's run failed:\n{stderr}"
-    );
-    assert!(dir.join("net.json").exists());
+    under_valgrind("net.sdf", "net.json");
 }
 
 #[test]

@@ -135,6 +135,20 @@ pub(crate) fn params_read(graph: &Graph) -> usize {
         .unwrap_or(0)
 }
 
+/// Panics unless there are as many input and output columns as expected, each of at least `n` floats.
+fn check_columns(n: usize, (inputs, n_in): (&[&[f32]], usize), (outputs, n_out): (&[&mut [f32]], usize)) {
+    assert_eq!(inputs.len(), n_in, "kernel takes {n_in} inputs");
+    assert_eq!(outputs.len(), n_out, "kernel writes {n_out} outputs");
+    assert!(
+        inputs.iter().all(|c| c.len() >= n),
+        "an input column is shorter than {n}"
+    );
+    assert!(
+        outputs.iter().all(|c| c.len() >= n),
+        "an output column is shorter than {n}"
+    );
+}
+
 /// The sum of a reduction's 4 accumulator lanes (added in f64).
 pub(crate) fn lane_sum(lanes: &[f32]) -> f32 {
     lanes.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
@@ -271,26 +285,7 @@ impl Kernel {
     }
 
     fn check(&self, n: usize, inputs: &[&[f32]], outputs: &[&mut [f32]], params: &[f32], reductions: &[f32]) {
-        assert_eq!(
-            inputs.len(),
-            self.n_inputs,
-            "kernel takes {} inputs",
-            self.n_inputs
-        );
-        assert_eq!(
-            outputs.len(),
-            self.n_outputs,
-            "kernel writes {} outputs",
-            self.n_outputs
-        );
-        assert!(
-            inputs.iter().all(|c| c.len() >= n),
-            "an input column is shorter than {n}"
-        );
-        assert!(
-            outputs.iter().all(|c| c.len() >= n),
-            "an output column is shorter than {n}"
-        );
+        check_columns(n, (inputs, self.n_inputs), (outputs, self.n_outputs));
         assert!(
             params.len() >= self.n_params,
             "kernel reads {} params",
@@ -453,27 +448,8 @@ impl Passes<'_> {
     /// pass needs (about a tile arena per 128 points: call it on a few hundred points at a time so that
     /// they stay in the cache). Panics if a slice is shorter than the kernel needs.
     pub fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
-        let k = self.kernel;
-        assert_eq!(
-            inputs.len(),
-            self.passes.forward_inputs(),
-            "the forward pass takes {} inputs",
-            self.passes.forward_inputs()
-        );
-        assert_eq!(
-            outputs.len(),
-            k.n_outputs,
-            "kernel writes {} outputs",
-            k.n_outputs
-        );
-        assert!(
-            inputs.iter().all(|c| c.len() >= n),
-            "an input column is shorter than {n}"
-        );
-        assert!(
-            outputs.iter().all(|c| c.len() >= n),
-            "an output column is shorter than {n}"
-        );
+        let (n_in, n_out) = (self.passes.forward_inputs(), self.kernel.n_outputs);
+        check_columns(n, (inputs, n_in), (outputs, n_out));
         self.passes.forward(n, inputs, outputs);
     }
 
