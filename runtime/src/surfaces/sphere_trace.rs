@@ -90,7 +90,9 @@ impl TraceSettings {
         Ok(())
     }
 
-    /// The interval [t0, t1] of the ray (`o`, `d`) to march, or `None` if it is culled.
+    /// The interval [t0, t1] of the ray (`o`, `d`) to march, or `None` if it is culled: the scalar
+    /// reference of [`TraceSettings::intervals`], which the tracer runs.
+    #[cfg(test)]
     fn interval(&self, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
         let Some((center, radius)) = self.bounds else {
             return Some((self.near, self.far));
@@ -105,6 +107,33 @@ impl TraceSettings {
         let s = disc.sqrt();
         let (t0, t1) = (self.near.max(-b - s), self.far.min(-b + s));
         (t0 <= t1).then_some((t0, t1))
+    }
+
+    /// [`TraceSettings::interval`] of the rays from `o` along the directions `d` (component columns) into
+    /// `t0` and `t1`, in a loop that vectorizes: the same values, bit for bit, and for a culled ray
+    /// `t1 = −∞` (so that a ray is marched exactly where `t0 ≤ t1`).
+    fn intervals(&self, o: Vec3, d: [&[f32]; 3], t0: &mut [f32], t1: &mut [f32]) {
+        let Some((center, radius)) = self.bounds else {
+            t0.fill(self.near);
+            t1.fill(self.far);
+            return;
+        };
+        let radius = radius + self.eps;
+        let oc = o - center;
+        let c = oc.dot(oc) - radius * radius;
+        let n = t0.len();
+        let (dx, dy, dz, t1) = (&d[0][..n], &d[1][..n], &d[2][..n], &mut t1[..n]);
+        for k in 0..n {
+            // The order of `Vec3::dot`.
+            let b = oc.x * dx[k] + oc.y * dy[k] + oc.z * dz[k];
+            let disc = b * b - c;
+            let s = disc.sqrt();
+            let (lo, hi) = (self.near.max(-b - s), self.far.min(-b + s));
+            // `disc >= 0` is false for NaN too.
+            let kept = disc >= 0.0 && lo <= hi;
+            t0[k] = lo;
+            t1[k] = if kept { hi } else { f32::NEG_INFINITY };
+        }
     }
 }
 
@@ -205,8 +234,10 @@ struct Ray {
 
 /// Per-worker buffers, allocated once and reused for every tile.
 struct Tile {
-    /// Directions of one row segment of pixels, computed together.
+    /// Directions of one row segment of pixels, computed together, and their intervals to march.
     dirs: [Vec<f32>; 3],
+    seg_t0: Vec<f32>,
+    seg_t1: Vec<f32>,
     /// The rays that were not culled, in slots 0..n.
     rays: Vec<Ray>,
     /// Dense state of the live rays: slot, current `t`, current point (the SDF inputs) and
@@ -237,6 +268,8 @@ impl Tile {
         let v = || vec![0.0f32; TILE];
         Tile {
             dirs: [v(), v(), v()],
+            seg_t0: v(),
+            seg_t1: v(),
             rays: vec![Ray::default(); TILE],
             slots: vec![0; TILE],
             t: v(),
@@ -292,31 +325,28 @@ impl Tile {
                 let inv = 1.0 / (vx * vx + vy * vy + vz * vz).sqrt();
                 (*dx, *dy, *dz) = (vx * inv, vy * inv, vz * inv);
             }
-            // ... then the rays that survive culling.
+            // ... then their intervals (another loop that vectorizes), then the rays that survive culling.
+            let (t0, t1) = (&mut self.seg_t0[..seg], &mut self.seg_t1[..seg]);
+            job.settings
+                .intervals(o, [&dx[..seg], &dy[..seg], &dz[..seg]], t0, t1);
             for k in 0..seg {
-                let d = Vec3::new(dx[k], dy[k], dz[k]);
-                let Some((t0, t1)) = job.settings.interval(o, d) else {
-                    continue;
-                };
-                self.rays[n] = Ray {
-                    dx: d.x,
-                    dy: d.y,
-                    dz: d.z,
-                    t_end: t1,
-                    pixel: (pixel - start + k) as u32,
-                };
-                self.slots[n] = n as u16;
-                self.t[n] = t0;
-                n += 1;
+                if t0[k] <= t1[k] {
+                    self.rays[n] = Ray {
+                        dx: dx[k],
+                        dy: dy[k],
+                        dz: dz[k],
+                        t_end: t1[k],
+                        pixel: (pixel - start + k) as u32,
+                    };
+                    self.slots[n] = n as u16;
+                    self.t[n] = t0[k];
+                    n += 1;
+                }
             }
             pixel += seg;
         }
         if let Some(bounds) = job.sdf.interval_bounds() {
             n = self.skip_empty_space(job, bounds, start, n);
-        }
-        for (k, ray) in self.rays[..n].iter().enumerate() {
-            let p = o + Vec3::new(ray.dx, ray.dy, ray.dz) * self.t[k];
-            (self.points[0][k], self.points[1][k], self.points[2][k]) = (p.x, p.y, p.z);
         }
         n
     }
@@ -412,6 +442,10 @@ impl Tile {
         }
         let settings = job.settings;
         let o = job.camera.position();
+        for (k, ray) in self.rays[..n].iter().enumerate() {
+            let p = o + Vec3::new(ray.dx, ray.dy, ray.dz) * self.t[k];
+            (self.points[0][k], self.points[1][k], self.points[2][k]) = (p.x, p.y, p.z);
+        }
         let Tile {
             rays,
             slots,
@@ -461,9 +495,9 @@ impl Tile {
 
     /// Fills `out`: background for every pixel, then the shading of the hits.
     fn shade(&mut self, job: &Job, out: TileOut) {
-        out.rgb.fill(job.settings.background);
+        fill_rgb(out.rgb, job.settings.background);
         out.depth.fill(f32::INFINITY);
-        out.normal.fill([0.0; 3]);
+        out.normal.as_flattened_mut().fill(0.0);
         out.hit.fill(false);
         let n = self.n_hits;
         let [hx, hy, hz] = &self.hit_points;
@@ -507,6 +541,20 @@ impl Tile {
                 None => [r[k], g[k], b[k]],
             };
         }
+    }
+}
+
+/// Sets every pixel of `rgb` to `color`: 16-byte stores of the three patterns four pixels make.
+fn fill_rgb(rgb: &mut [[f32; 3]], color: [f32; 3]) {
+    let four: [f32; 12] = std::array::from_fn(|i| color[i % 3]);
+    let vectors: [[f32; 4]; 3] = std::array::from_fn(|v| std::array::from_fn(|i| four[4 * v + i]));
+    let (quads, rest) = rgb.as_flattened_mut().as_chunks_mut::<4>();
+    for (q, v) in quads.iter_mut().zip(vectors.iter().cycle()) {
+        *q = *v;
+    }
+    let done = 4 * quads.len();
+    for (i, v) in rest.iter_mut().enumerate() {
+        *v = color[(done + i) % 3];
     }
 }
 
@@ -762,6 +810,18 @@ mod tests {
         assert_eq!(hits[0], hits[1]);
         assert!(hits[2] + 50 < hits[0], "far cuts hits: {hits:?}");
         assert!(2 * work[1] < work[0], "bounds cull work: {work:?}");
+    }
+
+    #[test]
+    fn background_fills_every_pixel_of_any_count() {
+        for n in 0..13 {
+            let mut rgb = vec![[9.0; 3]; n];
+            fill_rgb(&mut rgb, [0.25, 0.5, 0.75]);
+            assert!(
+                rgb.iter().all(|&px| px == [0.25, 0.5, 0.75]),
+                "{n} pixels: {rgb:?}"
+            );
+        }
     }
 
     #[test]
