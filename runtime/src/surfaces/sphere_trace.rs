@@ -548,11 +548,14 @@ impl Tile {
 fn fill_rgb(rgb: &mut [[f32; 3]], color: [f32; 3]) {
     let four: [f32; 12] = std::array::from_fn(|i| color[i % 3]);
     let vectors: [[f32; 4]; 3] = std::array::from_fn(|v| std::array::from_fn(|i| four[4 * v + i]));
-    let (quads, rest) = rgb.as_flattened_mut().as_chunks_mut::<4>();
-    for (q, v) in quads.iter_mut().zip(vectors.iter().cycle()) {
-        *q = *v;
+    let (dozens, rest) = rgb.as_flattened_mut().as_chunks_mut::<12>();
+    for dozen in dozens.iter_mut() {
+        let (quads, _) = dozen.as_chunks_mut::<4>();
+        for (q, v) in quads.iter_mut().zip(&vectors) {
+            *q = *v;
+        }
     }
-    let done = 4 * quads.len();
+    let done = 12 * dozens.len();
     for (i, v) in rest.iter_mut().enumerate() {
         *v = color[(done + i) % 3];
     }
