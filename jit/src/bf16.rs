@@ -522,15 +522,21 @@ mod amx {
             for ib in (0..row_blocks).step_by(2) {
                 for jb in (0..col_blocks).step_by(2) {
                     if ib + 1 < row_blocks && jb + 1 < col_blocks {
+                        let c = [
+                            c_at(ib, jb),
+                            c_at(ib, jb + 1),
+                            c_at(ib + 1, jb),
+                            c_at(ib + 1, jb + 1),
+                        ];
                         asm!(
                             "tileloadd tmm0, [{c00} + {sc}*1]",
                             "tileloadd tmm1, [{c01} + {sc}*1]",
                             "tileloadd tmm2, [{c10} + {sc}*1]",
                             "tileloadd tmm3, [{c11} + {sc}*1]",
-                            c00 = in(reg) c_at(ib, jb),
-                            c01 = in(reg) c_at(ib, jb + 1),
-                            c10 = in(reg) c_at(ib + 1, jb),
-                            c11 = in(reg) c_at(ib + 1, jb + 1),
+                            c00 = in(reg) c[0],
+                            c01 = in(reg) c[1],
+                            c10 = in(reg) c[2],
+                            c11 = in(reg) c[3],
                             sc = in(reg) sc,
                             options(nostack, readonly)
                         );
@@ -547,10 +553,10 @@ mod amx {
                             "tilestored [{c01} + {sc}*1], tmm1",
                             "tilestored [{c10} + {sc}*1], tmm2",
                             "tilestored [{c11} + {sc}*1], tmm3",
-                            c00 = in(reg) c_at(ib, jb),
-                            c01 = in(reg) c_at(ib, jb + 1),
-                            c10 = in(reg) c_at(ib + 1, jb),
-                            c11 = in(reg) c_at(ib + 1, jb + 1),
+                            c00 = in(reg) c[0],
+                            c01 = in(reg) c[1],
+                            c10 = in(reg) c[2],
+                            c11 = in(reg) c[3],
                             sc = in(reg) sc,
                             options(nostack)
                         );

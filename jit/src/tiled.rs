@@ -7,7 +7,8 @@
 //! level L run, as [`gemm::matmul`], after segment L − 1 and before segment L. Values that cross a
 //! boundary live in slots: one column of [`TILE`] floats each, in an arena reused for every tile. The
 //! graph's outer products (the gradients of the matrices) run as [`gemm::outer`] after the segment that
-//! writes the last of their operands, summed over the whole batch. Constants and params are recomputed in every segment that reads them.
+//! writes the last of their operands, summed over the whole batch. Constants and params are recomputed in
+//! every segment that reads them.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -519,20 +520,11 @@ impl Tiled {
         for start in (0..n).step_by(TILE) {
             let count = TILE.min(n - start);
             let arena = w.arena(0);
+            let (forward, backward) = inputs.split_at(self.forward_inputs);
             // SAFETY: the arena holds n_slots columns of TILE ≥ count floats; sizes were checked.
             unsafe {
-                self.load(arena, &inputs[..self.forward_inputs], 0, start, count);
-                w.run_stages(arena, 0..self.forward_stages, count, &mut laps);
-                self.store(arena, outputs, start, count);
-                self.load(
-                    arena,
-                    &inputs[self.forward_inputs..],
-                    self.forward_inputs,
-                    start,
-                    count,
-                );
-                w.run_stages(arena, self.forward_stages..self.segments.len(), count, &mut laps);
-                w.scatter_tile(arena, count, reductions, &mut laps);
+                w.forward_tile(arena, (start, count), forward, outputs, &mut laps);
+                w.backward_tile(arena, (start, count), backward, reductions, &mut laps);
             }
         }
         laps.lap(Phase::Elementwise);
@@ -652,6 +644,50 @@ impl<'a> Workspace<'a> {
     fn arena(&mut self, k: usize) -> *mut f32 {
         let size = self.plan.n_slots * COLUMN;
         gemm::line_aligned(&mut self.buffer, self.arenas * size)[k * size..].as_mut_ptr()
+    }
+
+    /// The forward pass of the tile of points `start..start + count` in `arena`: loads their `inputs`,
+    /// runs the forward stages, stores the `outputs`.
+    ///
+    /// # Safety
+    /// As [`Workspace::run_stages`], and the columns must hold `start + count` points.
+    unsafe fn forward_tile(
+        &mut self,
+        arena: *mut f32,
+        (start, count): (usize, usize),
+        inputs: &[&[f32]],
+        outputs: &mut [&mut [f32]],
+        laps: &mut Laps,
+    ) {
+        let plan = self.plan;
+        // SAFETY: as the caller guarantees.
+        unsafe {
+            plan.load(arena, inputs, 0, start, count);
+            self.run_stages(arena, 0..plan.forward_stages, count, laps);
+            plan.store(arena, outputs, start, count);
+        }
+    }
+
+    /// The backward pass of the tile in `arena` (after its forward pass): loads the points'
+    /// `cotangents`, runs the other stages, adds the grid scatters to `reductions`.
+    ///
+    /// # Safety
+    /// As [`Workspace::forward_tile`].
+    unsafe fn backward_tile(
+        &mut self,
+        arena: *mut f32,
+        (start, count): (usize, usize),
+        cotangents: &[&[f32]],
+        reductions: &mut [f32],
+        laps: &mut Laps,
+    ) {
+        let plan = self.plan;
+        // SAFETY: as the caller guarantees.
+        unsafe {
+            plan.load(arena, cotangents, plan.forward_inputs, start, count);
+            self.run_stages(arena, plan.forward_stages..plan.segments.len(), count, laps);
+            self.scatter_tile(arena, count, reductions, laps);
+        }
     }
 
     /// Runs `stages` (products, grid reads, then the segment of each) on the tile in `arena`.
@@ -804,11 +840,7 @@ impl<'a> Passes<'a> {
             let count = TILE.min(n - start);
             let arena = w.arena(t);
             // SAFETY: arena t exists; sizes were checked by the caller.
-            unsafe {
-                plan.load(arena, inputs, 0, start, count);
-                w.run_stages(arena, 0..plan.forward_stages, count, &mut laps);
-                plan.store(arena, outputs, start, count);
-            }
+            unsafe { w.forward_tile(arena, (start, count), inputs, outputs, &mut laps) };
         }
         laps.lap(Phase::Elementwise);
         laps.finish();
@@ -826,7 +858,6 @@ impl<'a> Passes<'a> {
             Some(n),
             "a backward pass runs over the points of the forward pass"
         );
-        let plan = self.plan;
         let w = self
             .workspace
             .as_mut()
@@ -836,11 +867,7 @@ impl<'a> Passes<'a> {
             let count = TILE.min(n - start);
             let arena = w.arena(t);
             // SAFETY: the forward pass reserved arena t; sizes were checked by the caller.
-            unsafe {
-                plan.load(arena, cotangents, plan.forward_inputs, start, count);
-                w.run_stages(arena, plan.forward_stages..plan.segments.len(), count, &mut laps);
-                w.scatter_tile(arena, count, reductions, &mut laps);
-            }
+            unsafe { w.backward_tile(arena, (start, count), cotangents, reductions, &mut laps) };
         }
         laps.lap(Phase::Elementwise);
         laps.finish();
