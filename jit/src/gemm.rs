@@ -14,10 +14,14 @@
 //! Both run the widest [`Backend`] the CPU has (checked once at run time): 512-bit micro-kernels with
 //! AVX-512F, 256-bit ones (6 rows × 16 points) with AVX2 and FMA, portable loops otherwise.
 
+use std::ops::Range;
 use std::sync::OnceLock;
 
 /// The points of one tile (a multiple of 64, the width of the micro-kernels' point blocks).
 pub const TILE: usize = 128;
+
+/// The points [`outer`] transposes and consumes at a time.
+const OUTER_CHUNK: usize = 64;
 
 /// Floats from one column of a tiled kernel's arena to the next: a tile's points and one cache line more
 /// (576 bytes, 9 lines), so that the columns a product or segment reads at the same points fall in
@@ -194,30 +198,38 @@ pub unsafe fn outer_on(
     assert!(count <= TILE, "more points than a tile");
     assert!(g.len() >= l.len() * stride, "gradient buffer too small");
     // The transposed operand from a cache line's start: its rows (a multiple of 16 floats) then start on
-    // lines too, and no vector load straddles two lines.
-    scratch.clear();
-    let scratch = line_aligned(scratch, count * stride);
-    // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
-    match backend {
-        #[cfg(target_arch = "x86_64")]
-        Backend::Avx512 => unsafe {
-            avx512::transpose(r, count, scratch, stride);
-            avx512::outer(l, scratch, stride, count, g)
-        },
-        #[cfg(target_arch = "x86_64")]
-        Backend::Avx2 => unsafe {
-            avx2::transpose(r, count, scratch, stride);
-            avx2::outer(l, scratch, stride, count, g)
-        },
-        _ => {
-            transpose_plain(r, 0, 0, count, scratch, stride);
-            for (i, &li) in l.iter().enumerate() {
-                // SAFETY: `li` addresses `count` floats (caller).
-                let li = unsafe { std::slice::from_raw_parts(li, count) };
-                let row = &mut g[i * stride..(i + 1) * stride];
-                for (t, &lv) in li.iter().enumerate() {
-                    for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
-                        *gj += lv * rv;
+    // lines too, and no vector load straddles two lines. Only its padding columns need clearing: the
+    // transposes write the others.
+    let scratch = line_aligned(scratch, OUTER_CHUNK * stride);
+    for row in scratch.chunks_exact_mut(stride) {
+        row[r.len()..].fill(0.0);
+    }
+    // A chunk of points at a time: its transposed rows (32 KB at 128 columns) are written and read
+    // again in L1, where the whole tile's would spill to L2 and cost each store a fetch of its line.
+    for t0 in (0..count).step_by(OUTER_CHUNK) {
+        let points = t0..count.min(t0 + OUTER_CHUNK);
+        // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
+        match backend {
+            #[cfg(target_arch = "x86_64")]
+            Backend::Avx512 => unsafe {
+                avx512::transpose(r, points.clone(), scratch, stride);
+                avx512::outer(l, scratch, stride, points, g)
+            },
+            #[cfg(target_arch = "x86_64")]
+            Backend::Avx2 => unsafe {
+                avx2::transpose(r, points.clone(), scratch, stride);
+                avx2::outer(l, scratch, stride, points, g)
+            },
+            _ => {
+                transpose_plain(r, 0, points.clone(), scratch, stride);
+                for (i, &li) in l.iter().enumerate() {
+                    // SAFETY: `li` addresses `count` floats (caller).
+                    let li = unsafe { std::slice::from_raw_parts(li, count) };
+                    let row = &mut g[i * stride..(i + 1) * stride];
+                    for (t, &lv) in li[points.clone()].iter().enumerate() {
+                        for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
+                            *gj += lv * rv;
+                        }
                     }
                 }
             }
@@ -225,20 +237,41 @@ pub unsafe fn outer_on(
     }
 }
 
-/// `rt[t·stride + j] = r[j][t]` for j ≥ `j0` and `t0 ≤ t < count`.
-fn transpose_plain(r: &[*const f32], j0: usize, t0: usize, count: usize, rt: &mut [f32], stride: usize) {
+/// `rt[(t − points.start)·stride + j] = r[j][t]` for j ≥ `j0` and t in `points`.
+fn transpose_plain(r: &[*const f32], j0: usize, points: Range<usize>, rt: &mut [f32], stride: usize) {
     for (j, &rj) in r.iter().enumerate().skip(j0) {
-        // SAFETY: `rj` addresses `count` floats (the callers' contract).
-        let rj = unsafe { std::slice::from_raw_parts(rj, count) };
-        for (t, &v) in rj.iter().enumerate().skip(t0) {
+        // SAFETY: `rj` addresses the floats of `points` (the callers' contract).
+        let rj = unsafe { std::slice::from_raw_parts(rj.add(points.start), points.len()) };
+        for (t, &v) in rj.iter().enumerate() {
             rt[t * stride + j] = v;
         }
     }
 }
 
+/// What the blocked transposes leave to plain code: the columns from `full_j` at every point of `points`,
+/// and the points from `points.start + full_t` in the columns before `full_j`.
+fn transpose_edges(
+    r: &[*const f32],
+    full_j: usize,
+    points: Range<usize>,
+    full_t: usize,
+    rt: &mut [f32],
+    stride: usize,
+) {
+    transpose_plain(r, full_j, points.clone(), rt, stride);
+    transpose_plain(
+        &r[..full_j],
+        0,
+        points.start + full_t..points.end,
+        &mut rt[full_t * stride..],
+        stride,
+    );
+}
+
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx512 {
     use std::arch::x86_64::*;
+    use std::ops::Range;
 
     use super::TILE;
 
@@ -305,7 +338,13 @@ pub(crate) mod avx512 {
     }
 
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn outer(l: &[*const f32], rt: &[f32], stride: usize, count: usize, g: &mut [f32]) {
+    pub(super) unsafe fn outer(
+        l: &[*const f32],
+        rt: &[f32],
+        stride: usize,
+        points: Range<usize>,
+        g: &mut [f32],
+    ) {
         let mut i = 0;
         while i < l.len() {
             let rows = (l.len() - i).min(GR);
@@ -313,13 +352,14 @@ pub(crate) mod avx512 {
             while j < stride {
                 let vecs = ((stride - j) / 16).min(4);
                 // SAFETY: rows i..i+rows of G and columns j..j+16·vecs ≤ stride exist; l pointers hold
-                // `count` floats and rt holds count rows of `stride` floats (checked by the caller).
+                // the floats of `points` and rt holds a row of `stride` floats for each (caller).
                 unsafe {
                     let blk = Block {
                         l: &l[i..i + rows],
+                        first: points.start,
                         rt: rt.as_ptr().add(j),
                         stride,
-                        count,
+                        count: points.len(),
                         g: g.as_mut_ptr().add(i * stride + j),
                     };
                     match (rows, vecs) {
@@ -355,17 +395,19 @@ pub(crate) mod avx512 {
         }
     }
 
-    /// `rt[t·stride + j] = r[j][t]` for t < count: 16 × 16 blocks in registers (unpacks and lane
-    /// shuffles), the edges in plain code.
+    /// `rt[(t − points.start)·stride + j] = r[j][t]` for t in `points`: 16 × 16 blocks in registers
+    /// (unpacks and lane shuffles), the edges in plain code.
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn transpose(r: &[*const f32], count: usize, rt: &mut [f32], stride: usize) {
+    pub(super) unsafe fn transpose(r: &[*const f32], points: Range<usize>, rt: &mut [f32], stride: usize) {
+        let (first, count) = (points.start, points.len());
         let (full_j, full_t) = (r.len() / 16 * 16, count / 16 * 16);
         for j0 in (0..full_j).step_by(16) {
             for t0 in (0..full_t).step_by(16) {
-                // SAFETY: rows j0..j0+16 hold `count` ≥ t0 + 16 floats; rt holds count rows of stride ≥
-                // j0 + 16 floats.
+                // SAFETY: rows j0..j0+16 hold the points first + t0 .. first + t0 + 16; rt holds count
+                // rows of stride ≥ j0 + 16 floats.
                 unsafe {
-                    let rows: [__m512; 16] = std::array::from_fn(|q| _mm512_loadu_ps(r[j0 + q].add(t0)));
+                    let rows: [__m512; 16] =
+                        std::array::from_fn(|q| _mm512_loadu_ps(r[j0 + q].add(first + t0)));
                     let cols = transpose16(rows);
                     for (p, v) in cols.iter().enumerate() {
                         _mm512_storeu_ps(rt.as_mut_ptr().add((t0 + p) * stride + j0), *v);
@@ -374,8 +416,7 @@ pub(crate) mod avx512 {
             }
         }
         // The columns past the last whole block of rows, and the points past the last whole block.
-        super::transpose_plain(r, full_j, 0, count, rt, stride);
-        super::transpose_plain(&r[..full_j], 0, full_t, count, rt, stride);
+        super::transpose_edges(r, full_j, points, full_t, rt, stride);
     }
 
     /// The transpose of a 16 × 16 block held as 16 rows.
@@ -421,9 +462,11 @@ pub(crate) mod avx512 {
         })
     }
 
-    /// One register block of the outer product: R rows of G × 16·N columns.
+    /// One register block of the outer product: R rows of G × 16·N columns, over the `count` points from
+    /// `first` (row t of `rt` holding point `first` + t).
     struct Block<'a> {
         l: &'a [*const f32],
+        first: usize,
         rt: *const f32,
         stride: usize,
         count: usize,
@@ -436,7 +479,7 @@ pub(crate) mod avx512 {
         unsafe fn run<const R: usize, const N: usize>(&self) {
             let mut acc = [[_mm512_setzero_ps(); N]; R];
             for t in 0..self.count {
-                // SAFETY: row t of rt has 16·N floats from this block's start; l[r] has `count` floats.
+                // SAFETY: row t of rt has 16·N floats from this block's start; l[r] has the block's points.
                 unsafe {
                     let row = self.rt.add(t * self.stride);
                     let mut b = [_mm512_setzero_ps(); N];
@@ -444,7 +487,7 @@ pub(crate) mod avx512 {
                         *bq = _mm512_loadu_ps(row.add(16 * q));
                     }
                     for (r, acc_r) in acc.iter_mut().enumerate() {
-                        let lv = _mm512_set1_ps(*self.l[r].add(t));
+                        let lv = _mm512_set1_ps(*self.l[r].add(self.first + t));
                         for q in 0..N {
                             acc_r[q] = _mm512_fmadd_ps(lv, b[q], acc_r[q]);
                         }
@@ -469,6 +512,7 @@ pub(crate) mod avx512 {
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
+    use std::ops::Range;
 
     use super::TILE;
 
@@ -532,27 +576,34 @@ mod avx2 {
 
     /// The outer product on the transposed right operand; `stride` is a multiple of 16 (8·NV).
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn outer(l: &[*const f32], rt: &[f32], stride: usize, count: usize, g: &mut [f32]) {
+    pub(super) unsafe fn outer(
+        l: &[*const f32],
+        rt: &[f32],
+        stride: usize,
+        points: Range<usize>,
+        g: &mut [f32],
+    ) {
         debug_assert_eq!(stride % (8 * NV), 0);
         let mut i = 0;
         while i < l.len() {
             let rows = (l.len() - i).min(MR);
             for j in (0..stride).step_by(8 * NV) {
                 // SAFETY: rows i..i+rows of G and columns j..j+16 ≤ stride exist; l pointers hold
-                // `count` floats and rt holds count rows of `stride` floats (checked by the caller).
+                // the floats of `points` and rt holds a row of `stride` floats for each (caller).
                 unsafe {
                     let (l, rt, g) = (
                         &l[i..i + rows],
                         rt.as_ptr().add(j),
                         g.as_mut_ptr().add(i * stride + j),
                     );
+                    let (first, count) = (points.start, points.len());
                     match rows {
-                        6 => outer_block::<6>(l, rt, stride, count, g),
-                        5 => outer_block::<5>(l, rt, stride, count, g),
-                        4 => outer_block::<4>(l, rt, stride, count, g),
-                        3 => outer_block::<3>(l, rt, stride, count, g),
-                        2 => outer_block::<2>(l, rt, stride, count, g),
-                        _ => outer_block::<1>(l, rt, stride, count, g),
+                        6 => outer_block::<6>(l, first, rt, stride, count, g),
+                        5 => outer_block::<5>(l, first, rt, stride, count, g),
+                        4 => outer_block::<4>(l, first, rt, stride, count, g),
+                        3 => outer_block::<3>(l, first, rt, stride, count, g),
+                        2 => outer_block::<2>(l, first, rt, stride, count, g),
+                        _ => outer_block::<1>(l, first, rt, stride, count, g),
                     }
                 }
             }
@@ -560,11 +611,12 @@ mod avx2 {
         }
     }
 
-    /// R rows of G × 16 columns: `g[r·stride + c] += Σ_t l[r][t] · rt[t·stride + c]`.
+    /// R rows of G × 16 columns: `g[r·stride + c] += Σ_{t < count} l[r][first + t] · rt[t·stride + c]`.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
     unsafe fn outer_block<const R: usize>(
         l: &[*const f32],
+        first: usize,
         rt: *const f32,
         stride: usize,
         count: usize,
@@ -572,12 +624,12 @@ mod avx2 {
     ) {
         let mut acc = [[_mm256_setzero_ps(); NV]; R];
         for t in 0..count {
-            // SAFETY: row t of rt has 16 floats from this block's start; l[r] has `count` floats.
+            // SAFETY: row t of rt has 16 floats from this block's start; l[r] has the block's points.
             unsafe {
                 let row = rt.add(t * stride);
                 let b: [__m256; NV] = std::array::from_fn(|q| _mm256_loadu_ps(row.add(8 * q)));
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let lv = _mm256_broadcast_ss(&*l[r].add(t));
+                    let lv = _mm256_broadcast_ss(&*l[r].add(first + t));
                     for q in 0..NV {
                         acc_r[q] = _mm256_fmadd_ps(lv, b[q], acc_r[q]);
                     }
@@ -595,16 +647,19 @@ mod avx2 {
         }
     }
 
-    /// `rt[t·stride + j] = r[j][t]` for t < count: 8 × 8 blocks in registers, the edges in plain code.
+    /// `rt[(t − points.start)·stride + j] = r[j][t]` for t in `points`: 8 × 8 blocks in registers, the
+    /// edges in plain code.
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn transpose(r: &[*const f32], count: usize, rt: &mut [f32], stride: usize) {
+    pub(super) unsafe fn transpose(r: &[*const f32], points: Range<usize>, rt: &mut [f32], stride: usize) {
+        let (first, count) = (points.start, points.len());
         let (full_j, full_t) = (r.len() / 8 * 8, count / 8 * 8);
         for j0 in (0..full_j).step_by(8) {
             for t0 in (0..full_t).step_by(8) {
-                // SAFETY: rows j0..j0+8 hold `count` ≥ t0 + 8 floats; rt holds count rows of stride ≥
-                // j0 + 8 floats.
+                // SAFETY: rows j0..j0+8 hold the points first + t0 .. first + t0 + 8; rt holds count rows
+                // of stride ≥ j0 + 8 floats.
                 unsafe {
-                    let rows: [__m256; 8] = std::array::from_fn(|q| _mm256_loadu_ps(r[j0 + q].add(t0)));
+                    let rows: [__m256; 8] =
+                        std::array::from_fn(|q| _mm256_loadu_ps(r[j0 + q].add(first + t0)));
                     let cols = transpose8(rows);
                     for (p, v) in cols.iter().enumerate() {
                         _mm256_storeu_ps(rt.as_mut_ptr().add((t0 + p) * stride + j0), *v);
@@ -612,8 +667,7 @@ mod avx2 {
                 }
             }
         }
-        super::transpose_plain(r, full_j, 0, count, rt, stride);
-        super::transpose_plain(&r[..full_j], 0, full_t, count, rt, stride);
+        super::transpose_edges(r, full_j, points, full_t, rt, stride);
     }
 
     /// The transpose of an 8 × 8 block held as 8 rows: interleave pairs of rows, gather 4 × 4 blocks inside
