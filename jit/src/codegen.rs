@@ -14,10 +14,37 @@ use nerfjit_dsl::ir::{Graph, Op, V};
 
 use crate::simd::Simd;
 
+/// Where a kernel finds its columns.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Columns {
+    /// In the arrays of column pointers that are its first two arguments.
+    Pointers,
+    /// At fixed byte offsets from the address that is its first argument (the arena of a tiled kernel's
+    /// tile): input k at `reads[k]`, output k at `writes[k]`. The second argument is not read.
+    Offsets {
+        /// The byte offset of each input column.
+        reads: Vec<i32>,
+        /// The byte offset of each output column.
+        writes: Vec<i32>,
+    },
+}
+
+/// The addresses of the kernel's columns, as the loop reaches them.
+enum ColumnAddresses {
+    /// One pointer per column, loaded once in the entry block.
+    Pointers { inputs: Vec<Value>, outputs: Vec<Value> },
+    /// One base and the columns' constant offsets from it: every access is a single load or store with
+    /// an immediate displacement, and no column pointer takes a register or a stack slot.
+    Offsets {
+        base: Value,
+        reads: Vec<i32>,
+        writes: Vec<i32>,
+    },
+}
+
 /// The column and buffer pointers of the kernel, loaded once in the entry block.
 struct Buffers {
-    inputs: Vec<Value>,
-    outputs: Vec<Value>,
+    columns: ColumnAddresses,
     params: Value,
     accum: Value,
     sums: Sums,
@@ -253,8 +280,9 @@ impl<'g> GraphEmitter<'g> {
     }
 }
 
-/// Emits the body of the kernel function for `g` into `b` (whose signature is [`signature`]).
-pub fn build(b: &mut FunctionBuilder, g: &Graph) {
+/// Emits the body of the kernel function for `g`, reading and writing its columns where `columns` says,
+/// into `b` (whose signature is [`signature`]).
+pub fn build(b: &mut FunctionBuilder, g: &Graph, columns: &Columns) {
     let ptr = types::I64;
     let entry = b.create_block();
     b.append_block_params_for_function_params(entry);
@@ -263,12 +291,27 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
     let args = b.block_params(entry).to_vec();
     let (in_arr, out_arr, params, accum, n) = (args[0], args[1], args[2], args[3], args[4]);
     let flags = MemFlagsData::trusted().with_readonly();
-    let inputs = (0..g.n_inputs)
-        .map(|k| b.ins().load(ptr, flags, in_arr, (k * 8) as i32))
-        .collect();
-    let outputs = (0..g.outputs.len())
-        .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
-        .collect();
+    let columns = match columns {
+        Columns::Pointers => ColumnAddresses::Pointers {
+            inputs: (0..g.n_inputs)
+                .map(|k| b.ins().load(ptr, flags, in_arr, (k * 8) as i32))
+                .collect(),
+            outputs: (0..g.outputs.len())
+                .map(|k| b.ins().load(ptr, flags, out_arr, (k * 8) as i32))
+                .collect(),
+        },
+        Columns::Offsets { reads, writes } => {
+            assert!(
+                reads.len() == g.n_inputs as usize && writes.len() == g.outputs.len(),
+                "one offset per column"
+            );
+            ColumnAddresses::Offsets {
+                base: in_arr,
+                reads: reads.clone(),
+                writes: writes.clone(),
+            }
+        }
+    };
     let sums = if g.reductions.len() <= MAX_REGISTER_SUMS {
         let vars: Vec<Variable> = (0..g.reductions.len())
             .map(|_| b.declare_var(types::F32X4))
@@ -287,8 +330,7 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph) {
         Sums::Memory
     };
     let bufs = Buffers {
-        inputs,
-        outputs,
+        columns,
         params,
         accum,
         sums,
@@ -353,6 +395,9 @@ pub fn lane_indices(b: &mut FunctionBuilder) -> Value {
     b.ins().vconst(types::I32X4, lanes)
 }
 
+/// An address as a value and a displacement from it.
+type Address = (Value, i32);
+
 /// Emits the graph for the group of 4 points starting at point `i`: loads, ops, stores, reductions.
 fn emit_group(
     b: &mut FunctionBuilder,
@@ -363,18 +408,28 @@ fn emit_group(
 ) {
     let offset = b.ins().ishl_imm_s(i, 2);
     let flags = MemFlagsData::new().with_notrap();
-    let inputs: Vec<Value> = bufs
-        .inputs
+    // Each column's address at this group: a pointer plus the group's offset, or the base plus it with
+    // the column's own offset as the displacement.
+    let (input_at, output_at): (Vec<Address>, Vec<Address>) = match &bufs.columns {
+        ColumnAddresses::Pointers { inputs, outputs } => {
+            let mut at = |ps: &[Value]| -> Vec<Address> {
+                ps.iter().map(|&p| (b.ins().iadd(p, offset), 0)).collect()
+            };
+            (at(inputs), at(outputs))
+        }
+        ColumnAddresses::Offsets { base, reads, writes } => {
+            let addr = b.ins().iadd(*base, offset);
+            let at = |offsets: &[i32]| offsets.iter().map(|&o| (addr, o)).collect();
+            (at(reads), at(writes))
+        }
+    };
+    let inputs: Vec<Value> = input_at
         .iter()
-        .map(|&p| {
-            let addr = b.ins().iadd(p, offset);
-            b.ins().load(types::F32X4, flags.with_readonly(), addr, 0)
-        })
+        .map(|&(addr, o)| b.ins().load(types::F32X4, flags.with_readonly(), addr, o))
         .collect();
     let (outputs, reductions) = emitter.emit(b, &inputs, bufs.params);
-    for (&value, &base) in outputs.iter().zip(&bufs.outputs) {
-        let addr = b.ins().iadd(base, offset);
-        b.ins().store(flags, value, addr, 0);
+    for (&value, &(addr, o)) in outputs.iter().zip(&output_at) {
+        b.ins().store(flags, value, addr, o);
     }
     for (k, (&term, &r)) in reductions.iter().zip(&emitter.g.reductions).enumerate() {
         if emitter.g.const_value(r) == Some(0.0) {

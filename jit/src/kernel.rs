@@ -9,7 +9,7 @@ use cranelift_module::{default_libcall_names, Linkage, Module};
 use nerfjit_dsl::ir::{Graph, Op};
 
 use crate::bf16::Precision;
-use crate::codegen;
+use crate::codegen::{self, Columns};
 use crate::tiled::{self, Tiled};
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
@@ -223,12 +223,23 @@ impl Kernel {
                 n_params: params_read(&graph),
             });
         }
+        Kernel::compile_plain(&graph, options, &Columns::Pointers, start)
+    }
+
+    /// Compiles `graph` (compacted, without dense nodes) to one native function that finds its columns
+    /// where `columns` says; `start` is when the compilation began.
+    fn compile_plain(
+        graph: &Graph,
+        options: Options,
+        columns: &Columns,
+        start: Instant,
+    ) -> Result<Kernel, JitError> {
         let module = host_module(graph.len())?;
         let mut ctx = module.make_context();
         codegen::signature(&mut ctx.func.signature, module.target_config().pointer_type());
         let mut fctx = FunctionBuilderContext::new();
         let mut builder = FunctionBuilder::new(&mut ctx.func, &mut fctx);
-        codegen::build(&mut builder, &graph);
+        codegen::build(&mut builder, graph, columns);
         builder.finalize(module.target_config());
         let (code, ptr) = CompiledCode::finish(module, ctx, "kernel", start, graph.len(), options.keep_clif)?;
         // SAFETY: the function was generated with exactly this signature by `codegen::signature`.
@@ -241,8 +252,26 @@ impl Kernel {
             n_inputs: graph.n_inputs as usize,
             n_outputs: graph.outputs.len(),
             n_reductions: graph.reductions.len(),
-            n_params: params_read(&graph),
+            n_params: params_read(graph),
         })
+    }
+
+    /// Compiles `graph` (without dense nodes) to a function of one arena whose columns lie at the byte
+    /// offsets of `columns` (see [`Kernel::call_arena`]).
+    pub(crate) fn compile_arena(
+        graph: &Graph,
+        options: Options,
+        columns: &Columns,
+    ) -> Result<Kernel, JitError> {
+        let start = Instant::now();
+        let graph = graph.compact();
+        graph
+            .validate()
+            .map_err(|e| JitError(format!("invalid IR: {e}")))?;
+        if graph.needs_tiles() {
+            return Err(JitError("an arena kernel with dense nodes".into()));
+        }
+        Kernel::compile_plain(&graph, options, columns, start)
     }
 
     /// What the compilation did.
@@ -277,6 +306,30 @@ impl Kernel {
             func(
                 ins.as_ptr(),
                 outs.as_ptr(),
+                params.as_ptr(),
+                accum.as_mut_ptr(),
+                n as i64,
+            )
+        }
+    }
+
+    /// Runs a kernel made by [`Kernel::compile_arena`] on `n` points of the arena at `arena`.
+    ///
+    /// # Safety
+    /// Every column offset the kernel was compiled with, plus `n` rounded up to a multiple of 4 floats,
+    /// must lie inside the arena; `params` must hold at least [`Kernel::n_params`] floats and `accum` 4
+    /// per reduction.
+    pub(crate) unsafe fn call_arena(&self, arena: *mut f32, params: &[f32], accum: &mut [f32], n: usize) {
+        let Body::Plain { func, .. } = &self.body else {
+            panic!("call_arena on a tiled kernel");
+        };
+        debug_assert!(params.len() >= self.n_params && accum.len() >= 4 * self.n_reductions);
+        // SAFETY: as the caller guarantees; the kernel reads its columns at offsets from the first argument
+        // and never reads the second.
+        unsafe {
+            func(
+                arena as *const *const f32,
+                std::ptr::null(),
                 params.as_ptr(),
                 accum.as_mut_ptr(),
                 n as i64,

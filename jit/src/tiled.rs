@@ -17,6 +17,7 @@ use std::time::Instant;
 use nerfjit_dsl::ir::{Graph, Op, V};
 
 use crate::bf16::{self, Bf16Matrix, Bf16Scratch, Precision};
+use crate::codegen::Columns;
 use crate::encode::GridPlan;
 use crate::gemm::{self, COLUMN, TILE};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
@@ -24,10 +25,18 @@ use crate::profile::{Laps, Phase};
 
 /// One elementwise segment: a JIT kernel reading and writing slots.
 struct Segment {
+    /// Compiled to find its columns at constant offsets from the tile's arena.
     kernel: Kernel,
+    /// The graph reduction each of the kernel's reductions adds to.
+    reductions: Vec<usize>,
+}
+
+/// A stage's elementwise code before it is compiled: its graph, the slots it reads and writes (its
+/// inputs' and outputs', in order) and the graph reduction each of its reductions adds to.
+struct SegmentSpec {
+    graph: Graph,
     reads: Vec<usize>,
     writes: Vec<usize>,
-    /// The graph reduction each of the kernel's reductions adds to.
     reductions: Vec<usize>,
 }
 
@@ -278,20 +287,9 @@ impl Tiled {
             return Err(JitError("a scatter writes past the reductions".into()));
         }
 
-        let mut segments = Vec::with_capacity(n_stages);
-        let mut stats = CompileStats::default();
-        for s in 0..n_stages {
-            let segment = build_segment(g, &stage, &mut slots, s, options)?;
-            if let Some(seg) = &segment {
-                let st = seg.kernel.stats();
-                stats.nodes += st.nodes;
-                stats.code_bytes += st.code_bytes;
-                if let Some(clif) = &st.clif {
-                    stats.clif.get_or_insert_with(String::new).push_str(clif);
-                }
-            }
-            segments.push(segment);
-        }
+        let mut specs: Vec<Option<SegmentSpec>> = (0..n_stages)
+            .map(|s| segment_spec(g, &stage, &mut slots, s))
+            .collect();
 
         let mut fills = Vec::new();
         for (i, op) in ops.iter().enumerate() {
@@ -334,9 +332,8 @@ impl Tiled {
                 return Err(JitError("an outer product writes past the reductions".into()));
             }
         }
-        stats.seconds = start.elapsed().as_secs_f64();
         let mut plan = Tiled {
-            segments,
+            segments: Vec::with_capacity(n_stages),
             products,
             matrices,
             grids,
@@ -351,9 +348,36 @@ impl Tiled {
             precision: options.products,
             forward_inputs: options.split.map_or(g.n_inputs, |k| k.min(g.n_inputs)) as usize,
             forward_stages,
-            stats,
+            stats: CompileStats::default(),
         };
-        plan.share_slots();
+        plan.share_slots(&mut specs);
+        // The columns' places are now final: each segment addresses them as constant offsets from the arena.
+        let offset =
+            |slots: &[usize]| -> Vec<i32> { slots.iter().map(|&s| (s * COLUMN * 4) as i32).collect() };
+        for spec in specs {
+            let segment = match spec {
+                Some(spec) => {
+                    let columns = Columns::Offsets {
+                        reads: offset(&spec.reads),
+                        writes: offset(&spec.writes),
+                    };
+                    let kernel = Kernel::compile_arena(&spec.graph, options, &columns)?;
+                    let st = kernel.stats();
+                    plan.stats.nodes += st.nodes;
+                    plan.stats.code_bytes += st.code_bytes;
+                    if let Some(clif) = &st.clif {
+                        plan.stats.clif.get_or_insert_with(String::new).push_str(clif);
+                    }
+                    Some(Segment {
+                        kernel,
+                        reductions: spec.reductions,
+                    })
+                }
+                None => None,
+            };
+            plan.segments.push(segment);
+        }
+        plan.stats.seconds = start.elapsed().as_secs_f64();
         Ok(plan)
     }
 
@@ -364,9 +388,9 @@ impl Tiled {
     /// outputs are read and the cotangents loaded after the forward pass (at 2F for F forward stages),
     /// grid scatters read at the end. A column is reused only by a value written strictly after the
     /// column's last read.
-    fn share_slots(&mut self) {
+    fn share_slots(&mut self, segments: &mut [Option<SegmentSpec>]) {
         const UNSET: usize = usize::MAX;
-        let end = 2 * self.segments.len() + 1;
+        let end = 2 * segments.len() + 1;
         let n = self.n_slots;
         let (mut first, mut last) = (vec![UNSET; n], vec![0usize; n]);
         let mut touch = |slot: usize, t: usize| {
@@ -397,7 +421,7 @@ impl Tiled {
                 }
             }
         }
-        for (s, segment) in self.segments.iter().enumerate() {
+        for (s, segment) in segments.iter().enumerate() {
             if let Some(seg) = segment {
                 for &slot in seg.reads.iter().chain(&seg.writes) {
                     touch(slot, 2 * s + 2);
@@ -449,7 +473,7 @@ impl Tiled {
                 map(&mut p.out);
             }
         }
-        for seg in self.segments.iter_mut().flatten() {
+        for seg in segments.iter_mut().flatten() {
             map(&mut seg.reads);
             map(&mut seg.writes);
         }
@@ -729,15 +753,11 @@ impl<'a> Workspace<'a> {
             }
             laps.lap(Phase::GridReads);
             if let Some(seg) = &plan.segments[s] {
-                // SAFETY: the segment's columns are TILE ≥ count rounded up to 4 floats each.
+                // SAFETY: the segment's columns are slots of the arena, TILE ≥ count rounded up to 4 floats
+                // each.
                 unsafe {
-                    seg.kernel.call_raw(
-                        &reads(&seg.reads),
-                        &writes(&seg.writes),
-                        self.params,
-                        &mut self.accums[s],
-                        count,
-                    )
+                    seg.kernel
+                        .call_arena(arena, self.params, &mut self.accums[s], count)
                 };
             }
             laps.lap(Phase::Elementwise);
@@ -912,14 +932,8 @@ fn matrix(p: &MatrixOf, params: &[f32], precision: Precision) -> Matrix {
     }
 }
 
-/// The JIT kernel of stage `s`'s elementwise nodes, or None if the stage computes nothing.
-fn build_segment(
-    g: &Graph,
-    stage: &[usize],
-    slots: &mut Slots,
-    s: usize,
-    options: Options,
-) -> Result<Option<Segment>, JitError> {
+/// Stage `s`'s elementwise nodes as a graph of their own, or None if the stage computes nothing.
+fn segment_spec(g: &Graph, stage: &[usize], slots: &mut Slots, s: usize) -> Option<SegmentSpec> {
     let ops = g.ops();
     let mut sg = Graph::new();
     let mut local: HashMap<V, V> = HashMap::new();
@@ -961,12 +975,12 @@ fn build_segment(
         reductions.push(r);
     }
     if sg.outputs.is_empty() && sg.reductions.is_empty() {
-        return Ok(None);
+        return None;
     }
-    Ok(Some(Segment {
-        kernel: Kernel::compile(&sg, options)?,
+    Some(SegmentSpec {
+        graph: sg,
         reads,
         writes,
         reductions,
-    }))
+    })
 }
