@@ -168,26 +168,47 @@ pub struct GraphEmitter<'g> {
     g: &'g Graph,
     fused: Vec<bool>,
     live: Vec<bool>,
+    /// (node, output index) for every output, by node.
+    outputs_by_node: Vec<(usize, usize)>,
 }
 
 impl<'g> GraphEmitter<'g> {
     /// Prepares `g` for emission (liveness and FMA fusion).
     pub fn new(g: &'g Graph) -> Self {
+        let mut outputs_by_node: Vec<(usize, usize)> = g
+            .outputs
+            .iter()
+            .enumerate()
+            .map(|(k, v)| (v.0 as usize, k))
+            .collect();
+        outputs_by_node.sort_unstable();
         GraphEmitter {
             g,
             fused: fused_muls(g),
             live: g.live(),
+            outputs_by_node,
         }
     }
 
-    /// Emits the graph in the current block with input k = `inputs[k]` and params read from `params`;
-    /// returns the values of the outputs and of the reductions.
-    pub fn emit(&self, b: &mut FunctionBuilder, inputs: &[Value], params: Value) -> (Vec<Value>, Vec<Value>) {
+    /// Emits the graph in the current block with input k = `input(b, k)` and params read from `params`,
+    /// handing output k's value to `output(b, k, value)` as soon as it is computed; returns the values of
+    /// the reductions. Inputs are taken where the graph's input nodes are and outputs given where theirs
+    /// are, so that a kernel's loads and stores lie next to their uses: Cranelift keeps loads and stores
+    /// in the order they are emitted, and loads all made before stores all made after would keep every
+    /// loaded value live (spilled) across the whole group.
+    pub fn emit(
+        &self,
+        b: &mut FunctionBuilder,
+        input: &mut dyn FnMut(&mut FunctionBuilder, u32) -> Value,
+        output: &mut dyn FnMut(&mut FunctionBuilder, usize, Value),
+        params: Value,
+    ) -> Vec<Value> {
         let g = self.g;
         let fused = &self.fused;
         let mut vals: Vec<Option<Value>> = vec![None; g.len()];
         // Masks of comparisons, kept so that a select on a comparison needs no conversion.
         let mut masks: Vec<Option<Value>> = vec![None; g.len()];
+        let mut next_output = self.outputs_by_node.iter().peekable();
         for (idx, op) in g.ops().iter().enumerate() {
             if !self.live[idx] || fused[idx] {
                 continue;
@@ -201,7 +222,7 @@ impl<'g> GraphEmitter<'g> {
                     let p = s.b.ins().load(types::F32, flags, params, (k * 4) as i32);
                     s.b.ins().splat(types::F32X4, p)
                 }
-                Op::Input(k) => inputs[k as usize],
+                Op::Input(k) => input(s.b, k),
                 Op::Neg(a) => s.b.ins().fneg(v(a)),
                 Op::Abs(a) => s.b.ins().fabs(v(a)),
                 Op::Sign(a) => {
@@ -271,12 +292,18 @@ impl<'g> GraphEmitter<'g> {
                 }
             };
             vals[idx] = Some(value);
+            while let Some(&(_, k)) = next_output.next_if(|&&(node, _)| node == idx) {
+                output(b, k, value);
+            }
         }
-        let get = |x: &V| vals[x.0 as usize].expect("emitted");
-        (
-            g.outputs.iter().map(get).collect(),
-            g.reductions.iter().map(get).collect(),
-        )
+        // (Every output is a node emitted above; should one not be, it is still stored, last.)
+        for &(node, k) in next_output {
+            output(b, k, vals[node].expect("outputs are live"));
+        }
+        g.reductions
+            .iter()
+            .map(|x| vals[x.0 as usize].expect("emitted"))
+            .collect()
     }
 }
 
@@ -412,9 +439,8 @@ fn emit_group(
     // the column's own offset as the displacement.
     let (input_at, output_at): (Vec<Address>, Vec<Address>) = match &bufs.columns {
         ColumnAddresses::Pointers { inputs, outputs } => {
-            let mut at = |ps: &[Value]| -> Vec<Address> {
-                ps.iter().map(|&p| (b.ins().iadd(p, offset), 0)).collect()
-            };
+            let mut at =
+                |ps: &[Value]| -> Vec<Address> { ps.iter().map(|&p| (b.ins().iadd(p, offset), 0)).collect() };
             (at(inputs), at(outputs))
         }
         ColumnAddresses::Offsets { base, reads, writes } => {
@@ -423,14 +449,15 @@ fn emit_group(
             (at(reads), at(writes))
         }
     };
-    let inputs: Vec<Value> = input_at
-        .iter()
-        .map(|&(addr, o)| b.ins().load(types::F32X4, flags.with_readonly(), addr, o))
-        .collect();
-    let (outputs, reductions) = emitter.emit(b, &inputs, bufs.params);
-    for (&value, &(addr, o)) in outputs.iter().zip(&output_at) {
+    let mut load = |b: &mut FunctionBuilder, k: u32| {
+        let (addr, o) = input_at[k as usize];
+        b.ins().load(types::F32X4, flags.with_readonly(), addr, o)
+    };
+    let mut store = |b: &mut FunctionBuilder, k: usize, value: Value| {
+        let (addr, o) = output_at[k];
         b.ins().store(flags, value, addr, o);
-    }
+    };
+    let reductions = emitter.emit(b, &mut load, &mut store, bufs.params);
     for (k, (&term, &r)) in reductions.iter().zip(&emitter.g.reductions).enumerate() {
         if emitter.g.const_value(r) == Some(0.0) {
             continue;

@@ -226,8 +226,14 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     for (g, ray) in rays.iter().enumerate() {
         let (t, active, hit) = (sp[3 * g], sp[3 * g + 1], sp[3 * g + 2]);
         let p: Vec<_> = (0..3).map(|c| b.ins().fma(t, ray[3 + c], ray[c])).collect();
-        let (dist, _) = emitter.emit(b, &p, params);
-        let dist = dist[0];
+        let mut dist = None;
+        emitter.emit(
+            b,
+            &mut |_, k| p[k as usize],
+            &mut |_, _, v| dist = Some(v),
+            params,
+        );
+        let dist = dist.expect("the distance is the field's output");
         let mut s = Simd { b };
         let is_hit = s.b.ins().fcmp(FloatCC::LessThan, dist, eps);
         let newly = s.b.ins().band(is_hit, active);
