@@ -285,7 +285,16 @@ impl<'g> GraphEmitter<'g> {
                             s.cmp(FloatCC::NotEqual, v(c), zero)
                         }
                     };
-                    s.select(m, v(a), v(d))
+                    // A branch of +0.0 (all bits clear) is a mask: `m ? a : 0` is `m & a`, one
+                    // instruction where a blend takes two.
+                    let positive_zero = |x: V| g.const_value(x).is_some_and(|c| c.to_bits() == 0);
+                    if positive_zero(d) {
+                        s.b.ins().band(m, v(a))
+                    } else if positive_zero(a) {
+                        s.b.ins().band_not(v(d), m)
+                    } else {
+                        s.select(m, v(a), v(d))
+                    }
                 }
                 Op::Dense(_) | Op::Grid(_) | Op::Pick(..) => {
                     unreachable!("graphs with dense nodes are compiled by the tiled executor")
