@@ -169,3 +169,35 @@ fn large_functions_compile_with_the_single_pass_allocator_and_agree() {
         );
     }
 }
+
+#[test]
+fn selects_with_a_zero_branch_give_the_bits_of_the_branch_taken() {
+    // A +0.0 branch compiles to an and with the mask, a −0.0 one to a blend: either way the bits of the
+    // branch taken, the sign of a zero included.
+    let mut g = Graph::new();
+    let (a, b, c) = (g.input(0), g.input(1), g.input(2));
+    let (zero, negative_zero) = (g.constant(0.0), g.constant(-0.0));
+    let less = g.push(Op::Lt(a, b));
+    for condition in [c, less] {
+        for (x, y) in [(a, zero), (zero, a), (a, negative_zero), (negative_zero, a)] {
+            let v = g.push(Op::Select(condition, x, y));
+            g.outputs.push(v);
+        }
+    }
+    let points: Vec<Vec<f64>> = SPICY
+        .iter()
+        .flat_map(|&x| {
+            SPICY
+                .iter()
+                .map(move |&y| vec![x, y, if x > y { 1.0 } else { 0.0 }])
+        })
+        .collect();
+    let (got, _) = jit_eval(&g, &points, &[], Options::default());
+    let (want, _) = interp_eval(&g, &points, &[]);
+    for (p, (gp, wp)) in points.iter().zip(got.iter().zip(&want)) {
+        for (k, (&gv, &wv)) in gp.iter().zip(wp).enumerate() {
+            let same = (gv.is_nan() && wv.is_nan()) || gv.to_bits() == (wv as f32).to_bits();
+            assert!(same, "select {k} at {p:?}: jit {gv:e}, interpreter {wv:e}");
+        }
+    }
+}
