@@ -2,10 +2,12 @@
 //!
 //! The function's signature is
 //! `fn(inputs: *const *const f32, outputs: *const *mut f32, params: *const f32, accum: *mut f32, n: i64)`:
-//! `inputs` and `outputs` point to arrays of column pointers (structure of arrays), `accum` holds 4 lanes per
-//! reduction. A main loop evaluates whole groups of 4 points; a last partial group masks the reduction
-//! lanes at or beyond `n`. The caller guarantees that every column
-//! holds `n` rounded up to a multiple of 4 points (see [`crate::Kernel`]), so no access leaves the buffers.
+//! `inputs` and `outputs` point to arrays of column pointers (structure of arrays), or `inputs` is the base
+//! of a tiled kernel's arena whose columns lie at offsets fixed at compile time ([`Columns`]); `accum`
+//! holds 4 lanes per reduction. A main loop evaluates whole groups of 4 points; a last partial group masks
+//! the reduction lanes at or beyond `n`. Each input is loaded where the graph's input node is and each
+//! output stored as soon as it is computed. The caller guarantees that every column holds `n` rounded up to
+//! a multiple of 4 points (see [`crate::Kernel`]), so no access leaves the buffers.
 
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{types, AbiParam, InstBuilder, MemFlagsData, Signature, Value};

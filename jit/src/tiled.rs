@@ -5,7 +5,9 @@
 //! scalar nodes of one level form a segment, compiled to an ordinary JIT kernel (so the elementwise work
 //! between two products, bias + activation + whatever the script does, stays fused); the dense nodes of
 //! level L run, as [`gemm::matmul`], after segment L − 1 and before segment L. Values that cross a
-//! boundary live in slots: one column of [`TILE`] floats each, in an arena reused for every tile. The
+//! boundary live in slots: one column of [`TILE`] floats each, in an arena reused for every tile; the
+//! slots' columns are assigned before the segments are compiled, so that a segment addresses them as
+//! constant offsets from the arena. The
 //! graph's outer products (the gradients of the matrices) run as [`gemm::outer`] after the segment that
 //! writes the last of their operands, summed over the whole batch. Constants and params are recomputed in
 //! every segment that reads them.
@@ -352,14 +354,18 @@ impl Tiled {
         };
         plan.share_slots(&mut specs);
         // The columns' places are now final: each segment addresses them as constant offsets from the arena.
-        let offset =
-            |slots: &[usize]| -> Vec<i32> { slots.iter().map(|&s| (s * COLUMN * 4) as i32).collect() };
+        let offset = |slots: &[usize]| -> Result<Vec<i32>, JitError> {
+            slots
+                .iter()
+                .map(|&s| i32::try_from(s * COLUMN * 4).map_err(|_| JitError("an arena of over 2 GB".into())))
+                .collect()
+        };
         for spec in specs {
             let segment = match spec {
                 Some(spec) => {
                     let columns = Columns::Offsets {
-                        reads: offset(&spec.reads),
-                        writes: offset(&spec.writes),
+                        reads: offset(&spec.reads)?,
+                        writes: offset(&spec.writes)?,
                     };
                     let kernel = Kernel::compile_arena(&spec.graph, options, &columns)?;
                     let st = kernel.stats();
