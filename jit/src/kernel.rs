@@ -205,15 +205,21 @@ pub(crate) fn host_module(nodes: usize) -> Result<JITModule, JitError> {
     Ok(JITModule::new(JITBuilder::with_isa(isa, default_libcall_names())))
 }
 
+/// `graph` compacted, checked against the IR's rules: a graph that breaks them would make the code read or
+/// write outside its buffers.
+fn compacted_and_valid(graph: &Graph) -> Result<Graph, JitError> {
+    let graph = graph.compact();
+    graph
+        .validate()
+        .map_err(|e| JitError(format!("invalid IR: {e}")))?;
+    Ok(graph)
+}
+
 impl Kernel {
     /// Compiles `graph` to native code.
     pub fn compile(graph: &Graph, options: Options) -> Result<Kernel, JitError> {
         let start = Instant::now();
-        let graph = graph.compact();
-        // A graph that breaks the IR's rules would make the code read or write outside its buffers.
-        graph
-            .validate()
-            .map_err(|e| JitError(format!("invalid IR: {e}")))?;
+        let graph = compacted_and_valid(graph)?;
         if graph.needs_tiles() {
             return Ok(Kernel {
                 body: Body::Tiled(Box::new(Tiled::compile(&graph, options)?)),
@@ -264,10 +270,7 @@ impl Kernel {
         columns: &Columns,
     ) -> Result<Kernel, JitError> {
         let start = Instant::now();
-        let graph = graph.compact();
-        graph
-            .validate()
-            .map_err(|e| JitError(format!("invalid IR: {e}")))?;
+        let graph = compacted_and_valid(graph)?;
         if graph.needs_tiles() {
             return Err(JitError("an arena kernel with dense nodes".into()));
         }
