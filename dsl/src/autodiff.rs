@@ -6,7 +6,9 @@
 //! loss) is `vjp` applied to a graph that already holds a `vjp`.
 //!
 //! One convention departs from the textbook: the derivative of `sqrt` at 0 is 0 rather than +∞, so that
-//! the gradient of `length(v)` at v = 0 is 0 (a subgradient) and not NaN.
+//! the gradient of `length(v)` at v = 0 is 0 (a subgradient) and not NaN. At kinks the derivative takes a
+//! side: `min` and `max` pass the gradient to their first argument on ties, and ReLU, `max(x, 0)`, passes it
+//! where its output is positive (0 at x = 0, as PyTorch and JAX), with a mask read from that output.
 
 use std::collections::HashMap;
 
@@ -249,6 +251,14 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
                 (b, g.push(Select(takes_b, gy, zero))),
             ]
         }
+        // ReLU, max(a, 0): the gradient flows where the output is positive. The mask reads the output, not
+        // a, so that a network's backward pass needs only the activations it already keeps for the weight
+        // gradients, not the pre-activations too. (At a = 0 the derivative is then 0, as in PyTorch and JAX,
+        // where the general rule below would give 1.)
+        Max(a, b) if g.const_value(b).is_some_and(|c| c.to_bits() == 0) => {
+            let positive = g.push(Lt(zero, y));
+            vec![(a, g.push(Select(positive, gy, zero)))]
+        }
         Max(a, b) => {
             // max(a, b) = a < b ? b : a
             let takes_b = g.push(Lt(a, b));
@@ -265,6 +275,32 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
 mod tests {
     use super::*;
     use crate::interp::eval_point;
+
+    #[test]
+    fn relu_passes_the_gradient_where_its_output_is_positive() {
+        // d relu(x)/dx: 1 above 0; 0 below and at 0 (as PyTorch and JAX); the mask reads the output.
+        let mut g = Graph::new();
+        let x = g.input(0);
+        let zero = g.constant(0.0);
+        let y = g.push(Op::Max(x, zero));
+        let one = g.constant(1.0);
+        let grad = vjp(&mut g, &[(y, one)], &[x])[0];
+        g.outputs = vec![y, grad];
+        for (at, want) in [(2.5, 1.0), (1e-30, 1.0), (0.0, 0.0), (-0.0, 0.0), (-3.0, 0.0)] {
+            assert_eq!(eval_point(&g, &[at], &[]).outputs[1], want, "at {at}");
+        }
+        let Op::Select(mask, ..) = g.op(grad) else {
+            panic!("relu's gradient is a select");
+        };
+        assert_eq!(g.op(mask), Op::Lt(zero, y), "the mask compares the output with 0");
+        // max with anything but +0 keeps the general rule: the gradient goes to a unless a < b.
+        let b = g.input(1);
+        let m = g.push(Op::Max(x, b));
+        let grads = vjp(&mut g, &[(m, one)], &[x, b]);
+        g.outputs = grads;
+        assert_eq!(eval_point(&g, &[1.0, 1.0], &[]).outputs, vec![1.0, 0.0]);
+        assert_eq!(eval_point(&g, &[0.5, 1.0], &[]).outputs, vec![0.0, 1.0]);
+    }
 
     #[test]
     fn gradient_of_product_and_second_order() {

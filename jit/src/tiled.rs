@@ -210,7 +210,11 @@ impl Tiled {
                     for a in op.args() {
                         let arg = &ops[a.0 as usize];
                         if is_elementwise(arg) && stage[a.0 as usize] != stage[i] {
-                            slots.get(a);
+                            // A mask is made again from the value it compares (see `compared_value`).
+                            let kept = compared_value(ops, a).unwrap_or(a);
+                            if !is_rematerialized(&ops[kept.0 as usize]) {
+                                slots.get(kept);
+                            }
                         }
                     }
                 }
@@ -941,32 +945,22 @@ fn matrix(p: &MatrixOf, params: &[f32], precision: Precision) -> Matrix {
 /// Stage `s`'s elementwise nodes as a graph of their own, or None if the stage computes nothing.
 fn segment_spec(g: &Graph, stage: &[usize], slots: &mut Slots, s: usize) -> Option<SegmentSpec> {
     let ops = g.ops();
-    let mut sg = Graph::new();
-    let mut local: HashMap<V, V> = HashMap::new();
-    let mut reads: Vec<usize> = Vec::new();
-    let mut read = |sg: &mut Graph, local: &HashMap<V, V>, slots: &mut Slots, a: V| -> V {
-        match ops[a.0 as usize] {
-            Op::Const(bits) => sg.constant(f64::from_bits(bits)),
-            Op::Param(k) => sg.param(k),
-            _ => match local.get(&a) {
-                Some(&v) => v,
-                None => {
-                    reads.push(slots.get(a));
-                    sg.input(reads.len() as u32 - 1)
-                }
-            },
-        }
+    let mut segment = SegmentBuilder {
+        ops,
+        graph: Graph::new(),
+        local: HashMap::new(),
+        reads: Vec::new(),
     };
     let mut writes = Vec::new();
     for (i, op) in ops.iter().enumerate() {
         if stage[i] != s || !is_elementwise(op) {
             continue;
         }
-        let mapped = op.map_args(|a| read(&mut sg, &local, slots, a));
-        let v = sg.push(mapped);
-        local.insert(V(i as u32), v);
+        let mapped = op.map_args(|a| segment.read(slots, a));
+        let v = segment.graph.push(mapped);
+        segment.local.insert(V(i as u32), v);
         if let Some(slot) = slots.of[i] {
-            sg.outputs.push(v);
+            segment.graph.outputs.push(v);
             writes.push(slot);
         }
     }
@@ -976,17 +970,68 @@ fn segment_spec(g: &Graph, stage: &[usize], slots: &mut Slots, s: usize) -> Opti
         if stage[v.0 as usize] != s || *op == Op::Const(0f64.to_bits()) {
             continue;
         }
-        let value = read(&mut sg, &local, slots, v);
-        sg.reductions.push(value);
+        let value = segment.read(slots, v);
+        segment.graph.reductions.push(value);
         reductions.push(r);
     }
-    if sg.outputs.is_empty() && sg.reductions.is_empty() {
+    if segment.graph.outputs.is_empty() && segment.graph.reductions.is_empty() {
         return None;
     }
     Some(SegmentSpec {
-        graph: sg,
-        reads,
+        graph: segment.graph,
+        reads: segment.reads,
         writes,
         reductions,
     })
+}
+
+/// A segment's graph as it is built from the whole graph's nodes of one stage.
+struct SegmentBuilder<'g> {
+    ops: &'g [Op],
+    graph: Graph,
+    /// The segment's value of each node of the whole graph it has computed or read.
+    local: HashMap<V, V>,
+    /// The slot each of the segment's inputs reads.
+    reads: Vec<usize>,
+}
+
+impl SegmentBuilder<'_> {
+    /// The segment's value of node `a`: constants and params made again, comparisons with a constant made
+    /// again from the value compared ([`compared_value`]), nodes of the stage as computed, the rest read
+    /// from their slots (once each).
+    fn read(&mut self, slots: &mut Slots, a: V) -> V {
+        if let Some(&v) = self.local.get(&a) {
+            return v;
+        }
+        let op = self.ops[a.0 as usize];
+        let v = match op {
+            Op::Const(bits) => self.graph.constant(f64::from_bits(bits)),
+            Op::Param(k) => self.graph.param(k),
+            _ if compared_value(self.ops, a).is_some() => {
+                let mapped = op.map_args(|x| self.read(slots, x));
+                self.graph.push(mapped)
+            }
+            _ => {
+                self.reads.push(slots.get(a));
+                self.graph.input(self.reads.len() as u32 - 1)
+            }
+        };
+        self.local.insert(a, v);
+        v
+    }
+}
+
+/// For a comparison of a value with a constant, the value: a segment of a later stage makes such a mask
+/// again from the value (a network's activations, which its backward pass keeps anyway for the weight
+/// gradients) rather than keeping a column for the mask itself (ReLU's derivative).
+fn compared_value(ops: &[Op], v: V) -> Option<V> {
+    let is_const = |x: V| matches!(ops[x.0 as usize], Op::Const(_));
+    match ops[v.0 as usize] {
+        Op::Lt(a, b) | Op::Le(a, b) | Op::Eq(a, b) => match (is_const(a), is_const(b)) {
+            (true, false) => Some(b),
+            (false, true) => Some(a),
+            _ => None,
+        },
+        _ => None,
+    }
 }
