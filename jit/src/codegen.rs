@@ -32,21 +32,21 @@ pub enum Columns {
 }
 
 /// The addresses of the kernel's columns, as the loop reaches them.
-enum ColumnAddresses {
+enum ColumnAddresses<'a> {
     /// One pointer per column, loaded once in the entry block.
     Pointers { inputs: Vec<Value>, outputs: Vec<Value> },
     /// One base and the columns' constant offsets from it: every access is a single load or store with
     /// an immediate displacement, and no column pointer takes a register or a stack slot.
     Offsets {
         base: Value,
-        reads: Vec<i32>,
-        writes: Vec<i32>,
+        reads: &'a [i32],
+        writes: &'a [i32],
     },
 }
 
 /// The column and buffer pointers of the kernel, loaded once in the entry block.
-struct Buffers {
-    columns: ColumnAddresses,
+struct Buffers<'a> {
+    columns: ColumnAddresses<'a>,
     params: Value,
     accum: Value,
     sums: Sums,
@@ -345,8 +345,8 @@ pub fn build(b: &mut FunctionBuilder, g: &Graph, columns: &Columns) {
             );
             ColumnAddresses::Offsets {
                 base: in_arr,
-                reads: reads.clone(),
-                writes: writes.clone(),
+                reads,
+                writes,
             }
         }
     };
