@@ -225,8 +225,17 @@ impl<'g> GraphEmitter<'g> {
                     s.b.ins().splat(types::F32X4, p)
                 }
                 Op::Input(k) => input(s.b, k),
-                Op::Neg(a) => s.b.ins().fneg(v(a)),
-                Op::Abs(a) => s.b.ins().fabs(v(a)),
+                // The sign bit flipped or cleared by one `xor` or `and` with a constant mask, where
+                // Cranelift's vector `fneg` and `fabs` make the mask anew each time (three
+                // instructions).
+                Op::Neg(a) => {
+                    let sign_bit = s.f(-0.0);
+                    s.b.ins().bxor(v(a), sign_bit)
+                }
+                Op::Abs(a) => {
+                    let magnitude = s.f(f32::from_bits(0x7fff_ffff));
+                    s.b.ins().band(v(a), magnitude)
+                }
                 Op::Sign(a) => {
                     let zero = s.f(0.0);
                     let pos = s.cmp(FloatCC::GreaterThan, v(a), zero);
