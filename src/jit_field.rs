@@ -210,7 +210,7 @@ impl Specialize for Specializer {
         let fused = simplified
             .origin
             .iter()
-            .map(|o| o.is_some_and(|o| self.fused[o.0 as usize]))
+            .map(|o| self.fused[o.0 as usize])
             .collect();
         Ok(Box::new(Specializer::new(
             simplified.graph,

@@ -319,9 +319,11 @@ impl IntoIterator for Args {
 #[derive(Clone, Debug, Default)]
 pub struct Graph {
     ops: Vec<Op>,
-    /// Hash-consing of ops (Fx hashing: graphs of tens of thousands of nodes are rebuilt per box when
-    /// simplified, and SipHash dominated that).
+    /// Hash-consing of ops (Fx hashing): the first node of each op among `ops[..memo_covers]`. A rebuilt
+    /// graph ([`Graph::rebuild`]: tens of thousands of nodes, rebuilt per box when simplified) starts
+    /// without it, and it is made when a node is first added to that graph.
     memo: FxHashMap<Op, V>,
+    memo_covers: usize,
     lists: Vec<Vec<V>>,
     list_memo: FxHashMap<Vec<V>, ListId>,
     /// Values written per point, in order.
@@ -342,11 +344,10 @@ impl Graph {
         Graph::default()
     }
 
-    /// An empty graph with room for `nodes` nodes (a graph rebuilt from another grows without rehashing).
+    /// An empty graph with room for `nodes` nodes.
     pub fn with_capacity(nodes: usize) -> Graph {
         let mut g = Graph::default();
         g.ops.reserve(nodes);
-        g.memo.reserve(nodes);
         g
     }
 
@@ -477,13 +478,33 @@ impl Graph {
     }
 
     fn insert(&mut self, op: Op) -> V {
+        self.cover_memo();
         if let Some(&v) = self.memo.get(&op) {
             return v;
         }
+        let v = self.append(op);
+        self.memo.insert(op, v);
+        self.memo_covers = self.ops.len();
+        v
+    }
+
+    /// Adds `op` as a new node, without folding or hash-consing.
+    fn append(&mut self, op: Op) -> V {
         let v = V(u32::try_from(self.ops.len()).expect("graph larger than 2^32 nodes"));
         self.ops.push(op);
-        self.memo.insert(op, v);
         v
+    }
+
+    /// Adds the nodes appended without hash-consing to the memo (the first of equal ones).
+    fn cover_memo(&mut self) {
+        if self.memo_covers == self.ops.len() {
+            return;
+        }
+        self.memo.reserve(self.ops.len() - self.memo_covers);
+        for (i, &op) in self.ops.iter().enumerate().skip(self.memo_covers) {
+            self.memo.entry(op).or_insert(V(i as u32));
+        }
+        self.memo_covers = self.ops.len();
     }
 
     /// Adds `op`, or finds an equal node, after folding constants and simple identities
@@ -527,17 +548,17 @@ impl Graph {
         }
     }
 
-    /// A copy holding only the nodes that outputs and reductions need, rebuilt through [`Graph::push`]
-    /// (dead-code elimination, with CSE and folding applied again). `n_inputs` is kept.
+    /// A copy holding only the nodes that outputs and reductions need, in the same order (dead-code
+    /// elimination). `n_inputs` is kept.
     pub fn compact(&self) -> Graph {
         self.rebuild(&[]).0
     }
 
     /// [`Graph::compact`] where nodes may be replaced by one of their arguments: `alias[i]`, when given, is
     /// the argument (a value of this graph) that stands for node `i`. Only what the outputs then need is
-    /// kept. Also gives, for each node of the new graph, the node of this graph it stands for (`None` for
-    /// none: a node folding made on the way).
-    pub fn rebuild(&self, alias: &[Option<V>]) -> (Graph, Vec<Option<V>>) {
+    /// kept, node for node (nothing is folded or merged, but dense layers' and grid reads' equal nodes).
+    /// Also gives, for each node of the new graph, the node of this graph it stands for.
+    pub fn rebuild(&self, alias: &[Option<V>]) -> (Graph, Vec<V>) {
         // Each node's stand-in, through chains of aliases (arguments come first, so they are resolved).
         let mut resolved: Vec<V> = (0..self.ops.len() as u32).map(V).collect();
         for (i, a) in alias.iter().enumerate() {
@@ -564,13 +585,15 @@ impl Graph {
                 }
                 // A read at a constant point is not folded: it reads the params.
                 Op::Grid(_) => out.insert(op.map_args(|a| map[resolved[a.0 as usize].0 as usize])),
-                _ => out.push(op.map_args(|a| map[resolved[a.0 as usize].0 as usize])),
+                // The nodes of a hash-consed graph stay distinct and keep their arithmetic (nothing
+                // folded: the same values in f32 as the original's).
+                _ => out.append(op.map_args(|a| map[resolved[a.0 as usize].0 as usize])),
             };
         }
-        let mut origin = vec![None; out.len()];
+        let mut origin = vec![V(0); out.len()];
         for (i, &new) in map.iter().enumerate().rev() {
             if live[i] {
-                origin[new.0 as usize] = Some(V(i as u32));
+                origin[new.0 as usize] = V(i as u32);
             }
         }
         let map: Vec<V> = resolved.iter().map(|r| map[r.0 as usize]).collect();
@@ -754,5 +777,33 @@ mod tests {
         let c = g.compact();
         assert_eq!(c.len(), 2);
         assert_eq!(c.n_inputs, 1);
+    }
+
+    /// A rebuilt graph keeps its nodes as they are (an alias that makes a node's arguments constants
+    /// folds nothing) and gives each new node the node it computes; nodes added to it afterwards are
+    /// hash-consed against the rebuilt ones.
+    #[test]
+    fn rebuilt_graphs_keep_their_nodes_and_dedupe_what_is_added() {
+        let mut g = Graph::new();
+        let x = g.input(0);
+        let one = g.constant(1.0);
+        let two = g.constant(2.0);
+        let m = g.push(Op::Min(x, one));
+        let s = g.push(Op::Add(m, two));
+        let y = g.push(Op::Mul(s, x));
+        g.outputs.push(y);
+        let mut alias = vec![None; g.len()];
+        alias[m.0 as usize] = Some(one);
+        let (mut r, origin) = g.rebuild(&alias);
+        // x, 1, 2, 1 + 2 and (1 + 2)·x: the sum is not folded.
+        assert_eq!(r.len(), 5);
+        let sum = r.ops().iter().position(|op| matches!(op, Op::Add(..))).unwrap();
+        assert_eq!(origin[sum], s);
+        assert_eq!(r.op(r.outputs[0]), Op::Mul(V(0), V(sum as u32)));
+        // Pushing an op the rebuilt graph has finds its node.
+        let again = r.push(Op::Mul(V(sum as u32), V(0)));
+        assert_eq!(again, r.outputs[0]);
+        assert_eq!(r.len(), 5);
+        assert_eq!(r.push(Op::Sin(V(0))), V(5));
     }
 }

@@ -40,10 +40,10 @@ pub const MARGIN: f64 = 1e-4;
 pub struct Simplified {
     /// The simplified graph: same inputs, params and outputs as the original, compacted.
     pub graph: Graph,
-    /// For each node of `graph`, the node of the simplifier's graph ([`Simplifier::graph`]) it computes
-    /// (`None` for a constant folded on the way): compilers that decide per node, such as which products
-    /// fuse into FMAs, can decide as they did for the original.
-    pub origin: Vec<Option<V>>,
+    /// For each node of `graph`, the node of the simplifier's graph ([`Simplifier::graph`]) it computes:
+    /// compilers that decide per node, such as which products fuse into FMAs, can decide as they did for
+    /// the original.
+    pub origin: Vec<V>,
     /// How many `min`, `max` and `select` nodes the box decided.
     pub choices: usize,
 }

@@ -157,11 +157,7 @@ fn carried_fusion_flags_keep_the_original_kernels_rounding() {
     let (lo, hi) = ([-1.0, 0.1, -1.0], [1.0, 1.0, 1.0]);
     let simplified = Simplifier::new(&g).simplify(&lo, &hi, &[]);
     assert_eq!(simplified.choices, 1);
-    let carried: Vec<bool> = simplified
-        .origin
-        .iter()
-        .map(|o| o.is_some_and(|o| original[o.0 as usize]))
-        .collect();
+    let carried: Vec<bool> = simplified.origin.iter().map(|o| original[o.0 as usize]).collect();
     let mut rng = 0x1234_5678_u32;
     let mut next = |l: f64, h: f64| {
         rng ^= rng << 13;
