@@ -298,6 +298,25 @@ fn large(reps: usize) -> Result<()> {
         f64::from(w * h) / trace_s / 1e6,
         plain_s
     ));
+    // Large models are to trace at 1024² in seconds: one frame at that size (after a first, untimed).
+    let mut frame = nerfjit_runtime::Frame::empty();
+    let big_s = time_reps(reps.min(3), || {
+        sphere_trace_into(
+            &plan.cameras[0],
+            1024,
+            1024,
+            &sdf,
+            &shading,
+            &plan.trace,
+            &mut frame,
+        )
+        .expect("validated settings render");
+    });
+    crate::emit(&format!(
+        "  sphere trace one 1024×1024 frame {:7.3} s ({:.2} M rays/s)\n",
+        big_s,
+        1024.0 * 1024.0 / big_s / 1e6
+    ));
     Ok(())
 }
 
