@@ -276,7 +276,7 @@ fn large(reps: usize) -> Result<()> {
         albedo: [0.85, 0.75, 0.6],
     };
     let (w, h) = plan.size;
-    let trace = |sdf: &dyn nerfjit_runtime::BatchFn| {
+    let trace = |sdf: &dyn nerfjit_runtime::BatchFn, (w, h): (u32, u32)| {
         let mut frame = nerfjit_runtime::Frame::empty();
         let seconds = time_reps(reps.min(3), || {
             sphere_trace_into(&plan.cameras[0], w, h, sdf, &shading, &plan.trace, &mut frame)
@@ -284,7 +284,7 @@ fn large(reps: usize) -> Result<()> {
         });
         (seconds, frame)
     };
-    let ((trace_s, skipped), (plain_s, plain)) = (trace(&sdf), trace(&fields.sdf));
+    let ((trace_s, skipped), (plain_s, plain)) = (trace(&sdf, (w, h)), trace(&fields.sdf, (w, h)));
     let hits_differ = skipped.hit.iter().zip(&plain.hit).filter(|(a, b)| a != b).count();
     let depth_differs = skipped
         .depth
@@ -298,20 +298,8 @@ fn large(reps: usize) -> Result<()> {
         f64::from(w * h) / trace_s / 1e6,
         plain_s
     ));
-    // Large models are to trace at 1024² in seconds: one frame at that size (after a first, untimed).
-    let mut frame = nerfjit_runtime::Frame::empty();
-    let big_s = time_reps(reps.min(3), || {
-        sphere_trace_into(
-            &plan.cameras[0],
-            1024,
-            1024,
-            &sdf,
-            &shading,
-            &plan.trace,
-            &mut frame,
-        )
-        .expect("validated settings render");
-    });
+    // Large models are to trace at 1024² in seconds: one frame at that size.
+    let (big_s, _) = trace(&sdf, (1024, 1024));
     crate::emit(&format!(
         "  sphere trace one 1024×1024 frame {:7.3} s ({:.2} M rays/s)\n",
         big_s,
