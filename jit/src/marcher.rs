@@ -3,13 +3,14 @@
 //!
 //! Per lane, exactly the plain loop: from `t = t0`, up to `max_steps` times, `p = o + t·d`,
 //! `dist = sdf(p)`; if `dist < eps` the ray hits (stop); else `t += dist`, and if `t > t1` it misses
-//! (stop). Several groups of 4 rays march together (their dependency chains overlap) and leave the loop
-//! when none of their lanes is still marching.
+//! (stop). Several groups of 4 rays march together (their dependency chains overlap); a group whose 4
+//! rays have all stopped stores them and takes the next 4 rays of the batch, so that the rays that take
+//! many steps (near silhouettes) keep only their own group's lanes waiting.
 
 use std::time::Instant;
 
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
-use cranelift_codegen::ir::{types, AbiParam, BlockArg, InstBuilder, MemFlagsData};
+use cranelift_codegen::ir::{types, AbiParam, BlockArg, InstBuilder, MemFlagsData, Value};
 use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext};
 use cranelift_module::Module;
 use nerfjit_dsl::ir::Graph;
@@ -113,11 +114,11 @@ impl Marcher {
             self.n_params
         );
         let steps = i64::from(max_steps.max(1));
-        let full = n / RAYS_PER_ITERATION * RAYS_PER_ITERATION;
+        let full = n / RAYS_PER_GROUP * RAYS_PER_GROUP;
         if full > 0 {
             let ins: Vec<*const f32> = columns.iter().map(|c| c.as_ptr()).collect();
             let outs = [t.as_mut_ptr(), hit.as_mut_ptr()];
-            // SAFETY: every column holds at least `full` rays, a multiple of RAYS_PER_ITERATION; the kernel
+            // SAFETY: every column holds at least `full` rays, a multiple of RAYS_PER_GROUP; the kernel
             // touches exactly rays 0..full of each.
             unsafe {
                 (self.func)(
@@ -132,16 +133,16 @@ impl Marcher {
         }
         let rest = n - full;
         if rest > 0 {
-            // The last partial iteration marches padded copies (the padding repeats the last ray).
-            let pad: Vec<[f32; RAYS_PER_ITERATION]> = columns
+            // The last partial group marches padded copies (the padding repeats the last ray).
+            let pad: Vec<[f32; RAYS_PER_GROUP]> = columns
                 .iter()
                 .map(|c| std::array::from_fn(|k| c[full + k.min(rest - 1)]))
                 .collect();
-            let (mut pt, mut ph) = ([0.0f32; RAYS_PER_ITERATION], [0.0f32; RAYS_PER_ITERATION]);
+            let (mut pt, mut ph) = ([0.0f32; RAYS_PER_GROUP], [0.0f32; RAYS_PER_GROUP]);
             let ins: Vec<*const f32> = pad.iter().map(|c| c.as_ptr()).collect();
             let outs = [pt.as_mut_ptr(), ph.as_mut_ptr()];
-            let len = RAYS_PER_ITERATION as i64;
-            // SAFETY: each padded column holds RAYS_PER_ITERATION rays.
+            let len = RAYS_PER_GROUP as i64;
+            // SAFETY: each padded column holds RAYS_PER_GROUP rays.
             unsafe { (self.func)(ins.as_ptr(), outs.as_ptr(), params.as_ptr(), len, eps, steps) };
             t[full..n].copy_from_slice(&pt[..rest]);
             hit[full..n].copy_from_slice(&ph[..rest]);
@@ -149,15 +150,59 @@ impl Marcher {
     }
 }
 
-/// Rays marched together by one loop: independent groups of 4 whose dependency chains (each step waits for
-/// the previous one's square roots) overlap in the CPU.
-pub const RAYS_PER_ITERATION: usize = 4 * GROUPS;
+/// Rays marched together: independent groups of 4 whose dependency chains (each step waits for the previous
+/// one's square roots) overlap in the CPU. Each group takes the next 4 rays as soon as its own are all done,
+/// so a slow ray holds back 3 others, not the whole batch.
+pub const RAYS_PER_GROUP: usize = 4;
 const GROUPS: usize = 4;
 
-/// Emits the marcher: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a multiple of
-/// [`RAYS_PER_ITERATION`].
+/// The loop state of one group of rays.
+#[derive(Clone, Copy)]
+struct Group {
+    /// Distance along each ray.
+    t: Value,
+    /// Lanes still marching (all ones) or stopped.
+    active: Value,
+    /// Lanes that hit.
+    hit: Value,
+    /// Index of the group's first ray: always a ray of the batch, so that loads stay in bounds.
+    base: Value,
+    /// 1 while the group holds rays whose results are not yet stored, 0 once the batch is exhausted.
+    live: Value,
+    /// Steps the group's rays have taken.
+    steps: Value,
+}
+
+impl Group {
+    const TYPES: [types::Type; 6] = [
+        types::F32X4,
+        types::I32X4,
+        types::I32X4,
+        types::I64,
+        types::I8,
+        types::I64,
+    ];
+
+    fn args(&self) -> [BlockArg; 6] {
+        [self.t, self.active, self.hit, self.base, self.live, self.steps].map(BlockArg::from)
+    }
+
+    fn from_params(p: &[Value]) -> Group {
+        Group {
+            t: p[0],
+            active: p[1],
+            hit: p[2],
+            base: p[3],
+            live: p[4],
+            steps: p[5],
+        }
+    }
+}
+
+/// Emits the marcher: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a positive multiple of
+/// [`RAYS_PER_GROUP`].
 fn build(b: &mut FunctionBuilder, sdf: &Graph) {
-    let (ptr, f4, i4) = (types::I64, types::F32X4, types::I32X4);
+    let (ptr, f4) = (types::I64, types::F32X4);
     let entry = b.create_block();
     b.append_block_params_for_function_params(entry);
     b.switch_to_block(entry);
@@ -169,115 +214,190 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     let outs: Vec<_> = (0..2).map(|k| b.ins().load(ptr, ro, out_arr, k * 8)).collect();
     let eps = b.ins().splat(f4, eps);
     let emitter = GraphEmitter::new(sdf);
+    let flags = MemFlagsData::new().with_notrap();
+    let (all, none) = {
+        let mut s = Simd { b };
+        (s.i(-1), s.i(0))
+    };
+    let zero = b.ins().iconst(ptr, 0);
 
-    let group_head = b.create_block();
-    let group_body = b.create_block();
+    // Groups start on the first rays; a group beyond the batch starts exhausted (on ray 0, which exists).
+    let mut start: Vec<BlockArg> = Vec::new();
+    for g in 0..GROUPS {
+        let first = b.ins().iconst(ptr, (g * RAYS_PER_GROUP) as i64);
+        let live = b.ins().icmp(IntCC::SignedLessThan, first, n);
+        let base = b.ins().select(live, first, zero);
+        let t0 = load_column(b, cols[6], base, flags);
+        let active = b.ins().select(live, all, none);
+        let group = Group {
+            t: t0,
+            active,
+            hit: none,
+            base,
+            live,
+            steps: zero,
+        };
+        start.extend(group.args());
+    }
+    start.push(b.ins().iconst(ptr, (GROUPS * RAYS_PER_GROUP) as i64).into());
     let step = b.create_block();
-    let done = b.create_block();
     let exit = b.create_block();
-    b.append_block_param(group_head, ptr);
     for _ in 0..GROUPS {
-        for ty in [f4, i4, i4] {
+        for ty in Group::TYPES {
             b.append_block_param(step, ty);
-            b.append_block_param(done, ty);
         }
     }
     b.append_block_param(step, ptr);
-    let zero = b.ins().iconst(ptr, 0);
-    b.ins().jump(group_head, &[zero.into()]);
-
-    b.switch_to_block(group_head);
-    let i = b.block_params(group_head)[0];
-    let more = b.ins().icmp(IntCC::SignedLessThan, i, n);
-    b.ins().brif(more, group_body, &[], exit, &[]);
-
-    // Load the rays of every group; all lanes start marching.
-    b.switch_to_block(group_body);
-    b.seal_block(group_body);
-    let offset = b.ins().ishl_imm_s(i, 2);
-    let flags = MemFlagsData::new().with_notrap();
-    let addrs: Vec<_> = cols.iter().map(|&c| b.ins().iadd(c, offset)).collect();
-    let rays: Vec<Vec<_>> = (0..GROUPS)
-        .map(|g| {
-            addrs
-                .iter()
-                .map(|&p| b.ins().load(f4, flags.with_readonly(), p, (16 * g) as i32))
-                .collect()
-        })
-        .collect();
-    let all = b.ins().iconst(types::I32, -1);
-    let all = b.ins().splat(i4, all);
-    let none = b.ins().iconst(types::I32, 0);
-    let none = b.ins().splat(i4, none);
-    let mut start: Vec<BlockArg> = Vec::new();
-    for ray in &rays {
-        start.extend([BlockArg::from(ray[6]), all.into(), none.into()]);
-    }
-    let k0 = b.ins().iconst(ptr, 0);
-    start.push(k0.into());
     b.ins().jump(step, &start);
 
-    // One step of every group.
+    // One step of every group, then each group that finished stores its rays and takes the next ones.
     b.switch_to_block(step);
     let sp = b.block_params(step).to_vec();
-    let k = sp[3 * GROUPS];
-    let mut next: Vec<BlockArg> = Vec::new();
-    let mut any = None;
-    for (g, ray) in rays.iter().enumerate() {
-        let (t, active, hit) = (sp[3 * g], sp[3 * g + 1], sp[3 * g + 2]);
-        let p: Vec<_> = (0..3).map(|c| b.ins().fma(t, ray[3 + c], ray[c])).collect();
-        let mut dist = None;
-        emitter.emit(
-            b,
-            &mut |_, k| p[k as usize],
-            &mut |_, _, v| dist = Some(v),
-            params,
-        );
-        let dist = dist.expect("the distance is the field's output");
-        let mut s = Simd { b };
-        let is_hit = s.b.ins().fcmp(FloatCC::LessThan, dist, eps);
-        let newly = s.b.ins().band(is_hit, active);
-        let hit2 = s.b.ins().bor(hit, newly);
-        let active2 = s.b.ins().band_not(active, is_hit);
-        let advanced = s.b.ins().fadd(t, dist);
-        let active2_f = s.float(active2);
-        let t2 = s.select(active2_f, advanced, t);
-        let past = s.b.ins().fcmp(FloatCC::GreaterThan, t2, ray[7]);
-        let active3 = s.b.ins().band_not(active2, past);
-        let lanes_on = b.ins().vany_true(active3);
-        any = Some(match any {
-            None => lanes_on,
-            Some(a) => b.ins().bor(a, lanes_on),
+    let mut next = sp[Group::TYPES.len() * GROUPS];
+    let groups: Vec<Group> = sp
+        .chunks(Group::TYPES.len())
+        .take(GROUPS)
+        .map(Group::from_params)
+        .collect();
+    let stepped: Vec<Group> = groups
+        .iter()
+        .map(|group| step_group(b, &emitter, &cols, params, eps, max_steps, *group, flags))
+        .collect();
+    let mut any_live = None;
+    let mut carried: Vec<BlockArg> = Vec::new();
+    for group in stepped {
+        let (group, after) = refill(b, &cols, &outs, n, group, next, (all, none), flags);
+        next = after;
+        carried.extend(group.args());
+        any_live = Some(match any_live {
+            None => group.live,
+            Some(l) => b.ins().bor(l, group.live),
         });
-        next.extend([BlockArg::from(t2), active3.into(), hit2.into()]);
     }
-    let finished: Vec<_> = next.clone();
-    let k2 = b.ins().iadd_imm_s(k, 1);
-    next.push(k2.into());
-    let steps_left = b.ins().icmp(IntCC::SignedLessThan, k2, max_steps);
-    let go_on = b.ins().band(any.expect("at least one group"), steps_left);
-    b.ins().brif(go_on, step, &next, done, &finished);
+    carried.push(next.into());
+    let go_on = any_live.expect("at least one group");
+    b.ins().brif(go_on, step, &carried, exit, &[]);
     b.seal_block(step);
-
-    // Store the final t and the hit flags of every group.
-    b.switch_to_block(done);
-    b.seal_block(done);
-    let dp = b.block_params(done).to_vec();
-    let out_addrs: Vec<_> = outs.iter().map(|&base| b.ins().iadd(base, offset)).collect();
-    for g in 0..GROUPS {
-        let (t_final, hit_final) = (dp[3 * g], dp[3 * g + 2]);
-        let mut s = Simd { b };
-        let hit_f = s.float(hit_final);
-        let hit_one = s.mask_to_one(hit_f);
-        for (value, &addr) in [t_final, hit_one].into_iter().zip(&out_addrs) {
-            b.ins().store(flags, value, addr, (16 * g) as i32);
-        }
-    }
-    let next_i = b.ins().iadd_imm_s(i, RAYS_PER_ITERATION as i64);
-    b.ins().jump(group_head, &[next_i.into()]);
-    b.seal_block(group_head);
 
     b.switch_to_block(exit);
     b.seal_block(exit);
     b.ins().return_(&[]);
+}
+
+/// Loads the 4 f32 of `column` at ray `index`.
+fn load_column(b: &mut FunctionBuilder, column: Value, index: Value, flags: MemFlagsData) -> Value {
+    let offset = b.ins().ishl_imm_s(index, 2);
+    let addr = b.ins().iadd(column, offset);
+    b.ins().load(types::F32X4, flags.with_readonly(), addr, 0)
+}
+
+/// One sphere-tracing step of a group's active lanes: `p = o + t·d`, `dist = sdf(p)`; a lane stops on a
+/// hit, past its `t1`, or after `max_steps` steps.
+#[allow(clippy::too_many_arguments)]
+fn step_group(
+    b: &mut FunctionBuilder,
+    emitter: &GraphEmitter,
+    cols: &[Value],
+    params: Value,
+    eps: Value,
+    max_steps: Value,
+    group: Group,
+    flags: MemFlagsData,
+) -> Group {
+    let ray: Vec<Value> = [0, 1, 2, 3, 4, 5, 7]
+        .iter()
+        .map(|&c| load_column(b, cols[c], group.base, flags))
+        .collect();
+    let t = group.t;
+    let p: Vec<_> = (0..3).map(|c| b.ins().fma(t, ray[3 + c], ray[c])).collect();
+    let mut dist = None;
+    emitter.emit(
+        b,
+        &mut |_, k| p[k as usize],
+        &mut |_, _, v| dist = Some(v),
+        params,
+    );
+    let dist = dist.expect("the distance is the field's output");
+    let mut s = Simd { b };
+    let is_hit = s.b.ins().fcmp(FloatCC::LessThan, dist, eps);
+    let newly = s.b.ins().band(is_hit, group.active);
+    let hit = s.b.ins().bor(group.hit, newly);
+    let active = s.b.ins().band_not(group.active, is_hit);
+    let advanced = s.b.ins().fadd(t, dist);
+    let active_f = s.float(active);
+    let t = s.select(active_f, advanced, t);
+    let past = s.b.ins().fcmp(FloatCC::GreaterThan, t, ray[6]);
+    let active = s.b.ins().band_not(active, past);
+    let steps = b.ins().iadd_imm_s(group.steps, 1);
+    let steps_left = b.ins().icmp(IntCC::SignedLessThan, steps, max_steps);
+    let none = b.ins().bxor(active, active);
+    let active = b.ins().select(steps_left, active, none);
+    Group {
+        t,
+        active,
+        hit,
+        steps,
+        ..group
+    }
+}
+
+/// If `group` holds rays and none is still marching: stores their final `t` and hit flags, and loads the
+/// rays from `next` on (or marks the group exhausted past the batch's `n` rays). Returns the group's state
+/// and the next unclaimed ray.
+#[allow(clippy::too_many_arguments)]
+fn refill(
+    b: &mut FunctionBuilder,
+    cols: &[Value],
+    outs: &[Value],
+    n: Value,
+    group: Group,
+    next: Value,
+    (all, none): (Value, Value),
+    flags: MemFlagsData,
+) -> (Group, Value) {
+    let marching = b.ins().vany_true(group.active);
+    let idle = b.ins().icmp_imm_u(IntCC::Equal, marching, 0);
+    let done = b.ins().band(idle, group.live);
+    let swap = b.create_block();
+    let join = b.create_block();
+    for ty in Group::TYPES {
+        b.append_block_param(join, ty);
+    }
+    b.append_block_param(join, types::I64);
+    let mut kept: Vec<BlockArg> = group.args().to_vec();
+    kept.push(next.into());
+    b.ins().brif(done, swap, &[], join, &kept);
+
+    b.switch_to_block(swap);
+    b.seal_block(swap);
+    let offset = b.ins().ishl_imm_s(group.base, 2);
+    let mut s = Simd { b };
+    let hit_f = s.float(group.hit);
+    let hit_one = s.mask_to_one(hit_f);
+    for (value, &column) in [group.t, hit_one].into_iter().zip(outs) {
+        let addr = b.ins().iadd(column, offset);
+        b.ins().store(flags, value, addr, 0);
+    }
+    let live = b.ins().icmp(IntCC::SignedLessThan, next, n);
+    let base = b.ins().select(live, next, group.base);
+    let t0 = load_column(b, cols[6], base, flags);
+    let active = b.ins().select(live, all, none);
+    let zero = b.ins().iconst(types::I64, 0);
+    let fresh = Group {
+        t: t0,
+        active,
+        hit: none,
+        base,
+        live,
+        steps: zero,
+    };
+    let after = b.ins().iadd_imm_s(next, RAYS_PER_GROUP as i64);
+    let mut swapped: Vec<BlockArg> = fresh.args().to_vec();
+    swapped.push(after.into());
+    b.ins().jump(join, &swapped);
+
+    b.switch_to_block(join);
+    b.seal_block(join);
+    let p = b.block_params(join).to_vec();
+    (Group::from_params(&p), p[Group::TYPES.len()])
 }
