@@ -187,6 +187,31 @@ impl Group {
         [self.t, self.active, self.hit, self.base, self.live, self.steps].map(BlockArg::from)
     }
 
+    /// The group of the 4 rays from `first`, starting at their `t0`; past the batch's `n` rays an exhausted
+    /// group on the ray `fallback` (so that its loads stay in bounds).
+    fn claim(
+        b: &mut FunctionBuilder,
+        t0_column: Value,
+        (first, n): (Value, Value),
+        fallback: Value,
+        (all, none): (Value, Value),
+        flags: MemFlagsData,
+    ) -> Group {
+        let live = b.ins().icmp(IntCC::SignedLessThan, first, n);
+        let base = b.ins().select(live, first, fallback);
+        let t = load_column(b, t0_column, base, flags);
+        let active = b.ins().select(live, all, none);
+        let steps = b.ins().iconst(types::I64, 0);
+        Group {
+            t,
+            active,
+            hit: none,
+            base,
+            live,
+            steps,
+        }
+    }
+
     fn from_params(p: &[Value]) -> Group {
         Group {
             t: p[0],
@@ -225,18 +250,7 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     let mut start: Vec<BlockArg> = Vec::new();
     for g in 0..GROUPS {
         let first = b.ins().iconst(ptr, (g * RAYS_PER_GROUP) as i64);
-        let live = b.ins().icmp(IntCC::SignedLessThan, first, n);
-        let base = b.ins().select(live, first, zero);
-        let t0 = load_column(b, cols[6], base, flags);
-        let active = b.ins().select(live, all, none);
-        let group = Group {
-            t: t0,
-            active,
-            hit: none,
-            base,
-            live,
-            steps: zero,
-        };
+        let group = Group::claim(b, cols[6], (first, n), zero, (all, none), flags);
         start.extend(group.args());
     }
     start.push(b.ins().iconst(ptr, (GROUPS * RAYS_PER_GROUP) as i64).into());
@@ -378,19 +392,7 @@ fn refill(
         let addr = b.ins().iadd(column, offset);
         b.ins().store(flags, value, addr, 0);
     }
-    let live = b.ins().icmp(IntCC::SignedLessThan, next, n);
-    let base = b.ins().select(live, next, group.base);
-    let t0 = load_column(b, cols[6], base, flags);
-    let active = b.ins().select(live, all, none);
-    let zero = b.ins().iconst(types::I64, 0);
-    let fresh = Group {
-        t: t0,
-        active,
-        hit: none,
-        base,
-        live,
-        steps: zero,
-    };
+    let fresh = Group::claim(b, cols[6], (next, n), group.base, (all, none), flags);
     let after = b.ins().iadd_imm_s(next, RAYS_PER_GROUP as i64);
     let mut swapped: Vec<BlockArg> = fresh.args().to_vec();
     swapped.push(after.into());
