@@ -7,7 +7,7 @@ use nerfjit_dsl::{kernels, Type};
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_jit::{Kernel, Options, Precision};
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
-use nerfjit_runtime::{render_frames, sphere_trace_into, Quantize, Rng, Shading};
+use nerfjit_runtime::{on_pool, render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
 use crate::block::first_block;
 use crate::failure::{Failure, Result};
@@ -362,11 +362,14 @@ fn w1(reps: usize) -> Result<()> {
     };
     let (w, h) = plan.size;
     let mut frame = nerfjit_runtime::Frame::empty();
+    // Frame after frame from a thread of the pool, as `render_frames` traces them.
     let seconds = time_reps(reps, || {
-        for camera in &plan.cameras {
-            sphere_trace_into(camera, w, h, &sdf, &shading, &plan.trace, &mut frame)
-                .expect("validated settings render");
-        }
+        on_pool(|| {
+            for camera in &plan.cameras {
+                sphere_trace_into(camera, w, h, &sdf, &shading, &plan.trace, &mut frame)
+                    .expect("validated settings render");
+            }
+        })
     });
     let frames = render_frames(&plan.cameras, w, h, &sdf, &shading, &plan.trace, None)?;
     let per_frame = seconds / plan.cameras.len() as f64;

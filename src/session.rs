@@ -67,7 +67,7 @@ enum Plan {
 #[derive(Default)]
 pub struct Observer<'a> {
     /// Called as a render block finishes frames, with the frames done so far.
-    pub frames: Option<&'a dyn Fn(usize)>,
+    pub frames: Option<&'a (dyn Fn(usize) + Sync)>,
     /// A live viewer that follows training (its progress and params).
     pub live: Option<&'a Live>,
     /// Training continues from the block's checkpoint when there is one.

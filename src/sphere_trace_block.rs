@@ -119,7 +119,7 @@ impl RenderPlan {
         program: &Program,
         params: &[f32],
         cache: &KernelCache,
-        progress: &dyn Fn(usize),
+        progress: &(dyn Fn(usize) + Sync),
     ) -> Result<String> {
         let compiler = Compiler {
             program,

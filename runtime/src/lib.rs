@@ -49,7 +49,7 @@ pub use surfaces::mesh::Mesh;
 pub use surfaces::mesh_metrics::{chamfer_report, point_to_mesh_distances, ChamferReport};
 pub use surfaces::raster::{render_mesh, render_points};
 pub use surfaces::sphere_trace::{
-    render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings,
+    on_pool, render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings,
 };
 pub use training::denormals::flush_denormals;
 pub use training::metrics::{mse, psnr, ssim};

@@ -661,6 +661,8 @@ pub fn sphere_trace_into(
 
 /// Sphere traces one frame per camera (see [`sphere_trace`]); `progress`, when given, is
 /// called with the number of frames finished so far after each frame.
+///
+/// The frames are traced one after the other from a thread of rayon's pool ([`on_pool`]).
 pub fn render_frames(
     cameras: &[Camera],
     width: u32,
@@ -668,16 +670,26 @@ pub fn render_frames(
     sdf: &dyn BatchFn,
     shading: &Shading,
     settings: &TraceSettings,
-    progress: Option<&dyn Fn(usize)>,
+    progress: Option<&(dyn Fn(usize) + Sync)>,
 ) -> Result<Vec<Frame>> {
-    let mut frames = Vec::with_capacity(cameras.len());
-    for camera in cameras {
-        frames.push(sphere_trace(camera, width, height, sdf, shading, settings)?);
-        if let Some(progress) = progress {
-            progress(frames.len());
+    on_pool(|| {
+        let mut frames = Vec::with_capacity(cameras.len());
+        for camera in cameras {
+            frames.push(sphere_trace(camera, width, height, sdf, shading, settings)?);
+            if let Some(progress) = progress {
+                progress(frames.len());
+            }
         }
-    }
-    Ok(frames)
+        Ok(frames)
+    })
+}
+
+/// Runs `work` on a thread of rayon's global pool, the caller waiting. Parallel calls made one after the
+/// other from there, such as the tiles of frame after frame, find the pool's other threads still awake
+/// from the call before; each call made from outside the pool hands its work over and waits to be woken,
+/// which can cost a good part of a frame that takes 0.15 ms (see the README's benchmarks of W1).
+pub fn on_pool<R: Send>(work: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| work())
 }
 
 #[cfg(test)]
@@ -685,7 +697,6 @@ mod tests {
     use super::*;
     use crate::field::{ClosureFn, WithBounds};
     use glam::Vec2;
-    use std::cell::Cell;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
     fn sphere_sdf(p: &[f32], out: &mut [f32]) {
@@ -999,8 +1010,11 @@ mod tests {
             gradient: Some(&ClosureFn::new(3, 4, sphere_gradient)),
         };
         let cams = crate::cameras::paths::surround(3.0, 3, crate::cameras::paths::Up::Y, 1.0).unwrap();
-        let seen = Cell::new(0);
-        let progress = |k: usize| seen.set(seen.get() * 10 + k);
+        let seen = std::sync::Mutex::new(0);
+        let progress = |k: usize| {
+            let mut seen = seen.lock().unwrap();
+            *seen = *seen * 10 + k;
+        };
         let frames = render_frames(
             &cams,
             16,
@@ -1012,7 +1026,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(frames.len(), 3);
-        assert_eq!(seen.get(), 123);
+        assert_eq!(*seen.lock().unwrap(), 123);
         let center = 8 * 16 + 8;
         assert!(frames[0].hit[center]);
         assert!(Vec3::from(frames[0].normal[center]).length() > 0.99);
