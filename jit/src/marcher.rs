@@ -189,23 +189,16 @@ impl Group {
 
     /// The group of the 4 rays from `first`, starting at their `t0`; past the batch's `n` rays an exhausted
     /// group on the ray `fallback` (so that its loads stay in bounds).
-    fn claim(
-        b: &mut FunctionBuilder,
-        t0_column: Value,
-        (first, n): (Value, Value),
-        fallback: Value,
-        (all, none): (Value, Value),
-        flags: MemFlagsData,
-    ) -> Group {
-        let live = b.ins().icmp(IntCC::SignedLessThan, first, n);
+    fn claim(b: &mut FunctionBuilder, batch: &Batch, first: Value, fallback: Value) -> Group {
+        let live = b.ins().icmp(IntCC::SignedLessThan, first, batch.n);
         let base = b.ins().select(live, first, fallback);
-        let t = load_column(b, t0_column, base, flags);
-        let active = b.ins().select(live, all, none);
+        let t = batch.load(b, 6, base);
+        let active = b.ins().select(live, batch.all, batch.none);
         let steps = b.ins().iconst(types::I64, 0);
         Group {
             t,
             active,
-            hit: none,
+            hit: batch.none,
             base,
             live,
             steps,
@@ -224,6 +217,33 @@ impl Group {
     }
 }
 
+/// What every step of the marcher reads: the function's arguments and constants made once in its entry.
+struct Batch {
+    /// The addresses of the 8 ray columns: origin, direction, t0, t1.
+    cols: Vec<Value>,
+    /// The addresses of the 2 output columns: final t, hit flag.
+    outs: Vec<Value>,
+    params: Value,
+    /// The number of rays.
+    n: Value,
+    /// The hit threshold in every lane.
+    eps: Value,
+    max_steps: Value,
+    /// Lane masks with every lane set and none.
+    all: Value,
+    none: Value,
+    flags: MemFlagsData,
+}
+
+impl Batch {
+    /// Loads the 4 f32 of ray column `column` at ray `index`.
+    fn load(&self, b: &mut FunctionBuilder, column: usize, index: Value) -> Value {
+        let offset = b.ins().ishl_imm_s(index, 2);
+        let addr = b.ins().iadd(self.cols[column], offset);
+        b.ins().load(types::F32X4, self.flags.with_readonly(), addr, 0)
+    }
+}
+
 /// Emits the marcher: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a positive multiple of
 /// [`RAYS_PER_GROUP`].
 fn build(b: &mut FunctionBuilder, sdf: &Graph) {
@@ -235,22 +255,29 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     let a = b.block_params(entry).to_vec();
     let (ray_arr, out_arr, params, n, eps, max_steps) = (a[0], a[1], a[2], a[3], a[4], a[5]);
     let ro = MemFlagsData::trusted().with_readonly();
-    let cols: Vec<_> = (0..8).map(|k| b.ins().load(ptr, ro, ray_arr, k * 8)).collect();
-    let outs: Vec<_> = (0..2).map(|k| b.ins().load(ptr, ro, out_arr, k * 8)).collect();
-    let eps = b.ins().splat(f4, eps);
-    let emitter = GraphEmitter::new(sdf);
-    let flags = MemFlagsData::new().with_notrap();
     let (all, none) = {
         let mut s = Simd { b };
         (s.i(-1), s.i(0))
     };
+    let batch = Batch {
+        cols: (0..8).map(|k| b.ins().load(ptr, ro, ray_arr, k * 8)).collect(),
+        outs: (0..2).map(|k| b.ins().load(ptr, ro, out_arr, k * 8)).collect(),
+        params,
+        n,
+        eps: b.ins().splat(f4, eps),
+        max_steps,
+        all,
+        none,
+        flags: MemFlagsData::new().with_notrap(),
+    };
+    let emitter = GraphEmitter::new(sdf);
     let zero = b.ins().iconst(ptr, 0);
 
     // Groups start on the first rays; a group beyond the batch starts exhausted (on ray 0, which exists).
     let mut start: Vec<BlockArg> = Vec::new();
     for g in 0..GROUPS {
         let first = b.ins().iconst(ptr, (g * RAYS_PER_GROUP) as i64);
-        let group = Group::claim(b, cols[6], (first, n), zero, (all, none), flags);
+        let group = Group::claim(b, &batch, first, zero);
         start.extend(group.args());
     }
     start.push(b.ins().iconst(ptr, (GROUPS * RAYS_PER_GROUP) as i64).into());
@@ -275,12 +302,12 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
         .collect();
     let stepped: Vec<Group> = groups
         .iter()
-        .map(|group| step_group(b, &emitter, &cols, params, eps, max_steps, *group, flags))
+        .map(|group| step_group(b, &emitter, &batch, *group))
         .collect();
     let mut any_live = None;
     let mut carried: Vec<BlockArg> = Vec::new();
     for group in stepped {
-        let (group, after) = refill(b, &cols, &outs, n, group, next, (all, none), flags);
+        let (group, after) = refill(b, &batch, group, next);
         next = after;
         carried.extend(group.args());
         any_live = Some(match any_live {
@@ -298,29 +325,12 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     b.ins().return_(&[]);
 }
 
-/// Loads the 4 f32 of `column` at ray `index`.
-fn load_column(b: &mut FunctionBuilder, column: Value, index: Value, flags: MemFlagsData) -> Value {
-    let offset = b.ins().ishl_imm_s(index, 2);
-    let addr = b.ins().iadd(column, offset);
-    b.ins().load(types::F32X4, flags.with_readonly(), addr, 0)
-}
-
 /// One sphere-tracing step of a group's active lanes: `p = o + t·d`, `dist = sdf(p)`; a lane stops on a
 /// hit, past its `t1`, or after `max_steps` steps.
-#[allow(clippy::too_many_arguments)]
-fn step_group(
-    b: &mut FunctionBuilder,
-    emitter: &GraphEmitter,
-    cols: &[Value],
-    params: Value,
-    eps: Value,
-    max_steps: Value,
-    group: Group,
-    flags: MemFlagsData,
-) -> Group {
+fn step_group(b: &mut FunctionBuilder, emitter: &GraphEmitter, batch: &Batch, group: Group) -> Group {
     let ray: Vec<Value> = [0, 1, 2, 3, 4, 5, 7]
         .iter()
-        .map(|&c| load_column(b, cols[c], group.base, flags))
+        .map(|&c| batch.load(b, c, group.base))
         .collect();
     let t = group.t;
     let p: Vec<_> = (0..3).map(|c| b.ins().fma(t, ray[3 + c], ray[c])).collect();
@@ -329,11 +339,11 @@ fn step_group(
         b,
         &mut |_, k| p[k as usize],
         &mut |_, _, v| dist = Some(v),
-        params,
+        batch.params,
     );
     let dist = dist.expect("the distance is the field's output");
     let mut s = Simd { b };
-    let is_hit = s.b.ins().fcmp(FloatCC::LessThan, dist, eps);
+    let is_hit = s.b.ins().fcmp(FloatCC::LessThan, dist, batch.eps);
     let newly = s.b.ins().band(is_hit, group.active);
     let hit = s.b.ins().bor(group.hit, newly);
     let active = s.b.ins().band_not(group.active, is_hit);
@@ -343,9 +353,8 @@ fn step_group(
     let past = s.b.ins().fcmp(FloatCC::GreaterThan, t, ray[6]);
     let active = s.b.ins().band_not(active, past);
     let steps = b.ins().iadd_imm_s(group.steps, 1);
-    let steps_left = b.ins().icmp(IntCC::SignedLessThan, steps, max_steps);
-    let none = b.ins().bxor(active, active);
-    let active = b.ins().select(steps_left, active, none);
+    let steps_left = b.ins().icmp(IntCC::SignedLessThan, steps, batch.max_steps);
+    let active = b.ins().select(steps_left, active, batch.none);
     Group {
         t,
         active,
@@ -358,17 +367,7 @@ fn step_group(
 /// If `group` holds rays and none is still marching: stores their final `t` and hit flags, and loads the
 /// rays from `next` on (or marks the group exhausted past the batch's `n` rays). Returns the group's state
 /// and the next unclaimed ray.
-#[allow(clippy::too_many_arguments)]
-fn refill(
-    b: &mut FunctionBuilder,
-    cols: &[Value],
-    outs: &[Value],
-    n: Value,
-    group: Group,
-    next: Value,
-    (all, none): (Value, Value),
-    flags: MemFlagsData,
-) -> (Group, Value) {
+fn refill(b: &mut FunctionBuilder, batch: &Batch, group: Group, next: Value) -> (Group, Value) {
     let marching = b.ins().vany_true(group.active);
     let idle = b.ins().icmp_imm_u(IntCC::Equal, marching, 0);
     let done = b.ins().band(idle, group.live);
@@ -388,11 +387,11 @@ fn refill(
     let mut s = Simd { b };
     let hit_f = s.float(group.hit);
     let hit_one = s.mask_to_one(hit_f);
-    for (value, &column) in [group.t, hit_one].into_iter().zip(outs) {
+    for (value, &column) in [group.t, hit_one].into_iter().zip(&batch.outs) {
         let addr = b.ins().iadd(column, offset);
-        b.ins().store(flags, value, addr, 0);
+        b.ins().store(batch.flags, value, addr, 0);
     }
-    let fresh = Group::claim(b, cols[6], (next, n), group.base, (all, none), flags);
+    let fresh = Group::claim(b, batch, next, group.base);
     let after = b.ins().iadd_imm_s(next, RAYS_PER_GROUP as i64);
     let mut swapped: Vec<BlockArg> = fresh.args().to_vec();
     swapped.push(after.into());
