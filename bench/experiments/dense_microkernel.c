@@ -1,0 +1,113 @@
+// nerfjit's f32 product micro-kernel (jit/src/gemm.rs, avx512::matmul) written in C, timed beside the FMA
+// peak it is judged against: is the 90% target out of reach of the loop itself, or of Rust's code for it?
+//
+//   gcc -O3 -march=native dense_microkernel.c -o /tmp/dense_microkernel
+//   /tmp/dense_microkernel [COLUMN_FLOATS [ROWS]]       e.g. /tmp/dense_microkernel 144 128
+//
+// "peak": 16 independent 512-bit FMA chains in registers (as ../shared/bench/peak). "tile": out = A·x for a
+// ROWS × 128 matrix A (row-major) and a tile of 128 points whose 128 input columns lie COLUMN_FLOATS apart
+// (nerfjit's arena: 144), in blocks of 6 rows × 64 points (24 accumulators; 4 loads and 6 broadcasts per 24
+// FMAs), the rows left over in one smaller block. "block": one 6-row block over and over, its operands always
+// in L1. Three rounds; GFLOP/s and the share of the peak of the same round.
+#include <immintrin.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+
+#define K 128
+#define TILE 128
+#define QV 4
+
+static double now(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return t.tv_sec + t.tv_nsec * 1e-9;
+}
+
+__attribute__((noinline)) static void peak(long n, float *o) {
+    __m512 a[16];
+    for (int i = 0; i < 16; i++) a[i] = _mm512_set1_ps((float)i);
+    const __m512 b = _mm512_set1_ps(0.9999f), c = _mm512_set1_ps(0.0001f);
+    for (long j = 0; j < n; j++)
+        for (int i = 0; i < 16; i++) a[i] = _mm512_fmadd_ps(a[i], b, c);
+    for (int i = 0; i < 16; i++) _mm512_storeu_ps(o + 16 * i, a[i]);
+}
+
+// R rows of out = A·x for the 64 points from t0.
+#define BLOCK(R)                                                                                         \
+    static inline void block##R(const float *a, const float *const *x, float *const *out, int t0) {      \
+        __m512 acc[R][QV];                                                                               \
+        for (int r = 0; r < R; r++)                                                                      \
+            for (int q = 0; q < QV; q++) acc[r][q] = _mm512_setzero_ps();                                \
+        for (int k = 0; k < K; k++) {                                                                    \
+            const float *p = x[k] + t0;                                                                  \
+            __m512 b[QV];                                                                                \
+            for (int q = 0; q < QV; q++) b[q] = _mm512_loadu_ps(p + 16 * q);                             \
+            for (int r = 0; r < R; r++) {                                                                \
+                const __m512 w = _mm512_set1_ps(a[r * K + k]);                                           \
+                for (int q = 0; q < QV; q++) acc[r][q] = _mm512_fmadd_ps(w, b[q], acc[r][q]);            \
+            }                                                                                            \
+        }                                                                                                \
+        for (int r = 0; r < R; r++)                                                                      \
+            for (int q = 0; q < QV; q++) _mm512_storeu_ps(out[r] + t0 + 16 * q, acc[r][q]);              \
+    }
+BLOCK(1)
+BLOCK(2)
+BLOCK(3)
+BLOCK(4)
+BLOCK(5)
+BLOCK(6)
+
+__attribute__((noinline)) static void tile(const float *a, int rows, const float *const *x, float *const *out) {
+    for (int t0 = 0; t0 < TILE; t0 += 16 * QV) {
+        int i = 0;
+        for (; i + 6 <= rows; i += 6) block6(a + i * K, x, out + i, t0);
+        switch (rows - i) {
+        case 5: block5(a + i * K, x, out + i, t0); break;
+        case 4: block4(a + i * K, x, out + i, t0); break;
+        case 3: block3(a + i * K, x, out + i, t0); break;
+        case 2: block2(a + i * K, x, out + i, t0); break;
+        case 1: block1(a + i * K, x, out + i, t0); break;
+        }
+    }
+}
+
+__attribute__((noinline)) static void one_block(const float *a, const float *const *x, float *const *out) {
+    block6(a, x, out, 0);
+}
+
+int main(int argc, char **argv) {
+    const int column = argc > 1 ? atoi(argv[1]) : 144, rows = argc > 2 ? atoi(argv[2]) : 128;
+    if (column < TILE || column > 1 << 16 || rows < 6 || rows > 1024) {
+        fprintf(stderr, "usage: %s [COLUMN_FLOATS >= %d [ROWS 6..1024]]\n", argv[0], TILE);
+        return 2;
+    }
+    float *xs = aligned_alloc(64, (size_t)K * column * sizeof(float));
+    float *outs = aligned_alloc(64, (size_t)rows * column * sizeof(float));
+    float *a = aligned_alloc(64, (size_t)rows * K * sizeof(float));
+    const float **x = malloc(K * sizeof(float *));
+    float **out = malloc(rows * sizeof(float *));
+    for (int k = 0; k < K; k++) {
+        x[k] = xs + (size_t)k * column;
+        for (int t = 0; t < column; t++) xs[(size_t)k * column + t] = 0.001f * t;
+    }
+    for (int r = 0; r < rows; r++) out[r] = outs + (size_t)r * column;
+    for (int i = 0; i < rows * K; i++) a[i] = 0.001f * (i % 97);
+    float sink[256];
+    for (int round = 0; round < 3; round++) {
+        const long fmas = 20000000;
+        double t0 = now();
+        peak(fmas, sink);
+        const double pk = fmas * 16.0 * 32 / (now() - t0) / 1e9;
+        const long reps = 40000000L / rows;
+        t0 = now();
+        for (long i = 0; i < reps; i++) tile(a, rows, x, out);
+        const double tl = (double)reps * rows * K * TILE * 2 / (now() - t0) / 1e9;
+        t0 = now();
+        for (long i = 0; i < 64 * reps; i++) one_block(a, x, out);
+        const double bl = 64.0 * reps * 6 * K * 64 * 2 / (now() - t0) / 1e9;
+        printf("peak %.1f GFLOP/s   tile %.1f (%.0f%%)   block %.1f (%.0f%%)   [%g]\n", pk, tl, 100 * tl / pk, bl,
+               100 * bl / pk, (double)outs[7] + sink[3]);
+    }
+    return 0;
+}
