@@ -65,11 +65,11 @@ pub fn vjp_with_dense_params(
             depends[i] = true;
         }
     }
-    let mut adjoint: Vec<Option<V>> = vec![None; n];
+    let mut adjoint = Adjoints::new(n);
     let mut dense_adjoint: HashMap<V, Vec<Option<V>>> = HashMap::new();
     let mut blocks = BlockGradients::default();
     for &(out, cot) in seeds {
-        accumulate(g, &mut adjoint, &depends, out, cot);
+        adjoint.add(g, &depends, out, cot);
     }
     for i in (0..n).rev() {
         let y = V(i as u32);
@@ -84,7 +84,7 @@ pub fn vjp_with_dense_params(
                 if x.iter().any(|a| depends[a.0 as usize]) {
                     let xbar = g.dense(d.w, d.rows, d.cols, !d.transposed, &ybar);
                     for (&a, contrib) in x.iter().zip(xbar) {
-                        accumulate(g, &mut adjoint, &depends, a, contrib);
+                        adjoint.add(g, &depends, a, contrib);
                     }
                 }
                 if dense_params {
@@ -106,7 +106,7 @@ pub fn vjp_with_dense_params(
                 }
             }
             Op::Pick(d, k) => {
-                let (Some(gy), true) = (adjoint[i], depends[i]) else {
+                let (Some(gy), true) = (adjoint.sum(g, y), depends[i]) else {
                     continue;
                 };
                 let n_out = match g.op(d) {
@@ -122,25 +122,25 @@ pub fn vjp_with_dense_params(
                 });
             }
             _ => {
-                let (Some(gy), true) = (adjoint[i], depends[i]) else {
+                let (Some(gy), true) = (adjoint.sum(g, y), depends[i]) else {
                     continue;
                 };
                 for (arg, contrib) in local_adjoints(g, y, gy) {
-                    accumulate(g, &mut adjoint, &depends, arg, contrib);
+                    adjoint.add(g, &depends, arg, contrib);
                 }
             }
         }
     }
     let values = wrt
         .iter()
-        .map(|w| adjoint[w.0 as usize].unwrap_or_else(|| g.constant(0.0)))
+        .map(|&w| adjoint.sum(g, w).unwrap_or_else(|| g.constant(0.0)))
         .collect();
     (values, blocks)
 }
 
 /// Adds ȳ · ∂G/∂pₐ to the adjoint of each coordinate pₐ of a grid read's point. Along an axis the read is
 /// already differentiated the second derivative is 0 (trilinear interpolation is linear per axis).
-fn grid_point_adjoints(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool], r: GridRead, ybar: &[V]) {
+fn grid_point_adjoints(g: &mut Graph, adjoint: &mut Adjoints, depends: &[bool], r: GridRead, ybar: &[V]) {
     for a in 0..3 {
         let bit = 1u8 << a;
         if r.deriv & bit != 0 || !depends[r.p[a].0 as usize] {
@@ -148,7 +148,7 @@ fn grid_point_adjoints(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool
         }
         let d = g.grid(r.spec, r.p, r.deriv | bit);
         let contrib = g.dot(ybar, &d);
-        accumulate(g, adjoint, depends, r.p[a], contrib);
+        adjoint.add(g, depends, r.p[a], contrib);
     }
 }
 
@@ -162,15 +162,44 @@ fn matrix_gradient(d: Dense, x: Vec<V>, ybar: Vec<V>) -> Outer {
     }
 }
 
-fn accumulate(g: &mut Graph, adjoint: &mut [Option<V>], depends: &[bool], at: V, contrib: V) {
-    let i = at.0 as usize;
-    if !depends[i] || g.const_value(contrib) == Some(0.0) {
-        return;
+/// The contributions to each value's adjoint, summed when the adjoint is first needed: as a balanced tree of
+/// adds (pairs of neighbours, then pairs of those sums, …), so that a value read by many others — a point's
+/// coordinate in a union of 20 primitives — sums its contributions in a few dependent adds, not a chain.
+struct Adjoints {
+    pending: Vec<Vec<V>>,
+}
+
+impl Adjoints {
+    fn new(n: usize) -> Self {
+        Adjoints {
+            pending: vec![Vec::new(); n],
+        }
     }
-    adjoint[i] = Some(match adjoint[i] {
-        Some(prev) => g.push(Op::Add(prev, contrib)),
-        None => contrib,
-    });
+
+    /// Adds `contrib` to the adjoint of `at` (nothing where `at` does not depend on the targets, or for a
+    /// constant 0).
+    fn add(&mut self, g: &Graph, depends: &[bool], at: V, contrib: V) {
+        let i = at.0 as usize;
+        if depends[i] && g.const_value(contrib) != Some(0.0) {
+            self.pending[i].push(contrib);
+        }
+    }
+
+    /// The adjoint of `at`: the sum of its contributions so far (`None` without any).
+    fn sum(&mut self, g: &mut Graph, at: V) -> Option<V> {
+        let terms = &mut self.pending[at.0 as usize];
+        while terms.len() > 1 {
+            *terms = terms
+                .chunks(2)
+                .map(|pair| match *pair {
+                    [a, b] => g.push(Op::Add(a, b)),
+                    [a] => a,
+                    _ => unreachable!("chunks of at most 2"),
+                })
+                .collect();
+        }
+        terms.first().copied()
+    }
 }
 
 /// The contribution `gy · ∂y/∂arg` for each argument of the op computing `y`.
@@ -237,6 +266,13 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
         }
         Add(a, b) => vec![(a, gy), (b, gy)],
         Sub(a, b) => vec![(a, gy), (b, g.push(Neg(gy)))],
+        // a·a: one contribution 2·gy·a (the same value as gy·a + gy·a but for overflow, in two ops
+        // instead of three, and one product that can fuse into the adjoint's sum). The squares of a
+        // `length` share their adjoint, so they share 2·gy too.
+        Mul(a, b) if a == b => {
+            let twice = g.push(Add(gy, gy));
+            vec![(a, g.push(Mul(twice, a)))]
+        }
         Mul(a, b) => vec![(a, g.push(Mul(gy, b))), (b, g.push(Mul(gy, a)))],
         Div(a, b) => {
             let ga = g.push(Div(gy, b));
@@ -315,5 +351,63 @@ mod tests {
         g.outputs = vec![f, grads[0], grads[1], second[0]];
         let e = eval_point(&g, &[3.0, 5.0], &[]);
         assert_eq!(e.outputs, vec![45.0, 30.0, 9.0, 10.0]);
+    }
+
+    /// The longest chain of adds from `v` down to a node that is not an add.
+    fn add_depth(g: &Graph, v: V) -> usize {
+        match g.op(v) {
+            Op::Add(a, b) => 1 + add_depth(g, a).max(add_depth(g, b)),
+            _ => 0,
+        }
+    }
+
+    #[test]
+    fn adjoints_sum_their_contributions_as_a_balanced_tree() {
+        // x read by 8 products: its adjoint adds 8 contributions in 3 levels of adds, not a chain of 7.
+        let mut g = Graph::new();
+        let x = g.input(0);
+        let mut sum = None;
+        for k in 1..=8 {
+            let c = g.constant(k as f64);
+            let term = g.push(Op::Mul(x, c));
+            sum = Some(sum.map_or(term, |s| g.push(Op::Add(s, term))));
+        }
+        let f = sum.expect("8 terms");
+        let cotangent = g.input(1);
+        let dx = vjp(&mut g, &[(f, cotangent)], &[x])[0];
+        g.outputs = vec![dx];
+        assert_eq!(add_depth(&g, dx), 3);
+        assert_eq!(eval_point(&g, &[0.7, 0.5], &[]).outputs, vec![18.0]);
+    }
+
+    #[test]
+    fn a_square_passes_twice_its_adjoint_in_one_product() {
+        // d(x²) = (ḡ + ḡ)·x: one add and one product; the squares of a length share ḡ + ḡ.
+        let mut g = Graph::new();
+        let (x, y) = (g.input(0), g.input(1));
+        let (x2, y2) = (g.push(Op::Mul(x, x)), g.push(Op::Mul(y, y)));
+        let s = g.push(Op::Add(x2, y2));
+        let r = g.push(Op::Sqrt(s));
+        let cotangent = g.input(2);
+        let before = g.len();
+        let grads = vjp(&mut g, &[(r, cotangent)], &[x, y]);
+        g.outputs = grads.clone();
+        let doubled = |v: V| matches!(g.op(v), Op::Add(a, b) if a == b);
+        let factors = |v: V| match g.op(v) {
+            Op::Mul(a, b) if doubled(a) => (a, b),
+            Op::Mul(a, b) if doubled(b) => (b, a),
+            op => panic!("not a product with twice an adjoint: {op:?}"),
+        };
+        let ((twice_x, by_x), (twice_y, by_y)) = (factors(grads[0]), factors(grads[1]));
+        assert_eq!((by_x, by_y), (x, y));
+        assert_eq!(twice_x, twice_y, "the squares share twice the sum's adjoint");
+        // Besides constants: 0.5 / r, r = 0, the guard, ḡ·that, ḡ + ḡ and the two products.
+        let new_ops = (before..g.len()).filter(|&i| !matches!(g.op(V(i as u32)), Op::Const(_)));
+        assert_eq!(new_ops.count(), 7);
+        let got = eval_point(&g, &[3.0, 4.0, 0.5], &[]).outputs;
+        assert!(
+            (got[0] - 0.3).abs() < 1e-15 && (got[1] - 0.4).abs() < 1e-15,
+            "{got:?}"
+        );
     }
 }
