@@ -17,7 +17,7 @@ use crate::script;
 use crate::sphere_trace_block::RenderPlan;
 
 /// A benchmark workload.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Workload {
     /// W7: the 20-primitive scene's distance (and distance + gradient) at 1,048,576 random points.
     W7,
@@ -67,10 +67,22 @@ fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
-/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`.
-pub fn run(workload: Workload, reps: usize, threads: Option<usize>, products: Precision) -> Result<()> {
+/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`, and W7
+/// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise).
+pub fn run(
+    workload: Workload,
+    reps: usize,
+    threads: Option<usize>,
+    products: Precision,
+    scene: Option<&str>,
+) -> Result<()> {
+    if scene.is_some() && workload != Workload::W7 {
+        return Err(Failure::Message(
+            "'--scene' applies to w7 only (the script whose sdf is evaluated at W7's points)".into(),
+        ));
+    }
     match workload {
-        Workload::W7 => w7(reps, threads),
+        Workload::W7 => w7(reps, threads, scene.unwrap_or(W7_SCENE)),
         Workload::W1 => w1(reps),
         Workload::W2 => w2(reps),
         Workload::W3 => w3(reps),
@@ -84,16 +96,20 @@ pub fn run(workload: Workload, reps: usize, threads: Option<usize>, products: Pr
     }
 }
 
-fn w7(reps: usize, threads: Option<usize>) -> Result<()> {
+/// W7's scene: 8 spheres, 6 boxes and 6 tori joined by `min`.
+const W7_SCENE: &str = "examples/complex_scene.sdf";
+
+fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
     const N: usize = 1 << 20;
-    let program = script::load("examples/complex_scene.sdf")?;
+    let program = script::load(scene)?;
+    crate::jit_field::check_signature(&program, "sdf", &[&[Type::Vec(3)]], &Type::F32)?;
     let f = program.lower("sdf")?;
     let mut rng = Rng::new(7);
     let cols: Vec<Vec<f32>> = (0..3)
         .map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect())
         .collect();
     let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
-    crate::emit(&(format!("W7 sdf_eval: {N} points, 20 primitives, median of {reps}") + "\n"));
+    crate::emit(&(format!("W7 sdf_eval: {N} points, the sdf of {scene}, median of {reps}") + "\n"));
     let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     for (label, graph) in [
         ("distance", kernels::value(&f)),
@@ -135,7 +151,7 @@ fn mesh_kernels(compiler: &crate::jit_field::Compiler) -> Result<(JitFn, JitFn, 
 
 fn mesh(reps: usize) -> Result<()> {
     const RESOLUTION: usize = 512;
-    let program = script::load("examples/complex_scene.sdf")?;
+    let program = script::load(W7_SCENE)?;
     let cache = nerfjit_jit::KernelCache::new();
     let compiler = crate::jit_field::Compiler {
         program: &program,

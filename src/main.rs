@@ -113,6 +113,10 @@ enum Command {
         /// f32 sums; on AMX where the CPU has it).
         #[arg(long, default_value = "f32", value_parser = ["f32", "bf16"])]
         products: String,
+        /// W7 only: the script whose `fn sdf(p: vec3) -> f32` is evaluated at W7's random points, in place
+        /// of the 20-primitive scene (`examples/complex_scene.sdf`).
+        #[arg(long)]
+        scene: Option<String>,
     },
     /// Extract the marching-cubes mesh of a script's function (its zero level set by default), or of a
     /// trained field from a checkpoint.
@@ -451,11 +455,13 @@ fn run_command(cli: Cli) -> ExitCode {
             workload,
             reps,
             products,
+            scene,
         } => bench::run(
             workload,
             reps,
             cli.threads,
             nerfjit_jit::Precision::named(&products).unwrap_or_default(),
+            scene.as_deref(),
         ),
         Command::Mesh {
             script,

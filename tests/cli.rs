@@ -1079,3 +1079,37 @@ render volume { camera: surround(radius: 3, frames: 1, up: z, focal: 1.5), size:
     let lit = exact.pixels().filter(|p| p[0] > 40).count();
     assert!(lit > 50, "the ball is missing: {lit} lit pixels");
 }
+
+#[test]
+fn bench_w7_evaluates_the_sdf_of_a_given_scene_and_other_workloads_refuse_one() {
+    let torus = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/torus.sdf");
+    let out = nerfjit(
+        &["bench", "w7", "--reps", "1", "--threads", "1", "--scene", torus],
+        None,
+    );
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains(&format!("the sdf of {torus}")), "{stdout}");
+    assert!(stdout.contains("distance+gradient"), "{stdout}");
+
+    let dir = scratch("bench-scene");
+    let no_sdf = write(&dir, "no_sdf.sdf", "fn f(p: vec3) -> f32 = length(p) - 1.0\n");
+    let out = nerfjit(&["bench", "w7", "--reps", "1", "--scene", &no_sdf], None);
+    let (_, stderr) = text(&out);
+    assert!(!out.status.success() && stderr.contains("sdf"), "{stderr}");
+
+    let vec4 = write(&dir, "vec4.sdf", "fn sdf(p: vec4) -> f32 = length(p) - 1.0\n");
+    let out = nerfjit(&["bench", "w7", "--reps", "1", "--scene", &vec4], None);
+    let (_, stderr) = text(&out);
+    assert!(
+        out.status.code() == Some(1) && stderr.contains("must be fn sdf(vec3) -> f32"),
+        "{stderr}"
+    );
+
+    let out = nerfjit(&["bench", "w5", "--scene", torus], None);
+    let (_, stderr) = text(&out);
+    assert!(
+        !out.status.success() && stderr.contains("'--scene' applies to w7 only"),
+        "{stderr}"
+    );
+}
