@@ -3,7 +3,8 @@
 //! The facade: [`compile`] (or [`compile_with`], with `--set` overrides) turns a script into a
 //! [`Program`] whose functions lower to [`ir`] graphs; [`autodiff`] and [`kernels`] transform the graphs
 //! (gradients, VJPs, second order, interval bounds); [`interp`] is the f64 reference interpreter and
-//! [`interval`] its interval counterpart; [`simplify`] restricts a graph to a box of inputs. Errors are
+//! [`interval`] its interval counterpart; [`simplify`] restricts a graph to a box of inputs; [`nearest`]
+//! differentiates unions through their nearest primitive of each shape. Errors are
 //! [`Diagnostic`]s with spans, printed with a caret. Block settings stay as written ([`ast::ConfigBlock`],
 //! read through [`config`]). The stages behind
 //! `compile` (lexer, parser, elaboration with the builtins, `--set` overrides) are private.
@@ -31,6 +32,7 @@ pub mod ir;
 pub mod kernels;
 mod lexer;
 pub mod march_rays;
+pub mod nearest;
 mod overrides;
 mod parser;
 pub mod program;
