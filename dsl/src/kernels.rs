@@ -71,16 +71,30 @@ pub fn interval(f: &Lowered) -> Graph {
     crate::interval::extend(&value(f))
 }
 
-/// The values, then the gradient of each output with respect to all inputs.
+/// The values, then the gradient of each output with respect to all inputs. A union of primitives of a
+/// few shapes runs one backward pass per shape ([`crate::nearest`]).
 pub fn with_gradient(f: &Lowered) -> Graph {
+    gradient_graph(f, true)
+}
+
+/// As [`with_gradient`], by plain reverse mode over every primitive of a union: the reference the
+/// nearest-primitive gradients are tested against.
+pub fn with_plain_gradient(f: &Lowered) -> Graph {
+    gradient_graph(f, false)
+}
+
+fn gradient_graph(f: &Lowered, through_nearest: bool) -> Graph {
     let mut g = f.graph.clone();
     let n_in = g.n_inputs;
     let xs = inputs(&mut g, n_in);
     let one = g.constant(1.0);
     let outs = g.outputs.clone();
     for &o in &outs {
-        // A union of primitives of a few shapes runs one backward pass per shape (see `nearest`).
-        let seed = crate::nearest::gradient_seed(&mut g, o);
+        let seed = if through_nearest {
+            crate::nearest::gradient_seed(&mut g, o)
+        } else {
+            o
+        };
         let grad = autodiff::vjp(&mut g, &[(seed, one)], &xs);
         g.outputs.extend(grad);
     }

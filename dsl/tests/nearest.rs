@@ -4,8 +4,8 @@
 //! the f64 interpreter.
 
 use nerfjit_dsl::interp::eval_point;
-use nerfjit_dsl::ir::{Graph, Op, V};
-use nerfjit_dsl::{autodiff, compile, kernels, nearest};
+use nerfjit_dsl::ir::{Graph, Op};
+use nerfjit_dsl::{compile, kernels, nearest};
 use proptest::prelude::*;
 
 /// A primitive with its constants: kind 0 a sphere, 1 a box, 2 a torus around y; a center component of
@@ -31,17 +31,6 @@ fn tree(op: &str, leaves: &[String], splits: &mut impl Iterator<Item = usize>) -
         tree(op, &leaves[..at], splits),
         tree(op, &leaves[at..], splits)
     )
-}
-
-/// The function's value and its gradient by plain reverse mode over the whole graph.
-fn plain_gradient(f: &Graph) -> Graph {
-    let mut g = f.clone();
-    let xs: Vec<V> = (0..3).map(|i| g.input(i)).collect();
-    let one = g.constant(1.0);
-    let root = g.outputs[0];
-    let grad = autodiff::vjp(&mut g, &[(root, one)], &xs);
-    g.outputs.extend(grad);
-    g
 }
 
 fn primitives() -> impl Strategy<Value = Vec<(u8, [f64; 3], f64, f64)>> {
@@ -72,7 +61,7 @@ proptest! {
         let program = compile("union.sdf", &format!("fn sdf(p: vec3) -> f32 = {body}\n")).expect("compiles");
         let f = program.lower("sdf").expect("lowers");
         let nearest = kernels::with_gradient(&f);
-        let plain = plain_gradient(&f.graph);
+        let plain = kernels::with_plain_gradient(&f);
         for p in &points {
             let want = eval_point(&plain, p, &[]).outputs;
             let got = eval_point(&nearest, p, &[]).outputs;
@@ -103,7 +92,7 @@ fn a_union_of_eight_spheres_runs_one_backward_pass() {
     // 8 square roots forward and 1 for the chosen sphere; its derivative 1 division, against 8.
     let nearest = kernels::with_gradient(&f);
     assert_eq!((count(&nearest, "sqrt"), count(&nearest, "div")), (9, 1));
-    let plain = plain_gradient(&f.graph).compact();
+    let plain = kernels::with_plain_gradient(&f);
     assert_eq!((count(&plain, "sqrt"), count(&plain, "div")), (8, 8));
 }
 

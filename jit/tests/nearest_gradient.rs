@@ -2,19 +2,9 @@
 //! primitive of each shape (`kernels::with_gradient`), against plain reverse mode over the whole `min`
 //! tree: the same values bit for bit, gradients equal to f32 rounding, in fewer nodes and divisions.
 
-use nerfjit_dsl::ir::{Graph, V};
-use nerfjit_dsl::{autodiff, compile, kernels};
+use nerfjit_dsl::ir::Graph;
+use nerfjit_dsl::{compile, kernels};
 use nerfjit_jit::{Kernel, Options};
-
-fn plain_gradient(f: &Graph) -> Graph {
-    let mut g = f.clone();
-    let xs: Vec<V> = (0..3).map(|i| g.input(i)).collect();
-    let one = g.constant(1.0);
-    let root = g.outputs[0];
-    let grad = autodiff::vjp(&mut g, &[(root, one)], &xs);
-    g.outputs.extend(grad);
-    g.compact()
-}
 
 fn divisions(g: &Graph) -> usize {
     g.ops().iter().filter(|op| op.name() == "div").count()
@@ -28,7 +18,7 @@ fn the_scenes_gradient_through_its_nearest_primitives_matches_plain_reverse_mode
         .expect("compiles")
         .lower("sdf")
         .expect("lowers");
-    let (nearest, plain) = (kernels::with_gradient(&f), plain_gradient(&f.graph));
+    let (nearest, plain) = (kernels::with_gradient(&f), kernels::with_plain_gradient(&f));
     assert!(nearest.len() < plain.len() && divisions(&nearest) < divisions(&plain) / 2);
 
     const N: usize = 4099;
