@@ -10,6 +10,9 @@ value is that of the nearest primitive (not the `min` tree's, so they are a meas
     nerfjit bench w7 --scene /tmp/nearest_by_index.sdf     # constants chosen by compares on the winner's index
     nerfjit bench w7 --scene /tmp/nearest_along_tree.sdf   # constants chosen by each min node's comparison
     nerfjit bench w7                                       # the scene itself, to compare
+
+Since `dsl::nearest` (which these scripts led to), `nerfjit bench w7` takes the scene's own gradient through
+the nearest primitive of each shape; `kernels::with_plain_gradient` is plain reverse mode.
 """
 
 import math
