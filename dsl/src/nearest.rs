@@ -20,6 +20,10 @@ use crate::ir::{Graph, Op, V};
 /// took 0.35 s for it instead of 0.08.
 pub const MAX_PRIMITIVES: usize = 64;
 
+/// The most nodes a primitive's graph may have (larger ones are left to plain reverse mode), which also
+/// bounds how deep the recursive walks over it go.
+const MAX_PRIMITIVE_NODES: usize = 4096;
+
 /// The value to seed reverse mode with for the gradient of `root`: `root` itself unless it is a tree of
 /// `min` (or of `max`) nodes over at most [`MAX_PRIMITIVES`] primitives, at least two of the same shape;
 /// otherwise a value equal to the nearest primitive's whose gradient runs one backward pass per shape
@@ -29,9 +33,6 @@ pub fn gradient_seed(g: &mut Graph, root: V) -> V {
     let Some(tree) = Tree::collect(g, root, &uses) else {
         return root;
     };
-    if tree.leaves.len() > MAX_PRIMITIVES {
-        return root;
-    }
     let mut shapes: Vec<Shape> = Vec::new();
     let mut leaf_shape: HashMap<V, (usize, Vec<f64>)> = HashMap::new();
     for &leaf in &tree.leaves {
@@ -97,7 +98,7 @@ struct Chosen {
 
 impl Tree {
     /// The tree rooted at `root`, if `root` is a `min` or a `max` (not ReLU's `max(x, 0)`, whose gradient
-    /// takes another side at 0).
+    /// takes another side at 0) over at most [`MAX_PRIMITIVES`] leaves.
     fn collect(g: &Graph, root: V, uses: &[u32]) -> Option<Tree> {
         let is_min = match g.op(root) {
             Op::Min(..) => true,
@@ -109,7 +110,22 @@ impl Tree {
             leaves: Vec::new(),
             inner: HashSet::new(),
         };
-        tree.walk(g, root, uses, true);
+        // Depth first, the first operand first, without recursion: a chain of `let`s can make a tree as
+        // deep as the script is long.
+        let mut stack = vec![root];
+        while let Some(v) = stack.pop() {
+            if v == root || tree.is_inner(g, v, uses) {
+                tree.inner.insert(v);
+                let (Op::Min(a, b) | Op::Max(a, b)) = g.op(v) else {
+                    unreachable!("inner nodes are min or max");
+                };
+                stack.extend([b, a]);
+            } else if tree.leaves.len() == MAX_PRIMITIVES {
+                return None;
+            } else {
+                tree.leaves.push(v);
+            }
+        }
         Some(tree)
     }
 
@@ -120,19 +136,6 @@ impl Tree {
                 !self.is_min && uses[v.0 as usize] == 1 && g.const_value(b).is_none_or(|c| c.to_bits() != 0)
             }
             _ => false,
-        }
-    }
-
-    fn walk(&mut self, g: &Graph, v: V, uses: &[u32], is_root: bool) {
-        if is_root || self.is_inner(g, v, uses) {
-            self.inner.insert(v);
-            let (Op::Min(a, b) | Op::Max(a, b)) = g.op(v) else {
-                unreachable!("inner nodes are min or max");
-            };
-            self.walk(g, a, uses, false);
-            self.walk(g, b, uses, false);
-        } else {
-            self.leaves.push(v);
         }
     }
 
@@ -198,6 +201,23 @@ struct Shape {
     ops: Vec<Op>,
 }
 
+/// Whether the graph under `v` has at most `limit` nodes (counted without recursion).
+fn within_nodes(g: &Graph, v: V, limit: usize) -> bool {
+    let mut seen = HashSet::from([v]);
+    let mut stack = vec![v];
+    while let Some(x) = stack.pop() {
+        for a in g.op(x).args() {
+            if seen.insert(a) {
+                if seen.len() > limit {
+                    return false;
+                }
+                stack.push(a);
+            }
+        }
+    }
+    true
+}
+
 /// A hash of the graph under `v` with its constants taken out, commutative ops' operands in either order.
 fn structure(g: &Graph, v: V, memo: &mut HashMap<V, u64>) -> u64 {
     use std::hash::{Hash, Hasher};
@@ -223,8 +243,11 @@ fn structure(g: &Graph, v: V, memo: &mut HashMap<V, u64>) -> u64 {
 
 impl Shape {
     /// The shape of the graph under `leaf` and its constants in order, unless it holds a node that is
-    /// not elementwise (dense layers, grid reads).
+    /// not elementwise (dense layers, grid reads) or more than [`MAX_PRIMITIVE_NODES`] nodes.
     fn of(g: &Graph, leaf: V) -> Option<(Shape, Vec<f64>)> {
+        if !within_nodes(g, leaf, MAX_PRIMITIVE_NODES) {
+            return None;
+        }
         let mut shape = Shape { ops: Vec::new() };
         let mut constants = Vec::new();
         let mut placed: HashMap<V, V> = HashMap::new();
