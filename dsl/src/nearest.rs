@@ -10,7 +10,7 @@
 //! computes the nearest primitive's formula with the same constants, and the tree passes its adjoint only
 //! to the nearest primitive (the same side on ties), but the two graphs may fuse different products.
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 
 use crate::ir::{Graph, Op, V};
 
@@ -90,7 +90,6 @@ struct Tree {
 
 /// For one shape, at a node of the tree: the constants of its nearest primitive of that shape, and a flag
 /// (1 or 0) saying whether the node's nearest primitive is of that shape.
-#[derive(Clone)]
 struct Chosen {
     constants: Vec<V>,
     flag: V,
@@ -163,13 +162,11 @@ impl Tree {
             g.push(Op::Lt(a, b))
         };
         let zero = g.constant(0.0);
+        let shapes: BTreeSet<usize> = left.keys().chain(right.keys()).copied().collect();
         let mut chosen = BTreeMap::new();
-        for index in left.keys().chain(right.keys()) {
-            if chosen.contains_key(index) {
-                continue;
-            }
+        for index in shapes {
             let pick = |g: &mut Graph, from_b: V, from_a: V| g.push(Op::Select(takes_b, from_b, from_a));
-            let here = match (left.get(index), right.get(index)) {
+            let here = match (left.get(&index), right.get(&index)) {
                 (Some(l), Some(r)) => Chosen {
                     constants: (l.constants.iter().zip(&r.constants))
                         .map(|(&ca, &cb)| pick(g, cb, ca))
@@ -186,7 +183,7 @@ impl Tree {
                 },
                 (None, None) => unreachable!("the index comes from one side"),
             };
-            chosen.insert(*index, here);
+            chosen.insert(index, here);
         }
         chosen
     }
