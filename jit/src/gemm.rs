@@ -6,9 +6,9 @@
 //!   the backward product of a layer). The micro-kernel keeps a block of 6 rows × 64 points in 24
 //!   registers and streams the input columns: per input feature, 4 loads, 6 broadcasts and 24 FMAs.
 //! - [`outer`]: `G[i][j] += Σ_t l_i[t] · r_j[t]` over the valid points of a tile (the gradient of a matrix).
-//!   The right operand is transposed to point-major rows first (16 × 16 blocks in registers, into a
-//!   buffer that starts on a cache line), so that the micro-kernel again broadcasts one operand and
-//!   streams the other into 6 × 64 accumulators.
+//!   The right operand is transposed to point-major rows first, 64 columns at a time (16 × 16 blocks in
+//!   registers, into a buffer that starts on a cache line), so that the micro-kernel again broadcasts one
+//!   operand and streams the other into 6 × 64 accumulators, over all of a tile's points at once.
 //! - [`crate::bf16`] has the same two products with bfloat16 operands, on AMX tiles where the CPU has them.
 //!
 //! Both run the widest [`Backend`] the CPU has (checked once at run time): 512-bit micro-kernels with
@@ -20,8 +20,9 @@ use std::sync::OnceLock;
 /// The points of one tile (a multiple of 64, the width of the micro-kernels' point blocks).
 pub const TILE: usize = 128;
 
-/// The points [`outer`] transposes and consumes at a time.
-const OUTER_CHUNK: usize = 64;
+/// The columns of the right operand [`outer`] transposes and consumes at a time: all of a tile's points
+/// for 64 columns are 32 KB, which stay in L1 while every row block of G reads them.
+const OUTER_COLUMNS: usize = 64;
 
 /// Floats from one column of a tiled kernel's arena to the next: a tile's points and one cache line more
 /// (576 bytes, 9 lines), so that the columns a product or segment reads at the same points fall in
@@ -197,37 +198,39 @@ pub unsafe fn outer_on(
     let stride = padded(r.len());
     assert!(count <= TILE, "more points than a tile");
     assert!(g.len() >= l.len() * stride, "gradient buffer too small");
-    // The transposed operand from a cache line's start: its rows (a multiple of 16 floats) then start on
-    // lines too, and no vector load straddles two lines. Only its padding columns need clearing: the
-    // transposes write the others.
-    let scratch = line_aligned(scratch, OUTER_CHUNK * stride);
-    for row in scratch.chunks_exact_mut(stride) {
-        row[r.len()..].fill(0.0);
-    }
-    // A chunk of points at a time: its transposed rows (32 KB at 128 columns) are written and read
-    // again in L1, where the whole tile's would spill to L2 and cost each store a fetch of its line.
-    for t0 in (0..count).step_by(OUTER_CHUNK) {
-        let points = t0..count.min(t0 + OUTER_CHUNK);
+    // A block of columns at a time, over all the points: each row block of G then takes the whole tile's
+    // points in one pass (its accumulators added to G once a tile), and the block's transposed columns
+    // (32 KB) are written and read again in L1. The transposed block starts on a cache line, so that its
+    // rows (a multiple of 16 floats) do too and no vector load straddles two lines.
+    for j0 in (0..r.len()).step_by(OUTER_COLUMNS) {
+        let columns = &r[j0..r.len().min(j0 + OUTER_COLUMNS)];
+        let width = padded(columns.len());
+        let rt = line_aligned(scratch, count * width);
+        // Only the padding columns need clearing: the transposes write the others.
+        for row in rt.chunks_exact_mut(width) {
+            row[columns.len()..].fill(0.0);
+        }
+        let g = &mut g[j0..];
         // SAFETY (every arm): the backend runs on this CPU; sizes were checked above and by the caller.
         match backend {
             #[cfg(target_arch = "x86_64")]
             Backend::Avx512 => unsafe {
-                avx512::transpose(r, points.clone(), scratch, stride);
-                avx512::outer(l, scratch, stride, points, g)
+                avx512::transpose(columns, 0..count, rt, width);
+                avx512::outer(l, rt, width, count, g, stride)
             },
             #[cfg(target_arch = "x86_64")]
             Backend::Avx2 => unsafe {
-                avx2::transpose(r, points.clone(), scratch, stride);
-                avx2::outer(l, scratch, stride, points, g)
+                avx2::transpose(columns, 0..count, rt, width);
+                avx2::outer(l, rt, width, count, g, stride)
             },
             _ => {
-                transpose_plain(r, 0, points.clone(), scratch, stride);
+                transpose_plain(columns, 0, 0..count, rt, width);
                 for (i, &li) in l.iter().enumerate() {
                     // SAFETY: `li` addresses `count` floats (caller).
                     let li = unsafe { std::slice::from_raw_parts(li, count) };
-                    let row = &mut g[i * stride..(i + 1) * stride];
-                    for (t, &lv) in li[points.clone()].iter().enumerate() {
-                        for (gj, rv) in row.iter_mut().zip(&scratch[t * stride..(t + 1) * stride]) {
+                    let row = &mut g[i * stride..i * stride + width];
+                    for (t, &lv) in li.iter().enumerate() {
+                        for (gj, rv) in row.iter_mut().zip(&rt[t * width..(t + 1) * width]) {
                             *gj += lv * rv;
                         }
                     }
@@ -337,30 +340,32 @@ pub(crate) mod avx512 {
         }
     }
 
+    /// `g[i·g_stride + j] += Σ_{t < count} l[i][t] · rt[t·width + j]` for j < `width` (a multiple of 16).
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn outer(
         l: &[*const f32],
         rt: &[f32],
-        stride: usize,
-        points: Range<usize>,
+        width: usize,
+        count: usize,
         g: &mut [f32],
+        g_stride: usize,
     ) {
         let mut i = 0;
         while i < l.len() {
             let rows = (l.len() - i).min(GR);
             let mut j = 0;
-            while j < stride {
-                let vecs = ((stride - j) / 16).min(4);
-                // SAFETY: rows i..i+rows of G and columns j..j+16·vecs ≤ stride exist; l pointers hold
-                // the floats of `points` and rt holds a row of `stride` floats for each (caller).
+            while j < width {
+                let vecs = ((width - j) / 16).min(4);
+                // SAFETY: rows i..i+rows of G and its columns j..j+16·vecs ≤ width exist; l pointers hold
+                // `count` floats and rt holds a row of `width` floats for each (caller).
                 unsafe {
                     let blk = Block {
                         l: &l[i..i + rows],
-                        first: points.start,
                         rt: rt.as_ptr().add(j),
-                        stride,
-                        count: points.len(),
-                        g: g.as_mut_ptr().add(i * stride + j),
+                        width,
+                        count,
+                        g: g.as_mut_ptr().add(i * g_stride + j),
+                        g_stride,
                     };
                     match (rows, vecs) {
                         (6, 4) => blk.run::<6, 4>(),
@@ -462,15 +467,15 @@ pub(crate) mod avx512 {
         })
     }
 
-    /// One register block of the outer product: R rows of G × 16·N columns, over the `count` points from
-    /// `first` (row t of `rt` holding point `first` + t).
+    /// One register block of the outer product: R rows of G × 16·N columns, over `count` points (row t of
+    /// `rt`, `width` floats apart, holding point t).
     struct Block<'a> {
         l: &'a [*const f32],
-        first: usize,
         rt: *const f32,
-        stride: usize,
+        width: usize,
         count: usize,
         g: *mut f32,
+        g_stride: usize,
     }
 
     impl Block<'_> {
@@ -481,13 +486,13 @@ pub(crate) mod avx512 {
             for t in 0..self.count {
                 // SAFETY: row t of rt has 16·N floats from this block's start; l[r] has the block's points.
                 unsafe {
-                    let row = self.rt.add(t * self.stride);
+                    let row = self.rt.add(t * self.width);
                     let mut b = [_mm512_setzero_ps(); N];
                     for (q, bq) in b.iter_mut().enumerate() {
                         *bq = _mm512_loadu_ps(row.add(16 * q));
                     }
                     for (r, acc_r) in acc.iter_mut().enumerate() {
-                        let lv = _mm512_set1_ps(*self.l[r].add(self.first + t));
+                        let lv = _mm512_set1_ps(*self.l[r].add(t));
                         for q in 0..N {
                             acc_r[q] = _mm512_fmadd_ps(lv, b[q], acc_r[q]);
                         }
@@ -498,7 +503,7 @@ pub(crate) mod avx512 {
                 for (q, v) in acc_r.iter().enumerate() {
                     // SAFETY: row r of G has 16·N floats from this block's start.
                     unsafe {
-                        let p = self.g.add(r * self.stride + 16 * q);
+                        let p = self.g.add(r * self.g_stride + 16 * q);
                         _mm512_storeu_ps(p, _mm512_add_ps(_mm512_loadu_ps(p), *v));
                     }
                 }
@@ -574,36 +579,38 @@ mod avx2 {
         }
     }
 
-    /// The outer product on the transposed right operand; `stride` is a multiple of 16 (8·NV).
+    /// `g[i·g_stride + j] += Σ_{t < count} l[i][t] · rt[t·width + j]` for j < `width` (a multiple of 16,
+    /// 8·NV).
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn outer(
         l: &[*const f32],
         rt: &[f32],
-        stride: usize,
-        points: Range<usize>,
+        width: usize,
+        count: usize,
         g: &mut [f32],
+        g_stride: usize,
     ) {
-        debug_assert_eq!(stride % (8 * NV), 0);
+        debug_assert_eq!(width % (8 * NV), 0);
         let mut i = 0;
         while i < l.len() {
             let rows = (l.len() - i).min(MR);
-            for j in (0..stride).step_by(8 * NV) {
-                // SAFETY: rows i..i+rows of G and columns j..j+16 ≤ stride exist; l pointers hold
-                // the floats of `points` and rt holds a row of `stride` floats for each (caller).
+            for j in (0..width).step_by(8 * NV) {
+                // SAFETY: rows i..i+rows of G and its columns j..j+16 ≤ width exist; l pointers hold
+                // `count` floats and rt holds a row of `width` floats for each (caller).
                 unsafe {
                     let (l, rt, g) = (
                         &l[i..i + rows],
                         rt.as_ptr().add(j),
-                        g.as_mut_ptr().add(i * stride + j),
+                        g.as_mut_ptr().add(i * g_stride + j),
                     );
-                    let (first, count) = (points.start, points.len());
+                    let rt = (rt, width);
                     match rows {
-                        6 => outer_block::<6>(l, first, rt, stride, count, g),
-                        5 => outer_block::<5>(l, first, rt, stride, count, g),
-                        4 => outer_block::<4>(l, first, rt, stride, count, g),
-                        3 => outer_block::<3>(l, first, rt, stride, count, g),
-                        2 => outer_block::<2>(l, first, rt, stride, count, g),
-                        _ => outer_block::<1>(l, first, rt, stride, count, g),
+                        6 => outer_block::<6>(l, rt, count, g, g_stride),
+                        5 => outer_block::<5>(l, rt, count, g, g_stride),
+                        4 => outer_block::<4>(l, rt, count, g, g_stride),
+                        3 => outer_block::<3>(l, rt, count, g, g_stride),
+                        2 => outer_block::<2>(l, rt, count, g, g_stride),
+                        _ => outer_block::<1>(l, rt, count, g, g_stride),
                     }
                 }
             }
@@ -611,25 +618,25 @@ mod avx2 {
         }
     }
 
-    /// R rows of G × 16 columns: `g[r·stride + c] += Σ_{t < count} l[r][first + t] · rt[t·stride + c]`.
+    /// R rows of G × 16 columns: `g[r·g_stride + c] += Σ_{t < count} l[r][t] · rt[t·width + c]`, where
+    /// `(rt, width)` is the transposed operand from this block's first column and its row length.
     #[target_feature(enable = "avx2,fma")]
     #[inline]
     unsafe fn outer_block<const R: usize>(
         l: &[*const f32],
-        first: usize,
-        rt: *const f32,
-        stride: usize,
+        (rt, width): (*const f32, usize),
         count: usize,
         g: *mut f32,
+        g_stride: usize,
     ) {
         let mut acc = [[_mm256_setzero_ps(); NV]; R];
         for t in 0..count {
             // SAFETY: row t of rt has 16 floats from this block's start; l[r] has the block's points.
             unsafe {
-                let row = rt.add(t * stride);
+                let row = rt.add(t * width);
                 let b: [__m256; NV] = std::array::from_fn(|q| _mm256_loadu_ps(row.add(8 * q)));
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let lv = _mm256_broadcast_ss(&*l[r].add(first + t));
+                    let lv = _mm256_broadcast_ss(&*l[r].add(t));
                     for q in 0..NV {
                         acc_r[q] = _mm256_fmadd_ps(lv, b[q], acc_r[q]);
                     }
@@ -640,7 +647,7 @@ mod avx2 {
             for (q, v) in acc_r.iter().enumerate() {
                 // SAFETY: row r of G has 16 floats from this block's start.
                 unsafe {
-                    let p = g.add(r * stride + 8 * q);
+                    let p = g.add(r * g_stride + 8 * q);
                     _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *v));
                 }
             }
