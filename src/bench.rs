@@ -1,6 +1,7 @@
 //! `nerfjit bench`: the benchmark workloads of `shared/bench/WORKLOADS.md`, timed after warm-up, medians of
 //! several repetitions, JIT compile time reported separately.
 
+use std::path::Path;
 use std::time::Instant;
 
 use nerfjit_dsl::{kernels, Type};
@@ -40,9 +41,9 @@ pub enum Workload {
     /// Marching cubes of W7's 20-primitive scene at 512³ over [-4, 4]³: every grid point evaluated, and only
     /// the blocks that interval bounds leave near the surface (the same mesh, checked).
     Mesh,
-    /// A generated f-rep model of ~8,000 operations (a city of 288 boxes, imported from the `.vm` format):
-    /// JIT compile time of its value, gradient and bounds kernels, a 512³ interval-pruned mesh, one
-    /// sphere-traced 256² frame.
+    /// A large f-rep model (by default a generated city of 288 boxes, ~8,000 operations in the `.vm`
+    /// format; `--scene MODEL.vm` for another, such as fidget's published models): JIT compile time of its
+    /// value, gradient and bounds kernels, a 512³ interval-pruned mesh, sphere-traced 256² and 1024² frames.
     Large,
     /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
     /// tiles of points, on one thread and on all threads.
@@ -76,9 +77,10 @@ pub fn run(
     products: Precision,
     scene: Option<&str>,
 ) -> Result<()> {
-    if scene.is_some() && workload != Workload::W7 {
+    if scene.is_some() && !matches!(workload, Workload::W7 | Workload::Large) {
         return Err(Failure::Message(
-            "'--scene' applies to w7 only (the script whose sdf is evaluated at W7's points)".into(),
+            "'--scene' applies to w7 (the script whose sdf is evaluated at W7's points) and large (the model)"
+                .into(),
         ));
     }
     match workload {
@@ -91,7 +93,7 @@ pub fn run(
         Workload::W6 => w6(reps, products),
         Workload::W8 => w8(reps),
         Workload::Mesh => mesh(reps),
-        Workload::Large => large(reps),
+        Workload::Large => large(reps, scene.map(Path::new)),
         Workload::Dense => dense(reps, threads),
     }
 }
@@ -233,13 +235,20 @@ fn specialized_mesh(
     .expect("a finite field meshes")
 }
 
-fn large(reps: usize) -> Result<()> {
-    let script = crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?;
-    let program = nerfjit_dsl::compile("city.sdf", &script)?;
+/// `large` on the model file `model` (`.vm`), or on the generated city of 288 boxes.
+fn large(reps: usize, model: Option<&Path>) -> Result<()> {
+    let (script, name) = match model {
+        Some(path) => crate::import::script_of(path)?,
+        None => (
+            crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?,
+            "a city of 288 boxes".to_string(),
+        ),
+    };
+    let program = nerfjit_dsl::compile(&format!("{name} (imported)"), &script)?;
     let f = program.lower("sdf")?;
-    let ops = script.matches("    let v").count();
+    let ops = crate::import::operations(&script);
     crate::emit(&format!(
-        "large: a city of 288 boxes, {ops} operations in the .vm format, median of {reps}\n"
+        "large: {name}, {ops} operations in the .vm format, median of {reps}\n"
     ));
     for (label, graph) in [
         ("value", kernels::value(&f)),
@@ -247,7 +256,7 @@ fn large(reps: usize) -> Result<()> {
         ("bounds", kernels::interval(&f)),
     ] {
         let seconds = time_reps(reps.min(3), || {
-            Kernel::compile(&graph, Options::default()).expect("the city compiles");
+            Kernel::compile(&graph, Options::default()).expect("an imported model compiles");
         });
         crate::emit(&format!(
             "  JIT compile {label:<15} {:7.3} s ({} IR nodes)\n",

@@ -128,22 +128,33 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
     ))
 }
 
-/// Converts the model file `input` and writes the script to `out` (default: the input with `.sdf`);
-/// returns a summary.
-pub fn run(input: &Path, out: Option<&Path>) -> Result<String> {
+/// The script for the model file `input` (read with a cap on its size), and the model's name.
+pub fn script_of(input: &Path) -> Result<(String, String)> {
     let text = nerfjit_runtime::data::input::read_text_capped(input)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", input.display())))?;
     let name = input.file_name().and_then(|n| n.to_str()).unwrap_or("model.vm");
     let script = convert(&text, name).map_err(Failure::Message)?;
+    Ok((script, name.to_string()))
+}
+
+/// The number of operations of a script written by [`convert`].
+pub fn operations(script: &str) -> usize {
+    script.matches("    let v").count()
+}
+
+/// Converts the model file `input` and writes the script to `out` (default: the input with `.sdf`);
+/// returns a summary.
+pub fn run(input: &Path, out: Option<&Path>) -> Result<String> {
+    let (script, _) = script_of(input)?;
     let out = out.map_or_else(|| input.with_extension("sdf"), Path::to_path_buf);
     // The script must compile: a model whose numbers overflow or whose ops the language refuses is
     // reported here, not at the first run.
     nerfjit_dsl::compile(&out.display().to_string(), &script).map_err(Failure::Script)?;
     std::fs::write(&out, &script)
         .map_err(|e| Failure::Message(format!("cannot write '{}': {e}", out.display())))?;
-    let ops = script.matches("    let v").count();
     Ok(format!(
-        "imported {ops} operations from '{}' → {}",
+        "imported {} operations from '{}' → {}",
+        operations(&script),
         input.display(),
         out.display()
     ))

@@ -113,8 +113,9 @@ enum Command {
         /// f32 sums; on AMX where the CPU has it).
         #[arg(long, default_value = "f32", value_parser = ["f32", "bf16"])]
         products: String,
-        /// W7 only: the script whose `fn sdf(p: vec3) -> f32` is evaluated at W7's random points, in place
-        /// of the 20-primitive scene (`examples/complex_scene.sdf`).
+        /// W7: the script whose `fn sdf(p: vec3) -> f32` is evaluated at W7's random points, in place of
+        /// the 20-primitive scene (`examples/complex_scene.sdf`); large: the model (`.vm`, as `nerfjit
+        /// import` reads) in place of the generated city.
         #[arg(long)]
         scene: Option<String>,
     },

@@ -1081,7 +1081,7 @@ render volume { camera: surround(radius: 3, frames: 1, up: z, focal: 1.5), size:
 }
 
 #[test]
-fn bench_w7_evaluates_the_sdf_of_a_given_scene_and_other_workloads_refuse_one() {
+fn bench_w7_and_large_take_a_given_scene_and_other_workloads_refuse_one() {
     let torus = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/torus.sdf");
     let out = nerfjit(
         &["bench", "w7", "--reps", "1", "--threads", "1", "--scene", torus],
@@ -1109,7 +1109,15 @@ fn bench_w7_evaluates_the_sdf_of_a_given_scene_and_other_workloads_refuse_one() 
     let out = nerfjit(&["bench", "w5", "--scene", torus], None);
     let (_, stderr) = text(&out);
     assert!(
-        !out.status.success() && stderr.contains("'--scene' applies to w7 only"),
+        !out.status.success() && stderr.contains("'--scene' applies to w7 (") && stderr.contains("and large"),
+        "{stderr}"
+    );
+
+    // `large` takes a model in the `.vm` format; a missing one is named.
+    let out = nerfjit(&["bench", "large", "--scene", "no-such-model.vm"], None);
+    let (_, stderr) = text(&out);
+    assert!(
+        out.status.code() == Some(1) && stderr.contains("cannot read 'no-such-model.vm'"),
         "{stderr}"
     );
 }
