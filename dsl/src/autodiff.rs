@@ -202,6 +202,13 @@ impl Adjoints {
     }
 }
 
+/// `term` where `gy` is not 0, else 0 (not NaN, when `term` is 0·∞).
+fn zero_where_zero(g: &mut Graph, gy: V, term: V) -> V {
+    let zero = g.constant(0.0);
+    let is_zero = g.push(Op::Eq(gy, zero));
+    g.push(Op::Select(is_zero, zero, term))
+}
+
 /// The contribution `gy · ∂y/∂arg` for each argument of the op computing `y`.
 fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
     use Op::*;
@@ -226,7 +233,14 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
             let d = g.push(Select(at_zero, zero, t));
             vec![(a, g.push(Mul(gy, d)))]
         }
-        Exp(a) => vec![(a, g.push(Mul(gy, y)))],
+        // The contributions of exp, log and division are 0 where gy is: their derivatives can be infinite
+        // (an exp that overflows, a log or a quotient at 0), and 0·∞ would be NaN. A zero gy comes from a
+        // `min`, `max` or `select` that took the other side, such as a smooth union (−log(e^−ka + e^−kb)/k)
+        // whose exponentials underflowed far from its shapes, where another shape is nearer.
+        Exp(a) => {
+            let d = g.push(Mul(gy, y));
+            vec![(a, zero_where_zero(g, gy, d))]
+        }
         TruncExp(a) => {
             let limit = g.constant(crate::ir::TRUNC_EXP_LIMIT);
             let low = g.push(Neg(limit));
@@ -235,7 +249,10 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
             let d = g.push(Exp(clamped));
             vec![(a, g.push(Mul(gy, d)))]
         }
-        Log(a) => vec![(a, g.push(Div(gy, a)))],
+        Log(a) => {
+            let d = g.push(Div(gy, a));
+            vec![(a, zero_where_zero(g, gy, d))]
+        }
         Sin(a) => {
             let c = g.push(Cos(a));
             vec![(a, g.push(Mul(gy, c)))]
@@ -275,9 +292,11 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
         }
         Mul(a, b) => vec![(a, g.push(Mul(gy, b))), (b, g.push(Mul(gy, a)))],
         Div(a, b) => {
-            let ga = g.push(Div(gy, b));
+            let quotient = g.push(Div(gy, b));
+            let ga = zero_where_zero(g, gy, quotient);
             let t = g.push(Mul(ga, y));
-            vec![(a, ga), (b, g.push(Neg(t)))]
+            let minus_t = g.push(Neg(t));
+            vec![(a, ga), (b, zero_where_zero(g, gy, minus_t))]
         }
         Min(a, b) => {
             // min(a, b) = b < a ? b : a
@@ -311,6 +330,33 @@ fn local_adjoints(g: &mut Graph, y: V, gy: V) -> Vec<(V, V)> {
 mod tests {
     use super::*;
     use crate::interp::eval_point;
+
+    #[test]
+    fn a_branch_a_min_does_not_take_passes_zero_even_where_its_derivatives_are_infinite() {
+        // min(x, smooth union of a and b), the smooth union −log(e^−ka + e^−kb)/k far from both shapes:
+        // both exponentials underflow to 0, the log is −∞, the union +∞, and min takes x. The union's
+        // adjoint is then 0, and 0 times log's derivative 1/0 (or the quotient's) must stay 0, not NaN.
+        let mut g = Graph::new();
+        let (x, a, b) = (g.input(0), g.input(1), g.input(2));
+        let minus_k = g.constant(-1000.0);
+        let (ka, kb) = (g.push(Op::Mul(minus_k, a)), g.push(Op::Mul(minus_k, b)));
+        let (ea, eb) = (g.push(Op::Exp(ka)), g.push(Op::Exp(kb)));
+        let sum = g.push(Op::Add(ea, eb));
+        let log = g.push(Op::Log(sum));
+        let union = g.push(Op::Div(log, minus_k));
+        let y = g.push(Op::Min(x, union));
+        let one = g.constant(1.0);
+        let grads = vjp(&mut g, &[(y, one)], &[x, a, b]);
+        g.outputs = [vec![y, union], grads].concat();
+        let out = eval_point(&g, &[0.5, 2.0, 3.0], &[]).outputs;
+        assert_eq!(out[..2], [0.5, f64::INFINITY], "the union overflowed and min took x");
+        assert_eq!(out[2..], [1.0, 0.0, 0.0], "gradients");
+        // Where the union is taken, its gradient blends a's and b's: e^−ka / (e^−ka + e^−kb) for a.
+        let out = eval_point(&g, &[0.5, 0.001, 0.002], &[]).outputs;
+        let weight_a = 1.0 / (1.0 + (-1.0f64).exp());
+        assert_eq!(out[2], 0.0);
+        assert!((out[3] - weight_a).abs() < 1e-12 && (out[4] - (1.0 - weight_a)).abs() < 1e-12, "{out:?}");
+    }
 
     #[test]
     fn relu_passes_the_gradient_where_its_output_is_positive() {
