@@ -35,11 +35,18 @@ pub struct Stop {
 pub struct Marcher {
     code: CompiledCode,
     func: MarchFn,
+    /// The groups of rays it marches together.
+    groups: usize,
     /// The smallest param slice the SDF reads.
     pub n_params: usize,
 }
 
 impl Marcher {
+    /// The groups of [`RAYS_PER_GROUP`] rays it marches together (fewer for larger SDFs).
+    pub fn groups(&self) -> usize {
+        self.groups
+    }
+
     /// Compiles the sphere tracer of `sdf`.
     pub fn compile(sdf: &Graph) -> Result<Marcher, JitError> {
         let start = Instant::now();
@@ -57,7 +64,8 @@ impl Marcher {
                 sdf.outputs.len()
             )));
         }
-        let module = host_module(sdf.len())?;
+        let groups = groups(sdf.len());
+        let module = host_module(groups * sdf.len())?;
         let mut ctx = module.make_context();
         let ptr = module.target_config().pointer_type();
         for ty in [ptr, ptr, ptr, types::I64, types::F32, types::I64] {
@@ -65,13 +73,14 @@ impl Marcher {
         }
         let mut fctx = FunctionBuilderContext::new();
         let mut b = FunctionBuilder::new(&mut ctx.func, &mut fctx);
-        build(&mut b, &sdf);
+        build(&mut b, &sdf, groups);
         b.finalize(module.target_config());
         let (code, ptr) = CompiledCode::finish(module, ctx, "march", start, sdf.len(), false)?;
         // SAFETY: the function was generated with exactly this signature above.
         let func = unsafe { std::mem::transmute::<*const u8, MarchFn>(ptr) };
         Ok(Marcher {
             code,
+            groups,
             func,
             n_params: crate::kernel::params_read(&sdf),
         })
@@ -154,7 +163,20 @@ impl Marcher {
 /// one's square roots) overlap in the CPU. Each group takes the next 4 rays as soon as its own are all done,
 /// so a slow ray holds back 3 others, not the whole batch.
 pub const RAYS_PER_GROUP: usize = 4;
-const GROUPS: usize = 4;
+
+/// The groups marched together: 4 for SDFs of up to [`ONE_GROUP_NODES`] IR nodes, whose steps are short
+/// dependency chains; one for larger ones, whose steps overlap by themselves and whose code (inlined once
+/// per group) would otherwise take the compiler four times as long.
+fn groups(sdf_nodes: usize) -> usize {
+    if sdf_nodes > ONE_GROUP_NODES {
+        1
+    } else {
+        4
+    }
+}
+
+/// The size above which an SDF marches one group of rays at a time ([`groups`]).
+const ONE_GROUP_NODES: usize = 2_000;
 
 /// The loop state of one group of rays.
 #[derive(Clone, Copy)]
@@ -244,9 +266,9 @@ impl Batch {
     }
 }
 
-/// Emits the marcher: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a positive multiple of
-/// [`RAYS_PER_GROUP`].
-fn build(b: &mut FunctionBuilder, sdf: &Graph) {
+/// Emits the marcher of `groups` groups: `fn(rays[8], out[2], params, n, eps, max_steps)`, n a positive
+/// multiple of [`RAYS_PER_GROUP`].
+fn build(b: &mut FunctionBuilder, sdf: &Graph, groups: usize) {
     let (ptr, f4) = (types::I64, types::F32X4);
     let entry = b.create_block();
     b.append_block_params_for_function_params(entry);
@@ -275,15 +297,15 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
 
     // Groups start on the first rays; a group beyond the batch starts exhausted (on ray 0, which exists).
     let mut start: Vec<BlockArg> = Vec::new();
-    for g in 0..GROUPS {
+    for g in 0..groups {
         let first = b.ins().iconst(ptr, (g * RAYS_PER_GROUP) as i64);
         let group = Group::claim(b, &batch, first, zero);
         start.extend(group.args());
     }
-    start.push(b.ins().iconst(ptr, (GROUPS * RAYS_PER_GROUP) as i64).into());
+    start.push(b.ins().iconst(ptr, (groups * RAYS_PER_GROUP) as i64).into());
     let step = b.create_block();
     let exit = b.create_block();
-    for _ in 0..GROUPS {
+    for _ in 0..groups {
         for ty in Group::TYPES {
             b.append_block_param(step, ty);
         }
@@ -294,10 +316,10 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph) {
     // One step of every group, then each group that finished stores its rays and takes the next ones.
     b.switch_to_block(step);
     let sp = b.block_params(step).to_vec();
-    let mut next = sp[Group::TYPES.len() * GROUPS];
+    let mut next = sp[Group::TYPES.len() * groups];
     let groups: Vec<Group> = sp
         .chunks(Group::TYPES.len())
-        .take(GROUPS)
+        .take(groups)
         .map(Group::from_params)
         .collect();
     let stepped: Vec<Group> = groups

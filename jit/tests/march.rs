@@ -1,5 +1,6 @@
 //! The fused sphere tracer against a plain per-ray loop that calls the value kernel of the same SDF at
-//! each step (with `o + t·d` fused the same way): hits, final `t`, and every partial group of rays.
+//! each step (with `o + t·d` fused the same way): hits, final `t`, and every partial group of rays, for a
+//! small SDF (4 groups of rays marched together) and a large one (1 group).
 
 use nerfjit_dsl::{compile, kernels};
 use nerfjit_jit::{Kernel, MarchRays, Marcher, Options, Stop};
@@ -42,15 +43,32 @@ fn plain(
     (t, false)
 }
 
+/// The scene with 250 small spheres far away added to the union: an SDF of more than 2,000 IR nodes (each
+/// sphere's center differs in every coordinate, so no subtraction is shared), which the marcher traces one
+/// group of rays at a time.
+fn large_scene() -> String {
+    let mut body = "    let d0 = min(torus(p, 1.0, r), sphere(p - [0.0, 0.0, 1.2], 0.3));\n".to_string();
+    for i in 0..250 {
+        let (x, y, z) = (10.0 + 0.25 * i as f32, 0.5 * i as f32, 20.0 + 0.125 * i as f32);
+        body += &format!(
+            "    let d{} = min(d{i}, sphere(p - [{x}, {y}, {z}], 0.1));\n",
+            i + 1
+        );
+    }
+    format!("param r: f32 = 0.25\nfn sdf(p: vec3) -> f32 {{\n{body}    d250\n}}")
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(24))]
 
     #[test]
-    fn marcher_matches_the_plain_loop(n in 0usize..70, seed in any::<u64>(), steps in 1u32..80) {
-        let program = compile("scene.sdf", SCENE).unwrap();
+    fn marcher_matches_the_plain_loop(n in 0usize..70, seed in any::<u64>(), steps in 1u32..80, large in any::<bool>()) {
+        let source = if large { large_scene() } else { SCENE.to_string() };
+        let program = compile("scene.sdf", &source).unwrap();
         let f = program.lower("sdf").unwrap();
         let kernel = Kernel::compile(&kernels::value(&f), Options::default()).unwrap();
         let marcher = Marcher::compile(&kernels::value(&f)).unwrap();
+        prop_assert_eq!(marcher.groups(), if large { 1 } else { 4 });
         let mut rng = nerfjit_dsl::init::SplitMix64::new(seed);
         let mut u = || rng.uniform() as f32 * 2.0 - 1.0;
         let mut cols: Vec<Vec<f32>> = vec![Vec::new(); 8];
