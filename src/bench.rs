@@ -238,7 +238,10 @@ fn specialized_mesh(
 /// `large` on the model file `model` (`.vm`), or on the generated city of 288 boxes.
 fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     let (script, name) = match model {
-        Some(path) => crate::import::script_of(path)?,
+        Some(path) => {
+            let imported = crate::import::script_of(path)?;
+            (imported.script, imported.name)
+        }
         None => (
             crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?,
             "a city of 288 boxes".to_string(),

@@ -12,8 +12,8 @@ use std::path::Path;
 
 use crate::failure::{Failure, Result};
 
-/// The script for the model in `text`; `source` names the model in the script's header.
-pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> {
+/// The model in `text` (the `.vm` format); `source` names it in messages and in the script's header.
+pub fn parse(text: &str, source: &str) -> std::result::Result<Model, String> {
     let mut names: HashMap<&str, usize> = HashMap::new();
     let mut body = String::new();
     let mut count = 0usize;
@@ -101,8 +101,38 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
     } else {
         "2D (no var-z: extruded along z)"
     };
-    Ok(format!(
-        "// Imported from {source} by `nerfjit import`: {count} operations, a {kind} model.\n\
+    Ok(Model {
+        source: source.to_string(),
+        body,
+        count,
+        kind,
+    })
+}
+
+/// A model parsed by [`parse`]: the body of its `sdf` function.
+pub struct Model {
+    source: String,
+    body: String,
+    count: usize,
+    kind: &'static str,
+}
+
+impl Model {
+    /// The script: the model's `sdf` and a turntable render of it, traced as `trace` says where the field
+    /// is not a distance.
+    pub fn script(&self, trace: Option<&Trace>) -> String {
+        let Model {
+            source,
+            body,
+            count,
+            kind,
+        } = self;
+        let (max_steps, lipschitz) = trace.map_or((128, String::new()), |t| {
+            let line = format!("    // {}\n    lipschitz: {},\n", t.why, t.lipschitz);
+            (t.max_steps, line)
+        });
+        format!(
+            "// Imported from {source} by `nerfjit import`: {count} operations, a {kind} model.\n\
          // Mesh it with `nerfjit mesh SCRIPT --bounds 1 --res 512 --out model.ply`.\n\
          \n\
          fn sdf(p: vec3) -> f32 {{\n{body}    v{last}\n}}\n\
@@ -112,7 +142,9 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
              size: 256,\n    \
              near: 0.0,\n    \
              far: 7.0,\n    \
-             max_steps: 128,\n    \
+             // fidget's and MPR's models live in [-1, 1]³.\n    \
+             bounds: sphere(center: [0, 0, 0], radius: 1.75),\n    \
+             max_steps: {max_steps},\n{lipschitz}    \
              eps: 1e-4,\n    \
              shading: lambert,\n    \
              albedo: [0.85, 0.75, 0.6],\n    \
@@ -120,21 +152,113 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
              background: [0.08, 0.09, 0.12],\n    \
              out: \"{stem}.gif\",\n\
          }}\n",
-        last = count - 1,
-        stem = Path::new(source)
-            .file_stem()
-            .and_then(|s| s.to_str())
-            .unwrap_or("model"),
-    ))
+            last = count - 1,
+            stem = Path::new(source)
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or("model"),
+        )
+    }
 }
 
-/// The script for the model file `input` (read with a cap on its size), and the model's name.
-pub fn script_of(input: &Path) -> Result<(String, String)> {
+/// The script for the model in `text` (see [`Model::script`]), traced as a distance field.
+pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> {
+    parse(text, source).map(|model| model.script(None))
+}
+
+/// The script for the model file `input` (read with a cap on its size), and the model's name. Where the
+/// model's field is not a distance (its gradient's norm exceeds 1.05 at more than 0.1% of the centers of
+/// 32³ cells of [-1, 1]³), the render block divides it by 1.1 times the norm that 99.9% of those points
+/// stay under, and takes proportionally more steps ([`gradient_norms`]).
+pub fn script_of(input: &Path) -> Result<Imported> {
     let text = nerfjit_runtime::data::input::read_text_capped(input)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", input.display())))?;
     let name = input.file_name().and_then(|n| n.to_str()).unwrap_or("model.vm");
-    let script = convert(&text, name).map_err(Failure::Message)?;
-    Ok((script, name.to_string()))
+    let model = parse(&text, name).map_err(Failure::Message)?;
+    let script = model.script(None);
+    // The script must compile: a model whose numbers overflow or whose ops the language refuses is
+    // reported here, not at the first run.
+    let program = nerfjit_dsl::compile(&format!("{name} (imported)"), &script).map_err(Failure::Script)?;
+    let mut norms = gradient_norms(&program, GRADIENT_SAMPLES)?;
+    norms.sort_by(f32::total_cmp);
+    let (typical, largest) = match norms.as_slice() {
+        [] => (0.0, 0.0),
+        n => (n[n.len() * 999 / 1000], n[n.len() - 1]),
+    };
+    let name = name.to_string();
+    if typical <= 1.05 {
+        return Ok(Imported {
+            script,
+            name,
+            lipschitz: None,
+        });
+    }
+    let bound = significant(1.1 * typical);
+    let trace = Trace {
+        lipschitz: bound,
+        max_steps: (STEPS_PER_UNIT_BOUND * bound).ceil().max(128.0) as u32,
+        why: format!(
+            "|∇sdf| is under {typical:.3} at 99.9% of {GRADIENT_SAMPLES}³ points of [-1, 1]³ (largest {largest:.3}):\n    \
+             // not a distance. Steps are sdf / {bound}; raise it (and max_steps) if a render shows holes."
+        ),
+    };
+    Ok(Imported {
+        script: model.script(Some(&trace)),
+        name,
+        lipschitz: Some(bound),
+    })
+}
+
+/// A model file converted by [`script_of`].
+pub struct Imported {
+    /// The script.
+    pub script: String,
+    /// The model file's name.
+    pub name: String,
+    /// The bound on the gradient's norm its render block divides the field by, if not 1.
+    pub lipschitz: Option<f32>,
+}
+
+/// How the render block of a model that is not a distance field traces it.
+pub struct Trace {
+    /// The field is divided by this.
+    lipschitz: f32,
+    /// Steps before a ray misses: smaller steps need more.
+    max_steps: u32,
+    /// Why, as a comment.
+    why: String,
+}
+
+/// Points per axis of the grid on which [`script_of`] measures the gradient.
+const GRADIENT_SAMPLES: usize = 32;
+
+/// Steps a ray may take per unit of the bound on the gradient (16 for a bound of 8, as the default 128).
+const STEPS_PER_UNIT_BOUND: f32 = 16.0;
+
+/// The norms of the gradient of `sdf` at the centers of `n`³ cells of [-1, 1]³ (NaN left out).
+pub fn gradient_norms(program: &nerfjit_dsl::Program, n: usize) -> Result<Vec<f32>> {
+    let graph = nerfjit_dsl::kernels::with_gradient(&program.lower("sdf")?);
+    let kernel = nerfjit_jit::Kernel::compile(&graph, nerfjit_jit::Options::default())?;
+    let center = |i: usize| -1.0 + 2.0 * (i as f32 + 0.5) / n as f32;
+    let count = n * n * n;
+    let xs: Vec<f32> = (0..count).map(|i| center(i % n)).collect();
+    let ys: Vec<f32> = (0..count).map(|i| center(i / n % n)).collect();
+    let zs: Vec<f32> = (0..count).map(|i| center(i / (n * n))).collect();
+    let mut outputs = vec![vec![0.0f32; count]; graph.outputs.len()];
+    let mut refs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
+    kernel.eval(count, &[&xs, &ys, &zs], &mut refs, &program.param_values, &mut []);
+    // Outputs: the value, then the gradient's x, y and z.
+    Ok((0..count)
+        .map(|i| (outputs[1][i].powi(2) + outputs[2][i].powi(2) + outputs[3][i].powi(2)).sqrt())
+        .filter(|g| !g.is_nan())
+        .collect())
+}
+
+/// `x` rounded up to two significant digits (13.41 → 14, 0.2519 → 0.26), but for rounding errors of
+/// less than a thousandth of the last digit (11.000001 → 11).
+fn significant(x: f32) -> f32 {
+    let unit = 10f32.powi(x.log10().floor() as i32 - 1);
+    ((x / unit) - 1e-3).ceil() * unit
 }
 
 /// The number of operations of a script written by [`convert`].
@@ -145,16 +269,16 @@ pub fn operations(script: &str) -> usize {
 /// Converts the model file `input` and writes the script to `out` (default: the input with `.sdf`);
 /// returns a summary.
 pub fn run(input: &Path, out: Option<&Path>) -> Result<String> {
-    let (script, _) = script_of(input)?;
+    let imported = script_of(input)?;
     let out = out.map_or_else(|| input.with_extension("sdf"), Path::to_path_buf);
-    // The script must compile: a model whose numbers overflow or whose ops the language refuses is
-    // reported here, not at the first run.
-    nerfjit_dsl::compile(&out.display().to_string(), &script).map_err(Failure::Script)?;
-    std::fs::write(&out, &script)
+    std::fs::write(&out, &imported.script)
         .map_err(|e| Failure::Message(format!("cannot write '{}': {e}", out.display())))?;
+    let traced = imported.lipschitz.map_or(String::new(), |bound| {
+        format!(" (not a distance: traced as sdf / {bound})")
+    });
     Ok(format!(
-        "imported {} operations from '{}' → {}",
-        operations(&script),
+        "imported {} operations from '{}' → {}{traced}",
+        operations(&imported.script),
         input.display(),
         out.display()
     ))
@@ -201,6 +325,51 @@ mod tests {
         let want = ((m * m / -2.5).min(x)).max(y);
         let got = nerfjit_dsl::interp::eval_point(&f.graph, &[x, y, 0.0], &[]).outputs[0];
         assert!((got - want).abs() < 1e-9 * want.abs().max(1.0), "{got} vs {want}");
+    }
+
+    /// A model file in a scratch folder.
+    fn model_file(name: &str, text: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("nerfjit-import-unit-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(name);
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    #[test]
+    fn a_field_that_is_not_a_distance_is_traced_divided_by_its_gradient_bound() {
+        // The unit sphere is a distance: traced as it is.
+        let sphere = script_of(&model_file("sphere.vm", SPHERE)).unwrap();
+        assert_eq!(sphere.lipschitz, None);
+        assert!(sphere.script.contains("max_steps: 128,") && !sphere.script.contains("lipschitz"));
+        // The same sphere in coordinates 10 times larger: |∇sdf| = 10 everywhere, so the tracer divides by
+        // 11 and takes 16 steps per unit of the bound.
+        let scaled = SPHERE.replace(
+            "_d sub _r _1",
+            "_ten const 10
+_s mul _r _ten
+_d sub _s _1",
+        );
+        let scaled = script_of(&model_file("scaled.vm", &scaled)).unwrap();
+        assert_eq!(scaled.lipschitz, Some(11.0));
+        for line in [
+            "lipschitz: 11,",
+            "max_steps: 176,",
+            "|∇sdf| is under 10.000 at 99.9%",
+        ] {
+            assert!(scaled.script.contains(line), "{line}: {}", scaled.script);
+        }
+        // The script checks, with the bound in its render block.
+        nerfjit_dsl::compile("scaled.sdf", &scaled.script).unwrap();
+    }
+
+    #[test]
+    fn bounds_round_up_to_two_significant_digits() {
+        assert_eq!(significant(13.41), 14.0);
+        assert_eq!(significant(11.0), 11.0);
+        assert!((significant(0.2519) - 0.26).abs() < 1e-6);
+        assert_eq!(significant(72.8), 73.0);
+        assert_eq!(significant(1.1 * 10.0), 11.0);
     }
 
     #[test]

@@ -80,11 +80,20 @@ pub struct Compiler<'a> {
 impl Compiler<'_> {
     /// Compiles function `name` after checking its signature against `inputs` → `output`.
     pub fn function(&self, name: &str, inputs: &[Type], output: &Type, kind: Kind) -> Result<JitFn> {
+        self.compile(&self.lowered(name, inputs, output)?, kind)
+    }
+
+    /// Function `name` lowered to IR after checking its signature against `inputs` → `output`.
+    pub fn lowered(&self, name: &str, inputs: &[Type], output: &Type) -> Result<Lowered> {
         check_signature(self.program, name, &[inputs], output)?;
-        let lowered = self.program.lower(name)?;
+        Ok(self.program.lower(name)?)
+    }
+
+    /// Compiles a lowered function of the program (its params are the program's).
+    pub fn compile(&self, lowered: &Lowered, kind: Kind) -> Result<JitFn> {
         let graph = match kind {
-            Kind::Value | Kind::Sdf => kernels::value(&lowered),
-            Kind::Gradient => kernels::with_gradient(&lowered),
+            Kind::Value | Kind::Sdf => kernels::value(lowered),
+            Kind::Gradient => kernels::with_gradient(lowered),
         };
         // The fused sphere tracer takes elementwise SDFs; one with dense layers is traced through its
         // tiled kernel, a batch of ray positions per step.
@@ -104,8 +113,12 @@ impl Compiler<'_> {
     /// Compiles bounds of function `name` over boxes ([`kernels::interval`]), or gives `None` where interval
     /// arithmetic bounds nothing (every bound constant: a field of dense layers or grid reads).
     pub fn bounds(&self, name: &str, inputs: &[Type], output: &Type) -> Result<Option<JitFn>> {
-        check_signature(self.program, name, &[inputs], output)?;
-        let graph = kernels::interval(&self.program.lower(name)?);
+        self.compile_bounds(&self.lowered(name, inputs, output)?)
+    }
+
+    /// [`Compiler::bounds`] of a lowered function of the program.
+    pub fn compile_bounds(&self, lowered: &Lowered) -> Result<Option<JitFn>> {
+        let graph = kernels::interval(lowered);
         let constant = graph.outputs.iter().all(|&v| graph.const_value(v).is_some());
         if constant {
             return Ok(None);

@@ -375,6 +375,13 @@ pub const RENDER_SPHERE_TRACE: BlockSchema = BlockSchema {
             64,
             "steps before a ray counts as a miss",
         ),
+        number(
+            "lipschitz",
+            1e-3,
+            1e6,
+            1.0,
+            "a bound on |∇sdf|: steps are sdf / lipschitz (1 for distances; fields that are not, such as imported f-rep models, need theirs or rays step through surfaces)",
+        ),
         triple("background", Some([0.0; 3]), "the color of missed rays"),
         choice(
             "shading",

@@ -5,7 +5,8 @@ use std::time::Instant;
 
 use glam::Vec3;
 use nerfjit_dsl::config::Spanned;
-use nerfjit_dsl::{Diagnostic, Program, Type};
+use nerfjit_dsl::ir::Op;
+use nerfjit_dsl::{Diagnostic, Lowered, Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
     depth_image, normal_image, render_frames, rgb_image, BatchFn, Camera, Frame, Quantize, Shading,
@@ -51,6 +52,8 @@ pub struct RenderPlan {
     pub normals: Option<PathBuf>,
     /// GIF frame time in milliseconds.
     pub frame_ms: u32,
+    /// A bound on the norm of the SDF's gradient: the tracer marches sdf / lipschitz.
+    pub lipschitz: f32,
 }
 
 impl RenderPlan {
@@ -62,6 +65,7 @@ impl RenderPlan {
         let (near, far) = b.near_far()?;
         let eps = b.number("eps")? as f32;
         let max_steps = b.whole("max_steps")? as u32;
+        let lipschitz = b.number("lipschitz")? as f32;
         let background = b.triple("background")?.expect("a default");
         let bounds = match b.take("bounds") {
             None => None,
@@ -104,12 +108,13 @@ impl RenderPlan {
             depth,
             normals,
             frame_ms,
+            lipschitz,
         })
     }
 
     /// Compiles the script's functions this block traces ([`TraceFields::compile`]).
     pub fn compile_fields(&self, compiler: &Compiler) -> Result<TraceFields> {
-        TraceFields::compile(compiler, &self.shading)
+        TraceFields::compile(compiler, &self.shading, self.lipschitz)
     }
 
     /// Compiles the script's functions (through `cache`) and renders every frame; writes the outputs and
@@ -224,6 +229,19 @@ pub(crate) fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), D
     Ok((Vec3::from_array(center), radius as f32))
 }
 
+/// `f` with its outputs divided by `by` (`f` itself for 1).
+fn divided(mut f: Lowered, by: f32) -> Lowered {
+    if by != 1.0 {
+        let factor = f.graph.constant(1.0 / f64::from(by));
+        let outputs = f.graph.outputs.clone();
+        f.graph.outputs = outputs
+            .into_iter()
+            .map(|v| f.graph.push(Op::Mul(v, factor)))
+            .collect();
+    }
+    f
+}
+
 /// SDFs of fewer IR nodes are traced without skipping the space their interval bounds prove empty, which
 /// costs more than it saves where a step is cheap. Frames of 256² with skipping against without
 /// (2026-11-25, three runs each): W1's 16-node torus 0.44–0.50 against 0.38–0.42 ms, the 172-node
@@ -243,13 +261,15 @@ pub struct TraceFields {
 }
 
 impl TraceFields {
-    /// Compiles the script's `sdf`, its interval bounds if it is large enough for them to pay (256 IR
-    /// nodes or more) and, for color shading, its `color`.
-    pub fn compile(compiler: &Compiler, shading: &ShadingChoice) -> Result<TraceFields> {
+    /// Compiles the script's `sdf` divided by `lipschitz` (a bound on its gradient's norm, so that the
+    /// quotient is at most the distance to its surface), its interval bounds if it is large enough for
+    /// them to pay (256 IR nodes or more) and, for color shading, its `color`.
+    pub fn compile(compiler: &Compiler, shading: &ShadingChoice, lipschitz: f32) -> Result<TraceFields> {
         let vec3 = [Type::Vec(3)];
-        let sdf = compiler.function("sdf", &vec3, &Type::F32, Kind::Sdf)?;
+        let traced = divided(compiler.lowered("sdf", &vec3, &Type::F32)?, lipschitz);
+        let sdf = compiler.compile(&traced, Kind::Sdf)?;
         let bounds = if sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES {
-            compiler.bounds("sdf", &vec3, &Type::F32)?
+            compiler.compile_bounds(&traced)?
         } else {
             None
         };
@@ -293,5 +313,59 @@ mod tests {
             assert_eq!(fields.sdf.nodes() >= SKIP_EMPTY_SPACE_MIN_NODES, large);
             assert_eq!(fields.traced_sdf().interval_bounds().is_some(), large);
         }
+    }
+
+    /// The hits of a 64² frame of `scale` times the torus's distance, traced with `lipschitz`.
+    fn torus_hits(scale: f32, lipschitz: f32) -> Vec<bool> {
+        let script = format!(
+            "fn sdf(p: vec3) -> f32 = {scale:?} * torus(p, 1.0, 0.25)\n\
+             render sphere_trace {{ camera: orbit(radius: 4.0, elevation: 30, frames: 1), size: 64, far: 8.0,\n\
+             max_steps: 256, eps: 1e-4, lipschitz: {lipschitz:?}, out: \"t.png\" }}"
+        );
+        let program = nerfjit_dsl::compile("scaled.sdf", &script).expect("compiles");
+        let block = first_block(&program, BlockKind::SphereTrace, ".").expect("a sphere-trace block");
+        let plan = RenderPlan::new(block).expect("valid settings");
+        let cache = KernelCache::new();
+        let compiler = Compiler {
+            program: &program,
+            params: &program.param_values,
+            cache: &cache,
+        };
+        let fields = plan.compile_fields(&compiler).expect("compiles");
+        let gradient = compiler
+            .function("sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)
+            .expect("compiles");
+        let shading = Shading::Lambert {
+            gradient: &gradient,
+            light_dir: Vec3::Y,
+            albedo: [1.0; 3],
+        };
+        let mut frame = Frame::empty();
+        nerfjit_runtime::sphere_trace_into(
+            &plan.cameras[0],
+            64,
+            64,
+            &fields.traced_sdf(),
+            &shading,
+            &plan.trace,
+            &mut frame,
+        )
+        .expect("renders");
+        frame.hit
+    }
+
+    #[test]
+    fn a_field_steeper_than_a_distance_is_traced_divided_by_its_lipschitz_bound() {
+        let torus = torus_hits(1.0, 1.0);
+        let hits = torus.iter().filter(|&&h| h).count();
+        assert!(hits > 150, "the torus covers part of the frame: {hits} hits");
+        // Ten times the distance: full steps jump through the tube, a tenth of them find the torus.
+        let differ = |a: &[bool], b: &[bool]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+        let overshot = differ(&torus_hits(10.0, 1.0), &torus);
+        assert!(
+            overshot > hits / 10,
+            "stepping 10 × the distance lost only {overshot} of {hits} hits"
+        );
+        assert!(differ(&torus_hits(10.0, 10.0), &torus) <= 2);
     }
 }

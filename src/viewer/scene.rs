@@ -285,7 +285,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
         .blocks()
         .into_iter()
         .find(|b| crate::schema::kind_of(b) == Some(crate::schema::Kind::SphereTrace));
-    let (shading, trace) = match block {
+    let (shading, trace, lipschitz) = match block {
         Some(block) => {
             let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
             let b = Block::new(
@@ -296,7 +296,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
                 Rc::new(Outputs::default()),
             )?;
             let plan = RenderPlan::new(b)?;
-            (plan.shading, plan.trace)
+            (plan.shading, plan.trace, plan.lipschitz)
         }
         None => (
             ShadingChoice::Lambert {
@@ -311,10 +311,11 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
                 background: [0.1; 3],
                 bounds: None,
             },
+            1.0,
         ),
     };
     Ok(Renderer::Surface(Box::new(Surface {
-        fields: TraceFields::compile(&compiler, &shading)?,
+        fields: TraceFields::compile(&compiler, &shading, lipschitz)?,
         gradient: compiler.function("sdf", &[Type::Vec(3)], &Type::F32, Kind::Gradient)?,
         shading,
         trace,
