@@ -349,13 +349,20 @@ mod tests {
         let grads = vjp(&mut g, &[(y, one)], &[x, a, b]);
         g.outputs = [vec![y, union], grads].concat();
         let out = eval_point(&g, &[0.5, 2.0, 3.0], &[]).outputs;
-        assert_eq!(out[..2], [0.5, f64::INFINITY], "the union overflowed and min took x");
+        assert_eq!(
+            out[..2],
+            [0.5, f64::INFINITY],
+            "the exponentials underflowed, the union is +∞ and min took x"
+        );
         assert_eq!(out[2..], [1.0, 0.0, 0.0], "gradients");
         // Where the union is taken, its gradient blends a's and b's: e^−ka / (e^−ka + e^−kb) for a.
         let out = eval_point(&g, &[0.5, 0.001, 0.002], &[]).outputs;
         let weight_a = 1.0 / (1.0 + (-1.0f64).exp());
         assert_eq!(out[2], 0.0);
-        assert!((out[3] - weight_a).abs() < 1e-12 && (out[4] - (1.0 - weight_a)).abs() < 1e-12, "{out:?}");
+        assert!(
+            (out[3] - weight_a).abs() < 1e-12 && (out[4] - (1.0 - weight_a)).abs() < 1e-12,
+            "{out:?}"
+        );
     }
 
     #[test]
