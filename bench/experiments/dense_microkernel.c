@@ -4,7 +4,7 @@
 //   gcc -O3 -march=native dense_microkernel.c -o /tmp/dense_microkernel
 //   /tmp/dense_microkernel [COLUMN_FLOATS [ROWS]]       e.g. /tmp/dense_microkernel 144 128
 //
-// "peak": 16 independent 512-bit FMA chains in registers (as ../shared/bench/peak). "tile": out = A·x for a
+// "peak": 16 independent 512-bit FMA chains in registers (fma_peak.h, as ../shared/bench/peak). "tile": out = A·x for a
 // ROWS × 128 matrix A (row-major) and a tile of 128 points whose 128 input columns lie COLUMN_FLOATS apart
 // (nerfjit's arena: 144), in blocks of 6 rows × 64 points (24 accumulators; 4 loads and 6 broadcasts per 24
 // FMAs), the rows left over in one smaller block. "block": one 6-row block over and over, its operands always
@@ -14,24 +14,12 @@
 #include <stdlib.h>
 #include <time.h>
 
+#include "fma_peak.h"
+
 #define K 128
 #define TILE 128
 #define QV 4
 
-static double now(void) {
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return t.tv_sec + t.tv_nsec * 1e-9;
-}
-
-__attribute__((noinline)) static void peak(long n, float *o) {
-    __m512 a[16];
-    for (int i = 0; i < 16; i++) a[i] = _mm512_set1_ps((float)i);
-    const __m512 b = _mm512_set1_ps(0.9999f), c = _mm512_set1_ps(0.0001f);
-    for (long j = 0; j < n; j++)
-        for (int i = 0; i < 16; i++) a[i] = _mm512_fmadd_ps(a[i], b, c);
-    for (int i = 0; i < 16; i++) _mm512_storeu_ps(o + 16 * i, a[i]);
-}
 
 // R rows of out = A·x for the 64 points from t0.
 #define BLOCK(R)                                                                                         \
