@@ -42,7 +42,7 @@ pub struct Marcher {
 }
 
 impl Marcher {
-    /// The groups of [`RAYS_PER_GROUP`] rays it marches together (fewer for larger SDFs).
+    /// The groups of 4 rays it marches together (fewer for larger SDFs).
     pub fn groups(&self) -> usize {
         self.groups
     }
