@@ -11,6 +11,8 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use crate::failure::{Failure, Result};
+use crate::jit_field::{Compiler, Kind};
+use crate::steepness;
 
 /// The model in `text` (the `.vm` format); `source` names it in messages and in the script's header.
 pub fn parse(text: &str, source: &str) -> std::result::Result<Model, String> {
@@ -179,12 +181,9 @@ pub fn script_of(input: &Path) -> Result<Imported> {
     // The script must compile: a model whose numbers overflow or whose ops the language refuses is
     // reported here, not at the first run.
     let program = nerfjit_dsl::compile(&format!("{name} (imported)"), &script).map_err(Failure::Script)?;
-    let mut norms = gradient_norms(&program, GRADIENT_SAMPLES)?;
-    norms.sort_by(f32::total_cmp);
-    let (typical, largest) = match norms.as_slice() {
-        [] => (0.0, 0.0),
-        n => (n[n.len() * 999 / 1000], n[n.len() - 1]),
-    };
+    let norms = gradient_norms(&program, GRADIENT_SAMPLES)?;
+    let typical = steepness::typical_largest(&norms).unwrap_or(0.0);
+    let largest = norms.iter().copied().filter(|g| !g.is_nan()).fold(0.0, f32::max);
     let name = name.to_string();
     if typical <= 1.05 {
         return Ok(Imported {
@@ -193,7 +192,7 @@ pub fn script_of(input: &Path) -> Result<Imported> {
             lipschitz: None,
         });
     }
-    let bound = significant(1.1 * typical);
+    let bound = steepness::bound_for(typical);
     let trace = Trace {
         lipschitz: bound,
         max_steps: (STEPS_PER_UNIT_BOUND * bound).ceil().max(128.0) as u32,
@@ -235,30 +234,21 @@ const GRADIENT_SAMPLES: usize = 32;
 /// Steps a ray may take per unit of the bound on the gradient (16 for a bound of 8, as the default 128).
 const STEPS_PER_UNIT_BOUND: f32 = 16.0;
 
-/// The norms of the gradient of `sdf` at the centers of `n`³ cells of [-1, 1]³ (NaN left out).
+/// The norms of the gradient of `sdf` at the centers of `n`³ cells of [-1, 1]³.
 pub fn gradient_norms(program: &nerfjit_dsl::Program, n: usize) -> Result<Vec<f32>> {
-    let graph = nerfjit_dsl::kernels::with_gradient(&program.lower("sdf")?);
-    let kernel = nerfjit_jit::Kernel::compile(&graph, nerfjit_jit::Options::default())?;
+    let cache = nerfjit_jit::KernelCache::new();
+    let compiler = Compiler {
+        program,
+        params: &program.param_values,
+        cache: &cache,
+    };
+    let vec3 = [nerfjit_dsl::Type::Vec(3)];
+    let gradient = compiler.function("sdf", &vec3, &nerfjit_dsl::Type::F32, Kind::Gradient)?;
     let center = |i: usize| -1.0 + 2.0 * (i as f32 + 0.5) / n as f32;
-    let count = n * n * n;
-    let xs: Vec<f32> = (0..count).map(|i| center(i % n)).collect();
-    let ys: Vec<f32> = (0..count).map(|i| center(i / n % n)).collect();
-    let zs: Vec<f32> = (0..count).map(|i| center(i / (n * n))).collect();
-    let mut outputs = vec![vec![0.0f32; count]; graph.outputs.len()];
-    let mut refs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
-    kernel.eval(count, &[&xs, &ys, &zs], &mut refs, &program.param_values, &mut []);
-    // Outputs: the value, then the gradient's x, y and z.
-    Ok((0..count)
-        .map(|i| (outputs[1][i].powi(2) + outputs[2][i].powi(2) + outputs[3][i].powi(2)).sqrt())
-        .filter(|g| !g.is_nan())
-        .collect())
-}
-
-/// `x` rounded up to two significant digits (13.41 → 14, 0.2519 → 0.26), but for rounding errors of
-/// less than a thousandth of the last digit (11.000001 → 11).
-fn significant(x: f32) -> f32 {
-    let unit = 10f32.powi(x.log10().floor() as i32 - 1);
-    ((x / unit) - 1e-3).ceil() * unit
+    let points: Vec<[f32; 3]> = (0..n * n * n)
+        .map(|i| [center(i % n), center(i / n % n), center(i / (n * n))])
+        .collect();
+    Ok(steepness::gradient_norms(&gradient, &points))
 }
 
 /// The number of operations of a script written by [`convert`].
@@ -361,15 +351,6 @@ _d sub _s _1",
         }
         // The script checks, with the bound in its render block.
         nerfjit_dsl::compile("scaled.sdf", &scaled.script).unwrap();
-    }
-
-    #[test]
-    fn bounds_round_up_to_two_significant_digits() {
-        assert_eq!(significant(13.41), 14.0);
-        assert_eq!(significant(11.0), 11.0);
-        assert!((significant(0.2519) - 0.26).abs() < 1e-6);
-        assert_eq!(significant(72.8), 73.0);
-        assert_eq!(significant(1.1 * 10.0), 11.0);
     }
 
     #[test]

@@ -52,6 +52,7 @@ pub mod script;
 pub mod session;
 pub mod settings;
 pub mod sphere_trace_block;
+pub mod steepness;
 pub mod tensorboard;
 pub mod train_block;
 pub mod train_sdf_block;

@@ -26,7 +26,7 @@ pub struct ProbeRays<'a> {
 
 impl ProbeRays<'_> {
     /// Points (and their rays' unit directions) on a grid of pixel rays, evenly from near to far.
-    fn points(&self) -> (Vec<Vec3>, Vec<Vec3>) {
+    pub(crate) fn points(&self) -> (Vec<Vec3>, Vec<Vec3>) {
         let (w, h) = self.size;
         let mut points = Vec::new();
         let mut dirs = Vec::new();

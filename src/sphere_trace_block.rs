@@ -19,6 +19,7 @@ use crate::jit_field::{Compiler, JitFn, Kind};
 use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
 use crate::settings::{triple, CallArgs};
+use crate::steepness;
 
 /// How hit points are shaded.
 #[derive(Clone, Debug, PartialEq)]
@@ -164,7 +165,8 @@ impl RenderPlan {
                 far: self.trace.far,
             };
             let color = color.as_ref().and_then(|c| nonfinite::warning("color", c, rays));
-            for line in [nonfinite::warning("sdf", &sdf, rays), color]
+            let steep = steepness::warning(&gradient, rays, self.lipschitz);
+            for line in [nonfinite::warning("sdf", &sdf, rays), color, steep]
                 .into_iter()
                 .flatten()
             {

@@ -1014,7 +1014,7 @@ fn data_check_reports_a_data_set_or_names_what_is_wrong() {
 }
 
 #[test]
-fn renders_of_a_field_that_is_nan_somewhere_name_the_function_and_a_point() {
+fn renders_of_a_field_that_is_nan_somewhere_or_too_steep_name_the_function_and_a_point() {
     let dir = scratch("nan-field");
     let camera = "camera: surround(radius: 4, frames: 2, up: z, focal: 1), size: 24";
     let cases = [
@@ -1034,6 +1034,15 @@ fn renders_of_a_field_that_is_nan_somewhere_name_the_function_and_a_point() {
         ),
         (
             format!("fn sdf(p: vec3) -> f32 = length(p) - 1.0\nrender sphere_trace {{ {camera}, out: \"d.png\" }}\n"),
+            "",
+        ),
+        // Ten times a distance: steeper than the tracer assumes, which names the bound to use; with it, quiet.
+        (
+            format!("fn sdf(p: vec3) -> f32 = 10.0 * (length(p) - 1.0)\nrender sphere_trace {{ {camera}, out: \"e.png\" }}\n"),
+            "the tracer's lipschitz (1): sphere tracing steps through surfaces where the field is steeper than that; set `lipschitz: 11`",
+        ),
+        (
+            format!("fn sdf(p: vec3) -> f32 = 10.0 * (length(p) - 1.0)\nrender sphere_trace {{ {camera}, lipschitz: 10, out: \"f.png\" }}\n"),
             "",
         ),
     ];
