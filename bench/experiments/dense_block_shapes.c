@@ -12,37 +12,18 @@
 #include <stdlib.h>
 #include <time.h>
 
-#include "fma_peak.h"
-
 #define K 128
 #define TILE 128
 #define ROWS 128
 
-// R rows of out = A·x for the 16·QV points from t0: R × QV accumulators, per input column QV loads and R
-// broadcasts.
-#define BLOCK(NAME, R, QV)                                                                                \
-    static inline void NAME(const float *a, const float *const *x, float *const *out, int t0) {           \
-        __m512 acc[R][QV];                                                                                \
-        for (int r = 0; r < R; r++)                                                                       \
-            for (int q = 0; q < QV; q++) acc[r][q] = _mm512_setzero_ps();                                 \
-        for (int k = 0; k < K; k++) {                                                                     \
-            const float *p = x[k] + t0;                                                                   \
-            __m512 b[QV];                                                                                 \
-            for (int q = 0; q < QV; q++) b[q] = _mm512_loadu_ps(p + 16 * q);                              \
-            for (int r = 0; r < R; r++) {                                                                 \
-                const __m512 w = _mm512_set1_ps(a[r * K + k]);                                            \
-                for (int q = 0; q < QV; q++) acc[r][q] = _mm512_fmadd_ps(w, b[q], acc[r][q]);             \
-            }                                                                                             \
-        }                                                                                                 \
-        for (int r = 0; r < R; r++)                                                                       \
-            for (int q = 0; q < QV; q++) _mm512_storeu_ps(out[r] + t0 + 16 * q, acc[r][q]);               \
-    }
-BLOCK(block_6x64, 6, 4)
-BLOCK(block_2x64, 2, 4)
-BLOCK(block_8x32, 8, 2)
-BLOCK(block_8x48, 8, 3)
-BLOCK(block_12x32, 12, 2)
-BLOCK(block_16x16, 16, 1)
+#include "dense_common.h"
+
+DENSE_BLOCK(block_6x64, 6, 4)
+DENSE_BLOCK(block_2x64, 2, 4)
+DENSE_BLOCK(block_8x32, 8, 2)
+DENSE_BLOCK(block_8x48, 8, 3)
+DENSE_BLOCK(block_12x32, 12, 2)
+DENSE_BLOCK(block_16x16, 16, 1)
 
 typedef const float *const *Inputs;
 typedef float *const *Outputs;

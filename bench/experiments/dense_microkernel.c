@@ -4,7 +4,7 @@
 //   gcc -O3 -march=native dense_microkernel.c -o /tmp/dense_microkernel
 //   /tmp/dense_microkernel [COLUMN_FLOATS [ROWS]]       e.g. /tmp/dense_microkernel 144 128
 //
-// "peak": 16 independent 512-bit FMA chains in registers (fma_peak.h, as ../shared/bench/peak). "tile": out = A·x for a
+// "peak": 16 independent 512-bit FMA chains in registers (dense_common.h, as ../shared/bench/peak). "tile": out = A·x for a
 // ROWS × 128 matrix A (row-major) and a tile of 128 points whose 128 input columns lie COLUMN_FLOATS apart
 // (nerfjit's arena: 144), in blocks of 6 rows × 64 points (24 accumulators; 4 loads and 6 broadcasts per 24
 // FMAs), the rows left over in one smaller block. "block": one 6-row block over and over, its operands always
@@ -14,37 +14,18 @@
 #include <stdlib.h>
 #include <time.h>
 
-#include "fma_peak.h"
-
 #define K 128
 #define TILE 128
 #define QV 4
 
+#include "dense_common.h"
 
-// R rows of out = A·x for the 64 points from t0.
-#define BLOCK(R)                                                                                         \
-    static inline void block##R(const float *a, const float *const *x, float *const *out, int t0) {      \
-        __m512 acc[R][QV];                                                                               \
-        for (int r = 0; r < R; r++)                                                                      \
-            for (int q = 0; q < QV; q++) acc[r][q] = _mm512_setzero_ps();                                \
-        for (int k = 0; k < K; k++) {                                                                    \
-            const float *p = x[k] + t0;                                                                  \
-            __m512 b[QV];                                                                                \
-            for (int q = 0; q < QV; q++) b[q] = _mm512_loadu_ps(p + 16 * q);                             \
-            for (int r = 0; r < R; r++) {                                                                \
-                const __m512 w = _mm512_set1_ps(a[r * K + k]);                                           \
-                for (int q = 0; q < QV; q++) acc[r][q] = _mm512_fmadd_ps(w, b[q], acc[r][q]);            \
-            }                                                                                            \
-        }                                                                                                \
-        for (int r = 0; r < R; r++)                                                                      \
-            for (int q = 0; q < QV; q++) _mm512_storeu_ps(out[r] + t0 + 16 * q, acc[r][q]);              \
-    }
-BLOCK(1)
-BLOCK(2)
-BLOCK(3)
-BLOCK(4)
-BLOCK(5)
-BLOCK(6)
+DENSE_BLOCK(block1, 1, QV)
+DENSE_BLOCK(block2, 2, QV)
+DENSE_BLOCK(block3, 3, QV)
+DENSE_BLOCK(block4, 4, QV)
+DENSE_BLOCK(block5, 5, QV)
+DENSE_BLOCK(block6, 6, QV)
 
 __attribute__((noinline)) static void tile(const float *a, int rows, const float *const *x, float *const *out) {
     for (int t0 = 0; t0 < TILE; t0 += 16 * QV) {
