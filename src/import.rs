@@ -334,12 +334,7 @@ mod tests {
         assert!(sphere.script.contains("max_steps: 128,") && !sphere.script.contains("lipschitz"));
         // The same sphere in coordinates 10 times larger: |∇sdf| = 10 everywhere, so the tracer divides by
         // 11 and takes 16 steps per unit of the bound.
-        let scaled = SPHERE.replace(
-            "_d sub _r _1",
-            "_ten const 10
-_s mul _r _ten
-_d sub _s _1",
-        );
+        let scaled = SPHERE.replace("_d sub _r _1", "_ten const 10\n_s mul _r _ten\n_d sub _s _1");
         let scaled = script_of(&model_file("scaled.vm", &scaled)).unwrap();
         assert_eq!(scaled.lipschitz, Some(11.0));
         for line in [
