@@ -68,8 +68,9 @@ fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
-/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`, and W7
-/// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise).
+/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`; W7
+/// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise), and `large` imports the
+/// model `scene` names (the generated city otherwise).
 pub fn run(
     workload: Workload,
     reps: usize,

@@ -245,10 +245,10 @@ pub fn gradient_norms(program: &nerfjit_dsl::Program, n: usize) -> Result<Vec<f3
     let vec3 = [nerfjit_dsl::Type::Vec(3)];
     let gradient = compiler.function("sdf", &vec3, &nerfjit_dsl::Type::F32, Kind::Gradient)?;
     let center = |i: usize| -1.0 + 2.0 * (i as f32 + 0.5) / n as f32;
-    let points: Vec<[f32; 3]> = (0..n * n * n)
-        .map(|i| [center(i % n), center(i / n % n), center(i / (n * n))])
-        .collect();
-    Ok(steepness::gradient_norms(&gradient, &points))
+    // Cell k of axis a: the x index varies fastest, then y, then z.
+    let axis = |a: u32| -> Vec<f32> { (0..n * n * n).map(|i| center(i / n.pow(a) % n)).collect() };
+    let (x, y, z) = (axis(0), axis(1), axis(2));
+    Ok(steepness::gradient_norms(&gradient, &[&x, &y, &z]))
 }
 
 /// The number of operations of a script written by [`convert`].

@@ -61,9 +61,7 @@ pub fn first_nonfinite(f: &dyn BatchFn, rays: ProbeRays) -> Option<(Vec3, f32)> 
         })
         .collect();
     let inputs: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
-    let mut outputs = vec![vec![0.0f32; n]; f.n_outputs()];
-    let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
-    f.eval(n, &inputs, &mut outs);
+    let outputs = f.eval_columns(&inputs);
     (0..n).find_map(|i| {
         let bad = outputs.iter().map(|o| o[i]).find(|v| !v.is_finite())?;
         Some((points[i], bad))

@@ -34,16 +34,11 @@ fn significant(x: f32) -> f32 {
 }
 
 /// The norms of the gradient computed by `gradient` (a function of a position whose outputs are its value
-/// and then the gradient's x, y and z) at `points`.
-pub fn gradient_norms(gradient: &dyn BatchFn, points: &[[f32; 3]]) -> Vec<f32> {
-    let n = points.len();
-    let columns: Vec<Vec<f32>> = (0..3).map(|c| points.iter().map(|p| p[c]).collect()).collect();
-    let inputs: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
-    let mut outputs = vec![vec![0.0f32; n]; gradient.n_outputs()];
-    let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
-    gradient.eval(n, &inputs, &mut outs);
-    (0..n)
-        .map(|i| (outputs[1][i].powi(2) + outputs[2][i].powi(2) + outputs[3][i].powi(2)).sqrt())
+/// and then the gradient's x, y and z) at the points whose x, y and z are the columns of `xyz`.
+pub fn gradient_norms(gradient: &dyn BatchFn, xyz: &[&[f32]]) -> Vec<f32> {
+    let out = gradient.eval_columns(xyz);
+    (0..out[0].len())
+        .map(|i| (out[1][i].powi(2) + out[2][i].powi(2) + out[3][i].powi(2)).sqrt())
         .collect()
 }
 
@@ -53,8 +48,10 @@ pub fn warning(gradient: &dyn BatchFn, rays: ProbeRays, lipschitz: f32) -> Optio
     if gradient.n_inputs() != 3 || gradient.n_outputs() != 4 {
         return None;
     }
-    let points: Vec<[f32; 3]> = rays.points().0.iter().map(|p| p.to_array()).collect();
-    let typical = typical_largest(&gradient_norms(gradient, &points))?;
+    let points = rays.points().0;
+    let xyz: Vec<Vec<f32>> = (0..3).map(|c| points.iter().map(|p| p[c]).collect()).collect();
+    let xyz: Vec<&[f32]> = xyz.iter().map(Vec::as_slice).collect();
+    let typical = typical_largest(&gradient_norms(gradient, &xyz))?;
     (typical > 1.2 * lipschitz).then(|| {
         format!(
             "warning: |∇sdf| exceeds {typical:.3} at 0.1% of {} points along the first frame's rays, more than \

@@ -15,6 +15,16 @@ pub trait BatchFn: Sync {
     /// Evaluates points 0..n. `inputs[i]` and `outputs[o]` each have length >= n.
     fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]);
 
+    /// Evaluates every point of `inputs` (one column per input, all of the same length) into new output
+    /// columns.
+    fn eval_columns(&self, inputs: &[&[f32]]) -> Vec<Vec<f32>> {
+        let n = inputs.first().map_or(0, |c| c.len());
+        let mut outputs = vec![vec![0.0f32; n]; self.n_outputs()];
+        let mut outs: Vec<&mut [f32]> = outputs.iter_mut().map(Vec::as_mut_slice).collect();
+        self.eval(n, inputs, &mut outs);
+        outputs
+    }
+
     /// A fused sphere tracer of this function, if it is an SDF that offers one; the sphere tracer then
     /// marches whole rays in one call instead of calling [`BatchFn::eval`] once per step.
     fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
