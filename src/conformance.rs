@@ -124,12 +124,8 @@ fn points(inputs: usize, n: usize) -> Vec<Vec<f32>> {
 
 /// `field`'s outputs at `points`, output by output.
 fn outputs(field: &dyn BatchFn, points: &[Vec<f32>]) -> Vec<Vec<f32>> {
-    let n = points[0].len();
     let ins: Vec<&[f32]> = points.iter().map(Vec::as_slice).collect();
-    let mut outs = vec![vec![0.0f32; n]; field.n_outputs()];
-    let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
-    field.eval(n, &ins, &mut refs);
-    outs
+    field.eval_columns(&ins)
 }
 
 /// Checks backend `B` against the interpreter on every function it takes; returns how many it took

@@ -259,9 +259,7 @@ fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec
         columns.extend((0..3).map(|a| mesh.normals.iter().map(|normal| inward * normal[a]).collect()));
     }
     let ins: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
-    let mut rgb = vec![vec![0.0f32; n]; 3];
-    let mut outs: Vec<&mut [f32]> = rgb.iter_mut().map(Vec::as_mut_slice).collect();
-    f.eval(n, &ins, &mut outs);
+    let rgb = f.eval_columns(&ins);
     let unit = |v: f32| if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
     Ok((0..n).map(|k| [0, 1, 2].map(|c| unit(rgb[c][k]))).collect())
 }

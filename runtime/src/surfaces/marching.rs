@@ -687,12 +687,9 @@ fn normals_from_gradient(
     order.sort_unstable();
     for group in order.chunk_by(|a, b| a.0 == b.0) {
         let gradient = regions.and_then(|r| r.gradient(group[0].0)).unwrap_or(gradient);
-        let n = group.len();
         let column = |axis: usize| -> Vec<f32> { group.iter().map(|&(_, v)| vertices[v][axis]).collect() };
         let (x, y, z) = (column(0), column(1), column(2));
-        let mut outputs = vec![vec![0.0f32; n]; 4];
-        let mut slices: Vec<&mut [f32]> = outputs.iter_mut().map(|o| o.as_mut_slice()).collect();
-        gradient.eval(n, &[&x, &y, &z], &mut slices);
+        let outputs = gradient.eval_columns(&[&x, &y, &z]);
         for (k, &(_, v)) in group.iter().enumerate() {
             let g = Vec3::new(outputs[1][k], outputs[2][k], outputs[3][k]).normalize_or_zero();
             if g.is_finite() && g != Vec3::ZERO {
