@@ -6,7 +6,9 @@
 //
 // 1,048,576 uniform random points in [-4, 4]^3 (structure of arrays, as W7). "sort" is a counting sort by
 // cell (per-thread histograms, one prefix sum, a scatter of x, y, z and the point's index); "back" writes
-// one float per point to its original position. Best of 21 runs, in ns per point.
+// one float per point to its original position. "in blocks" does both per block of 4,096 points, so that
+// everything stays in cache: cells, four interleaved histograms, the scatter of x, y, z and a 16-bit index,
+// and the write back of one float per point. Best of 21 runs, in ns per point.
 #include <omp.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -20,6 +22,41 @@ static double now(void) {
     struct timespec t;
     clock_gettime(CLOCK_MONOTONIC, &t);
     return t.tv_sec + t.tv_nsec * 1e-9;
+}
+
+#define BLOCK 4096
+
+/// Sorts one block of points by cell and writes a stand-in result (x + y·z of each sorted point) back in the
+/// points' order: the work that evaluating a block cell by cell adds to evaluating it in order.
+static void sort_block(const float *x, const float *y, const float *z, float *out, int r, float scale) {
+    float sx[BLOCK], sy[BLOCK], sz[BLOCK];
+    uint16_t index[BLOCK];
+    uint16_t cell[BLOCK];
+    uint32_t count[4][4096], start[4096];
+    const int cells = r * r * r;
+    memset(count, 0, sizeof count);
+    for (int i = 0; i < BLOCK; i++) {
+        int a = (int)((x[i] + 4) * scale), b = (int)((y[i] + 4) * scale), d = (int)((z[i] + 4) * scale);
+        a = a < r - 1 ? a : r - 1;
+        b = b < r - 1 ? b : r - 1;
+        d = d < r - 1 ? d : r - 1;
+        cell[i] = (uint16_t)((d * r + b) * r + a);
+    }
+    for (int i = 0; i < BLOCK; i += 4)
+        for (int u = 0; u < 4; u++) count[u][cell[i + u]]++;
+    uint32_t next = 0;
+    for (int k = 0; k < cells; k++) {
+        start[k] = next;
+        next += count[0][k] + count[1][k] + count[2][k] + count[3][k];
+    }
+    for (int i = 0; i < BLOCK; i++) {
+        const uint32_t j = start[cell[i]]++;
+        sx[j] = x[i];
+        sy[j] = y[i];
+        sz[j] = z[i];
+        index[j] = (uint16_t)i;
+    }
+    for (int j = 0; j < BLOCK; j++) out[index[j]] = sx[j] + sy[j] * sz[j];
 }
 
 static float *floats(void) {
@@ -52,7 +89,7 @@ int main(int argc, char **argv) {
         result[i] = (float)i;
     }
     const float scale = r / 8.0f;
-    double best_sort = 1e9, best_back = 1e9;
+    double best_sort = 1e9, best_back = 1e9, best_blocks = 1e9;
     for (int rep = 0; rep < 21; rep++) {
         const double t0 = now();
 #pragma omp parallel
@@ -93,10 +130,16 @@ int main(int argc, char **argv) {
 #pragma omp parallel for
         for (int j = 0; j < N; j++) out[index[j]] = result[j] + sx[j];
         const double t2 = now();
+#pragma omp parallel for schedule(static)
+        for (int b = 0; b < N; b += BLOCK) sort_block(x + b, y + b, z + b, out + b, r, scale);
+        const double t3 = now();
         if (t1 - t0 < best_sort) best_sort = t1 - t0;
         if (t2 - t1 < best_back) best_back = t2 - t1;
+        if (t3 - t2 < best_blocks) best_blocks = t3 - t2;
     }
-    printf("%d^3 cells, %d thread(s): sort %.2f ns/point, back in order %.2f ns/point (checksum %g)\n", r, threads,
-           best_sort * 1e9 / N, best_back * 1e9 / N, (double)out[N / 2] + sy[N / 3] + sz[N / 5]);
+    printf("%d^3 cells, %d thread(s): sort %.2f ns/point, back in order %.2f ns/point; both in blocks of %d %.2f "
+           "ns/point (checksum %g)\n",
+           r, threads, best_sort * 1e9 / N, best_back * 1e9 / N, BLOCK, best_blocks * 1e9 / N,
+           (double)out[N / 2] + sy[N / 3] + sz[N / 5]);
     return 0;
 }
