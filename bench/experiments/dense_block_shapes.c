@@ -72,18 +72,7 @@ __attribute__((noinline)) static void tile_6x64_rows_outer(const float *a, Input
 }
 
 int main(void) {
-    const int column = 144;
-    float *xs = aligned_alloc(64, K * column * sizeof(float));
-    float *outs = aligned_alloc(64, ROWS * column * sizeof(float));
-    float *a = aligned_alloc(64, ROWS * K * sizeof(float));
-    const float *x[K];
-    float *out[ROWS];
-    for (int k = 0; k < K; k++) {
-        x[k] = xs + k * column;
-        for (int t = 0; t < column; t++) xs[k * column + t] = 0.001f * t;
-    }
-    for (int r = 0; r < ROWS; r++) out[r] = outs + r * column;
-    for (int i = 0; i < ROWS * K; i++) a[i] = 0.001f * (i % 97);
+    const Operands o = operands(ROWS, 144);
     const struct {
         const char *name;
         void (*tile)(const float *, Inputs, Outputs);
@@ -92,19 +81,16 @@ int main(void) {
     const int n_shapes = sizeof shapes / sizeof shapes[0];
     float sink[256];
     for (int round = 0; round < 4; round++) {
-        const long fmas = 20000000;
-        double t0 = now();
-        peak(fmas, sink);
-        const double peak_gflops = fmas * 16.0 * 32 / (now() - t0) / 1e9;
-        printf("peak %.1f GFLOP/s:", peak_gflops);
+        const double round_peak = peak_gflops(sink);
+        printf("peak %.1f GFLOP/s:", round_peak);
         for (int s = 0; s < n_shapes; s++) {
             const long reps = 300000;
-            t0 = now();
-            for (long j = 0; j < reps; j++) shapes[s].tile(a, x, out);
+            const double t0 = now();
+            for (long j = 0; j < reps; j++) shapes[s].tile(o.a, o.x, o.out);
             const double gflops = (double)reps * ROWS * K * TILE * 2 / (now() - t0) / 1e9;
-            printf("  %s %.0f%%", shapes[s].name, 100 * gflops / peak_gflops);
+            printf("  %s %.0f%%", shapes[s].name, 100 * gflops / round_peak);
         }
-        printf("   [%g]\n", (double)outs[7] + sink[3]);
+        printf("   [%g]\n", (double)o.outs[7] + sink[3]);
     }
     return 0;
 }

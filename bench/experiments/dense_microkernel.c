@@ -51,32 +51,19 @@ int main(int argc, char **argv) {
         fprintf(stderr, "usage: %s [COLUMN_FLOATS >= %d [ROWS 6..1024]]\n", argv[0], TILE);
         return 2;
     }
-    float *xs = aligned_alloc(64, (size_t)K * column * sizeof(float));
-    float *outs = aligned_alloc(64, (size_t)rows * column * sizeof(float));
-    float *a = aligned_alloc(64, (size_t)rows * K * sizeof(float));
-    const float **x = malloc(K * sizeof(float *));
-    float **out = malloc(rows * sizeof(float *));
-    for (int k = 0; k < K; k++) {
-        x[k] = xs + (size_t)k * column;
-        for (int t = 0; t < column; t++) xs[(size_t)k * column + t] = 0.001f * t;
-    }
-    for (int r = 0; r < rows; r++) out[r] = outs + (size_t)r * column;
-    for (int i = 0; i < rows * K; i++) a[i] = 0.001f * (i % 97);
+    const Operands o = operands(rows, column);
     float sink[256];
     for (int round = 0; round < 3; round++) {
-        const long fmas = 20000000;
-        double t0 = now();
-        peak(fmas, sink);
-        const double pk = fmas * 16.0 * 32 / (now() - t0) / 1e9;
+        const double pk = peak_gflops(sink);
         const long reps = 40000000L / rows;
-        t0 = now();
-        for (long i = 0; i < reps; i++) tile(a, rows, x, out);
+        double t0 = now();
+        for (long i = 0; i < reps; i++) tile(o.a, rows, o.x, o.out);
         const double tl = (double)reps * rows * K * TILE * 2 / (now() - t0) / 1e9;
         t0 = now();
-        for (long i = 0; i < 64 * reps; i++) one_block(a, x, out);
+        for (long i = 0; i < 64 * reps; i++) one_block(o.a, o.x, o.out);
         const double bl = 64.0 * reps * 6 * K * 64 * 2 / (now() - t0) / 1e9;
         printf("peak %.1f GFLOP/s   tile %.1f (%.0f%%)   block %.1f (%.0f%%)   [%g]\n", pk, tl, 100 * tl / pk, bl,
-               100 * bl / pk, (double)outs[7] + sink[3]);
+               100 * bl / pk, (double)o.outs[7] + sink[3]);
     }
     return 0;
 }
