@@ -26,7 +26,7 @@ pub struct ProbeRays<'a> {
 
 impl ProbeRays<'_> {
     /// Points (and their rays' unit directions) on a grid of pixel rays, evenly from near to far.
-    pub(crate) fn points(&self) -> (Vec<Vec3>, Vec<Vec3>) {
+    fn points(&self) -> (Vec<Vec3>, Vec<Vec3>) {
         let (w, h) = self.size;
         let mut points = Vec::new();
         let mut dirs = Vec::new();
@@ -44,6 +44,19 @@ impl ProbeRays<'_> {
         }
         (points, dirs)
     }
+
+    /// The probed points, and the inputs of a function of `n_inputs` (3: a position; 6: a position and a
+    /// direction) at them as columns: x, y, z, then the ray's unit direction.
+    pub(crate) fn columns(&self, n_inputs: usize) -> (Vec<Vec3>, Vec<Vec<f32>>) {
+        let (points, dirs) = self.points();
+        let columns = (0..n_inputs)
+            .map(|c| match c {
+                0..3 => points.iter().map(|p| p[c]).collect(),
+                _ => dirs.iter().map(|d| d[c - 3]).collect(),
+            })
+            .collect();
+        (points, columns)
+    }
 }
 
 /// The first probed point where `f` (of a position, or of a position and a direction when it takes six
@@ -52,14 +65,8 @@ pub fn first_nonfinite(f: &dyn BatchFn, rays: ProbeRays) -> Option<(Vec3, f32)> 
     if !matches!(f.n_inputs(), 3 | 6) {
         return None;
     }
-    let (points, dirs) = rays.points();
+    let (points, columns) = rays.columns(f.n_inputs());
     let n = points.len();
-    let columns: Vec<Vec<f32>> = (0..f.n_inputs())
-        .map(|c| match c {
-            0..3 => points.iter().map(|p| p[c]).collect(),
-            _ => dirs.iter().map(|d| d[c - 3]).collect(),
-        })
-        .collect();
     let inputs: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
     let outputs = f.eval_columns(&inputs);
     (0..n).find_map(|i| {

@@ -48,8 +48,7 @@ pub fn warning(gradient: &dyn BatchFn, rays: ProbeRays, lipschitz: f32) -> Optio
     if gradient.n_inputs() != 3 || gradient.n_outputs() != 4 {
         return None;
     }
-    let points = rays.points().0;
-    let xyz: Vec<Vec<f32>> = (0..3).map(|c| points.iter().map(|p| p[c]).collect()).collect();
+    let (points, xyz) = rays.columns(3);
     let xyz: Vec<&[f32]> = xyz.iter().map(Vec::as_slice).collect();
     let typical = typical_largest(&gradient_norms(gradient, &xyz))?;
     (typical > 1.2 * lipschitz).then(|| {

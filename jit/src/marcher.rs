@@ -317,12 +317,12 @@ fn build(b: &mut FunctionBuilder, sdf: &Graph, groups: usize) {
     b.switch_to_block(step);
     let sp = b.block_params(step).to_vec();
     let mut next = sp[Group::TYPES.len() * groups];
-    let groups: Vec<Group> = sp
+    let current: Vec<Group> = sp
         .chunks(Group::TYPES.len())
         .take(groups)
         .map(Group::from_params)
         .collect();
-    let stepped: Vec<Group> = groups
+    let stepped: Vec<Group> = current
         .iter()
         .map(|group| step_group(b, &emitter, &batch, *group))
         .collect();
