@@ -169,10 +169,8 @@ impl OccupancyGrid {
                             .collect()
                     })
                     .collect();
-                let mut lower_upper = vec![vec![0.0f32; n]; 2];
                 let inputs: Vec<&[f32]> = corners.iter().map(Vec::as_slice).collect();
-                let mut outputs: Vec<&mut [f32]> = lower_upper.iter_mut().map(Vec::as_mut_slice).collect();
-                bounds_of.eval(n, &inputs, &mut outputs);
+                let lower_upper = bounds_of.eval_columns(&inputs);
                 for (cell, &upper) in cells.iter_mut().zip(&lower_upper[1]) {
                     // NaN compares false: occupied.
                     *cell = upper + 1e-4 * upper.abs() < threshold;
