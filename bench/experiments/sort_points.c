@@ -132,14 +132,14 @@ int main(int argc, char **argv) {
 #pragma omp parallel for
         for (int j = 0; j < N; j++) out[index[j]] = result[j] + sx[j];
         const double t2 = now();
+        if (t1 - t0 < best_sort) best_sort = t1 - t0;
+        if (t2 - t1 < best_back) best_back = t2 - t1;
         if (cells <= BLOCK_CELLS) {
 #pragma omp parallel for schedule(static)
             for (int b = 0; b < N; b += BLOCK) sort_block(x + b, y + b, z + b, out + b, r, scale);
+            const double t3 = now();
+            if (t3 - t2 < best_blocks) best_blocks = t3 - t2;
         }
-        const double t3 = now();
-        if (t1 - t0 < best_sort) best_sort = t1 - t0;
-        if (t2 - t1 < best_back) best_back = t2 - t1;
-        if (cells <= BLOCK_CELLS && t3 - t2 < best_blocks) best_blocks = t3 - t2;
     }
     printf("%d^3 cells, %d thread(s): sort %.2f ns/point, back in order %.2f ns/point; ", r, threads,
            best_sort * 1e9 / N, best_back * 1e9 / N);
