@@ -1,13 +1,14 @@
 //! `nerfjit data check`: what a data set holds (its camera files, views, image sizes and formats,
 //! intrinsics, where the cameras are), or precisely what is wrong with it, before any training. Reads
-//! Blender and course camera files, nerfstudio / instant-ngp `transforms.json` and COLMAP model folders.
+//! Blender and course camera files, nerfstudio / instant-ngp `transforms.json`, COLMAP model folders,
+//! LLFF scenes (`poses_bounds.npy`) and DTU scans (`cameras_sphere.npz`).
 
 use std::path::{Path, PathBuf};
 
 use image::ImageDecoder;
 use nerfjit_runtime::{
-    default_images_folder, is_colmap_model, is_nerfstudio, load_blender_cameras, load_box_cameras,
-    load_colmap, load_nerfstudio, CameraFormat, CameraSet, Capture,
+    default_images_folder, dtu_cameras_file, is_colmap_model, is_llff, is_nerfstudio, load_blender_cameras,
+    load_box_cameras, load_colmap, load_dtu, load_llff, load_nerfstudio, CameraFormat, CameraSet, Capture,
 };
 
 use crate::failure::{Failure, Result};
@@ -23,6 +24,12 @@ const CAMERA_FILES: &[&str] = &[
 
 /// Checks `path`, a camera file or a folder of them; a report, or what is wrong.
 pub fn run(path: &Path) -> Result<String> {
+    if path.is_dir() && is_llff(path) {
+        return check_llff(path);
+    }
+    if path.is_dir() && dtu_cameras_file(path).is_some() {
+        return check_dtu(path);
+    }
     if path.is_dir() && is_colmap_model(path) {
         return check_colmap(path);
     }
@@ -82,7 +89,7 @@ fn check_file(file: &Path) -> Result<String> {
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
     if is_nerfstudio(&text) {
         let capture = load_nerfstudio(file)?;
-        return check_capture(file, "nerfstudio / instant-ngp", capture);
+        return check_capture(file, "nerfstudio / instant-ngp", capture, true);
     }
     let format = format_of(file)?;
     let set = match format {
@@ -210,12 +217,91 @@ fn check_colmap(folder: &Path) -> Result<String> {
         folder,
         &format!("COLMAP (images in {})", images.display()),
         capture,
+        true,
     )
+}
+
+/// An LLFF scene: its smallest image folder's views (every folder of images is listed), and its depth
+/// bounds.
+fn check_llff(folder: &Path) -> Result<String> {
+    let mut folders: Vec<u32> = std::fs::read_dir(folder)
+        .map_err(|e| Failure::Message(format!("cannot list '{}': {e}", folder.display())))?
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter_map(|name| match name.as_str() {
+            "images" => Some(1),
+            _ => name.strip_prefix("images_")?.parse().ok(),
+        })
+        .collect();
+    folders.sort_unstable();
+    let downscale = folders.last().copied().unwrap_or(1);
+    let scene = load_llff(folder, downscale)?;
+    let listed: Vec<String> = folders
+        .iter()
+        .map(|k| match k {
+            1 => "images".to_string(),
+            k => format!("images_{k}"),
+        })
+        .collect();
+    let mut out = check_capture(
+        folder,
+        &format!(
+            "LLFF (poses_bounds.npy; image folders {}; checked: {})",
+            listed.join(", "),
+            scene.images.display()
+        ),
+        scene.capture,
+        true,
+    )?;
+    out += &format!(
+        "  train with data: llff(\"{}\", downscale: {downscale}) and LLFF's split, val: holdout(every: 8)\n",
+        folder.display()
+    );
+    Ok(out)
+}
+
+/// A DTU scan, with its masks when it has them.
+fn check_dtu(folder: &Path) -> Result<String> {
+    let masks = folder.join("mask").is_dir();
+    let capture = load_dtu(folder, masks)?;
+    let distances: Vec<f32> = capture
+        .frames
+        .iter()
+        .map(|f| f.camera.c2w.w_axis.truncate().length())
+        .collect();
+    let (near, far) = (
+        distances.iter().copied().fold(f32::INFINITY, f32::min),
+        distances.iter().copied().fold(0.0, f32::max),
+    );
+    let masked = if masks {
+        let missing = capture
+            .frames
+            .iter()
+            .filter_map(|f| f.mask.as_ref())
+            .find(|m| image_kind(m).is_err());
+        if let Some(mask) = missing {
+            image_kind(mask)?;
+        }
+        format!("{} masks", capture.frames.len())
+    } else {
+        "no masks".to_string()
+    };
+    let camera_file = dtu_cameras_file(folder).expect("checked by the caller");
+    let mut out = check_capture(
+        folder,
+        &format!("DTU / IDR / NeuS ({}, {masked})", camera_file.display()),
+        capture,
+        false,
+    )?;
+    out += &format!(
+        "  in the scan's frame (the default, normalize: false), the object inside the unit sphere: camera centers \
+         {near:.2} to {far:.2} from the origin\n"
+    );
+    Ok(out)
 }
 
 /// A capture's report: views, image sizes (from the headers, checked against the cameras), intrinsics,
 /// sparse points, and where normalization puts the cameras.
-fn check_capture(source: &Path, kind: &str, mut capture: Capture) -> Result<String> {
+fn check_capture(source: &Path, kind: &str, mut capture: Capture, normalized: bool) -> Result<String> {
     let n = capture.frames.len();
     let mut out = format!("{}: {kind} cameras\n", source.display());
     let set = CameraSet {
@@ -255,12 +341,26 @@ fn check_capture(source: &Path, kind: &str, mut capture: Capture) -> Result<Stri
     if let Some(scale) = capture.aabb_scale {
         out += &format!("  aabb_scale {scale}\n");
     }
+    if let Some((near, far)) = capture.depth_bounds {
+        out += &format!("  depth bounds {near:.3} to {far:.3} in the capture's units\n");
+    }
     let normalization = capture.normalize()?;
     let c = normalization.center;
     out += &format!(
-        "  normalized (the default): z up, centered on what the cameras look at, scaled by {:.4} so the cameras \
+        "  normalized ({}): z up, centered on what the cameras look at, scaled by {:.4} so the cameras \
          are 4 units away on average (center [{:.3}, {:.3}, {:.3}] in the rotated capture)\n",
-        normalization.scale, c.x, c.y, c.z
+        if normalized {
+            "the default"
+        } else {
+            "with normalize: true"
+        },
+        normalization.scale,
+        c.x,
+        c.y,
+        c.z
     );
+    if let Some((near, far)) = capture.depth_bounds {
+        out += &format!("  depth bounds normalized: {near:.3} to {far:.3}\n");
+    }
     Ok(out)
 }

@@ -6,10 +6,15 @@
 //!   data, area-downscaled to `size`², alpha composited on the background, the first `views` frames;
 //! - `nerfstudio("transforms.json", downscale: 2, background: [0, 0, 0], views: 20, normalize: true)`:
 //!   a nerfstudio / instant-ngp capture (per-frame intrinsics, distortion, any image size, PNG or JPEG);
-//! - `colmap("sparse/0", images: "images", downscale: 2, ...)`: a COLMAP model (text or binary).
+//! - `colmap("sparse/0", images: "images", downscale: 2, ...)`: a COLMAP model (text or binary);
+//! - `llff("fern", downscale: 8, ...)`: an LLFF forward-facing scene (`poses_bounds.npy`, the images of
+//!   `images_8/` or of `images/` divided on load);
+//! - `dtu("scan24", masks: true, ...)`: a DTU scan in the IDR / NeuS layout (`cameras_sphere.npz`,
+//!   `image/` or `images/`, `mask/`), in the frame where the object is inside the unit sphere.
 //!
 //! Captures are moved into nerfjit's frame (z up, centered on what the cameras look at, cameras 4 units
-//! away on average) unless `normalize: false`.
+//! away on average) unless `normalize: false`, the default of `dtu` (its unit sphere is the frame every
+//! surface method works in).
 
 use std::path::{Path, PathBuf};
 
@@ -17,7 +22,7 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{budget, Diagnostic};
 use nerfjit_runtime::{
     default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
-    load_colmap, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
+    load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
 };
 
 use crate::failure::Result;
@@ -58,22 +63,28 @@ pub enum DataKind {
     Nerfstudio(CaptureData),
     /// A COLMAP model folder and the folder of its images.
     Colmap(CaptureData, PathBuf),
+    /// An LLFF scene folder (`poses_bounds.npy`).
+    Llff(CaptureData),
+    /// A DTU scan folder (`cameras_sphere.npz`), and whether its masks are applied.
+    Dtu(CaptureData, bool),
 }
 
 /// A data set: where it is and how to load it.
 #[derive(Clone, Debug)]
 pub struct DataSet {
-    /// The camera file (or, for COLMAP, the model's folder).
+    /// The camera file (or, for COLMAP, LLFF and DTU, the model's or the scene's folder).
     pub path: PathBuf,
     /// Its kind.
     pub kind: DataKind,
 }
 
 const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.json\", size: 128), \
-                    nerfstudio(\"transforms.json\") or colmap(\"sparse/0\", images: \"images\")";
+                    nerfstudio(\"transforms.json\"), colmap(\"sparse/0\", images: \"images\"), \
+                    llff(\"scene\", downscale: 8) or dtu(\"scan\", masks: true)";
 
-/// The views of a camera file with its images, to score renders against: a nerfstudio capture or a
-/// COLMAP model folder (every frame, normalized by its own cameras as training and `render --cameras`
+/// The views of a camera file with its images, to score renders against: a nerfstudio capture, a
+/// COLMAP model folder, an LLFF scene folder or a DTU scan folder (with its masks where it has them)
+/// (every frame, normalized by its own cameras as training and `render --cameras`
 /// normalize it, downscaled by the whole factor nearest to the frames' width ÷ `width`), or Blender
 /// transforms at `width`².
 pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views> {
@@ -83,7 +94,22 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
         views: None,
         normalize: true,
     };
-    let kind = if nerfjit_runtime::is_colmap_model(file) {
+    let kind = if nerfjit_runtime::is_llff(file) {
+        let downscale = nerfjit_runtime::data::llff::downscale_for_width(file, width)?;
+        let set = DataSet {
+            path: file.to_path_buf(),
+            kind: DataKind::Llff(CaptureData { downscale, ..data }),
+        };
+        return set.views();
+    } else if nerfjit_runtime::dtu_cameras_file(file).is_some() {
+        DataKind::Dtu(
+            CaptureData {
+                normalize: false,
+                ..data
+            },
+            file.join("mask").is_dir(),
+        )
+    } else if nerfjit_runtime::is_colmap_model(file) {
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         DataKind::Colmap(data, images)
     } else if nerfjit_runtime::is_nerfstudio(
@@ -117,26 +143,37 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
         "blender" => &["file", "size", "background", "views"],
         "nerfstudio" => &["file", "downscale", "background", "views", "normalize"],
         "colmap" => &["model", "images", "downscale", "background", "views", "normalize"],
+        "llff" => &["folder", "downscale", "background", "views", "normalize"],
+        "dtu" => &["folder", "masks", "downscale", "background", "views", "normalize"],
         other => {
             return Err(Diagnostic::new(v.span, format!("unknown data source '{other}'")).with_hint(HINT));
         }
     };
     let a = CallArgs::new(v, slots)?;
-    let first = if kind_name == "colmap" { "model" } else { "file" };
+    let first = match kind_name {
+        "colmap" => "model",
+        "llff" | "dtu" => "folder",
+        _ => "file",
+    };
     let path = data_path(&a.string(first)?, script_dir);
-    let exists = if kind_name == "colmap" {
-        nerfjit_runtime::is_colmap_model(&path)
-    } else {
-        path.is_file()
+    let exists = match kind_name {
+        "colmap" => nerfjit_runtime::is_colmap_model(&path),
+        "llff" => nerfjit_runtime::is_llff(&path),
+        "dtu" => nerfjit_runtime::dtu_cameras_file(&path).is_some(),
+        _ => path.is_file(),
     };
     if !exists {
-        let what = if kind_name == "colmap" {
-            format!(
+        let what = match kind_name {
+            "colmap" => format!(
                 "'{}' holds no COLMAP model (cameras.txt or cameras.bin)",
                 path.display()
-            )
-        } else {
-            format!("data file '{}' not found", path.display())
+            ),
+            "llff" => format!("'{}' holds no LLFF scene (poses_bounds.npy)", path.display()),
+            "dtu" => format!(
+                "'{}' holds no DTU scan (cameras_sphere.npz or cameras.npz)",
+                path.display()
+            ),
+            _ => format!("data file '{}' not found", path.display()),
         };
         return Err(Diagnostic::new(v.span, what)
             .with_hint("paths are relative to the working folder or to the script"));
@@ -152,7 +189,7 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
             .map(|n| whole(n, 1, 100_000).map(|n| n as usize))
             .transpose()
     };
-    let capture = || -> std::result::Result<CaptureData, Diagnostic> {
+    let capture = |normalize: &'static str| -> std::result::Result<CaptureData, Diagnostic> {
         Ok(CaptureData {
             downscale: a
                 .raw("downscale")
@@ -161,7 +198,7 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
                 .unwrap_or(1) as u32,
             background: background()?,
             views: views()?,
-            normalize: a.choice("normalize", &["true", "false"], "true")? == "true",
+            normalize: a.choice("normalize", &["true", "false"], normalize)? == "true",
         })
     };
     let kind = match kind_name {
@@ -177,7 +214,12 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
                 views: views()?,
             })
         }
-        "nerfstudio" => DataKind::Nerfstudio(capture()?),
+        "nerfstudio" => DataKind::Nerfstudio(capture("true")?),
+        "llff" => DataKind::Llff(capture("true")?),
+        "dtu" => DataKind::Dtu(
+            capture("false")?,
+            a.choice("masks", &["true", "false"], "false")? == "true",
+        ),
         _ => {
             let images = match a.raw("images") {
                 Some(_) => data_path(&a.string("images")?, script_dir),
@@ -196,7 +238,7 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
                     format!("image folder '{}' not found", images.display()),
                 ));
             }
-            DataKind::Colmap(capture()?, images)
+            DataKind::Colmap(capture("true")?, images)
         }
     };
     Ok(DataSet { path, kind })
@@ -227,11 +269,21 @@ impl DataSet {
         }
     }
 
-    /// The capture of a nerfstudio or COLMAP data set, normalized when asked, and how to load it.
+    /// The capture of a nerfstudio, COLMAP, LLFF or DTU data set, normalized when asked, and how to
+    /// load it.
     fn capture(&self) -> Result<Option<(Capture, CaptureData)>> {
         let (mut capture, data) = match &self.kind {
             DataKind::Nerfstudio(data) => (load_nerfstudio(&self.path)?, *data),
             DataKind::Colmap(data, images) => (load_colmap(&self.path, images)?, *data),
+            DataKind::Llff(data) => {
+                let scene = load_llff(&self.path, data.downscale)?;
+                let data = CaptureData {
+                    downscale: scene.remaining_downscale,
+                    ..*data
+                };
+                (scene.capture, data)
+            }
+            DataKind::Dtu(data, masks) => (load_dtu(&self.path, *masks)?, *data),
             _ => return Ok(None),
         };
         if data.normalize {

@@ -11,6 +11,8 @@
 //! the frame nerfjit's scripts expect (the one of the NeRF-synthetic scenes), as instant-ngp's
 //! `colmap2nerf` does: +Z along the cameras' mean up vector, the origin at the point nearest to
 //! every optical axis (what the cameras look at), and the cameras 4 units from it on average.
+//! Forward-facing captures with known depth bounds (LLFF's) put the origin on the mean optical axis
+//! at the scene's nearest depth instead, and their bounds are scaled along.
 
 use std::path::{Path, PathBuf};
 
@@ -111,6 +113,9 @@ pub struct Frame {
     pub camera: FrameCamera,
     /// The image file.
     pub image: PathBuf,
+    /// An object mask for the image (white: object), if the data set has one: pixels where it is below
+    /// half are replaced by the background on load, as NeuS and IDR train with masks.
+    pub mask: Option<PathBuf>,
 }
 
 /// A capture: frames and, from COLMAP, the sparse points of the scene.
@@ -122,6 +127,9 @@ pub struct Capture {
     pub points: Vec<Vec3>,
     /// instant-ngp's `aabb_scale`, if the file states one.
     pub aabb_scale: Option<f32>,
+    /// The nearest and farthest depth of the scene over all views (LLFF's per-view bounds), if known,
+    /// in the capture's units: scaled with it by [`Capture::normalize`].
+    pub depth_bounds: Option<(f32, f32)>,
 }
 
 /// The similarity transform [`Capture::normalize`] applied: `x' = scale · (rotation · x − center)`.
@@ -185,7 +193,10 @@ impl Capture {
             .iter()
             .map(|f| -(rotation * f.camera.c2w.z_axis.truncate()).normalize_or_zero())
             .collect();
-        let center = nearest_to_axes(&positions, &axes);
+        let center = match self.forward_facing_center(&positions, &axes) {
+            Some(center) => center,
+            None => nearest_to_axes(&positions, &axes),
+        };
         let mean_distance =
             positions.iter().map(|p| (*p - center).length()).sum::<f32>() / positions.len().max(1) as f32;
         if !(mean_distance > 1e-6 && mean_distance.is_finite()) {
@@ -205,7 +216,27 @@ impl Capture {
         for p in &mut self.points {
             *p = normalization.point(*p);
         }
+        if let Some((near, far)) = &mut self.depth_bounds {
+            *near *= normalization.scale;
+            *far *= normalization.scale;
+        }
         Ok(normalization)
+    }
+
+    /// The center of a forward-facing capture (every camera looking within about 25° of their mean
+    /// direction) whose depth bounds are known: on the mean optical axis at the nearest depth of the
+    /// scene, so that after scaling the nearest content is 4 units from the cameras. Such axes (LLFF's
+    /// scenes) are too close to parallel for their nearest point to be well defined. `None` for other
+    /// captures.
+    fn forward_facing_center(&self, positions: &[Vec3], axes: &[Vec3]) -> Option<Vec3> {
+        let (near, _) = self.depth_bounds?;
+        let n = positions.len().max(1) as f32;
+        let mean_axis = axes.iter().copied().sum::<Vec3>() / n;
+        if mean_axis.length() < 0.9 || !(near > 0.0 && near.is_finite()) {
+            return None;
+        }
+        let mean_position = positions.iter().copied().sum::<Vec3>() / n;
+        Some(mean_position + mean_axis.normalize() * near)
     }
 
     /// The first `limit` frames (all if `None`), or an error if there are fewer.
@@ -350,7 +381,7 @@ pub fn decode_checked(path: &Path) -> Result<image::DynamicImage> {
 
 /// Decodes, undistorts, composites and resizes one frame's image to `size`.
 fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<ImageF32> {
-    let rgba = decode_checked(&frame.image)?.to_rgba32f();
+    let mut rgba = decode_checked(&frame.image)?.to_rgba32f();
     let camera = &frame.camera;
     if rgba.dimensions() != (camera.width, camera.height) {
         return Err(Error::format(
@@ -364,6 +395,9 @@ fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<I
             ),
         ));
     }
+    if let Some(mask) = &frame.mask {
+        apply_mask(&mut rgba, mask)?;
+    }
     let mut image = composite(&rgba, background);
     if !camera.distortion.is_none() {
         image = undistort(&image, camera.intrinsics, camera.distortion);
@@ -372,6 +406,30 @@ fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<I
         image = area_resize(&image, size.0, size.1);
     }
     Ok(image)
+}
+
+/// Makes the pixels of `rgba` transparent where the mask image at `mask` (of the same size; gray or
+/// color, read as luminance) is below half: masks saved as JPEG or resampled are not strictly binary.
+fn apply_mask(rgba: &mut image::Rgba32FImage, mask: &Path) -> Result<()> {
+    let luma = decode_checked(mask)?.to_luma32f();
+    if luma.dimensions() != rgba.dimensions() {
+        return Err(Error::format(
+            mask,
+            format!(
+                "the mask is {}×{} but its image is {}×{}",
+                luma.width(),
+                luma.height(),
+                rgba.width(),
+                rgba.height()
+            ),
+        ));
+    }
+    for (pixel, m) in rgba.pixels_mut().zip(luma.pixels()) {
+        if m[0] < 0.5 {
+            pixel[3] = 0.0;
+        }
+    }
+    Ok(())
 }
 
 /// The pinhole image of the same intrinsics: each pixel samples (bilinearly, clamped to the
@@ -447,6 +505,7 @@ mod tests {
                 height: 32,
             },
             image: PathBuf::from("x.png"),
+            mask: None,
         }
     }
 
@@ -469,6 +528,7 @@ mod tests {
             frames,
             points: vec![Vec3::new(0.1, 0.2, 0.3)],
             aabb_scale: None,
+            depth_bounds: None,
         }
     }
 
@@ -525,6 +585,7 @@ mod tests {
             frames,
             points: Vec::new(),
             aabb_scale: None,
+            depth_bounds: None,
         };
         let n = capture.normalize().unwrap();
         assert!(n.point(Vec3::new(1.0, 0.0, 0.0)).length() < 1e-5);
@@ -532,6 +593,7 @@ mod tests {
             frames: vec![frame(Mat4::IDENTITY); 2],
             points: Vec::new(),
             aabb_scale: None,
+            depth_bounds: None,
         };
         let e = one_place.clone().normalize().unwrap_err().to_string();
         assert!(e.contains("all at one point"), "{e}");

@@ -107,6 +107,7 @@ pub fn load_colmap(folder: &Path, images: &Path) -> Result<Capture> {
                     height: camera.height,
                 },
                 image: images.join(&image.name),
+                mask: None,
             })
         })
         .collect::<Result<Vec<_>>>()?;
@@ -114,6 +115,7 @@ pub fn load_colmap(folder: &Path, images: &Path) -> Result<Capture> {
         frames,
         points,
         aabb_scale: None,
+        depth_bounds: None,
     })
 }
 

@@ -43,6 +43,7 @@ pub fn load_nerfstudio(path: &Path) -> Result<Capture> {
         frames,
         points: Vec::new(),
         aabb_scale,
+        depth_bounds: None,
     })
 }
 
@@ -112,7 +113,11 @@ fn read_frame(path: &Path, root: &Node, frame: &Node) -> Result<Frame> {
     };
     // Builds the camera once to check the pose and intrinsics, with an error naming the frame.
     camera.camera(width, height).map_err(|e| frame.invalid(e))?;
-    Ok(Frame { camera, image })
+    Ok(Frame {
+        camera,
+        image,
+        mask: None,
+    })
 }
 
 /// A width or height given as a number: a whole number of pixels from 1.

@@ -190,6 +190,22 @@ impl NpyArray<'_> {
                 .collect(),
         }
     }
+
+    /// The elements in stored order as float64 (float32 widened exactly).
+    pub(crate) fn to_f64(&self) -> Vec<f64> {
+        let len: usize = self.shape.iter().product();
+        let data = &self.data[..len * self.dtype.size()];
+        match self.dtype {
+            Dtype::F32 => data
+                .chunks_exact(4)
+                .map(|b| f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+                .collect(),
+            Dtype::F64 => data
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes(std::array::from_fn(|k| b[k])))
+                .collect(),
+        }
+    }
 }
 
 /// `shape` as a Python tuple, e.g. `(2, 3)` or `(5,)`.
