@@ -600,6 +600,34 @@ mod tests {
     }
 
     #[test]
+    fn forward_facing_cameras_with_depth_bounds_are_centered_at_the_nearest_depth() {
+        // Five cameras in a row along x, all looking down −Z (the OpenGL identity pose), slightly
+        // turned; the scene from 10 to 50 units in front of them.
+        let frames = (0..5)
+            .map(|i| {
+                let turn = Mat4::from_rotation_y(0.05 * (i as f32 - 2.0));
+                let mut c2w = turn;
+                c2w.w_axis = Vec3::new(i as f32 - 2.0, 0.0, 0.0).extend(1.0);
+                frame(c2w)
+            })
+            .collect();
+        let mut capture = Capture {
+            frames,
+            points: Vec::new(),
+            aabb_scale: None,
+            depth_bounds: Some((10.0, 50.0)),
+        };
+        let n = capture.normalize().unwrap();
+        // The origin is 10 units along the mean axis from the mean position, and that distance is 4.
+        assert!(n.point(Vec3::new(0.0, 0.0, -10.0)).length() < 1e-3, "{n:?}");
+        let (near, far) = capture.depth_bounds.unwrap();
+        assert!(
+            (near - 4.0).abs() < 0.05 && (far - 20.0).abs() < 0.25,
+            "{near} {far}"
+        );
+    }
+
+    #[test]
     fn downscaled_cameras_keep_rays_through_the_same_footprints() {
         let f = frame(look_at(Vec3::new(3.0, 1.0, 2.0), Vec3::Z));
         assert_eq!(f.camera.downscaled(2), (24, 16));

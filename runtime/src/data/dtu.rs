@@ -242,3 +242,62 @@ pub fn decompose(p: ProjectionMatrix) -> std::result::Result<(Mat4, PixelIntrins
     };
     Ok((c2w, intrinsics))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DQuat;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// A projection built from intrinsics, a rotation and a center (OpenCV conventions), scaled by
+        /// any nonzero factor, decomposes into the same camera.
+        #[test]
+        fn decomposition_recovers_the_camera(
+            fx in 100.0f64..5000.0, aspect in 0.8f64..1.25, cx in 0.0f64..2000.0, cy in 0.0f64..2000.0,
+            axis in prop::array::uniform3(-1.0f64..1.0), angle in 0.0f64..6.28,
+            center in prop::array::uniform3(-50.0f64..50.0),
+            factor in prop_oneof![-1e3f64..-1e-3, 1e-3f64..1e3],
+        ) {
+            let axis = DVec3::from(axis);
+            prop_assume!(axis.length() > 0.1);
+            let w2c = DMat3::from_quat(DQuat::from_axis_angle(axis.normalize(), angle));
+            let center = DVec3::from(center);
+            let k = DMat3::from_cols(
+                DVec3::new(fx, 0.0, 0.0),
+                DVec3::new(0.0, fx * aspect, 0.0),
+                DVec3::new(cx, cy, 1.0),
+            );
+            let (m, p4) = (k * w2c, -(k * w2c * center));
+            let p = ProjectionMatrix(std::array::from_fn(|r| {
+                if r == 3 {
+                    [0.0, 0.0, 0.0, 1.0]
+                } else {
+                    [m.col(0)[r] * factor, m.col(1)[r] * factor, m.col(2)[r] * factor, p4[r] * factor]
+                }
+            }));
+            let (c2w, intrinsics) = decompose(p).unwrap();
+            let close = |a: f32, b: f64, tolerance: f64| (f64::from(a) - b).abs() <= tolerance * (1.0 + b.abs());
+            prop_assert!(close(intrinsics.fx, fx, 1e-4) && close(intrinsics.fy, fx * aspect, 1e-4));
+            prop_assert!(close(intrinsics.cx, cx + 0.5, 1e-4) && close(intrinsics.cy, cy + 0.5, 1e-4));
+            for i in 0..3 {
+                prop_assert!(close(c2w.w_axis[i], center[i], 1e-4), "{c2w} {center}");
+            }
+            // OpenGL axes: −Z is the OpenCV camera's forward (+Z), +Y its up (−Y).
+            let forward = w2c.row(2).as_vec3();
+            let down = w2c.row(1).as_vec3();
+            prop_assert!((-c2w.z_axis.truncate() - forward).length() < 1e-4);
+            prop_assert!((c2w.y_axis.truncate() + down).length() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn singular_and_skewed_projections_are_refused() {
+        let mut singular = ProjectionMatrix::IDENTITY;
+        singular.0[2] = [1.0, 0.0, 0.0, 0.0];
+        assert!(decompose(singular).unwrap_err().contains("singular"));
+        let mut skewed = ProjectionMatrix::IDENTITY;
+        skewed.0[0][1] = 0.2;
+        assert!(decompose(skewed).unwrap_err().contains("skew"));
+    }
+}
