@@ -7,9 +7,9 @@ use glam::{Vec2, Vec3};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_runtime::{
-    default_images_folder, is_camera_path, is_colmap_model, is_nerfstudio, load_blender_cameras,
-    load_box_cameras, load_camera_path, load_colmap, load_nerfstudio, orbit, surround, Camera, CameraFormat,
-    Up,
+    default_images_folder, dtu_cameras_file, is_camera_path, is_colmap_model, is_llff, is_nerfstudio,
+    load_blender_cameras, load_box_cameras, load_camera_path, load_colmap, load_dtu, load_llff,
+    load_nerfstudio, orbit, surround, Camera, CameraFormat, Up,
 };
 
 use crate::settings::{triple, CallArgs};
@@ -85,13 +85,22 @@ pub fn cameras(
 pub type FrameSize = (u32, u32);
 
 /// The cameras of a camera file — the course's, Blender's, a nerfstudio `transforms.json` or
-/// `camera_path.json`, or a COLMAP model folder (captures normalized as for training unless `normalize` is
-/// false) — and the (width, height) of its images when the file says.
+/// `camera_path.json`, a COLMAP model folder or an LLFF scene folder (captures normalized as for training
+/// unless `normalize` is false), or a DTU scan folder (in the scan's frame, as training keeps it) — and
+/// the (width, height) of its images when the file says.
 pub fn camera_file(
     file: &Path,
     normalize: bool,
 ) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
-    let capture = if is_colmap_model(file) {
+    if dtu_cameras_file(file).is_some() {
+        let capture = load_dtu(file, false)?;
+        let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
+        return Ok((capture.cameras(file, 1, None)?, size));
+    }
+    let capture = if is_llff(file) {
+        let scales = nerfjit_runtime::data::llff::image_scales(file);
+        Some(load_llff(file, scales.last().copied().unwrap_or(1))?.capture)
+    } else if is_colmap_model(file) {
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         Some(load_colmap(file, &images)?)
     } else {

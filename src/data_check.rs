@@ -224,15 +224,7 @@ fn check_colmap(folder: &Path) -> Result<String> {
 /// An LLFF scene: its smallest image folder's views (every folder of images is listed), and its depth
 /// bounds.
 fn check_llff(folder: &Path) -> Result<String> {
-    let mut folders: Vec<u32> = std::fs::read_dir(folder)
-        .map_err(|e| Failure::Message(format!("cannot list '{}': {e}", folder.display())))?
-        .filter_map(|e| e.ok()?.file_name().into_string().ok())
-        .filter_map(|name| match name.as_str() {
-            "images" => Some(1),
-            _ => name.strip_prefix("images_")?.parse().ok(),
-        })
-        .collect();
-    folders.sort_unstable();
+    let folders = nerfjit_runtime::data::llff::image_scales(folder);
     let downscale = folders.last().copied().unwrap_or(1);
     let scene = load_llff(folder, downscale)?;
     let listed: Vec<String> = folders

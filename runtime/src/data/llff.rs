@@ -129,6 +129,26 @@ pub fn load_llff(folder: &Path, downscale: u32) -> Result<LlffScene> {
     })
 }
 
+/// The factors of the image folders of the LLFF scene in `folder`, ascending: 1 for `images`, k for
+/// `images_k`.
+pub fn image_scales(folder: &Path) -> Vec<u32> {
+    let mut scales: Vec<u32> = std::fs::read_dir(folder)
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .filter(|e| e.path().is_dir())
+                .filter_map(|e| e.file_name().into_string().ok())
+                .filter_map(|name| match name.as_str() {
+                    "images" => Some(1),
+                    _ => name.strip_prefix("images_")?.parse().ok().filter(|&k| k >= 1),
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    scales.sort_unstable();
+    scales
+}
+
 /// The factor that divides the full-size images of the LLFF scene in `folder` (as its poses state
 /// them) to about `width` pixels across: at least 1.
 pub fn downscale_for_width(folder: &Path, width: u32) -> Result<u32> {
@@ -174,18 +194,13 @@ fn image_folder(folder: &Path, downscale: u32) -> Result<(PathBuf, u32)> {
     {
         return Ok((folder.join(format!("images_{k}")), downscale / k));
     }
-    let present: Vec<String> = std::fs::read_dir(folder)
-        .map(|entries| {
-            let mut names: Vec<String> = entries
-                .filter_map(|e| e.ok())
-                .filter(|e| e.path().is_dir())
-                .filter_map(|e| e.file_name().into_string().ok())
-                .filter(|n| n.starts_with("images"))
-                .collect();
-            names.sort();
-            names
+    let present: Vec<String> = image_scales(folder)
+        .into_iter()
+        .map(|k| match k {
+            1 => "images".to_string(),
+            k => format!("images_{k}"),
         })
-        .unwrap_or_default();
+        .collect();
     Err(Error::format(
         &folder.join(POSES_FILE),
         format!(
