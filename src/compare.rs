@@ -80,7 +80,7 @@ pub fn compare(
             };
             let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
             let settings = rendering.settings(fields.fine.mode);
-            let grid = rendering.occupancy(&fields, &params)?;
+            let grid = rendering.occupancy(source, &fields, &params)?;
             let f = fields.render_with(
                 camera,
                 (views.width, views.height),

@@ -292,6 +292,38 @@ impl DataSet {
         Ok(Some((capture, data)))
     }
 
+    /// The same data set composited on `background`.
+    pub fn on_background(&self, background: [f32; 3]) -> DataSet {
+        let mut set = self.clone();
+        match &mut set.kind {
+            DataKind::Course => {}
+            DataKind::Blender(b) => b.background = background,
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.background = background
+            }
+        }
+        set
+    }
+
+    /// The background the data set's images are composited on (black for the course's views).
+    pub fn background(&self) -> [f32; 3] {
+        match &self.kind {
+            DataKind::Course => [0.0; 3],
+            DataKind::Blender(b) => b.background,
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.background
+            }
+        }
+    }
+
+    /// Loads the training views premultiplied, with their alpha (see [`Views::with_alpha`]), having
+    /// checked that both loads fit in the memory limit.
+    pub fn views_with_alpha(&self) -> Result<Views> {
+        let black = self.on_background([0.0; 3]).views()?;
+        let white = self.on_background([1.0; 3]).views()?;
+        Ok(Views::with_alpha(black, white)?)
+    }
+
     /// Loads the training views, having checked that they fit in the memory limit.
     pub fn views(&self) -> Result<Views> {
         if let Some((capture, data)) = self.capture()? {

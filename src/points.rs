@@ -69,7 +69,7 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         triangles: Vec::new(),
         colors: Vec::new(),
     };
-    let grid = rendering.occupancy(&fields, &params)?;
+    let grid = rendering.occupancy(args.view.source, &fields, &params)?;
     for camera in &cameras {
         let frame = fields.render_with(camera, (size, size), &params, &settings, grid.as_ref())?;
         add_points(

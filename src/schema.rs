@@ -469,6 +469,10 @@ pub const TRAIN: BlockSchema = BlockSchema {
             "which view each step's rays come from",
         ),
         flag("jitter", "stratified jitter of the depths inside their bins"),
+        flag(
+            "random_background",
+            "each step composites its rays and their targets on a random color (images with alpha or masks)",
+        ),
         SEED,
         CHECKPOINT,
         CHECKPOINT_EVERY,

@@ -53,6 +53,8 @@ pub struct TrainPlan {
     /// Adam's decay rates and ε.
     optimizer: AdamSettings,
     random_views: bool,
+    /// Each step composites its rays and their targets on a random color (`random_background`).
+    random_background: bool,
     jitter: bool,
     seed: u64,
     checkpoint: Option<PathBuf>,
@@ -391,6 +393,7 @@ impl TrainPlan {
         let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let random_views = b.choice("views")?.as_deref() == Some("random");
         let jitter = b.flag("jitter")?;
+        let random_background = b.flag("random_background")?;
         let checkpoint = b.output("checkpoint")?;
         let log = b.output("log")?;
         let tensorboard = b.output("tensorboard")?;
@@ -466,6 +469,7 @@ impl TrainPlan {
             schedule,
             optimizer,
             random_views,
+            random_background,
             jitter,
             seed,
             checkpoint,
@@ -526,12 +530,19 @@ impl TrainPlan {
     }
 
     /// The training views and the held-out views validation scores (if the block asks for validation).
+    /// With `random_background` the training views keep their alpha; held-out views are always on the
+    /// data's background.
     pub fn load_views(&self) -> Result<(Views, Option<Views>)> {
-        let mut views = self.data.views()?;
+        let mut views = if self.random_background {
+            self.data.views_with_alpha()?
+        } else {
+            self.data.views()?
+        };
         let val_views = match self.validation.as_ref().map(|v| (&v.held_out, v.views)) {
             Some((HeldOut::Every(n), limit)) => {
-                let (train, mut held) = views.hold_out(*n)?;
+                let (train, held) = views.hold_out(*n)?;
                 views = train;
+                let mut held = held.on_background(self.data.background());
                 held.cameras.truncate(limit.unwrap_or(usize::MAX));
                 held.images.truncate(limit.unwrap_or(usize::MAX));
                 Some(held)
@@ -809,6 +820,10 @@ impl VolumeObjective<'_> {
 }
 
 impl Objective for VolumeObjective<'_> {
+    fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
     fn start(&mut self, first: u32, _params: &[f32], ui: &Ui) -> Result<()> {
         let Some(
             g @ TrainingGrid {
@@ -844,16 +859,26 @@ impl Objective for VolumeObjective<'_> {
         } else {
             step as usize % self.views.len()
         };
-        let (rays, targets) =
-            self.views
-                .random_rays(view, plan.batch, plan.seed.wrapping_add(u64::from(step)))?;
+        let settings = match plan.random_background {
+            true => VolumeSettings {
+                background: Some([(); 3].map(|_| self.rng.next_f32())),
+                ..self.step_settings
+            },
+            false => self.step_settings,
+        };
+        let (rays, targets) = self.views.random_rays_on(
+            view,
+            plan.batch,
+            plan.seed.wrapping_add(u64::from(step)),
+            settings.background,
+        )?;
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
         let fields = self.fields.bind(params);
         let model = TrainableModel {
             recompute_forward: plan.recompute_forward,
             ..fields.trainable()
         };
-        let mut result = model.step((&rays, &targets), &self.step_settings, self.grid.as_ref(), jitter)?;
+        let mut result = model.step((&rays, &targets), &settings, self.grid.as_ref(), jitter)?;
         if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
             let reg = &e.regularizers;
             let points = match &self.grid {

@@ -139,6 +139,11 @@ pub trait Objective {
 
     /// Work after each step, outside the training time: log records, validation, previews, viewers.
     fn after_step(&mut self, progress: &Progress, params: &[f32], ui: &mut Ui) -> Result<()>;
+
+    /// The occupancy grid the objective renders with now (validation included), kept in checkpoints.
+    fn occupancy(&self) -> Option<&nerfjit_runtime::OccupancyGrid> {
+        None
+    }
 }
 
 /// How a run ended.
@@ -287,7 +292,7 @@ pub fn train(
         ui.bar.set_position(u64::from(finished.done));
         if let Some(path) = settings.checkpoint {
             if finished.done.is_multiple_of(settings.checkpoint_every) || progress.last {
-                crate::checkpoint::write(path, program, finished.done, params, &adam)?;
+                crate::checkpoint::write(path, program, finished.done, params, &adam, objective.occupancy())?;
             }
         }
         if finished.interrupted {

@@ -191,13 +191,25 @@ impl Rendering {
         }
     }
 
-    /// The occupancy grid to render with: the script's `skip_empty` grid built from the field with `params`
-    /// as training builds it (a running grid as its first state); with hierarchical sampling both passes
-    /// skip its empty cells.
-    pub fn occupancy(&self, fields: &VolumeFields, params: &[f32]) -> Result<Option<OccupancyGrid>> {
+    /// The occupancy grid to render the field of `source` with: the script's `skip_empty` grid as the
+    /// checkpoint `source` keeps it (the grid its run last validated with), else built from the field
+    /// with `params` as training builds it (a running grid as its first state); with hierarchical
+    /// sampling both passes skip its empty cells.
+    pub fn occupancy(
+        &self,
+        source: &str,
+        fields: &VolumeFields,
+        params: &[f32],
+    ) -> Result<Option<OccupancyGrid>> {
         let Some(s) = self.skip_empty else {
             return Ok(None);
         };
+        if is_checkpoint(source) {
+            let saved = crate::checkpoint::saved_occupancy(Path::new(source))?;
+            if let Some(grid) = saved.filter(|g| g.bounds() == s.bounds && g.resolution() == s.resolution) {
+                return Ok(Some(grid));
+            }
+        }
         let (mode, density) = (fields.fine.mode, fields.fine.bind_density(params));
         Ok(Some(if self.running_grid {
             DensityEma::probe(&density, s.bounds, s.resolution)?.grid(mode, s.threshold)?
@@ -301,7 +313,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let settings = rendering.settings(fields.fine.mode);
-    let grid = rendering.occupancy(&fields, &params)?;
+    let grid = rendering.occupancy(args.source, &fields, &params)?;
     let start = Instant::now();
     let images = cameras
         .iter()
@@ -387,7 +399,7 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let start = Instant::now();
-    let grid = rendering.occupancy(&fields, &params)?;
+    let grid = rendering.occupancy(args.source, &fields, &params)?;
     let scores = score(
         &views,
         &fields,

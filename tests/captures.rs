@@ -354,7 +354,8 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     let scores = summary["validation"].as_array().unwrap();
     let psnr = scores.last().unwrap()["val_psnr"].as_f64().unwrap();
     assert!(psnr > 40.0, "held-out PSNR {psnr}: {summary}");
-    // The checkpoint alone scores the same held-out views again.
+    // The checkpoint alone scores the same held-out views again, with the occupancy grid it keeps: the
+    // same figure.
     let (ok, out, err) = run(
         &dir,
         &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
@@ -369,7 +370,7 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     );
     let again = scores["mean_psnr"].as_f64().unwrap();
     assert!(
-        (again - psnr).abs() < 0.5,
+        (again - psnr).abs() < 0.01,
         "eval-views {again} dB, validation {psnr} dB"
     );
 }

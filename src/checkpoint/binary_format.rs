@@ -3,7 +3,11 @@
 //! in its shape (`f32` as a scalar, `vec<n>` as `[n]`, `mat<r, c>` as `[r, c]` row-major, an `mlp`'s layer
 //! `l` as `NAME.l.weight` `[out, in]` and `NAME.l.bias` `[out]` like PyTorch's `nn.Linear`, a grid's table
 //! flat); Adam's moments are `adam.m.NAME…` and `adam.v.NAME…`. The metadata holds the format, the step,
-//! Adam's step count and the script (name, source and `--set` overrides).
+//! Adam's step count and the script (name, source and `--set` overrides). A run that skips empty space
+//! also keeps its occupancy grid as it last rendered with it: the tensor `occupancy` (`u8`, the cells'
+//! bits packed 8 to a byte, x fastest) with its box (`occupancy_bounds`, JSON `[lo, hi]`) and
+//! `occupancy_resolution` in the metadata, so that renders and scores of the checkpoint skip exactly the
+//! cells the run's validation skipped.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -12,7 +16,7 @@ use std::ops::Range;
 use std::path::Path;
 
 use nerfjit_dsl::{Program, Type};
-use nerfjit_runtime::Adam;
+use nerfjit_runtime::{Adam, OccupancyGrid};
 use safetensors::tensor::{Dtype, SafeTensors, View};
 
 use super::{Saved, Script};
@@ -67,35 +71,60 @@ fn entries(program: &Program) -> Vec<Entry> {
     entries
 }
 
-/// A tensor to write: f32 values in a shape, encoded little-endian when the writer asks.
-struct Floats<'a> {
-    shape: Vec<usize>,
-    values: &'a [f32],
+/// A tensor to write, encoded when the writer asks: f32 values in a shape (little-endian), or bytes.
+enum Tensor<'a> {
+    Floats { shape: Vec<usize>, values: &'a [f32] },
+    Bytes { shape: [usize; 1], bytes: &'a [u8] },
 }
 
-impl View for Floats<'_> {
+impl View for Tensor<'_> {
     fn dtype(&self) -> Dtype {
-        Dtype::F32
+        match self {
+            Tensor::Floats { .. } => Dtype::F32,
+            Tensor::Bytes { .. } => Dtype::U8,
+        }
     }
 
     fn shape(&self) -> &[usize] {
-        &self.shape
+        match self {
+            Tensor::Floats { shape, .. } => shape,
+            Tensor::Bytes { shape, .. } => shape,
+        }
     }
 
     fn data(&self) -> Cow<'_, [u8]> {
-        Cow::Owned(self.values.iter().flat_map(|x| x.to_le_bytes()).collect())
+        match self {
+            Tensor::Floats { values, .. } => {
+                Cow::Owned(values.iter().flat_map(|x| x.to_le_bytes()).collect())
+            }
+            Tensor::Bytes { bytes, .. } => Cow::Borrowed(bytes),
+        }
     }
 
     fn data_len(&self) -> usize {
-        4 * self.values.len()
+        match self {
+            Tensor::Floats { values, .. } => 4 * values.len(),
+            Tensor::Bytes { bytes, .. } => bytes.len(),
+        }
     }
 }
 
+/// The name of the occupancy grid's tensor.
+const OCCUPANCY: &str = "occupancy";
+
 /// Writes the checkpoint of `program` to `path`, atomically (the safetensors writer fills a temporary file
-/// beside it, then renames it into place), readable by all like the run's other outputs.
-pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &Adam) -> Result<()> {
+/// beside it, then renames it into place), readable by all like the run's other outputs; with the
+/// occupancy grid the run renders with, if it has one.
+pub fn write(
+    path: &Path,
+    program: &Program,
+    step: u32,
+    params: &[f32],
+    adam: &Adam,
+    occupancy: Option<&OccupancyGrid>,
+) -> Result<()> {
     let script = Script::of(program);
-    let metadata = HashMap::from([
+    let mut metadata = HashMap::from([
         ("format".to_string(), FORMAT.to_string()),
         ("step".to_string(), step.to_string()),
         ("adam_steps".to_string(), adam.steps().to_string()),
@@ -110,12 +139,26 @@ pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &A
     let mut tensors = Vec::new();
     for e in entries(program) {
         for (prefix, values) in [("", params), ("adam.m.", m), ("adam.v.", v)] {
-            let tensor = Floats {
+            let tensor = Tensor::Floats {
                 shape: e.shape.clone(),
                 values: &values[e.range.clone()],
             };
             tensors.push((format!("{prefix}{}", e.name), tensor));
         }
+    }
+    let packed = occupancy.map(|grid| grid.packed_cells());
+    if let (Some(grid), Some(bytes)) = (occupancy, &packed) {
+        let (lo, hi) = grid.bounds();
+        metadata.insert(
+            "occupancy_bounds".to_string(),
+            serde_json::to_string(&[lo, hi]).unwrap_or_default(),
+        );
+        metadata.insert("occupancy_resolution".to_string(), grid.resolution().to_string());
+        let tensor = Tensor::Bytes {
+            shape: [bytes.len()],
+            bytes,
+        };
+        tensors.push((OCCUPANCY.to_string(), tensor));
     }
     let fail =
         |e: &dyn std::fmt::Display| Failure::Message(format!("cannot write '{}': {e}", path.display()));
@@ -174,7 +217,18 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         overrides,
     };
     let program = script.compile()?;
-    let data_len = 3 * 4 * program.n_params() as u64;
+    let occupancy_len = match header["__metadata__"].get("occupancy_resolution") {
+        Some(resolution) => {
+            let r: u64 = resolution
+                .as_str()
+                .and_then(|r| r.parse().ok())
+                .filter(|&r| (1..=256).contains(&r))
+                .ok_or_else(|| bad("its 'occupancy_resolution' is not a grid resolution"))?;
+            (r * r * r).div_ceil(8)
+        }
+        None => 0,
+    };
+    let data_len = 3 * 4 * program.n_params() as u64 + occupancy_len;
     if file_len != 8 + header_len + data_len {
         return Err(bad(&format!(
             "it holds {} bytes of values but its script's params and Adam's moments need {data_len}: \
@@ -217,4 +271,54 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         adam,
     };
     Ok((program, saved))
+}
+
+/// The occupancy grid a binary checkpoint keeps (see the [module docs](self)), if it keeps one: read from
+/// its header and that tensor alone.
+pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
+    let bad = |why: String| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
+    let mut file = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
+    let file_len = file.metadata().map_err(|e| bad(e.to_string()))?.len();
+    let mut n = [0u8; 8];
+    file.read_exact(&mut n).map_err(|e| bad(e.to_string()))?;
+    let header_len = u64::from_le_bytes(n);
+    if header_len > MAX_HEADER_BYTES || header_len > file_len.saturating_sub(8) {
+        return Err(bad(format!("its header claims {header_len} bytes")));
+    }
+    let mut header = vec![0u8; header_len as usize];
+    file.read_exact(&mut header).map_err(|e| bad(e.to_string()))?;
+    let header: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| bad(format!("its header is not JSON ({e})")))?;
+    let Some(entry) = header.get(OCCUPANCY) else {
+        return Ok(None);
+    };
+    let meta = &header["__metadata__"];
+    let bounds: Option<[[f32; 3]; 2]> = meta["occupancy_bounds"]
+        .as_str()
+        .and_then(|b| serde_json::from_str(b).ok());
+    let resolution: Option<usize> = meta["occupancy_resolution"].as_str().and_then(|r| r.parse().ok());
+    let offsets: Option<Vec<u64>> = entry["data_offsets"]
+        .as_array()
+        .map(|o| o.iter().filter_map(|x| x.as_u64()).collect());
+    let (Some([lo, hi]), Some(resolution), Some([start, end])) = (
+        bounds,
+        resolution,
+        offsets.as_deref().map(|o| [o[0], o[o.len() - 1]]),
+    ) else {
+        return Err(bad(
+            "its occupancy grid lacks its bounds, resolution or data offsets".into(),
+        ));
+    };
+    let begin = 8 + header_len + start;
+    if !(start <= end && begin + (end - start) <= file_len) {
+        return Err(bad(format!(
+            "its occupancy grid's offsets {start}..{end} are out of the file"
+        )));
+    }
+    std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(begin)).map_err(|e| bad(e.to_string()))?;
+    let mut bytes = vec![0u8; (end - start) as usize];
+    file.read_exact(&mut bytes).map_err(|e| bad(e.to_string()))?;
+    let grid = OccupancyGrid::from_packed_cells((lo, hi), resolution, &bytes)
+        .map_err(|e| bad(format!("its occupancy grid: {e}")))?;
+    Ok(Some(grid))
 }

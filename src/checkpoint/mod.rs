@@ -9,7 +9,7 @@ mod json_format;
 use std::path::Path;
 
 use nerfjit_dsl::{budget, Program, Type};
-use nerfjit_runtime::Adam;
+use nerfjit_runtime::{Adam, OccupancyGrid};
 
 use crate::failure::{Failure, Result};
 use crate::train_block::AdamSettings;
@@ -73,16 +73,33 @@ fn is_json(path: &Path) -> bool {
 }
 
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render`, `mesh` and `eval-views`
-/// can use the checkpoint alone), in the format its name asks for.
-pub fn write(path: &Path, program: &Program, step: u32, params: &[f32], adam: &Adam) -> Result<()> {
+/// can use the checkpoint alone) and the run's occupancy grid (binary checkpoints only), in the format its
+/// name asks for.
+pub fn write(
+    path: &Path,
+    program: &Program,
+    step: u32,
+    params: &[f32],
+    adam: &Adam,
+    occupancy: Option<&OccupancyGrid>,
+) -> Result<()> {
     if is_json(path) {
         write_atomic(
             path,
             &json_format::encode(&Script::of(program), step, params, adam),
         )
     } else {
-        binary_format::write(path, program, step, params, adam)
+        binary_format::write(path, program, step, params, adam, occupancy)
     }
+}
+
+/// The occupancy grid the run that wrote a binary checkpoint rendered its last validation with, if
+/// it kept one (JSON checkpoints keep none).
+pub fn saved_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
+    if is_json(path) {
+        return Ok(None);
+    }
+    binary_format::read_occupancy(path)
 }
 
 /// The script a checkpoint was written by, and its params: the program is compiled again from the source

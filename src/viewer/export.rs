@@ -142,7 +142,7 @@ fn checkpoint(scene: &Scene, stem: &str, step: u32) -> Result<File> {
     let scratch = Scratch::new("ckpt.safetensors");
     let params = scene.params();
     let fresh = nerfjit_runtime::Adam::new(params.len(), 0.0);
-    crate::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh)?;
+    crate::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh, None)?;
     Ok(File {
         name: format!("{stem}.ckpt.safetensors"),
         mime: "application/octet-stream",

@@ -102,6 +102,7 @@ fn load_views(path: &Path, request: Request, cache: Option<&Path>) -> Result<Vie
         images,
         width,
         height,
+        alpha: None,
     })
 }
 

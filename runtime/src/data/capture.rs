@@ -320,6 +320,7 @@ impl Capture {
             images,
             width,
             height,
+            alpha: None,
         })
     }
 }

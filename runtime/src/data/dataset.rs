@@ -19,6 +19,9 @@ pub struct Views {
     pub width: u32,
     /// Height of every image in pixels.
     pub height: u32,
+    /// The opacity of each pixel of each image, when the images are kept premultiplied (composited on
+    /// black) so that training can composite them on any background ([`Views::random_rays_on`]).
+    pub alpha: Option<Vec<Vec<f32>>>,
 }
 
 /// Reads an RGB image: a float32 `.npy` of shape (H, W, 3), or any PNG (values scaled to
@@ -73,6 +76,7 @@ pub fn load_box_views(path: &Path) -> Result<Views> {
         images,
         width,
         height,
+        alpha: None,
     })
 }
 
@@ -99,17 +103,23 @@ impl Views {
             )));
         }
         let (width, height) = (self.width, self.height);
+        let with_alpha = self.alpha.is_some();
         let empty = || Views {
             cameras: Vec::new(),
             images: Vec::new(),
             width,
             height,
+            alpha: with_alpha.then(Vec::new),
         };
         let (mut train, mut held) = (empty(), empty());
+        let mut alpha = self.alpha.map(|a| a.into_iter());
         for (i, (camera, image)) in self.cameras.into_iter().zip(self.images).enumerate() {
             let to = if i % every == 0 { &mut held } else { &mut train };
             to.cameras.push(camera);
             to.images.push(image);
+            if let (Some(all), Some(kept)) = (alpha.as_mut(), to.alpha.as_mut()) {
+                kept.extend(all.next());
+            }
         }
         Ok((train, held))
     }
@@ -117,6 +127,18 @@ impl Views {
     /// The rays of `count` distinct random pixels of view `view` (seeded by `seed`) and the
     /// colors of those pixels in its image.
     pub fn random_rays(&self, view: usize, count: usize, seed: u64) -> Result<(RayBatch, Vec<[f32; 3]>)> {
+        self.random_rays_on(view, count, seed, None)
+    }
+
+    /// As [`Views::random_rays`], with the colors composited on `background` where the views keep
+    /// their alpha (premultiplied color + (1 − alpha)·background); as they are otherwise.
+    pub fn random_rays_on(
+        &self,
+        view: usize,
+        count: usize,
+        seed: u64,
+        background: Option<[f32; 3]>,
+    ) -> Result<(RayBatch, Vec<[f32; 3]>)> {
         let (Some(camera), Some(image)) = (self.cameras.get(view), self.images.get(view)) else {
             return Err(Error::Invalid(format!(
                 "view {view} does not exist: there are {} views",
@@ -124,8 +146,76 @@ impl Views {
             )));
         };
         let (rays, pixels) = RayBatch::random_pixels(camera, self.width, self.height, count, seed)?;
-        let colors = pixels.iter().map(|&p| image.pixels[p]).collect();
+        let alpha = self.alpha.as_ref().and_then(|a| a.get(view));
+        let colors = match (alpha, background) {
+            (Some(alpha), Some(bg)) => pixels
+                .iter()
+                .map(|&p| {
+                    let (c, t) = (image.pixels[p], 1.0 - alpha[p]);
+                    [c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2]]
+                })
+                .collect(),
+            _ => pixels.iter().map(|&p| image.pixels[p]).collect(),
+        };
         Ok((rays, colors))
+    }
+
+    /// The views composited on `background` where they keep their alpha (which they then no longer
+    /// keep); as they are otherwise.
+    pub fn on_background(self, background: [f32; 3]) -> Views {
+        let Some(alpha) = self.alpha else {
+            return self;
+        };
+        let images = self
+            .images
+            .into_iter()
+            .zip(alpha)
+            .map(|(image, alpha)| ImageF32 {
+                pixels: image
+                    .pixels
+                    .iter()
+                    .zip(alpha)
+                    .map(|(c, a)| std::array::from_fn(|k| c[k] + (1.0 - a) * background[k]))
+                    .collect(),
+                ..image
+            })
+            .collect();
+        Views {
+            images,
+            alpha: None,
+            ..self
+        }
+    }
+
+    /// The views loaded twice, on black (`on_black`) and on white (`on_white`), as premultiplied images
+    /// with their alpha. Loading composites linearly (color·alpha + background·(1 − alpha), then
+    /// undistortion and area resampling, both linear), so the difference of the two is exactly
+    /// 1 − alpha in every channel.
+    pub fn with_alpha(on_black: Views, on_white: Views) -> Result<Views> {
+        if on_black.len() != on_white.len()
+            || (on_black.width, on_black.height) != (on_white.width, on_white.height)
+        {
+            return Err(Error::Invalid(
+                "the views on black and on white differ in number or size".into(),
+            ));
+        }
+        let alpha = on_black
+            .images
+            .iter()
+            .zip(&on_white.images)
+            .map(|(black, white)| {
+                black
+                    .pixels
+                    .iter()
+                    .zip(&white.pixels)
+                    .map(|(b, w)| (1.0 - (w[0] - b[0])).clamp(0.0, 1.0))
+                    .collect()
+            })
+            .collect();
+        Ok(Views {
+            alpha: Some(alpha),
+            ..on_black
+        })
     }
 }
 
@@ -149,6 +239,7 @@ mod tests {
         let image = |v: f32| ImageF32 {
             width: 1,
             height: 1,
+            alpha: None,
             pixels: vec![[v; 3]],
         };
         let views = Views {
@@ -156,6 +247,7 @@ mod tests {
             images: (0..10).map(|i| image(i as f32)).collect(),
             width: 1,
             height: 1,
+            alpha: None,
         };
         let (train, held) = views.clone().hold_out(4).unwrap();
         let values = |v: &Views| {
@@ -173,6 +265,7 @@ mod tests {
             images: vec![image(0.0)],
             width: 1,
             height: 1,
+            alpha: None,
         };
         assert!(one.hold_out(8).is_err());
     }

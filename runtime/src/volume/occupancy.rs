@@ -232,6 +232,45 @@ impl OccupancyGrid {
         }
     }
 
+    /// The cells' bits packed 8 to a byte, cell x + y·res + z·res² at bit i % 8 of byte i / 8 (the
+    /// form a checkpoint keeps the grid in; [`OccupancyGrid::from_packed_cells`] reads it back).
+    pub fn packed_cells(&self) -> Vec<u8> {
+        let res = self.resolution;
+        let mut bytes = vec![0u8; (res * res * res).div_ceil(8)];
+        for z in 0..res {
+            for y in 0..res {
+                for x in 0..res {
+                    if self.cell(x, y, z) {
+                        let i = x + y * res + z * res * res;
+                        bytes[i / 8] |= 1 << (i % 8);
+                    }
+                }
+            }
+        }
+        bytes
+    }
+
+    /// The grid over `bounds` with `resolution`³ cells as [`OccupancyGrid::packed_cells`] wrote them, or
+    /// an error if the bounds, the resolution or the number of bytes are wrong.
+    pub fn from_packed_cells(
+        bounds: ([f32; 3], [f32; 3]),
+        resolution: usize,
+        bytes: &[u8],
+    ) -> Result<OccupancyGrid> {
+        check_box(bounds, resolution)?;
+        let cells = resolution * resolution * resolution;
+        if bytes.len() != cells.div_ceil(8) {
+            return Err(Error::Invalid(format!(
+                "{} bytes of cells for a {resolution}³ grid, which needs {}",
+                bytes.len(),
+                cells.div_ceil(8)
+            )));
+        }
+        Ok(OccupancyGrid::from_cells(bounds, resolution, |i| {
+            bytes[i / 8] & (1 << (i % 8)) != 0
+        }))
+    }
+
     /// The box (lo, hi) covered by the grid.
     pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
         (self.lo, self.hi)
