@@ -224,6 +224,56 @@ mod tests {
     use super::*;
     use crate::data::npy::write_npy_rgb;
 
+    /// Two pixels of color c and alpha a, composited on `background` as loaders composite them.
+    fn composited(background: [f32; 3]) -> Views {
+        let camera = Camera::look_at(
+            glam::Vec3::new(0.0, 0.0, -3.0),
+            glam::Vec3::ZERO,
+            glam::Vec3::Y,
+            glam::Vec2::ONE,
+            glam::Vec2::ZERO,
+        )
+        .unwrap();
+        let pixels = [([0.2, 0.4, 0.6], 1.0), ([0.9, 0.1, 0.5], 0.25)]
+            .map(|(c, a): ([f32; 3], f32)| std::array::from_fn(|k| c[k] * a + background[k] * (1.0 - a)));
+        Views {
+            cameras: vec![camera],
+            images: vec![ImageF32 {
+                width: 2,
+                height: 1,
+                pixels: pixels.to_vec(),
+            }],
+            width: 2,
+            height: 1,
+            alpha: None,
+        }
+    }
+
+    #[test]
+    fn views_with_alpha_composite_on_any_background() {
+        let views = Views::with_alpha(composited([0.0; 3]), composited([1.0; 3])).unwrap();
+        let alpha = views.alpha.as_ref().unwrap();
+        assert!((alpha[0][0] - 1.0).abs() < 1e-6 && (alpha[0][1] - 0.25).abs() < 1e-6);
+        let background = [0.3, 0.7, 0.1];
+        let (_, colors) = views.random_rays_on(0, 2, 5, Some(background)).unwrap();
+        let want = composited(background).images[0].pixels.clone();
+        for color in colors {
+            assert!(
+                want.iter()
+                    .any(|w| (0..3).all(|k| (w[k] - color[k]).abs() < 1e-6)),
+                "{color:?} is not one of {want:?}"
+            );
+        }
+        let on = views.on_background(background);
+        assert!(on.alpha.is_none());
+        for (got, want) in on.images[0].pixels.iter().zip(&want) {
+            assert!(
+                (0..3).all(|k| (got[k] - want[k]).abs() < 1e-6),
+                "{got:?} {want:?}"
+            );
+        }
+    }
+
     #[test]
     fn every_nth_view_is_held_out() {
         let camera = |x: f32| {
@@ -239,7 +289,6 @@ mod tests {
         let image = |v: f32| ImageF32 {
             width: 1,
             height: 1,
-            alpha: None,
             pixels: vec![[v; 3]],
         };
         let views = Views {
@@ -268,6 +317,14 @@ mod tests {
             alpha: None,
         };
         assert!(one.hold_out(8).is_err());
+        // Alpha follows its views.
+        let with_alpha = Views {
+            alpha: Some((0..10).map(|i| vec![i as f32 / 10.0]).collect()),
+            ..views
+        };
+        let (train, held) = with_alpha.hold_out(4).unwrap();
+        assert_eq!(held.alpha, Some(vec![vec![0.0], vec![0.4], vec![0.8]]));
+        assert_eq!(train.alpha.map(|a| a.len()), Some(7));
     }
     use std::path::PathBuf;
 

@@ -198,7 +198,8 @@ pub fn decompose(p: ProjectionMatrix) -> std::result::Result<(Mat4, PixelIntrins
     let mut p4 = DVec3::new(p[0][3], p[1][3], p[2][3]);
     let block = DMat3::from_cols(m1, m2, m3).transpose();
     let det = block.determinant();
-    if !(det.abs() > 1e-12 * m1.length() * m2.length() * m3.length()) {
+    let scale = m1.length() * m2.length() * m3.length();
+    if det.is_nan() || det.abs() <= 1e-12 * scale {
         return Err("the projection's 3×3 block is singular".into());
     }
     // P is defined up to scale: with a negative determinant, −P has a rotation (det R = +1).
@@ -255,7 +256,7 @@ mod tests {
         #[test]
         fn decomposition_recovers_the_camera(
             fx in 100.0f64..5000.0, aspect in 0.8f64..1.25, cx in 0.0f64..2000.0, cy in 0.0f64..2000.0,
-            axis in prop::array::uniform3(-1.0f64..1.0), angle in 0.0f64..6.28,
+            axis in prop::array::uniform3(-1.0f64..1.0), angle in 0.0f64..std::f64::consts::TAU,
             center in prop::array::uniform3(-50.0f64..50.0),
             factor in prop_oneof![-1e3f64..-1e-3, 1e-3f64..1e3],
         ) {

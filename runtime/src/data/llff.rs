@@ -190,7 +190,7 @@ fn image_folder(folder: &Path, downscale: u32) -> Result<(PathBuf, u32)> {
     }
     if let Some(k) = (2..downscale)
         .rev()
-        .find(|k| downscale % k == 0 && folder.join(format!("images_{k}")).is_dir())
+        .find(|k| downscale.is_multiple_of(*k) && folder.join(format!("images_{k}")).is_dir())
     {
         return Ok((folder.join(format!("images_{k}")), downscale / k));
     }
