@@ -12,7 +12,8 @@
 //! `colmap2nerf` does: +Z along the cameras' mean up vector, the origin at the point nearest to
 //! every optical axis (what the cameras look at), and the cameras 4 units from it on average.
 //! Forward-facing captures with known depth bounds (LLFF's) put the origin on the mean optical axis
-//! at the scene's nearest depth instead, and their bounds are scaled along.
+//! at the scene's nearest depth instead, turned so that the cameras look along +y (the mean camera
+//! near (0, −4, 0)), and their bounds are scaled along.
 
 use std::path::{Path, PathBuf};
 
@@ -178,23 +179,40 @@ impl Capture {
     /// transform it applied.
     pub fn normalize(&mut self) -> Result<Normalization> {
         let up: Vec3 = self.frames.iter().map(|f| f.camera.c2w.y_axis.truncate()).sum();
-        let rotation = if up.length() > 1e-6 {
+        let mut rotation = if up.length() > 1e-6 {
             rotation_onto_z(up.normalize())
         } else {
             Mat3::IDENTITY
         };
-        let positions: Vec<Vec3> = self
-            .frames
-            .iter()
-            .map(|f| rotation * f.camera.c2w.w_axis.truncate())
-            .collect();
-        let axes: Vec<Vec3> = self
-            .frames
-            .iter()
-            .map(|f| -(rotation * f.camera.c2w.z_axis.truncate()).normalize_or_zero())
-            .collect();
-        let center = match self.forward_facing_center(&positions, &axes) {
-            Some(center) => center,
+        let rotated = |rotation: Mat3| -> (Vec<Vec3>, Vec<Vec3>) {
+            let positions = self
+                .frames
+                .iter()
+                .map(|f| rotation * f.camera.c2w.w_axis.truncate())
+                .collect();
+            let axes = self
+                .frames
+                .iter()
+                .map(|f| -(rotation * f.camera.c2w.z_axis.truncate()).normalize_or_zero())
+                .collect();
+            (positions, axes)
+        };
+        let (mut positions, mut axes) = rotated(rotation);
+        let forward = self.forward_facing_near(&axes);
+        if forward.is_some() {
+            // Turned about z so that the cameras look along +y on average.
+            let mean_axis = axes.iter().copied().sum::<Vec3>();
+            let heading = mean_axis.x.atan2(mean_axis.y);
+            rotation = Mat3::from_rotation_z(heading) * rotation;
+            (positions, axes) = rotated(rotation);
+        }
+        let center = match forward {
+            Some(near) => {
+                let n = positions.len() as f32;
+                let mean_position = positions.iter().copied().sum::<Vec3>() / n;
+                let mean_axis = axes.iter().copied().sum::<Vec3>().normalize();
+                mean_position + mean_axis * near
+            }
             None => nearest_to_axes(&positions, &axes),
         };
         let mean_distance =
@@ -223,20 +241,15 @@ impl Capture {
         Ok(normalization)
     }
 
-    /// The center of a forward-facing capture (every camera looking within about 25° of their mean
-    /// direction) whose depth bounds are known: on the mean optical axis at the nearest depth of the
-    /// scene, so that after scaling the nearest content is 4 units from the cameras. Such axes (LLFF's
-    /// scenes) are too close to parallel for their nearest point to be well defined. `None` for other
-    /// captures.
-    fn forward_facing_center(&self, positions: &[Vec3], axes: &[Vec3]) -> Option<Vec3> {
+    /// The nearest depth bound of a forward-facing capture (every camera looking within about 25° of
+    /// their mean direction `axes`) whose depth bounds are known; `None` for other captures. Such
+    /// captures (LLFF's scenes) are centered on the mean optical axis at that depth, so that after
+    /// scaling the nearest content is 4 units from the cameras, and turned so that they look along
+    /// +y: their optical axes are too close to parallel for their nearest point to be well defined.
+    fn forward_facing_near(&self, axes: &[Vec3]) -> Option<f32> {
         let (near, _) = self.depth_bounds?;
-        let n = positions.len().max(1) as f32;
-        let mean_axis = axes.iter().copied().sum::<Vec3>() / n;
-        if mean_axis.length() < 0.9 || !(near > 0.0 && near.is_finite()) {
-            return None;
-        }
-        let mean_position = positions.iter().copied().sum::<Vec3>() / n;
-        Some(mean_position + mean_axis.normalize() * near)
+        let mean_axis = axes.iter().copied().sum::<Vec3>() / axes.len().max(1) as f32;
+        (mean_axis.length() >= 0.9 && near > 0.0 && near.is_finite()).then_some(near)
     }
 
     /// The first `limit` frames (all if `None`), or an error if there are fewer.
@@ -626,6 +639,13 @@ mod tests {
             (near - 4.0).abs() < 0.05 && (far - 20.0).abs() < 0.25,
             "{near} {far}"
         );
+        // The cameras look along +y, z up: the middle one from (0, −4, 0) (the mean distance is 4).
+        let middle = capture.frames[2].camera.c2w;
+        assert!(
+            (middle.w_axis.truncate() - Vec3::new(0.0, -4.0, 0.0)).length() < 0.05,
+            "{middle}"
+        );
+        assert!((-middle.z_axis.truncate() - Vec3::Y).length() < 1e-4, "{middle}");
     }
 
     #[test]
