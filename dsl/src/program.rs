@@ -7,7 +7,7 @@ use crate::ast::*;
 use crate::budget;
 use crate::builtins;
 use crate::diag::{Diagnostic, Report, SourceMap, Span};
-use crate::elaborate::{Elaborator, Globals, ParamSlot};
+use crate::elaborate::{Elaborator, Globals, ParamSlot, MAX_TOTAL_STEPS};
 use crate::init::Initializer;
 use crate::ir::Graph;
 use crate::parser::parse;
@@ -355,12 +355,17 @@ impl Program {
     fn check_functions(&self) -> Vec<Diagnostic> {
         let globals = self.globals();
         let mut diagnostics = Vec::new();
+        // Inlining steps of all the functions so far, against `MAX_TOTAL_STEPS`.
+        let mut spent = 0;
         for f in self.fn_defs() {
-            if diagnostics.len() == MAX_FUNCTION_ERRORS {
+            if diagnostics.len() == MAX_FUNCTION_ERRORS || spent > MAX_TOTAL_STEPS {
                 break;
             }
             let mut g = Graph::new();
-            if let Err(d) = Elaborator::new(&globals, &mut g).check_fn(f) {
+            let mut elaborator = Elaborator::new(&globals, &mut g).with_max_steps(MAX_TOTAL_STEPS - spent);
+            let checked = elaborator.check_fn(f);
+            spent += elaborator.steps();
+            if let Err(d) = checked {
                 diagnostics.push(d);
             }
         }
