@@ -336,7 +336,14 @@ impl Program {
                     .with_hint(format!("its named arguments are: {}", allowed.join(", "))),
             );
         }
-        let seed = named.get("seed").map_or(index as u64 + 1, |s| s.0 as u64);
+        let seed = match named.get("seed") {
+            Some(&(value, span)) => whole_argument("seed", value, span, 0)?,
+            None => index as u64 + 1,
+        };
+        if let Some(&(value, span)) = named.get("fan_in") {
+            // A fan-in of 0 divides by zero: every weight would be NaN or infinite.
+            whole_argument("fan_in", value, span, 1)?;
+        }
         if let Type::Mlp(shape) = ty {
             if let Some((_, span)) = named.get("fan_in") {
                 return Err(Diagnostic::new(*span, "an mlp knows each layer's fan_in"));
@@ -537,6 +544,21 @@ impl Elaborator<'_, '_> {
         }
         self.lower_entry(f)
     }
+}
+
+/// The largest initializer argument taken as a whole number: every integer up to it is exact in an f64.
+const MAX_WHOLE_ARGUMENT: f64 = 9_007_199_254_740_992.0;
+
+/// Initializer argument `key` (its `value` written at `span`) as a whole number of at least `lo`.
+fn whole_argument(key: &str, value: f64, span: Span, lo: u64) -> Result<u64, Diagnostic> {
+    if value.fract() == 0.0 && value >= lo as f64 && value <= MAX_WHOLE_ARGUMENT {
+        return Ok(value as u64);
+    }
+    Err(Diagnostic::new(
+        span,
+        format!("{key} is {value}, not a whole number from {lo} to 2^53"),
+    )
+    .with_hint(format!("write e.g. {key}: {}", lo.max(1))))
 }
 
 /// The distribution of initializer `name` (with its positional arguments) for a block of `fan_in` inputs
