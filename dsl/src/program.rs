@@ -237,17 +237,42 @@ impl Program {
         diagnostics
     }
 
-    /// Each `const` whose value is not finite (as an f32), at its value.
+    /// Each `const` whose value is not finite (as an f32), at its value, and each block setting that uses
+    /// such a const, at the setting (naming the const's line and column).
     fn check_consts(&self) -> Vec<Diagnostic> {
-        self.user_items()
-            .filter_map(|item| match item {
-                Item::Const(c) => {
-                    let values = self.constant_values(&c.value).ok()?;
-                    finite(c.value.span, &values).err()
+        let mut diagnostics = Vec::new();
+        let mut bad = Vec::new();
+        for item in self.user_items() {
+            if let Item::Const(c) = item {
+                let Ok(values) = self.constant_values(&c.value) else {
+                    continue;
+                };
+                if let Err(d) = finite(c.value.span, &values) {
+                    diagnostics.push(d);
+                    bad.push(&c.name);
                 }
-                _ => None,
-            })
-            .collect()
+            }
+        }
+        for block in self.blocks() {
+            for entry in &block.entries {
+                let Some(name) = bad.iter().find(|n| mentions(&entry.value, &n.name)) else {
+                    continue;
+                };
+                let (line, col) = self.line_of(name.span);
+                diagnostics.push(
+                    Diagnostic::new(
+                        entry.value.span,
+                        format!(
+                            "setting '{}' is not finite: it uses const '{}', whose value is not a finite 32-bit float",
+                            entry.key.name, name.name
+                        ),
+                    )
+                    .with_hint(format!("'{}' is defined at line {line}, column {col}", name.name)),
+                );
+            }
+        }
+        diagnostics.sort_by_key(|d| d.span.start);
+        diagnostics
     }
 
     /// Evaluates `e` to finite constants (consts are visible, params are not).
@@ -492,6 +517,25 @@ impl Program {
     /// Lowers a standalone constant expression in the context of this program (consts visible).
     pub fn eval_constant(&self, e: &Expr) -> Result<Vec<f64>, Diagnostic> {
         self.constant(e)
+    }
+}
+
+/// Whether expression `e` refers to the variable, param or const `name` anywhere.
+fn mentions(e: &Expr, name: &str) -> bool {
+    let any = |items: &[Expr]| items.iter().any(|x| mentions(x, name));
+    match &e.kind {
+        ExprKind::Number(_) | ExprKind::Str(_) => false,
+        ExprKind::Var(v) => v == name,
+        ExprKind::Unary(_, a) | ExprKind::Swizzle(a, _) => mentions(a, name),
+        ExprKind::Binary(_, a, b) | ExprKind::Index(a, b) => mentions(a, name) || mentions(b, name),
+        ExprKind::Slice(a, b, c) | ExprKind::If(a, b, c) => {
+            mentions(a, name) || mentions(b, name) || mentions(c, name)
+        }
+        ExprKind::Call(_, args) => args.iter().any(|a| mentions(&a.value, name)),
+        ExprKind::List(items) | ExprKind::Tuple(items) => any(items),
+        ExprKind::Block(lets, value) => {
+            lets.iter().any(|l| mentions(&l.value, name)) || mentions(value, name)
+        }
     }
 }
 
