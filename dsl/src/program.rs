@@ -434,6 +434,17 @@ impl Program {
         self.param_values.len()
     }
 
+    /// The error for function `name`, which the script lacks, named at `span` (`Span::NOWHERE` when a
+    /// command line names it), with the closest function as a hint.
+    pub fn no_function(&self, name: &str, span: Span) -> Diagnostic {
+        let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
+        let d = Diagnostic::new(span, format!("no function '{name}' in the script"));
+        match crate::diag::closest(name, names.iter().map(String::as_str)) {
+            Some(c) => d.with_hint(format!("did you mean '{c}'?")),
+            None => d.with_hint(format!("the script defines: {}", names.join(", "))),
+        }
+    }
+
     /// Lowers function `name` to IR (outputs are the result's scalars).
     pub fn lower(&self, name: &str) -> Result<Lowered, Report> {
         let globals = self.globals();
@@ -442,14 +453,7 @@ impl Program {
             diagnostics,
         };
         let Some(&f) = globals.functions.get(name) else {
-            let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
-            let mut d = Diagnostic::new(Span::NOWHERE, format!("no function '{name}' in the script"));
-            if let Some(c) = crate::diag::closest(name, names.iter().map(String::as_str)) {
-                d = d.with_hint(format!("did you mean '{c}'?"));
-            } else {
-                d = d.with_hint(format!("the script defines: {}", names.join(", ")));
-            }
-            return Err(report(vec![d]));
+            return Err(report(vec![self.no_function(name, Span::NOWHERE)]));
         };
         let mut graph = Graph::new();
         let result = Elaborator::new(&globals, &mut graph)
