@@ -1,12 +1,13 @@
 //! Data and file formats read: the course's views ([`dataset`]), Blender / NeRF-synthetic data sets
 //! ([`blender`]), captures of real scenes from nerfstudio and COLMAP ([`capture`], [`nerfstudio`],
-//! [`colmap`]), point clouds ([`pointcloud`]), NumPy files ([`npy`]), and size-capped reading of every
+//! [`colmap`]), images decoded within the limits ([`decode`]), point clouds ([`pointcloud`]), NumPy files ([`npy`]), and size-capped reading of every
 //! input ([`input`]).
 
 pub mod blender;
 pub mod capture;
 pub mod colmap;
 pub mod dataset;
+pub mod decode;
 pub mod input;
 pub(crate) mod json;
 pub mod nerfstudio;
