@@ -173,7 +173,7 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         source: meta("script_source")?.to_string(),
         overrides,
     };
-    let program = script.compile()?;
+    let program = script.compile_embedded(path)?;
     let data_len = 3 * 4 * program.n_params() as u64;
     if file_len != 8 + header_len + data_len {
         return Err(bad(&format!(
