@@ -231,10 +231,16 @@ impl<'p> Block<'p> {
         let Form::Function { default } = self.setting(key).form else {
             panic!("'{key}' is not a function name in the schema")
         };
-        match self.take_checked(key)? {
-            Some(v) => v.string().map(str::to_string).map_err(|d| self.error(d)),
-            None => Ok(default.to_string()),
+        let Some(v) = self.take_checked(key)? else {
+            return Ok(default.to_string());
+        };
+        let name = v.string().map_err(|d| self.error(d))?;
+        if self.program.signature(name).is_none() {
+            let mut d = self.program.no_function(name, v.span);
+            d.message = format!("setting '{key}': {}", d.message);
+            return Err(self.error(d));
         }
+        Ok(name.to_string())
     }
 
     /// Setting `camera`: the cameras of a path or a file.

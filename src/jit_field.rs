@@ -120,7 +120,8 @@ impl Compiler<'_> {
     pub fn compile_bounds(&self, lowered: &Lowered) -> Result<Option<JitFn>> {
         let graph = kernels::interval(lowered);
         let constant = graph.outputs.iter().all(|&v| graph.const_value(v).is_some());
-        if constant {
+        // Bounds only speed things up: bounds too large to compile are not worth their compile time.
+        if constant || graph.len() > nerfjit_jit::MAX_KERNEL_NODES {
             return Ok(None);
         }
         Ok(Some(JitFn {

@@ -616,6 +616,9 @@ impl TrainPlan {
             verb: "training",
         };
         let end = training_loop::train(program, params, &loop_settings, &mut objective)?;
+        if end.complete {
+            return Ok(end.already_complete(self.checkpoint.as_deref()));
+        }
         let (loss, psnr) = (end.loss, objective.psnr);
         let (ms_per_step, samples_per_s) = (end.ms_per_step(), end.samples_per_s());
         if let Some(path) = &self.summary {

@@ -217,6 +217,9 @@ impl SdfTrainPlan {
             verb: "fitting",
         };
         let end = training_loop::train(program, params, &settings, &mut objective)?;
+        if end.complete {
+            return Ok(end.already_complete(self.checkpoint.as_deref()));
+        }
         let terms = objective.terms;
         let (seconds, ms) = (end.train_seconds, end.ms_per_step());
         if let Some(path) = &self.summary {

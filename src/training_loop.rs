@@ -163,9 +163,22 @@ pub struct Finished {
     pub samples: usize,
     /// Whether Ctrl-C (or SIGTERM) stopped the run.
     pub interrupted: bool,
+    /// Whether the resumed checkpoint already held every step: nothing was trained, logged or written.
+    pub complete: bool,
 }
 
 impl Finished {
+    /// The message of a run that was already complete (see [`Finished::complete`]), whose results —
+    /// checkpoint, log, summary — are kept as they were.
+    pub fn already_complete(&self, checkpoint: Option<&Path>) -> String {
+        let at = checkpoint.map_or(String::new(), |p| format!(": '{}'", p.display()));
+        format!(
+            "the run is already complete{at} holds all {} steps; nothing trained, its results are kept \
+             (raise 'steps' to train further, or train without --resume to start again)",
+            self.done
+        )
+    }
+
     /// Steps taken by this run.
     pub fn trained(&self) -> u32 {
         self.done - self.first
@@ -214,6 +227,19 @@ pub fn train(
         settings.optimizer,
         |k| schedule.lr(k),
     )?;
+    let mut finished = Finished {
+        first,
+        done: first,
+        loss: f32::NAN,
+        train_seconds: 0.0,
+        wall_seconds: 0.0,
+        samples: 0,
+        interrupted: false,
+        complete: first >= settings.steps,
+    };
+    if finished.complete {
+        return Ok(finished);
+    }
     let log = RunLog::open(
         settings.log,
         settings.tensorboard,
@@ -230,15 +256,6 @@ pub fn train(
     objective.start(first, params, &ui)?;
     // The params before a step, to restore if the step makes one non-finite (kept between steps).
     let mut before = Vec::with_capacity(params.len());
-    let mut finished = Finished {
-        first,
-        done: first,
-        loss: f32::NAN,
-        train_seconds: 0.0,
-        wall_seconds: 0.0,
-        samples: 0,
-        interrupted: false,
-    };
     for step in first..settings.steps {
         let step_start = Instant::now();
         objective.before_step(step, params, &ui)?;
@@ -474,8 +491,12 @@ mod tests {
             &mut Quadratic::new(None),
         )
         .unwrap();
-        assert_eq!((end.trained(), end.loss.is_nan()), (0, true));
+        assert_eq!((end.trained(), end.loss.is_nan(), end.complete), (0, true, true));
         assert_eq!(again, straight);
+        assert!(end.already_complete(Some(&path)).starts_with(&format!(
+            "the run is already complete: '{}' holds all 20 steps",
+            path.display()
+        )));
         std::fs::remove_dir_all(path.parent().unwrap()).unwrap();
     }
 

@@ -38,6 +38,12 @@ impl VizPlan {
         let grid = b.output("grid")?;
         let directions = b.output("directions")?;
         let points_out = b.output("points")?;
+        if grid.is_none() && directions.is_none() && points_out.is_none() {
+            return Err(b.error(
+                Diagnostic::new(b.span(), "this viz block draws nothing: it names no output image")
+                    .with_hint("add grid: \"grid.png\", directions: \"dirs.png\" or points: \"points.png\""),
+            ));
+        }
         if points_out.is_some() && view.is_none() {
             return Err(b.error(
                 Diagnostic::new(b.span(), "drawing sample points needs a second camera 'view'")

@@ -2,7 +2,11 @@
 //! issue lists (long and deep expressions, sizes that would exhaust memory, non-finite values, endless or
 //! lying files, absurd flags), each run by the real binary under an address-space cap (`ulimit -v`) and a
 //! time limit. Every case must end in seconds with a clear error: exit status 1 or 2, a message holding
-//! the expected words and no longer than a screenful or two, and no panic, abort or signal.
+//! the expected words and no longer than a screenful or two, and no panic, abort or signal. The few cases
+//! that are no error (resuming a run that is already complete) must instead exit 0 with their message and
+//! leave every file they were given as it was. Issue 56 added the last classes found: rows that take no
+//! bytes, inlining that multiplies, decoders' own buffers, endless point streams, NaN initializers,
+//! output-less blocks, negative seeds and errors pointing to the wrong place.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -25,6 +29,9 @@ struct Case {
     expect: &'static str,
     /// The address-space cap (`ulimit -v`) in KiB.
     address_space_kib: u64,
+    /// Whether the case is no error: exit status 0, the expected words on standard output or error, and
+    /// its files unchanged.
+    succeeds: bool,
 }
 
 fn case(class: &'static str, name: &'static str, args: &[&str], expect: &'static str) -> Case {
@@ -35,6 +42,7 @@ fn case(class: &'static str, name: &'static str, args: &[&str], expect: &'static
         args: args.iter().map(|a| a.to_string()).collect(),
         expect,
         address_space_kib: ADDRESS_SPACE_KIB,
+        succeeds: false,
     }
 }
 
@@ -42,6 +50,12 @@ impl Case {
     /// The case run under an address-space cap of `kib` KiB instead.
     fn under(mut self, kib: u64) -> Case {
         self.address_space_kib = kib;
+        self
+    }
+
+    /// The case as one that must succeed, keeping its files.
+    fn succeeding(mut self) -> Case {
+        self.succeeds = true;
         self
     }
 
@@ -164,11 +178,71 @@ fn script_cases() -> Vec<Case> {
         .file("s.sdf", format!("const k = 1\n{}", sphere_plus("k"))),
         case(s, "--set of NaN", &["run", "s.sdf", "--set", "k=0/0"], "finite")
             .file("s.sdf", format!("const k = 1\n{}", sphere_plus("k"))),
+        Case::script(
+            s,
+            "300 functions each inlining 2^19 calls",
+            std::iter::once("fn f0(x: f32) -> f32 = sin(x) * 2.0 + cos(x) * 3.0 + x * x\n".to_string())
+                .chain((1..20).map(|i| format!("fn f{i}(x: f32) -> f32 = f{}(x) + f{}(x)\n", i - 1, i - 1)))
+                .chain((0..300).map(|k| format!("fn g{k}(x: f32) -> f32 = f19(x) + f18(x) + {k}.0\n")))
+                .collect(),
+            "together may take 4000000 expression steps",
+        ),
+        case(
+            s,
+            "a function of 400,000 IR nodes to mesh",
+            &["mesh", "s.sdf", "--res", "16", "--out", "m.ply"],
+            "262144 IR nodes",
+        )
+        .file("s.sdf", multiplying_sdf(9)),
+        Case::script(
+            s,
+            "an initializer of fan_in 0",
+            format!("param w: mat<2, 3> = kaiming(fan_in: 0, seed: 1)\n{}", sphere_plus("w[0][0]")),
+            "fan_in is 0, not a whole number from 1",
+        ),
+        Case::script(
+            s,
+            "a negative seed",
+            format!("param w: mat<2, 3> = uniform(-1, 1, seed: -1)\n{}", sphere_plus("w[0][0]")),
+            "seed is -1, not a whole number from 0",
+        ),
+        Case::script(
+            s,
+            "a NaN const in a block setting",
+            format!("const a = 0 / 0\n{}render sphere_trace {{ size: a, out: \"a.png\" }}\n", sphere_plus("0.0")),
+            "setting 'size' is not finite: it uses const 'a'",
+        ),
+        case(s, "a block naming a missing function", &["run", "s.sdf"], "s.sdf:3:46")
+            .file("s.sdf", fit("c.xyz").replace("steps: 5", "function: \"sdff\", steps: 5"))
+            .file("c.xyz", SIX_POINTS),
+        case(s, "a viz block drawing nothing", &["run", "s.sdf"], "draws nothing").file(
+            "s.sdf",
+            format!(
+                "{}viz {{ camera: look_at(eye: [0, 0, -4], at: [0, 0, 0], up: [0, 1, 0]), near: 1, far: 6 }}\n",
+                sphere_plus("0.0")
+            ),
+        ),
     ]
 }
 
-/// A PNG header declaring a `side`×`side` RGBA image, followed by a few bytes of data.
-fn png_bomb(side: u32) -> Vec<u8> {
+/// A sphere plus `f{depth}(p.x)`, where f0 sums 400 distinct terms and each f_i calls f_{i−1} twice with
+/// other arguments: inlining makes 400·2^depth nodes that hash-consing cannot merge.
+fn multiplying_sdf(depth: usize) -> String {
+    let terms: Vec<String> = (0..400).map(|i| format!("x * {i}.5")).collect();
+    std::iter::once(format!("fn f0(x: f32) -> f32 = {}\n", terms.join(" + ")))
+        .chain(
+            (1..=depth).map(|i| format!("fn f{i}(x: f32) -> f32 = f{0}(x + 0.1) * f{0}(x - 0.2)\n", i - 1)),
+        )
+        .chain([sphere_plus(&format!("f{depth}(p.x)"))])
+        .collect()
+}
+
+/// Six points on the unit sphere, as an `.xyz` file.
+const SIX_POINTS: &str = "0 0 1\n1 0 0\n0 1 0\n0 0 -1\n-1 0 0\n0 -1 0\n";
+
+/// A PNG header declaring a `side`×`side` image of PNG color type `color` (0 gray, 6 RGBA), followed by
+/// a few bytes of data.
+fn png_bomb(side: u32, color: u8) -> Vec<u8> {
     fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
         out.extend((data.len() as u32).to_be_bytes());
         out.extend(kind);
@@ -178,12 +252,21 @@ fn png_bomb(side: u32) -> Vec<u8> {
     let mut header = Vec::new();
     header.extend(side.to_be_bytes());
     header.extend(side.to_be_bytes());
-    header.extend([8, 6, 0, 0, 0]);
+    header.extend([8, color, 0, 0, 0]);
     let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
     chunk(&mut png, b"IHDR", &header);
     chunk(&mut png, b"IDAT", &[0x78, 0x9c, 0x63, 0, 0, 0, 1, 0, 1]);
     chunk(&mut png, b"IEND", &[]);
     png
+}
+
+/// A valid, all-black grayscale PNG of `side`×`side` pixels (it compresses about a thousandfold).
+fn black_png(side: u32) -> Vec<u8> {
+    let mut png = std::io::Cursor::new(Vec::new());
+    image::GrayImage::new(side, side)
+        .write_to(&mut png, image::ImageFormat::Png)
+        .unwrap();
+    png.into_inner()
 }
 
 /// The CRC-32 of PNG chunks.
@@ -247,7 +330,7 @@ fn data_cases() -> Vec<Case> {
         )
         .file("s.sdf", nerf)
         .file("t.json", blender)
-        .file("r_0.png", png_bomb(60_000)),
+        .file("r_0.png", png_bomb(60_000, 6)),
         case(
             d,
             "a capture of 100000×100000 images",
@@ -323,7 +406,92 @@ fn data_cases() -> Vec<Case> {
         .file("c.ckpt.json", deep_json),
         case(d, "a .vm model of garbage", &["import", "m.vm"], "m.vm")
             .file("m.vm", "_0 var-x\n_1 frobnicate _0\n"),
+        case(
+            d,
+            "a PLY element of 2^64 - 1 rows without properties",
+            &["run", "s.sdf"],
+            "element 'junk' declares 18446744073709551615 rows but no properties",
+        )
+        .file("s.sdf", fit("cloud.ply"))
+        .file(
+            "cloud.ply",
+            [
+                b"ply\nformat binary_little_endian 1.0\nelement junk 18446744073709551615\n\
+                  element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                    .as_slice(),
+                &[0; 12],
+            ]
+            .concat(),
+        ),
+        case(
+            d,
+            "a grayscale PNG declaring 20000×20000 pixels",
+            &["run", "s.sdf"],
+            "r_0.png: the image declares 20000×20000 pixels",
+        )
+        .file(
+            "s.sdf",
+            nerf.replace("blender(\"t.json\")", "blender(\"t.json\", size: 64)"),
+        )
+        .file("t.json", blender)
+        .file("r_0.png", png_bomb(20_000, 0)),
+        case(
+            d,
+            "a 4000×4000 PNG to decode beyond --max-memory 256M",
+            &["--max-memory", "256M", "run", "s.sdf"],
+            "decoding its 4000×4000 pixels would need",
+        )
+        .file(
+            "s.sdf",
+            nerf.replace("blender(\"t.json\")", "blender(\"t.json\", size: 64)"),
+        )
+        .file("t.json", blender)
+        .file("r_0.png", black_png(4000)),
+        case(
+            d,
+            "a checkpoint whose script no longer compiles",
+            &["mesh", "c.ckpt.json", "--out", "m.ply"],
+            "in the copy of 's.sdf' embedded in checkpoint 'c.ckpt.json'",
+        )
+        .file(
+            "c.ckpt.json",
+            checkpoint(
+                "param r: vec<1> = [0.5]\nfn sdf(p: vec3) -> f32 = lenght(p) - r[0]\n",
+                5,
+            ),
+        ),
+        case(
+            d,
+            "--resume of a finished run",
+            &["run", "s.sdf", "--resume"],
+            "the run is already complete: 'c.ckpt.json' holds all 5 steps",
+        )
+        .succeeding()
+        .file("s.sdf", finished_fit())
+        .file("c.xyz", SIX_POINTS)
+        .file("c.ckpt.json", checkpoint(&finished_fit(), 5))
+        .file("sum.json", "{\"final_loss\": 0.25}\n"),
     ]
+}
+
+/// A fit of 5 steps to `c.xyz` with a checkpoint and a summary.
+fn finished_fit() -> String {
+    fit("c.xyz").replace(
+        "checkpoint: none",
+        "checkpoint: \"c.ckpt.json\", summary: \"sum.json\"",
+    )
+}
+
+/// A JSON checkpoint at `step` of `script`, whose one param is `r: vec<1>`.
+fn checkpoint(script: &str, step: u32) -> String {
+    serde_json::json!({
+        "format": "nerfjit-checkpoint-1",
+        "script": { "name": "s.sdf", "source": script, "overrides": [] },
+        "step": step,
+        "params": [0.5],
+        "adam": [step, 0.0, 0.0],
+    })
+    .to_string()
 }
 
 fn command_line_cases() -> Vec<Case> {
@@ -365,7 +533,7 @@ fn command_line_cases() -> Vec<Case> {
             "training 1000000 params",
         )
         .file("s.sdf", million)
-        .file("c.xyz", "0 0 1\n1 0 0\n0 1 0\n0 0 -1\n-1 0 0\n0 -1 0\n"),
+        .file("c.xyz", SIX_POINTS),
         case(
             c,
             "mesh --res 100000",
@@ -398,6 +566,12 @@ fn command_line_cases() -> Vec<Case> {
             &["run", "nowhere.sdf"],
             "nowhere.sdf",
         ),
+        case(
+            c,
+            "eval --points /dev/zero",
+            &["eval", torus, "sdf", "--points", "/dev/zero"],
+            "/dev/zero:1: the line is longer than 1048576 bytes",
+        ),
     ]
 }
 
@@ -422,11 +596,12 @@ fn run(case: &Case, dir: &Path) -> Option<String> {
         .arg(env!("CARGO_BIN_EXE_nerfjit"))
         .args(&args)
         .current_dir(dir)
-        .stdout(Stdio::null())
+        .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .expect("starts");
-    let stderr = child.stderr.take().unwrap();
+    let (stdout, stderr) = (child.stdout.take().unwrap(), child.stderr.take().unwrap());
+    let out_reader = std::thread::spawn(move || std::io::read_to_string(stdout).unwrap_or_default());
     let reader = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
     let status = loop {
         if let Some(status) = child.try_wait().unwrap() {
@@ -441,7 +616,12 @@ fn run(case: &Case, dir: &Path) -> Option<String> {
     };
     let seconds = start.elapsed().as_secs_f64();
     let err = reader.join().unwrap();
+    let out = out_reader.join().unwrap();
     let head: String = err.chars().take(600).collect();
+    if case.succeeds {
+        return succeeded(case, dir, status, &format!("{out}{err}"))
+            .map(|p| format!("{p} after {seconds:.2} s: {head}"));
+    }
     let problem = match status.code() {
         None => Some(format!("killed by a signal ({status})")),
         Some(0) => Some("succeeded".to_string()),
@@ -458,6 +638,22 @@ fn run(case: &Case, dir: &Path) -> Option<String> {
         Some(code) => Some(format!("exit status {code}")),
     };
     problem.map(|p| format!("{p} after {seconds:.2} s: {head}"))
+}
+
+/// The problem, if any, of `case` (one that must succeed) run in `dir`: it ended with `status`, printing
+/// `output`.
+fn succeeded(case: &Case, dir: &Path, status: std::process::ExitStatus, output: &str) -> Option<String> {
+    if status.code() != Some(0) {
+        return Some(format!("failed ({status})"));
+    }
+    if !output.contains(case.expect) {
+        return Some(format!("the output lacks '{}'", case.expect));
+    }
+    let changed = case
+        .files
+        .iter()
+        .find(|(name, bytes)| std::fs::read(dir.join(name)).ok().as_ref() != Some(bytes));
+    changed.map(|(name, _)| format!("changed or removed {name}"))
 }
 
 #[test]

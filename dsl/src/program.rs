@@ -7,7 +7,7 @@ use crate::ast::*;
 use crate::budget;
 use crate::builtins;
 use crate::diag::{Diagnostic, Report, SourceMap, Span};
-use crate::elaborate::{Elaborator, Globals, ParamSlot};
+use crate::elaborate::{Elaborator, Globals, ParamSlot, MAX_TOTAL_STEPS};
 use crate::init::Initializer;
 use crate::ir::Graph;
 use crate::parser::parse;
@@ -237,17 +237,42 @@ impl Program {
         diagnostics
     }
 
-    /// Each `const` whose value is not finite (as an f32), at its value.
+    /// Each `const` whose value is not finite (as an f32), at its value, and each block setting that uses
+    /// such a const, at the setting (naming the const's line and column).
     fn check_consts(&self) -> Vec<Diagnostic> {
-        self.user_items()
-            .filter_map(|item| match item {
-                Item::Const(c) => {
-                    let values = self.constant_values(&c.value).ok()?;
-                    finite(c.value.span, &values).err()
+        let mut diagnostics = Vec::new();
+        let mut bad = Vec::new();
+        for item in self.user_items() {
+            if let Item::Const(c) = item {
+                let Ok(values) = self.constant_values(&c.value) else {
+                    continue;
+                };
+                if let Err(d) = finite(c.value.span, &values) {
+                    diagnostics.push(d);
+                    bad.push(&c.name);
                 }
-                _ => None,
-            })
-            .collect()
+            }
+        }
+        for block in self.blocks() {
+            for entry in &block.entries {
+                let Some(name) = bad.iter().find(|n| mentions(&entry.value, &n.name)) else {
+                    continue;
+                };
+                let (line, col) = self.line_of(name.span);
+                diagnostics.push(
+                    Diagnostic::new(
+                        entry.value.span,
+                        format!(
+                            "setting '{}' is not finite: it uses const '{}', whose value is not a finite 32-bit float",
+                            entry.key.name, name.name
+                        ),
+                    )
+                    .with_hint(format!("'{}' is defined at line {line}, column {col}", name.name)),
+                );
+            }
+        }
+        diagnostics.sort_by_key(|d| d.span.start);
+        diagnostics
     }
 
     /// Evaluates `e` to finite constants (consts are visible, params are not).
@@ -336,7 +361,14 @@ impl Program {
                     .with_hint(format!("its named arguments are: {}", allowed.join(", "))),
             );
         }
-        let seed = named.get("seed").map_or(index as u64 + 1, |s| s.0 as u64);
+        let seed = match named.get("seed") {
+            Some(&(value, span)) => whole_argument("seed", value, span, 0)?,
+            None => index as u64 + 1,
+        };
+        if let Some(&(value, span)) = named.get("fan_in") {
+            // A fan-in of 0 divides by zero: every weight would be NaN or infinite.
+            whole_argument("fan_in", value, span, 1)?;
+        }
         if let Type::Mlp(shape) = ty {
             if let Some((_, span)) = named.get("fan_in") {
                 return Err(Diagnostic::new(*span, "an mlp knows each layer's fan_in"));
@@ -355,12 +387,17 @@ impl Program {
     fn check_functions(&self) -> Vec<Diagnostic> {
         let globals = self.globals();
         let mut diagnostics = Vec::new();
+        // Inlining steps of all the functions so far, against `MAX_TOTAL_STEPS`.
+        let mut spent = 0;
         for f in self.fn_defs() {
-            if diagnostics.len() == MAX_FUNCTION_ERRORS {
+            if diagnostics.len() == MAX_FUNCTION_ERRORS || spent > MAX_TOTAL_STEPS {
                 break;
             }
             let mut g = Graph::new();
-            if let Err(d) = Elaborator::new(&globals, &mut g).check_fn(f) {
+            let mut elaborator = Elaborator::new(&globals, &mut g).with_max_steps(MAX_TOTAL_STEPS - spent);
+            let checked = elaborator.check_fn(f);
+            spent += elaborator.steps();
+            if let Err(d) = checked {
                 diagnostics.push(d);
             }
         }
@@ -397,6 +434,17 @@ impl Program {
         self.param_values.len()
     }
 
+    /// The error for function `name`, which the script lacks, named at `span` (`Span::NOWHERE` when a
+    /// command line names it), with the closest function as a hint.
+    pub fn no_function(&self, name: &str, span: Span) -> Diagnostic {
+        let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
+        let d = Diagnostic::new(span, format!("no function '{name}' in the script"));
+        match crate::diag::closest(name, names.iter().map(String::as_str)) {
+            Some(c) => d.with_hint(format!("did you mean '{c}'?")),
+            None => d.with_hint(format!("the script defines: {}", names.join(", "))),
+        }
+    }
+
     /// Lowers function `name` to IR (outputs are the result's scalars).
     pub fn lower(&self, name: &str) -> Result<Lowered, Report> {
         let globals = self.globals();
@@ -405,14 +453,7 @@ impl Program {
             diagnostics,
         };
         let Some(&f) = globals.functions.get(name) else {
-            let names: Vec<String> = self.functions().into_iter().map(|s| s.name).collect();
-            let mut d = Diagnostic::new(Span::NOWHERE, format!("no function '{name}' in the script"));
-            if let Some(c) = crate::diag::closest(name, names.iter().map(String::as_str)) {
-                d = d.with_hint(format!("did you mean '{c}'?"));
-            } else {
-                d = d.with_hint(format!("the script defines: {}", names.join(", ")));
-            }
-            return Err(report(vec![d]));
+            return Err(report(vec![self.no_function(name, Span::NOWHERE)]));
         };
         let mut graph = Graph::new();
         let result = Elaborator::new(&globals, &mut graph)
@@ -483,6 +524,25 @@ impl Program {
     }
 }
 
+/// Whether expression `e` refers to the variable, param or const `name` anywhere.
+fn mentions(e: &Expr, name: &str) -> bool {
+    let any = |items: &[Expr]| items.iter().any(|x| mentions(x, name));
+    match &e.kind {
+        ExprKind::Number(_) | ExprKind::Str(_) => false,
+        ExprKind::Var(v) => v == name,
+        ExprKind::Unary(_, a) | ExprKind::Swizzle(a, _) => mentions(a, name),
+        ExprKind::Binary(_, a, b) | ExprKind::Index(a, b) => mentions(a, name) || mentions(b, name),
+        ExprKind::Slice(a, b, c) | ExprKind::If(a, b, c) => {
+            mentions(a, name) || mentions(b, name) || mentions(c, name)
+        }
+        ExprKind::Call(_, args) => args.iter().any(|a| mentions(&a.value, name)),
+        ExprKind::List(items) | ExprKind::Tuple(items) => any(items),
+        ExprKind::Block(lets, value) => {
+            lets.iter().any(|l| mentions(&l.value, name)) || mentions(value, name)
+        }
+    }
+}
+
 /// Fails unless every value is a finite f32 (NaN from 0/0, or beyond ±3.4e38, would poison every
 /// result that uses it).
 fn finite(span: Span, values: &[f64]) -> Result<(), Diagnostic> {
@@ -532,6 +592,21 @@ impl Elaborator<'_, '_> {
         }
         self.lower_entry(f)
     }
+}
+
+/// The largest initializer argument taken as a whole number: every integer up to it is exact in an f64.
+const MAX_WHOLE_ARGUMENT: f64 = 9_007_199_254_740_992.0;
+
+/// Initializer argument `key` (its `value` written at `span`) as a whole number of at least `lo`.
+fn whole_argument(key: &str, value: f64, span: Span, lo: u64) -> Result<u64, Diagnostic> {
+    if value.fract() == 0.0 && value >= lo as f64 && value <= MAX_WHOLE_ARGUMENT {
+        return Ok(value as u64);
+    }
+    Err(Diagnostic::new(
+        span,
+        format!("{key} is {value}, not a whole number from {lo} to 2^53"),
+    )
+    .with_hint(format!("write e.g. {key}: {}", lo.max(1))))
 }
 
 /// The distribution of initializer `name` (with its positional arguments) for a block of `fan_in` inputs

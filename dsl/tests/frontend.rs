@@ -110,6 +110,23 @@ fn params_need_valid_initial_values() {
     assert!(error("param b: vec<4> = xavier(seed: 1)").contains("'xavier' initializes a matrix"));
     assert!(error("param b: vec<4> = linear_init(seed: 1)").contains("needs fan_in"));
     assert!(error("fn f(x: f32) -> f32 = xavier(x)").contains("can only initialize a param"));
+    // A fan-in of 0 would divide by zero (NaN weights); seeds are whole numbers, never negative.
+    for init in [
+        "kaiming(fan_in: 0)",
+        "linear_init(fan_in: 0)",
+        "kaiming(fan_in: -3)",
+        "xavier(fan_in: 0.5)",
+    ] {
+        let text = error(&format!("param w: mat<2, 3> = {init}"));
+        assert!(
+            text.contains("not a whole number from 1 to 2^53"),
+            "{init}: {text}"
+        );
+    }
+    assert!(error("param w: mat<2, 3> = uniform(0, 1, seed: -1)")
+        .contains("seed is -1, not a whole number from 0"));
+    assert!(error("param w: mat<2, 3> = kaiming(seed: 1.5)").contains("seed is 1.5"));
+    assert!(error("param n: mlp<3, 4, 2> = kaiming(seed: -2)").contains("seed is -2"));
     let text = error("param w: mat<2, 3> = uniform(0, 1, sed: 3)");
     assert!(
         text.contains("'uniform' has no argument 'sed'") && text.contains("named arguments are: seed"),

@@ -205,13 +205,30 @@ pub(crate) fn host_module(nodes: usize) -> Result<JITModule, JitError> {
     Ok(JITModule::new(JITBuilder::with_isa(isa, default_libcall_names())))
 }
 
-/// `graph` compacted, checked against the IR's rules: a graph that breaks them would make the code read or
-/// write outside its buffers.
+/// The most IR nodes one kernel may have: Cranelift's time and memory grow faster than the code (a
+/// million nodes take about 20 s and over 1 GiB), so a larger graph is refused rather than compiled.
+pub const MAX_KERNEL_NODES: usize = 1 << 20;
+
+/// Refuses a (compacted) graph beyond [`MAX_KERNEL_NODES`].
+pub(crate) fn within_budget(graph: &Graph) -> Result<(), JitError> {
+    if graph.len() <= MAX_KERNEL_NODES {
+        return Ok(());
+    }
+    Err(JitError(format!(
+        "the kernel has {} IR nodes, more than the {MAX_KERNEL_NODES} one kernel may have: \
+         make the function smaller (each call of a function repeats its body)",
+        graph.len()
+    )))
+}
+
+/// `graph` compacted, checked against the IR's rules (a graph that breaks them would make the code read or
+/// write outside its buffers) and against the compilation budget.
 fn compacted_and_valid(graph: &Graph) -> Result<Graph, JitError> {
     let graph = graph.compact();
     graph
         .validate()
         .map_err(|e| JitError(format!("invalid IR: {e}")))?;
+    within_budget(&graph)?;
     Ok(graph)
 }
 

@@ -52,6 +52,7 @@ impl Marcher {
         let start = Instant::now();
         let sdf = sdf.compact();
         sdf.validate().map_err(|e| JitError(format!("invalid IR: {e}")))?;
+        crate::kernel::within_budget(&sdf)?;
         if sdf.needs_tiles() {
             return Err(JitError(
                 "the fused sphere tracer takes elementwise SDFs; dense layers run tiled".into(),

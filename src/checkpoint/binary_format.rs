@@ -216,7 +216,7 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         source: meta("script_source")?.to_string(),
         overrides,
     };
-    let program = script.compile()?;
+    let program = script.compile_embedded(path)?;
     let occupancy_len = match header["__metadata__"].get("occupancy_resolution") {
         Some(resolution) => {
             let r: u64 = resolution

@@ -41,9 +41,21 @@ impl Script {
         }
     }
 
-    /// Compiles the script again.
-    pub fn compile(&self) -> Result<Program> {
-        nerfjit_dsl::compile_with(&self.name, &self.source, &self.overrides).map_err(Failure::Script)
+    /// Compiles the script again, as held by `checkpoint`: its errors say that they are in that copy of
+    /// the script (which may differ from the file of the same name, or no longer compile with this version
+    /// of nerfjit), not in a file on disk.
+    pub fn compile_embedded(&self, checkpoint: &Path) -> Result<Program> {
+        nerfjit_dsl::compile_with(&self.name, &self.source, &self.overrides).map_err(|mut report| {
+            for d in &mut report.diagnostics {
+                d.message = format!(
+                    "{} (in the copy of '{}' embedded in checkpoint '{}')",
+                    d.message,
+                    self.name,
+                    checkpoint.display()
+                );
+            }
+            Failure::Script(report)
+        })
     }
 }
 
@@ -121,7 +133,7 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     }
     let text = nerfjit_runtime::data::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
     let saved = json_format::decode(&text, &bad)?;
-    let program = saved.script.compile()?;
+    let program = saved.script.compile_embedded(path)?;
     let n_params = program.n_params();
     if saved.params.len() != n_params {
         return Err(bad(&format!(

@@ -23,6 +23,7 @@ use rayon::prelude::*;
 
 use crate::cameras::camera_files::load_blender_cameras;
 use crate::data::dataset::Views;
+use crate::data::decode::decode_checked;
 use crate::data::npy::ImageF32;
 use crate::error::{check_size, Error, Result};
 
@@ -156,13 +157,13 @@ fn decode_all(files: &[PathBuf], request: &Request) -> Result<Vec<ImageF32>> {
 
 /// Decodes one RGBA PNG into its source (width, height) and the composited, resized image.
 fn decode_view(file: &Path, request: &Request) -> Result<((u32, u32), ImageF32)> {
-    let bytes = crate::data::input::read_capped(file).map_err(|e| Error::reading(file, e))?;
-    if !bytes.starts_with(PNG_SIGNATURE) {
+    let mut start = [0u8; PNG_SIGNATURE.len()];
+    let mut opened = std::fs::File::open(file).map_err(|e| Error::reading(file, e))?;
+    let read = std::io::Read::read(&mut opened, &mut start).map_err(|e| Error::read(file, e))?;
+    if start[..read] != *PNG_SIGNATURE {
         return Err(Error::format(file, "not a PNG file"));
     }
-    let rgba = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
-        .map_err(|e| Error::format(file, format!("invalid PNG: {e}")))?
-        .to_rgba32f();
+    let rgba = decode_checked(file, Some(image::ImageFormat::Png))?.to_rgba32f();
     let source = rgba.dimensions();
     let image = composite(&rgba, request.background);
     let Some(size) = request.size else {

@@ -18,18 +18,14 @@
 use std::path::{Path, PathBuf};
 
 use glam::{Mat3, Mat4, Vec3};
-use image::ImageDecoder;
 use rayon::prelude::*;
 
 use crate::cameras::camera::{Camera, PixelIntrinsics};
 use crate::data::blender::{area_resize, composite};
 use crate::data::dataset::Views;
+use crate::data::decode::decode_checked;
 use crate::data::npy::ImageF32;
 use crate::error::{Error, Result};
-
-/// The most pixels an image of a capture may declare in its header; larger ones are refused
-/// before they are decoded.
-pub const MAX_IMAGE_PIXELS: u64 = 1 << 27;
 
 /// The mean distance of the cameras from the scene's center after [`Capture::normalize`], as in
 /// the NeRF-synthetic scenes (and instant-ngp's `colmap2nerf`).
@@ -372,30 +368,9 @@ fn nearest_to_axes(positions: &[Vec3], axes: &[Vec3]) -> Vec3 {
     mean + a.inverse() * b
 }
 
-/// Reads an image's header and refuses sizes beyond [`MAX_IMAGE_PIXELS`] before decoding it.
-pub fn decode_checked(path: &Path) -> Result<image::DynamicImage> {
-    let bad = |e: &dyn std::fmt::Display| Error::format(path, format!("invalid image: {e}"));
-    let reader = image::ImageReader::open(path)
-        .map_err(|e| Error::reading(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::read(path, e))?;
-    if reader.format().is_none() {
-        return Err(Error::format(path, "not an image nerfjit reads (PNG or JPEG)"));
-    }
-    let decoder = reader.into_decoder().map_err(|e| bad(&e))?;
-    let (w, h) = decoder.dimensions();
-    if u64::from(w) * u64::from(h) > MAX_IMAGE_PIXELS {
-        return Err(Error::format(
-            path,
-            format!("the image declares {w}×{h} pixels, more than the {MAX_IMAGE_PIXELS} nerfjit decodes"),
-        ));
-    }
-    image::DynamicImage::from_decoder(decoder).map_err(|e| bad(&e))
-}
-
 /// Decodes, undistorts, composites and resizes one frame's image to `size`.
 fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<ImageF32> {
-    let mut rgba = decode_checked(&frame.image)?.to_rgba32f();
+    let mut rgba = decode_checked(&frame.image, None)?.to_rgba32f();
     let camera = &frame.camera;
     if rgba.dimensions() != (camera.width, camera.height) {
         return Err(Error::format(
@@ -425,7 +400,7 @@ fn load_frame(frame: &Frame, size: (u32, u32), background: [f32; 3]) -> Result<I
 /// Makes the pixels of `rgba` transparent where the mask image at `mask` (of the same size; gray or
 /// color, read as luminance) is below half: masks saved as JPEG or resampled are not strictly binary.
 fn apply_mask(rgba: &mut image::Rgba32FImage, mask: &Path) -> Result<()> {
-    let luma = decode_checked(mask)?.to_luma32f();
+    let luma = decode_checked(mask, None)?.to_luma32f();
     if luma.dimensions() != rgba.dimensions() {
         return Err(Error::format(
             mask,

@@ -5,6 +5,7 @@ use std::path::Path;
 use crate::cameras::camera::Camera;
 use crate::cameras::camera_files::load_box_cameras;
 use crate::cameras::rays::RayBatch;
+use crate::data::decode::decode_checked;
 use crate::data::npy::{read_npy_rgb, ImageF32};
 use crate::error::{Error, Result};
 
@@ -31,13 +32,7 @@ pub fn read_rgb_image(path: &Path) -> Result<ImageF32> {
     if !is_png {
         return read_npy_rgb(path);
     }
-    let decoded = image::open(path).map_err(|e| match e {
-        image::ImageError::IoError(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            Error::read(path, "file not found")
-        }
-        e => Error::read(path, e),
-    })?;
-    let rgba = decoded.to_rgba32f();
+    let rgba = decode_checked(path, Some(image::ImageFormat::Png))?.to_rgba32f();
     Ok(ImageF32 {
         width: rgba.width(),
         height: rgba.height(),
@@ -422,7 +417,47 @@ mod tests {
         let e = load_box_views(&cameras_json(&dir, &["junk.png"], "[4, 6]")).unwrap_err();
         assert!(e
             .to_string()
-            .starts_with(&format!("cannot read {}", dir.join("junk.png").display())));
+            .starts_with(&format!("{}: invalid PNG", dir.join("junk.png").display())));
+    }
+
+    #[test]
+    fn a_png_too_large_to_decode_is_refused_before_decoding() {
+        let dir = temp_dir("huge");
+        let path = dir.join("huge.png");
+        // An 11000² gray image would need 11000² · (1 + 40) bytes, more than a 1 GiB limit: its header,
+        // patched from a row of 11000 pixels, is all that is read.
+        image::GrayImage::new(11000, 1).save(&path).unwrap();
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[20..24].copy_from_slice(&11000u32.to_be_bytes());
+        let crc = crc32(&bytes[12..29]);
+        bytes[29..33].copy_from_slice(&crc.to_be_bytes());
+        std::fs::write(&path, bytes).unwrap();
+        // No other test of this crate checks the memory limit; its images are far smaller.
+        nerfjit_dsl::budget::set_max_memory(1 << 30);
+        let e = read_rgb_image(&path).unwrap_err().to_string();
+        assert!(
+            e.starts_with(&format!(
+                "{}: decoding its 11000×11000 pixels would need 4.6 GiB",
+                path.display()
+            )),
+            "{e}"
+        );
+    }
+
+    /// The CRC-32 of a PNG chunk's type and data.
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut crc = !0u32;
+        for &b in bytes {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 {
+                    (crc >> 1) ^ 0xedb8_8320
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        !crc
     }
 
     #[test]

@@ -1,12 +1,14 @@
 //! Data and file formats read: the course's views ([`dataset`]), Blender / NeRF-synthetic data sets
 //! ([`blender`]), captures of real scenes from nerfstudio, COLMAP, LLFF and DTU ([`capture`],
-//! [`nerfstudio`], [`colmap`], [`llff`], [`dtu`]), point clouds ([`pointcloud`]), NumPy files ([`npy`]), and size-capped reading of every
+//! [`nerfstudio`], [`colmap`], [`llff`], [`dtu`]), images decoded within the limits ([`decode`]), point
+//! clouds ([`pointcloud`]), NumPy files ([`npy`]), and size-capped reading of every
 //! input ([`input`]).
 
 pub mod blender;
 pub mod capture;
 pub mod colmap;
 pub mod dataset;
+pub mod decode;
 pub mod dtu;
 pub mod input;
 pub(crate) mod json;

@@ -231,6 +231,13 @@ fn parse_header(bytes: &[u8]) -> std::result::Result<Header, String> {
         }
     }
     let format = format.ok_or("the header has no 'format' line")?;
+    if let Some(empty) = elements.iter().find(|e| e.properties.is_empty() && e.count > 0) {
+        // Rows of no properties take no bytes, so no file size bounds their count (2^64 would loop forever).
+        return Err(format!(
+            "element '{}' declares {} rows but no properties: rows without values are not read",
+            empty.name, empty.count
+        ));
+    }
     Ok(Header {
         format,
         elements,
@@ -449,5 +456,25 @@ mod tests {
         );
         let e = read_ply(&path).unwrap_err().to_string();
         assert!(e.contains("the data ends early, in vertex 1"), "{e}");
+    }
+
+    #[test]
+    fn rows_without_properties_are_refused_whatever_their_count() {
+        for count in ["1", "18446744073709551615"] {
+            let text = format!("ply\nformat binary_little_endian 1.0\nelement nothing {count}\nend_header\n");
+            let e = read_ply(&temp_file("empty.ply", text.as_bytes()))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!(
+                    "element 'nothing' declares {count} rows but no properties"
+                )),
+                "{e}"
+            );
+        }
+        let none =
+            "ply\nformat ascii 1.0\nelement nothing 0\nelement vertex 1\nproperty float x\nend_header\n2\n";
+        let ply = read_ply(&temp_file("zero.ply", none.as_bytes())).unwrap();
+        assert_eq!(ply.element("vertex").unwrap().scalar("x").unwrap(), [2.0]);
     }
 }
