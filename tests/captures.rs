@@ -138,6 +138,20 @@ fn train_and_check(dir: &Path, data: &str, extra: &str) -> serde_json::Value {
     summary
 }
 
+/// `nerfjit eval-views` of the checkpoint `train` wrote in `dir`, on the views it held out (two): its
+/// JSON report.
+fn two_held_out_views_scored_again(dir: &Path) -> serde_json::Value {
+    let (ok, out, err) = run(
+        dir,
+        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
+    );
+    assert!(ok, "{err}");
+    let scores: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
+    assert_eq!(scores["views"].as_array().unwrap().len(), 2, "{out}");
+    scores
+}
+
 #[test]
 fn a_nerfstudio_capture_with_rectangular_images_and_per_frame_intrinsics_trains() {
     let dir = scratch("nerfstudio");
@@ -356,14 +370,7 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     assert!(psnr > 40.0, "held-out PSNR {psnr}: {summary}");
     // The checkpoint alone scores the same held-out views again, with the occupancy grid it keeps: the
     // same figure.
-    let (ok, out, err) = run(
-        &dir,
-        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
-    );
-    assert!(ok, "{err}");
-    let scores: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
-    assert_eq!(scores["views"].as_array().unwrap().len(), 2, "{out}");
+    let scores = two_held_out_views_scored_again(&dir);
     assert_eq!(
         (scores["width"].as_u64(), scores["height"].as_u64()),
         (Some(48), Some(32))
@@ -520,14 +527,7 @@ fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
         .as_f64()
         .unwrap();
     assert!(psnr > 40.0, "held-out PSNR {psnr}: {summary}");
-    let (ok, out, err) = run(
-        &dir,
-        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
-    );
-    assert!(ok, "{err}");
-    let scores: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
-    assert_eq!(scores["views"].as_array().unwrap().len(), 2, "{out}");
+    let scores = two_held_out_views_scored_again(&dir);
     let again = scores["mean_psnr"].as_f64().unwrap();
     assert!(
         (again - psnr).abs() < 0.1,

@@ -7,10 +7,10 @@ use std::path::{Path, PathBuf};
 
 use libfuzzer_sys::fuzz_target;
 use nerfjit_runtime::cameras::{camera_files, camera_path};
-use nerfjit_runtime::data::{colmap, nerfstudio, pointcloud};
+use nerfjit_runtime::data::{colmap, dtu, llff, nerfstudio, pointcloud};
 
 /// The formats, by the first byte modulo their count.
-const FORMATS: [&str; 13] = [
+const FORMATS: [&str; 15] = [
     "points.npy",
     "points.npz",
     "points.ply",
@@ -24,12 +24,26 @@ const FORMATS: [&str; 13] = [
     "checkpoint.safetensors",
     "checkpoint.ckpt.json",
     "model.vm",
+    "llff/poses_bounds.npy",
+    "dtu/cameras_sphere.npz",
+];
+
+/// A 1×1 grayscale PNG: the one image of the scratch folder's LLFF scene and DTU scan, so that their
+/// loaders go on to read the fuzzed pose or camera file.
+const ONE_PIXEL_PNG: [u8; 67] = [
+    137, 80, 78, 71, 13, 10, 26, 10, 0, 0, 0, 13, 73, 72, 68, 82, 0, 0, 0, 1, 0, 0, 0, 1, 8, 0, 0, 0, 0, 58,
+    126, 155, 85, 0, 0, 0, 10, 73, 68, 65, 84, 120, 156, 99, 96, 0, 0, 0, 2, 0, 1, 72, 175, 164, 113, 0, 0, 0,
+    0, 73, 69, 78, 68, 174, 66, 96, 130,
 ];
 
 /// A scratch folder of this process.
 fn scratch() -> PathBuf {
     let dir = std::env::temp_dir().join(format!("nerfjit-fuzz-{}", std::process::id()));
     std::fs::create_dir_all(dir.join("colmap")).unwrap();
+    for images in ["llff/images", "dtu/image"] {
+        std::fs::create_dir_all(dir.join(images)).unwrap();
+        std::fs::write(dir.join(images).join("000.png"), ONE_PIXEL_PNG).unwrap();
+    }
     dir
 }
 
@@ -80,6 +94,8 @@ fn read(name: &str, file: &Path, dir: &Path) {
             std::fs::remove_dir_all(&model).ok();
             std::fs::create_dir_all(&model).unwrap();
         }
+        "llff/poses_bounds.npy" => drop(llff::load_llff(&dir.join("llff"), 1)),
+        "dtu/cameras_sphere.npz" => drop(dtu::load_dtu(&dir.join("dtu"), false)),
         "checkpoint.safetensors" | "checkpoint.ckpt.json" => drop(nerfjit::checkpoint::load_trained(file)),
         _ => drop(nerfjit::import::run(file, Some(&dir.join("model.sdf")))),
     }
