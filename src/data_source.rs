@@ -123,10 +123,13 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
         path: file.to_path_buf(),
         kind,
     };
-    let (capture, mut data) = set.capture()?.expect("a capture's kind");
+    let (capture, data) = set.capture()?.expect("a capture's kind");
     let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
-    data.downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
-    set.capture_views(&capture, &data)
+    let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
+    if set.has_masks() {
+        return set.downscaled(downscale).load(false);
+    }
+    set.capture_views(&capture, &CaptureData { downscale, ..data })
 }
 
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
@@ -292,6 +295,18 @@ impl DataSet {
         Ok(Some((capture, data)))
     }
 
+    /// The same capture read at `downscale` (other data sets unchanged).
+    fn downscaled(&self, downscale: u32) -> DataSet {
+        let mut set = self.clone();
+        match &mut set.kind {
+            DataKind::Course | DataKind::Blender(_) => {}
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.downscale = downscale
+            }
+        }
+        set
+    }
+
     /// The same data set composited on `background`.
     pub fn on_background(&self, background: [f32; 3]) -> DataSet {
         let mut set = self.clone();
@@ -314,6 +329,29 @@ impl DataSet {
                 c.background
             }
         }
+    }
+
+    /// Whether the data set's alpha comes from object masks (a DTU scan read with its masks), inside
+    /// which its held-out views are also scored.
+    pub fn has_masks(&self) -> bool {
+        matches!(self.kind, DataKind::Dtu(_, true))
+    }
+
+    /// The views as training and scoring read them: premultiplied with their alpha when `with_alpha`
+    /// (composited on the data's background otherwise), with the data's object masks when it has them.
+    pub fn load(&self, with_alpha: bool) -> Result<Views> {
+        if !(with_alpha || self.has_masks()) {
+            return self.views();
+        }
+        let mut views = self.views_with_alpha()?;
+        if self.has_masks() {
+            views = views.masked_by_alpha();
+        }
+        Ok(if with_alpha {
+            views
+        } else {
+            views.on_background(self.background())
+        })
     }
 
     /// Loads the training views premultiplied, with their alpha (see [`Views::with_alpha`]), having

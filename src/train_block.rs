@@ -533,11 +533,7 @@ impl TrainPlan {
     /// With `random_background` the training views keep their alpha; held-out views are always on the
     /// data's background.
     pub fn load_views(&self) -> Result<(Views, Option<Views>)> {
-        let mut views = if self.random_background {
-            self.data.views_with_alpha()?
-        } else {
-            self.data.views()?
-        };
+        let mut views = self.data.load(self.random_background)?;
         let val_views = match self.validation.as_ref().map(|v| (&v.held_out, v.views)) {
             Some((HeldOut::Every(n), limit)) => {
                 let (train, held) = views.hold_out(*n)?;
@@ -554,6 +550,16 @@ impl TrainPlan {
             None => None,
         };
         Ok((views, val_views))
+    }
+
+    /// Which views the block holds out, in words (for reports of the protocol scored).
+    pub fn held_out_description(&self) -> Option<String> {
+        let v = self.validation.as_ref()?;
+        let first = v.views.map_or(String::new(), |n| format!(" (the first {n})"));
+        Some(match &v.held_out {
+            HeldOut::Every(n) => format!("every {n}th view of {}{first}", self.data.path.display()),
+            HeldOut::File(file) => format!("the views of {}{first}", file.display()),
+        })
     }
 
     /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`),
@@ -769,15 +775,20 @@ impl VolumeObjective<'_> {
             return Ok(());
         }
         let scores = crate::views::score(val, self.fields, params, &self.step_settings, self.grid.as_ref())?;
-        let (psnr, ssim) = crate::views::means(&scores);
+        let means = crate::views::means(&scores);
+        let (psnr, ssim) = (means.psnr, means.ssim);
+        let masked = means
+            .masked_psnr
+            .map_or(String::new(), |m| format!(", masked PSNR {m:.2} dB"));
         ui.report(format!(
-            "step {}: val PSNR {psnr:.2} dB, SSIM {ssim:.4} ({} views) after {:.0} s of training",
+            "step {}: val PSNR {psnr:.2} dB, SSIM {ssim:.4}{masked} ({} views) after {:.0} s of training",
             p.done,
             val.cameras.len(),
             p.train_seconds
         ));
         self.history.push(serde_json::json!({
             "step": p.done, "train_seconds": p.train_seconds, "val_psnr": psnr, "val_ssim": ssim,
+            "val_masked_psnr": means.masked_psnr,
         }));
         let (step, seconds) = (Some(f64::from(p.done)), Some(p.train_seconds));
         ui.record(&[step, seconds, None, None, None, None, Some(psnr), Some(ssim)])

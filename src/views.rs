@@ -221,18 +221,19 @@ impl Rendering {
 
 /// The held-out views the first `train` block of `program` (from `source`) validates on, loaded as in
 /// training.
-fn held_out_views(source: &str, program: &Program) -> Result<Views> {
+fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)> {
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
     let plan = crate::train_block::TrainPlan::new(crate::block::first_block(
         program,
         crate::schema::Kind::Train,
         folder,
     )?)?;
-    plan.load_views()?.1.ok_or_else(|| {
-        Failure::Message(format!(
+    let (Some(views), Some(described)) = (plan.load_views()?.1, plan.held_out_description()) else {
+        return Err(Failure::Message(format!(
             "{source}'s train block holds no views out (no 'val' setting): give --cameras FILE"
-        ))
-    })
+        )));
+    };
+    Ok((views, described))
 }
 
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
@@ -356,19 +357,43 @@ pub(crate) fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
     Ok(None)
 }
 
-/// PSNR and SSIM of `fields` rendered from every camera of `views` against its image.
+/// One view's scores against its image.
+#[derive(Clone, Copy, Debug)]
+pub struct ViewScore {
+    /// PSNR over the whole image, in dB.
+    pub psnr: f32,
+    /// SSIM over the whole image.
+    pub ssim: f32,
+    /// PSNR inside the view's object mask, when the views have masks (DTU's protocol).
+    pub masked_psnr: Option<f32>,
+}
+
+/// The mean of every view's scores.
+#[derive(Clone, Copy, Debug)]
+pub struct MeanScores {
+    /// Mean PSNR in dB.
+    pub psnr: f64,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean PSNR inside the masks, over the views whose mask holds pixels.
+    pub masked_psnr: Option<f64>,
+}
+
+/// Renders every view of `views` with `settings` (and `grid`, the occupancy grid to skip empty space
+/// with) and scores it against its image: PSNR, SSIM, and PSNR inside its mask when the views have masks.
 pub fn score(
     views: &Views,
     fields: &VolumeFields,
     params: &[f32],
     settings: &VolumeSettings,
     grid: Option<&OccupancyGrid>,
-) -> Result<Vec<(f32, f32)>> {
+) -> Result<Vec<ViewScore>> {
     views
         .cameras
         .iter()
         .zip(&views.images)
-        .map(|(camera, target)| {
+        .enumerate()
+        .map(|(i, (camera, target))| {
             let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
             let rendered = ImageF32 {
                 width: f.width,
@@ -376,24 +401,42 @@ pub fn score(
                 pixels: f.rgb,
             };
             let mse = nerfjit_runtime::mse(&rendered, target)?;
-            Ok((psnr(mse), ssim(&rendered, target)?))
+            let mask = views.masks.as_ref().and_then(|m| m.get(i));
+            let masked_mse = match mask {
+                Some(mask) => nerfjit_runtime::masked_mse(&rendered, target, mask)?,
+                None => None,
+            };
+            Ok(ViewScore {
+                psnr: psnr(mse),
+                ssim: ssim(&rendered, target)?,
+                masked_psnr: masked_mse.map(psnr),
+            })
         })
         .collect()
 }
 
-/// The mean PSNR and SSIM of scores.
-pub fn means(scores: &[(f32, f32)]) -> (f64, f64) {
-    let n = scores.len().max(1) as f64;
-    let sum = |f: fn(&(f32, f32)) -> f32| scores.iter().map(|x| f64::from(f(x))).sum::<f64>() / n;
-    (sum(|x| x.0), sum(|x| x.1))
+/// The mean of `scores`.
+pub fn means(scores: &[ViewScore]) -> MeanScores {
+    let mean = |values: Vec<f32>| {
+        let n = values.len();
+        (n > 0).then(|| values.iter().map(|&v| f64::from(v)).sum::<f64>() / n as f64)
+    };
+    MeanScores {
+        psnr: mean(scores.iter().map(|s| s.psnr).collect()).unwrap_or(0.0),
+        ssim: mean(scores.iter().map(|s| s.ssim).collect()).unwrap_or(0.0),
+        masked_psnr: mean(scores.iter().filter_map(|s| s.masked_psnr).collect()),
+    }
 }
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
 pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Result<String> {
     let (program, params) = load(args.source)?;
     let rendering = args.resolve(&program);
-    let views = match cameras {
-        Some(file) => crate::data_source::file_views(file, args.size, rendering.background)?,
+    let (views, described) = match cameras {
+        Some(file) => (
+            crate::data_source::file_views(file, args.size, rendering.background)?,
+            format!("the views of {}", file.display()),
+        ),
         None => held_out_views(args.source, &program)?,
     };
     let cache = KernelCache::new();
@@ -408,16 +451,32 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
         grid.as_ref(),
     )?;
     let seconds = start.elapsed().as_secs_f64();
-    let mut lines = String::from("view  PSNR (dB)  SSIM\n");
-    for (i, (p, s)) in scores.iter().enumerate() {
-        lines += &format!("{i:>4}  {p:>9.2}  {s:.4}\n");
+    let masked = views.masks.is_some();
+    let mut lines = String::from("view  PSNR (dB)  SSIM");
+    lines += if masked { "    masked PSNR (dB)\n" } else { "\n" };
+    let masked_column = |m: Option<f64>| match (masked, m) {
+        (false, _) => String::new(),
+        (true, Some(m)) => format!("  {m:>15.2}"),
+        (true, None) => format!("  {:>15}", "(empty mask)"),
+    };
+    for (i, v) in scores.iter().enumerate() {
+        let column = masked_column(v.masked_psnr.map(f64::from));
+        lines += &format!("{i:>4}  {:>9.2}  {:.4}{column}\n", v.psnr, v.ssim);
     }
-    let (p, s) = means(&scores);
-    lines += &format!("mean  {p:>9.2}  {s:.4}\n");
+    let mean = means(&scores);
+    let column = masked_column(mean.masked_psnr);
+    lines += &format!("mean  {:>9.2}  {:.4}{column}\n", mean.psnr, mean.ssim);
     if let Some(path) = json {
         let report = serde_json::json!({
             "source": args.source,
-            "cameras": cameras.map_or("the training data's held-out views".to_string(), |c| c.display().to_string()),
+            "protocol": {
+                "views": described,
+                "count": views.len(),
+                "width": views.width,
+                "height": views.height,
+                "background": rendering.background,
+                "masks": if masked { "PSNR also inside the data's object masks (mask ≥ ½)" } else { "none: whole images" },
+            },
             "width": views.width,
             "height": views.height,
             "near": rendering.near,
@@ -427,9 +486,12 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
             "occupancy_grid": grid.is_some(),
             "early_termination": rendering.early_termination,
             "background": rendering.background,
-            "views": scores.iter().map(|(p, s)| serde_json::json!({"psnr": p, "ssim": s})).collect::<Vec<_>>(),
-            "mean_psnr": p,
-            "mean_ssim": s,
+            "views": scores.iter().map(|v| serde_json::json!({
+                "psnr": v.psnr, "ssim": v.ssim, "masked_psnr": v.masked_psnr,
+            })).collect::<Vec<_>>(),
+            "mean_psnr": mean.psnr,
+            "mean_ssim": mean.ssim,
+            "mean_masked_psnr": mean.masked_psnr,
             "render_seconds": seconds,
         });
         crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&report).unwrap_or_default())?;

@@ -607,5 +607,36 @@ fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
         report.contains("DTU") && report.contains("8 masks") && report.contains("8 views"),
         "{report}"
     );
-    train_and_check(&dir, "dtu(\".\", masks: true)", "");
+    // Views 0 and 4 held out, scored on the whole image and inside their masks (DTU's protocol).
+    let summary = train_and_check(
+        &dir,
+        "dtu(\".\", masks: true)",
+        ", val: holdout(every: 4), val_every: 100000",
+    );
+    let last = summary["validation"].as_array().unwrap().last().unwrap().clone();
+    let (psnr, masked) = (
+        last["val_psnr"].as_f64().unwrap(),
+        last["val_masked_psnr"].as_f64().unwrap(),
+    );
+    assert!(
+        psnr > 30.0 && masked > 25.0,
+        "held-out PSNR {psnr}, masked {masked}: {summary}"
+    );
+    let scores = two_held_out_views_scored_again(&dir);
+    let again = scores["mean_masked_psnr"].as_f64().unwrap();
+    assert!(
+        (again - masked).abs() < 0.01,
+        "eval-views {again} dB inside the masks, validation {masked} dB"
+    );
+    assert!(
+        scores["protocol"]["masks"]
+            .as_str()
+            .unwrap()
+            .contains("object masks")
+            && scores["protocol"]["views"]
+                .as_str()
+                .unwrap()
+                .starts_with("every 4th view of"),
+        "{scores}"
+    );
 }

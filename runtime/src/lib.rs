@@ -54,7 +54,7 @@ pub use surfaces::sphere_trace::{
     on_pool, render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings,
 };
 pub use training::denormals::flush_denormals;
-pub use training::metrics::{mse, psnr, ssim};
+pub use training::metrics::{masked_mse, mse, psnr, ssim};
 pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
 pub use volume::model::{TrainableModel, VolumeModel};

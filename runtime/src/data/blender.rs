@@ -104,6 +104,7 @@ fn load_views(path: &Path, request: Request, cache: Option<&Path>) -> Result<Vie
         width,
         height,
         alpha: None,
+        masks: None,
     })
 }
 

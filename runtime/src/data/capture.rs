@@ -330,6 +330,7 @@ impl Capture {
             width,
             height,
             alpha: None,
+            masks: None,
         })
     }
 }

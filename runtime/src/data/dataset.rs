@@ -23,6 +23,9 @@ pub struct Views {
     /// The opacity of each pixel of each image, when the images are kept premultiplied (composited on
     /// black) so that training can composite them on any background ([`Views::random_rays_on`]).
     pub alpha: Option<Vec<Vec<f32>>>,
+    /// The pixels of each image that a masked score counts (the data's object masks, as DTU's protocol
+    /// scores renders inside them); `None` scores whole images only.
+    pub masks: Option<Vec<Vec<bool>>>,
 }
 
 /// Reads an RGB image: a float32 `.npy` of shape (H, W, 3), or any PNG (values scaled to
@@ -72,6 +75,7 @@ pub fn load_box_views(path: &Path) -> Result<Views> {
         width,
         height,
         alpha: None,
+        masks: None,
     })
 }
 
@@ -98,21 +102,26 @@ impl Views {
             )));
         }
         let (width, height) = (self.width, self.height);
-        let with_alpha = self.alpha.is_some();
+        let (with_alpha, with_masks) = (self.alpha.is_some(), self.masks.is_some());
         let empty = || Views {
             cameras: Vec::new(),
             images: Vec::new(),
             width,
             height,
             alpha: with_alpha.then(Vec::new),
+            masks: with_masks.then(Vec::new),
         };
         let (mut train, mut held) = (empty(), empty());
         let mut alpha = self.alpha.map(|a| a.into_iter());
+        let mut masks = self.masks.map(|m| m.into_iter());
         for (i, (camera, image)) in self.cameras.into_iter().zip(self.images).enumerate() {
             let to = if i % every == 0 { &mut held } else { &mut train };
             to.cameras.push(camera);
             to.images.push(image);
             if let (Some(all), Some(kept)) = (alpha.as_mut(), to.alpha.as_mut()) {
+                kept.extend(all.next());
+            }
+            if let (Some(all), Some(kept)) = (masks.as_mut(), to.masks.as_mut()) {
                 kept.extend(all.next());
             }
         }
@@ -182,6 +191,18 @@ impl Views {
         }
     }
 
+    /// The same views with masks of the pixels whose alpha is at least half (the object masks of a data
+    /// set whose alpha comes from them); unchanged without alpha.
+    pub fn masked_by_alpha(self) -> Views {
+        let masks = self.alpha.as_ref().map(|alpha| {
+            alpha
+                .iter()
+                .map(|a| a.iter().map(|&a| a >= 0.5).collect())
+                .collect()
+        });
+        Views { masks, ..self }
+    }
+
     /// The views loaded twice, on black (`on_black`) and on white (`on_white`), as premultiplied images
     /// with their alpha. Loading composites linearly (color·alpha + background·(1 − alpha), then
     /// undistortion and area resampling, both linear), so the difference of the two is exactly
@@ -241,6 +262,7 @@ mod tests {
             width: 2,
             height: 1,
             alpha: None,
+            masks: None,
         }
     }
 
@@ -292,6 +314,7 @@ mod tests {
             width: 1,
             height: 1,
             alpha: None,
+            masks: None,
         };
         let (train, held) = views.clone().hold_out(4).unwrap();
         let values = |v: &Views| {
@@ -310,6 +333,7 @@ mod tests {
             width: 1,
             height: 1,
             alpha: None,
+            masks: None,
         };
         assert!(one.hold_out(8).is_err());
         // Alpha follows its views.
@@ -317,9 +341,13 @@ mod tests {
             alpha: Some((0..10).map(|i| vec![i as f32 / 10.0]).collect()),
             ..views
         };
-        let (train, held) = with_alpha.hold_out(4).unwrap();
+        let (train, held) = with_alpha.clone().hold_out(4).unwrap();
         assert_eq!(held.alpha, Some(vec![vec![0.0], vec![0.4], vec![0.8]]));
         assert_eq!(train.alpha.map(|a| a.len()), Some(7));
+        // So do masks, which keep the pixels of alpha at least half and outlive compositing.
+        let (_, held) = with_alpha.masked_by_alpha().hold_out(4).unwrap();
+        let held = held.on_background([1.0; 3]);
+        assert_eq!(held.masks, Some(vec![vec![false], vec![false], vec![true]]));
     }
     use std::path::PathBuf;
 

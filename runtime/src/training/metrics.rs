@@ -53,6 +53,30 @@ pub fn mse(a: &ImageF32, b: &ImageF32) -> Result<f32> {
     Ok((sum / (3 * a.pixels.len()) as f64) as f32)
 }
 
+/// Mean squared error over the pixels of `mask` (one flag per pixel) and all channels, as DTU's
+/// protocol scores renders inside the object's mask; `None` when the mask holds no pixel.
+pub fn masked_mse(a: &ImageF32, b: &ImageF32, mask: &[bool]) -> Result<Option<f32>> {
+    check_pair(a, b)?;
+    if mask.len() != a.pixels.len() {
+        return Err(Error::Invalid(format!(
+            "a mask of {} pixels for an image of {}",
+            mask.len(),
+            a.pixels.len()
+        )));
+    }
+    let (sum, count) = a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .zip(mask)
+        .filter(|(_, &inside)| inside)
+        .fold((0.0f64, 0usize), |(sum, count), ((x, y), _)| {
+            let d: f64 = (0..3).map(|k| f64::from(x[k] - y[k]).powi(2)).sum();
+            (sum + d, count + 1)
+        });
+    Ok((count > 0).then(|| (sum / (3 * count) as f64) as f32))
+}
+
 /// The normalized 1-D Gaussian of the SSIM window.
 fn gaussian() -> [f64; WINDOW] {
     let half = (WINDOW / 2) as f64;
@@ -161,6 +185,13 @@ mod tests {
         // 3 of 36 values differ by 0.4.
         assert!((mse(&a, &b).unwrap() - 0.16 * 3.0 / 36.0).abs() < 1e-7);
         assert_eq!(mse(&a, &a).unwrap(), 0.0);
+        // Inside a mask: only its pixels count; an empty mask has no score.
+        let first_column: Vec<bool> = (0..12).map(|i| i % 4 == 0).collect();
+        assert!((masked_mse(&a, &b, &first_column).unwrap().unwrap() - 0.16 / 3.0).abs() < 1e-7);
+        let others: Vec<bool> = first_column.iter().map(|&c| !c).collect();
+        assert_eq!(masked_mse(&a, &b, &others).unwrap(), Some(0.0));
+        assert_eq!(masked_mse(&a, &b, &[false; 12]).unwrap(), None);
+        assert!(masked_mse(&a, &b, &[true; 5]).is_err());
         assert!(mse(&a, &image(3, 4, |_, _| [0.0; 3])).is_err());
     }
 
