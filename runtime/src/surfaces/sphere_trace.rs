@@ -687,7 +687,7 @@ pub fn render_frames(
 /// Runs `work` on a thread of rayon's global pool, the caller waiting. Parallel calls made one after the
 /// other from there, such as the tiles of frame after frame, find the pool's other threads still awake
 /// from the call before; each call made from outside the pool hands its work over and waits to be woken,
-/// which can cost a good part of a frame that takes 0.15 ms (see the README's benchmarks of W1).
+/// which can cost a good part of a frame that takes 0.15 ms (see the W1 figures in docs/BENCHMARKS.md).
 pub fn on_pool<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| work())
 }
