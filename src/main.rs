@@ -488,6 +488,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     up: nerfjit_runtime::Up::named(&up).unwrap_or(nerfjit_runtime::Up::Y),
                     prune: !no_prune,
                     color: color.as_deref(),
+                    frame: None,
                 };
                 mesh_command::run(&script, &args)
             })

@@ -10,7 +10,7 @@ use nerfjit_jit::KernelCache;
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::surfaces::regions::Specialize;
-use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh, Up};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh, PointFrame, Up};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
@@ -39,6 +39,9 @@ pub struct MeshArgs<'a> {
     /// Evaluate the function only in the blocks of cells where its interval bounds may cross the level
     /// (the same mesh, fewer evaluations); otherwise at every grid point.
     pub prune: bool,
+    /// The frame the function was fitted to a point cloud in, when that cloud was scaled into the unit
+    /// sphere: the mesh is written in the cloud's own units (the grid's bounds are in the frame's).
+    pub frame: Option<PointFrame>,
 }
 
 /// 36 cameras circling the box `bounds` about the `up` axis, 25° above its center, framing it.
@@ -86,6 +89,9 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
 /// checkpoint (with the trained ones).
 pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
     let (program, params) = crate::views::load(source)?;
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let frame = crate::train_sdf_block::fitted_frame(&program, folder)?;
+    let args = &MeshArgs { frame, ..*args };
     let (_, summary) = extract_and_write(&program, &params, args, &KernelCache::new())?;
     Ok(summary)
 }
@@ -160,6 +166,12 @@ pub fn extract_and_write(
     let mut mesh = mesh;
     if let Some(color) = args.color {
         mesh.colors = vertex_colors(&compiler, color, &mesh)?;
+    }
+    if let Some(frame) = &args.frame {
+        // A similarity: the normals keep their directions.
+        for v in &mut mesh.vertices {
+            *v = frame.to_input(*v);
+        }
     }
     match ext {
         "ply" => mesh.write_ply(args.out)?,
@@ -335,8 +347,16 @@ impl MeshPlan {
         })
     }
 
-    /// Meshes (compiling through `cache`), writes and (when asked) compares; returns a summary.
-    pub fn run(&self, program: &Program, params: &[f32], cache: &KernelCache) -> Result<String> {
+    /// Meshes (compiling through `cache`), writes and (when asked) compares; returns a summary. `frame`:
+    /// the frame of the script's point-cloud fit when it scaled the cloud into the unit sphere; the mesh
+    /// is then written and compared in the cloud's units.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &[f32],
+        cache: &KernelCache,
+        frame: Option<PointFrame>,
+    ) -> Result<String> {
         let args = MeshArgs {
             function: &self.function,
             resolution: self.resolution,
@@ -347,11 +367,17 @@ impl MeshPlan {
             up: self.up,
             prune: true,
             color: None,
+            frame,
         };
         let (mesh, mut summary) = extract_and_write(program, params, &args, cache)?;
         if let Some((file, key)) = &self.compare {
-            // The points as the fit saw them: mean-centered.
-            let (points, _) = mean_center(&read_points(file, key.as_deref())?);
+            // The points as the mesh is written: in their own units after a normalized fit, mean-centered
+            // (as the fit saw them) otherwise.
+            let points = read_points(file, key.as_deref())?;
+            let points = match frame {
+                Some(_) => points,
+                None => mean_center(&points).0,
+            };
             let r = chamfer_report(&points, &mesh)?;
             summary += &format!(
                 "\ndistance from the {} points to the mesh: mean {:.5} ({:.3}% of the {:.3} bounding-box diagonal), max {:.5}; \

@@ -581,8 +581,15 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
     variant: Some("sdf"),
     doc: "fits a signed distance function to a point cloud",
     settings: &[
-        value("data", "points(\"file\", key: \"name\")", None, "the point cloud")
-            .required("data: points(\"bunny_pointcloud.npz\", key: \"verts\")"),
+        value(
+            "data",
+            "points(\"file\", key: \"name\", normalize: true)",
+            None,
+            "the point cloud (.npz, .npy, .ply, .obj, .xyz or .txt), mean-centered; with normalize: true, \
+             centered on its bounding box and scaled into the unit sphere, and the meshes of the fit written \
+             back in its units",
+        )
+        .required("data: points(\"bunny_pointcloud.npz\", key: \"verts\")"),
         function("function", "the function fitted"),
         PRODUCTS,
         STEPS,

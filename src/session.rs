@@ -210,7 +210,16 @@ impl Session {
             Plan::Train(p) => p.run(program, params, cache, observer.resume, observer.live),
             Plan::Viz(p) => p.run(),
             Plan::FitSdf(p) => p.run(program, params, cache, observer.resume),
-            Plan::Mesh(p) => p.run(program, params, cache),
+            Plan::Mesh(p) => {
+                // A mesh of a function fitted to a cloud scaled into the unit sphere is written in the cloud's
+                // units: the frame of the last point-cloud fit before this block.
+                let fit = self.plans[..index].iter().rev().find_map(|p| match p {
+                    Plan::FitSdf(fit) => Some(fit),
+                    _ => None,
+                });
+                let frame = fit.map(SdfTrainPlan::normalized_frame).transpose()?.flatten();
+                p.run(program, params, cache, frame)
+            }
         }
     }
 

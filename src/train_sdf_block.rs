@@ -12,11 +12,12 @@ use std::time::Instant;
 use nerfjit_dsl::kernels::{self, SdfLoss};
 use nerfjit_dsl::{Diagnostic, Program, Type};
 use nerfjit_jit::{Kernel, KernelCache, Options, Precision};
-use nerfjit_runtime::{bounding_box, mean_center, read_points, render_points, Rng, Schedule};
+use nerfjit_runtime::{bounding_box, read_points, render_points, PointFrame, Rng, Schedule};
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
+use crate::schema::Kind;
 use crate::settings::CallArgs;
 use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 
@@ -27,6 +28,8 @@ const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near
 pub struct SdfTrainPlan {
     data: PathBuf,
     key: Option<String>,
+    /// Fit the cloud scaled into the unit sphere ([`PointFrame::unit_sphere`]), not merely mean-centered.
+    normalize: bool,
     function: String,
     steps: u32,
     batch: usize,
@@ -67,15 +70,37 @@ struct Kernels {
     jittered: Option<RegularizerKernels>,
 }
 
+/// The slots of `train sdf`'s `data: points(...)`.
+const POINTS_ARGS: &[&str] = &["file", "key", "normalize"];
+
+/// The frame of the script's point-cloud fit when its data says `normalize: true` (meshes of the fitted
+/// function are then written in the cloud's units), reading the cloud from `script_dir`; None without such
+/// a fit.
+pub fn fitted_frame(program: &Program, script_dir: &str) -> Result<Option<PointFrame>> {
+    let first = || crate::block::first_block(program, Kind::TrainSdf, script_dir);
+    let Ok(mut block) = first() else {
+        return Ok(None);
+    };
+    let data = block.required("data")?;
+    let normalize = CallArgs::new(&data, POINTS_ARGS)
+        .and_then(|a| a.choice("normalize", &["true", "false"], "false"))
+        .map_err(|d| block.error(d))?;
+    if normalize != "true" {
+        return Ok(None);
+    }
+    SdfTrainPlan::new(first()?)?.normalized_frame()
+}
+
 impl SdfTrainPlan {
     /// Reads and checks a `train sdf` block.
     pub fn new(mut b: Block) -> Result<SdfTrainPlan> {
         let data_v = b.required("data")?;
-        let (file, key) = CallArgs::new(&data_v, &["file", "key"])
+        let (file, key, normalize) = CallArgs::new(&data_v, POINTS_ARGS)
             .and_then(|a| {
                 Ok((
                     a.string("file")?,
                     a.raw("key").map(|k| k.string().map(str::to_string)).transpose()?,
+                    a.choice("normalize", &["true", "false"], "false")? == "true",
                 ))
             })
             .map_err(|d| b.error(d))?;
@@ -93,6 +118,7 @@ impl SdfTrainPlan {
         let plan = SdfTrainPlan {
             data,
             key,
+            normalize,
             function,
             steps: b.whole("steps")? as u32,
             batch: b.whole("batch")? as usize,
@@ -182,13 +208,9 @@ impl SdfTrainPlan {
         cache: &KernelCache,
         resume: bool,
     ) -> Result<String> {
-        let (cloud, mean) = mean_center(&read_points(&self.data, self.key.as_deref())?);
-        if cloud.is_empty() {
-            return Err(Failure::Message(format!(
-                "{} holds no points",
-                self.data.display()
-            )));
-        }
+        let input = read_points(&self.data, self.key.as_deref())?;
+        let frame = self.frame_of(&input)?;
+        let cloud: Vec<[f32; 3]> = input.iter().map(|&p| frame.to_frame(p)).collect();
         if let Some(path) = &self.points_gif {
             write_points_gif(path, &cloud)?;
         }
@@ -226,7 +248,7 @@ impl SdfTrainPlan {
             let json = serde_json::json!({
                 "data": self.data.display().to_string(),
                 "points": cloud.len(),
-                "mean_centered_by": mean,
+                "frame": {"center": frame.center, "scale": frame.scale, "normalized": self.normalize},
                 "steps": end.done,
                 "resumed_from": end.first,
                 "surface_loss": terms[0],
@@ -250,6 +272,27 @@ impl SdfTrainPlan {
             terms[1],
             terms[2],
             crate::train_block::describe_params(program, params)
+        ))
+    }
+
+    /// The frame the fit sees the cloud in: scaled into the unit sphere when the data says
+    /// `normalize: true`, mean-centered otherwise.
+    fn frame_of(&self, input: &[[f32; 3]]) -> Result<PointFrame> {
+        if !self.normalize {
+            return Ok(PointFrame::mean_centered(input));
+        }
+        PointFrame::unit_sphere(input)
+            .map_err(|e| Failure::Message(format!("cannot normalize {}: {e}", self.data.display())))
+    }
+
+    /// The frame the fit sees its cloud in when it is scaled into the unit sphere (`normalize: true`),
+    /// which meshes of the fitted function are mapped back from.
+    pub fn normalized_frame(&self) -> Result<Option<PointFrame>> {
+        if !self.normalize {
+            return Ok(None);
+        }
+        Ok(Some(
+            self.frame_of(&read_points(&self.data, self.key.as_deref())?)?,
         ))
     }
 

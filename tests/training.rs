@@ -439,6 +439,71 @@ fn fits_an_sdf_to_points_with_the_eikonal_term() {
 }
 
 #[test]
+fn a_cloud_in_scanner_units_is_fitted_in_the_unit_sphere_and_meshed_back_in_its_units() {
+    // The sphere of radius 0.8 as a scanner might state it: 35 times larger, far from the origin, as the
+    // vertices of an OBJ (with faces, which are not points). Unnormalized, the grid of bounds 1.5 would
+    // hold none of it.
+    let dir = scratch("sdf_units");
+    write_sphere_points(&dir);
+    let (center, units) = ([100.0, -20.0, 5.0], 35.0);
+    let mut obj = String::from("# a scan\n");
+    for line in std::fs::read_to_string(dir.join("sphere.xyz")).unwrap().lines() {
+        let p: Vec<f64> = line.split(' ').map(|w| w.parse().unwrap()).collect();
+        let q: Vec<String> = (0..3).map(|k| (center[k] + units * p[k]).to_string()).collect();
+        obj += &format!("v {}\n", q.join(" "));
+    }
+    obj += "f 1 2 3\n";
+    std::fs::write(dir.join("scan.obj"), obj).unwrap();
+    let src = "param r: f32 = 0.4\nparam s: f32 = 2.0\n\
+               fn sdf(p: vec3) -> f32 = s * (length(p) - r)\n\
+               train sdf { data: points(\"scan.obj\", normalize: true), steps: 600, batch: 256, random: 256, \
+               bounds: 1.5, lr: 0.01, eikonal_weight: 0.5, summary: \"fit.json\", checkpoint: \"fit.ckpt.safetensors\" }\n\
+               mesh { resolution: 32, bounds: 1.2, out: \"fit.ply\", compare: points(\"scan.obj\") }\n";
+    std::fs::write(dir.join("fit.sdf"), src).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "fit.sdf"]);
+    assert!(ok, "{err}");
+    // In the fit's frame the sphere touches the unit sphere: its radius is 1 there.
+    let ck: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("fit.json")).unwrap()).unwrap();
+    let r = ck["params"]["r"][0].as_f64().unwrap();
+    assert!((r - 1.0).abs() < 0.02, "radius {r} in the unit sphere: {ck}");
+    assert!(ck["frame"]["normalized"].as_bool().unwrap(), "{ck}");
+    // The mesh and its comparison are in the scan's units: within 1% of the radius of the points.
+    let mean = mean_point_to_mesh(&out);
+    assert!(mean < 0.01 * units * 0.8, "{out}");
+    // ... and so is the mesh `nerfjit mesh` writes of the checkpoint alone.
+    let (ok, _, err) = run(
+        &dir,
+        &[
+            "mesh",
+            "fit.ckpt.safetensors",
+            "--res",
+            "32",
+            "--bounds",
+            "1.2",
+            "--out",
+            "again.ply",
+        ],
+    );
+    assert!(ok, "{err}");
+    for file in ["fit.ply", "again.ply"] {
+        let vertices = nerfjit_runtime::read_points(&dir.join(file), None).unwrap();
+        for v in &vertices {
+            // write_sphere_points centers its sphere at (0.3, −0.2, 0.1).
+            let sphere = [0.3, -0.2, 0.1];
+            let radius = (0..3)
+                .map(|k| (f64::from(v[k]) - center[k] - units * sphere[k]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(
+                (radius / units - 0.8).abs() < 0.02,
+                "{file}: a vertex at {v:?}, {radius} from the center"
+            );
+        }
+    }
+}
+
+#[test]
 fn eikonal_jitter_adds_the_eikonal_term_at_the_jittered_cloud_points() {
     // |∇(s·(|p| − r))| = s everywhere: each set of points contributes w·(s − 1)² = 0.5 at s = 2.
     let dir = scratch("jitter");

@@ -124,6 +124,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         up: nerfjit_runtime::Up::Y,
         prune: true,
         color: None,
+        frame: None,
     };
     extract_and_write(
         scene.program(),

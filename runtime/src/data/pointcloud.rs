@@ -15,7 +15,8 @@ use crate::error::{Error, Result};
 /// - `.ply`: the `x y z` properties of the `vertex` element (ASCII or binary little-endian);
 /// - `.xyz` or `.txt`: one point per line, its first three numbers (separated by spaces, tabs
 ///   or commas; further columns such as normals are ignored); blank lines and lines starting
-///   with `#` are skipped.
+///   with `#` are skipped;
+/// - `.obj`: the vertices (`v x y z` lines; faces, normals and every other statement are ignored).
 ///
 /// Arrays must have shape (N, 3) and dtype float32 or float64. `key` only applies to `.npz`
 /// files. Errors name the file and what is wrong: a missing key (listing the arrays), a wrong
@@ -38,13 +39,16 @@ pub fn read_points(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
             parse_points(&bytes).map_err(|e| Error::format(path, e))?
         }
         "ply" => read_ply_points(path)?,
-        "xyz" | "txt" => read_xyz(path)?,
-        _ => {
-            return Err(Error::format(
-                path,
-                format!("unknown point cloud format '.{extension}': expected .npz, .npy, .ply, .xyz or .txt"),
-            ))
-        }
+        "xyz" | "txt" => read_xyz(path, |line| Some(line))?,
+        "obj" => read_xyz(path, |line| {
+            line.strip_prefix("v ").or_else(|| line.strip_prefix("v\t"))
+        })?,
+        _ => return Err(Error::format(
+            path,
+            format!(
+                "unknown point cloud format '.{extension}': expected .npz, .npy, .ply, .obj, .xyz or .txt"
+            ),
+        )),
     };
     if points.is_empty() {
         return Err(Error::format(path, "the file has no points"));
@@ -116,7 +120,8 @@ fn read_ply_points(path: &Path) -> Result<Vec<[f32; 3]>> {
     Ok(points)
 }
 
-fn read_xyz(path: &Path) -> Result<Vec<[f32; 3]>> {
+/// The points of a text file, one per line that `coordinates` keeps (returning its coordinates' text).
+fn read_xyz(path: &Path, coordinates: impl Fn(&str) -> Option<&str>) -> Result<Vec<[f32; 3]>> {
     let text = crate::data::input::read_text_capped(path).map_err(|e| Error::read(path, e))?;
     let mut points = Vec::new();
     for (k, line) in text.lines().enumerate() {
@@ -124,6 +129,9 @@ fn read_xyz(path: &Path) -> Result<Vec<[f32; 3]>> {
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
+        let Some(line) = coordinates(line) else {
+            continue;
+        };
         let bad = |reason: String| Error::format(path, format!("line {}: {reason}", k + 1));
         let mut point = [0.0f32; 3];
         let mut words = line
@@ -163,6 +171,54 @@ pub fn mean_center(points: &[[f32; 3]]) -> (Vec<[f32; 3]>, [f32; 3]) {
         .map(|p| [p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]])
         .collect();
     (centered, mean)
+}
+
+/// The frame a fit sees a point cloud in: each point p as (p − center)·scale.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointFrame {
+    /// The input point at the frame's origin.
+    pub center: [f32; 3],
+    /// How much the frame magnifies the input's units.
+    pub scale: f32,
+}
+
+impl PointFrame {
+    /// The points moved so that their mean is at the origin, unscaled (see [`mean_center`]).
+    pub fn mean_centered(points: &[[f32; 3]]) -> PointFrame {
+        PointFrame {
+            center: mean_center(points).1,
+            scale: 1.0,
+        }
+    }
+
+    /// The center of the points' bounding box at the origin and the farthest point at distance 1: the
+    /// cloud inside the unit sphere, whatever its units. An error when the points are all at one place.
+    pub fn unit_sphere(points: &[[f32; 3]]) -> Result<PointFrame> {
+        let (lo, hi) = bounding_box(points).ok_or_else(|| Error::Invalid("no points to normalize".into()))?;
+        let center: [f32; 3] = std::array::from_fn(|k| 0.5 * (lo[k] + hi[k]));
+        let radius = points
+            .iter()
+            .map(|p| (0..3).map(|k| f64::from(p[k] - center[k]).powi(2)).sum::<f64>())
+            .fold(0.0f64, f64::max)
+            .sqrt();
+        let scale = (1.0 / radius) as f32;
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(Error::Invalid(format!(
+                "the points span {radius:e} about {center:?}: too little to scale into the unit sphere"
+            )));
+        }
+        Ok(PointFrame { center, scale })
+    }
+
+    /// `p` in this frame.
+    pub fn to_frame(&self, p: [f32; 3]) -> [f32; 3] {
+        std::array::from_fn(|k| (p[k] - self.center[k]) * self.scale)
+    }
+
+    /// `q` (in this frame) in the input's units.
+    pub fn to_input(&self, q: [f32; 3]) -> [f32; 3] {
+        std::array::from_fn(|k| q[k] / self.scale + self.center[k])
+    }
 }
 
 /// The axis-aligned box spanned by `points`: (min, max) per axis, `None` if there are none.
@@ -285,6 +341,65 @@ mod tests {
             read_points(&path, None).unwrap(),
             vec![[1.0, 2.0, 3.0], [-1e-3, 5.0, 6.5]]
         );
+
+        // An OBJ's vertices; its normals, texture coordinates, faces and comments are not points.
+        let path = temp_path("mesh.obj");
+        std::fs::write(
+            &path,
+            "# exported\no scan\nv 1 2 3\nvn 0 0 1\nvt 0.5 0.5\nv\t4 5 6 0.2 0.3 0.4\nf 1 2 1\n",
+        )
+        .unwrap();
+        assert_eq!(
+            read_points(&path, None).unwrap(),
+            vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
+        );
+    }
+
+    proptest::proptest! {
+        /// A cloud in any units and place lies inside the unit sphere in its frame, touching it, and
+        /// comes back where it was.
+        #[test]
+        fn unit_sphere_frames_hold_any_cloud(
+            points in proptest::collection::vec(proptest::array::uniform3(-1.0f32..1.0), 2..40),
+            units in -3.0f32..4.0,
+            offset in proptest::array::uniform3(-1000.0f32..1000.0),
+        ) {
+            let scale = 10f32.powf(units);
+            let cloud: Vec<[f32; 3]> = points
+                .iter()
+                .map(|p| std::array::from_fn(|k| p[k] * scale + offset[k]))
+                .collect();
+            proptest::prop_assume!(cloud.iter().any(|p| (0..3).any(|k| p[k] != cloud[0][k])));
+            let frame = PointFrame::unit_sphere(&cloud).unwrap();
+            let radii: Vec<f32> = cloud
+                .iter()
+                .map(|&p| frame.to_frame(p).iter().map(|c| c * c).sum::<f32>().sqrt())
+                .collect();
+            proptest::prop_assert!(radii.iter().all(|&r| r <= 1.0 + 1e-4), "{radii:?}");
+            proptest::prop_assert!(radii.iter().any(|&r| r >= 1.0 - 1e-4), "{radii:?}");
+            for &p in &cloud {
+                let back = frame.to_input(frame.to_frame(p));
+                let tolerance = 1e-5 * (scale + offset.iter().map(|c| c.abs()).fold(0.0, f32::max));
+                proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {back:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn clouds_at_one_place_have_no_unit_sphere_frame() {
+        let e = PointFrame::unit_sphere(&[[3.0, 4.0, 5.0]; 4])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("too little to scale"), "{e}");
+        assert!(PointFrame::unit_sphere(&[]).is_err());
+        let mean = PointFrame::mean_centered(&[[1.0, 2.0, 3.0], [3.0, 2.0, -1.0]]);
+        assert_eq!(
+            mean,
+            PointFrame {
+                center: [2.0, 2.0, 1.0],
+                scale: 1.0
+            }
+        );
     }
 
     #[test]
@@ -302,7 +417,17 @@ mod tests {
             ),
             ("inf.xyz", "1 2 inf\n", "line 1: coordinate 'inf' is not finite"),
             ("empty.xyz", "# nothing\n", "the file has no points"),
-            ("pts.obj", "v 1 2 3\n", "unknown point cloud format '.obj'"),
+            (
+                "pts.off",
+                "OFF\n1 0 0\n1 2 3\n",
+                "unknown point cloud format '.off'",
+            ),
+            ("faces.obj", "f 1 2 3\n", "the file has no points"),
+            (
+                "short.obj",
+                "v 1 2 3\nv 4 5\n",
+                "line 2: expected 3 numbers (x y z), found 2",
+            ),
         ];
         for (name, text, message) in cases {
             let path = temp_path(name);
