@@ -123,13 +123,10 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
         path: file.to_path_buf(),
         kind,
     };
-    let (capture, data) = set.capture()?.expect("a capture's kind");
+    let (capture, _) = set.capture()?.expect("a capture's kind");
     let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
     let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
-    if set.has_masks() {
-        return set.downscaled(downscale).load(false);
-    }
-    set.capture_views(&capture, &CaptureData { downscale, ..data })
+    set.downscaled(downscale).load(false)
 }
 
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
@@ -277,7 +274,21 @@ impl DataSet {
     fn capture(&self) -> Result<Option<(Capture, CaptureData)>> {
         let (mut capture, data) = match &self.kind {
             DataKind::Nerfstudio(data) => (load_nerfstudio(&self.path)?, *data),
-            DataKind::Colmap(data, images) => (load_colmap(&self.path, images)?, *data),
+            DataKind::Colmap(data, images) => {
+                let capture = load_colmap(&self.path, images)?;
+                // mip-NeRF 360's layout: `images_4/` beside `images/` holds them divided by 4.
+                let smaller = images.with_file_name(format!("images_{}", data.downscale));
+                if data.downscale > 1 && images.file_name().is_some_and(|n| n == "images") && smaller.is_dir()
+                {
+                    let data = CaptureData {
+                        downscale: 1,
+                        ..*data
+                    };
+                    (capture.with_images_in(&smaller)?, data)
+                } else {
+                    (capture, *data)
+                }
+            }
             DataKind::Llff(data) => {
                 let scene = load_llff(&self.path, data.downscale)?;
                 let data = CaptureData {

@@ -380,6 +380,43 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
         (again - psnr).abs() < 0.01,
         "eval-views {again} dB, validation {psnr} dB"
     );
+    // mip-NeRF 360's layout: `images_2/` beside `images/` holds the images halved (here, blank but for
+    // their size: the views at half size must come from them, not from `images/`).
+    let score_at_half = |dir: &Path| {
+        let (ok, out, err) = run(
+            dir,
+            &[
+                "eval-views",
+                "train.ckpt.safetensors",
+                "--cameras",
+                "sparse/0",
+                "--size",
+                "24",
+                "--json",
+                "half.json",
+            ],
+        );
+        assert!(ok, "{err}");
+        let scores: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("half.json")).unwrap()).unwrap();
+        assert_eq!(
+            (scores["width"].as_u64(), scores["height"].as_u64()),
+            (Some(24), Some(16)),
+            "{out}"
+        );
+        scores["mean_psnr"].as_f64().unwrap()
+    };
+    let from_images = score_at_half(&dir);
+    std::fs::create_dir_all(dir.join("images_2")).unwrap();
+    for i in 0..8 {
+        let blank = image::RgbImage::from_pixel(WIDTH / 2, HEIGHT / 2, image::Rgb([255, 0, 255]));
+        blank.save(dir.join(format!("images_2/view_{i:03}.png"))).unwrap();
+    }
+    let from_smaller = score_at_half(&dir);
+    assert!(
+        from_images > 30.0 && from_smaller < 10.0,
+        "{from_images} dB, then {from_smaller} dB"
+    );
 }
 
 /// An unbounded scene: a red ball at the center inside a colored shell 30 units away, seen from 36

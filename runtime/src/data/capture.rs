@@ -82,18 +82,28 @@ impl FrameCamera {
     /// The (undistorted) camera for this frame's image resized to `width`×`height`: intrinsics
     /// scaled per axis, exact for area resampling.
     pub fn camera(&self, width: u32, height: u32) -> Result<Camera> {
+        Camera::from_pixels(self.c2w, self.resized(width, height).intrinsics, width, height)
+    }
+
+    /// The same camera for its image stored at `width`×`height` (a smaller copy, such as those of
+    /// `images_4/`): intrinsics scaled per axis; the distortion, in normalized coordinates, unchanged.
+    pub fn resized(&self, width: u32, height: u32) -> FrameCamera {
         let (sx, sy) = (
             width as f32 / self.width as f32,
             height as f32 / self.height as f32,
         );
         let k = self.intrinsics;
-        let scaled = PixelIntrinsics {
-            fx: k.fx * sx,
-            fy: k.fy * sy,
-            cx: k.cx * sx,
-            cy: k.cy * sy,
-        };
-        Camera::from_pixels(self.c2w, scaled, width, height)
+        FrameCamera {
+            intrinsics: PixelIntrinsics {
+                fx: k.fx * sx,
+                fy: k.fy * sy,
+                cx: k.cx * sx,
+                cy: k.cy * sy,
+            },
+            width,
+            height,
+            ..*self
+        }
     }
 
     /// The image size after dividing by `downscale` (rounded, at least 1 pixel).
@@ -171,6 +181,23 @@ pub struct CaptureRequest {
 }
 
 impl Capture {
+    /// The capture with its images read from `folder` instead: the files of the same names stored smaller
+    /// (mip-NeRF 360's `images_4/` beside `images/`), each camera scaled to its file's size.
+    pub fn with_images_in(mut self, folder: &Path) -> Result<Capture> {
+        for frame in &mut self.frames {
+            let name = frame
+                .image
+                .file_name()
+                .ok_or_else(|| Error::format(&frame.image, "the image has no file name"))?;
+            let image = folder.join(name);
+            let (width, height) = image::image_dimensions(&image)
+                .map_err(|e| Error::format(&image, format!("cannot read the image's size: {e}")))?;
+            frame.camera = frame.camera.resized(width, height);
+            frame.image = image;
+        }
+        Ok(self)
+    }
+
     /// Moves the capture into nerfjit's frame (see the [module docs](self)) and returns the
     /// transform it applied.
     pub fn normalize(&mut self) -> Result<Normalization> {
@@ -634,6 +661,44 @@ mod tests {
         let (_, a) = half.ray(3, 5, 24, 16);
         let (_, b) = full.ray_at(7.0, 11.0, 48, 32);
         assert!(a.abs_diff_eq(b, 1e-5), "{a} {b}");
+    }
+
+    #[test]
+    fn smaller_copies_of_the_images_keep_their_rays() {
+        let dir = std::env::temp_dir().join(format!("nerfjit-capture-smaller-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("images_2")).unwrap();
+        image::RgbImage::new(24, 16)
+            .save(dir.join("images_2/x.png"))
+            .unwrap();
+        let mut full = frame(look_at(Vec3::new(3.0, 1.0, 2.0), Vec3::Z));
+        full.image = dir.join("images/x.png");
+        let capture = Capture {
+            frames: vec![full.clone()],
+            points: Vec::new(),
+            aabb_scale: None,
+            depth_bounds: None,
+        };
+        let smaller = capture.with_images_in(&dir.join("images_2")).unwrap();
+        let half = &smaller.frames[0];
+        assert_eq!(half.image, dir.join("images_2/x.png"));
+        assert_eq!((half.camera.width, half.camera.height), (24, 16));
+        // The same rays as the full-size camera divided on load.
+        let (a, b) = (
+            half.camera.camera(24, 16).unwrap(),
+            full.camera.camera(24, 16).unwrap(),
+        );
+        assert!(a.ray(3, 5, 24, 16).1.abs_diff_eq(b.ray(3, 5, 24, 16).1, 1e-6));
+        let e = Capture {
+            frames: vec![full],
+            ..smaller
+        }
+        .with_images_in(&dir.join("nowhere"))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("nowhere/x.png") && e.contains("cannot read the image's size"),
+            "{e}"
+        );
     }
 
     /// The normalized coordinates whose distortion is (xd, yd), by Newton's method.

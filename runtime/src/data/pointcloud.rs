@@ -43,12 +43,14 @@ pub fn read_points(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
         "obj" => read_xyz(path, |line| {
             line.strip_prefix("v ").or_else(|| line.strip_prefix("v\t"))
         })?,
-        _ => return Err(Error::format(
-            path,
-            format!(
+        _ => {
+            return Err(Error::format(
+                path,
+                format!(
                 "unknown point cloud format '.{extension}': expected .npz, .npy, .ply, .obj, .xyz or .txt"
             ),
-        )),
+            ))
+        }
     };
     if points.is_empty() {
         return Err(Error::format(path, "the file has no points"));
