@@ -7,7 +7,9 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::{KernelCache, Precision};
-use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
+use nerfjit_runtime::{
+    rgb_image, Camera, DepthSpacing, GridSpace, Mode, Quantize, VolumeFrame, VolumeSettings,
+};
 
 use crate::block::Block;
 use crate::failure::Result;
@@ -25,6 +27,8 @@ pub struct SkipEmpty {
     pub resolution: usize,
     /// Values at or below this count as empty.
     pub threshold: f32,
+    /// The space the grid's box is in: the scene's, or mip-NeRF 360's contraction (all of space).
+    pub space: GridSpace,
 }
 
 /// A checked `render volume` block.
@@ -128,9 +132,12 @@ impl VolumePlan {
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
-            Some(s) => {
-                Some(field.occupancy_grid(program, params, cache, (s.bounds, s.resolution, s.threshold))?)
-            }
+            Some(s) => Some(field.occupancy_grid(
+                program,
+                params,
+                cache,
+                (s.bounds, s.resolution, s.threshold, s.space),
+            )?),
             None => None,
         };
         let mut frames = Vec::with_capacity(self.cameras.len());
@@ -234,13 +241,14 @@ pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnosti
     }
 }
 
-/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`, or `none`
-/// (exact: for `--set` to switch a script's grid off).
+/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4, space: scene)`,
+/// or `none` (exact: for `--set` to switch a script's grid off).
 pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
     if matches!(&v.value, Value::Name(n) if n == "none") {
         return Ok(None);
     }
-    let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
+    let a = CallArgs::new(v, &["bounds", "resolution", "threshold", "space"])?;
+    let space = GridSpace::named(&a.choice("space", &["scene", "contracted"], "scene")?).unwrap_or_default();
     let bounds = match a.raw("bounds") {
         None => {
             return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)"))
@@ -268,5 +276,6 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
         bounds,
         resolution: resolution as usize,
         threshold: a.number("threshold", Some(1e-4))? as f32,
+        space,
     }))
 }
