@@ -14,17 +14,14 @@ pub const EXIT_STATUS: u8 = 130;
 static REQUESTED: AtomicBool = AtomicBool::new(false);
 static WATCHERS: AtomicUsize = AtomicUsize::new(0);
 
-/// Installs the handler (once, at start). Without it a signal ends the process at once.
-pub fn install() {
-    let handler = || {
-        if WATCHERS.load(Ordering::SeqCst) == 0 || REQUESTED.swap(true, Ordering::SeqCst) {
-            std::process::exit(i32::from(EXIT_STATUS));
-        }
-        eprintln!("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
-    };
-    if let Err(e) = ctrlc::set_handler(handler) {
-        eprintln!("warning: Ctrl-C will not save a checkpoint: {e}");
+/// What the signal handler does (the command line installs it, once, at start; without it a signal ends
+/// the process at once): asks the watching training loop to stop, or exits when none watches or when asked
+/// a second time.
+pub fn on_signal() {
+    if WATCHERS.load(Ordering::SeqCst) == 0 || REQUESTED.swap(true, Ordering::SeqCst) {
+        std::process::exit(i32::from(EXIT_STATUS));
     }
+    eprintln!("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
 }
 
 /// A training loop's claim on the signal while it lives.

@@ -8,7 +8,7 @@ use crate::failure::{Failure, Result};
 use crate::script;
 
 /// Which kernel of a function to show.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug)]
 pub enum KernelKind {
     /// The function's values.
     Value,

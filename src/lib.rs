@@ -43,6 +43,7 @@ pub mod large_model;
 pub mod mesh_command;
 pub mod metrics_log;
 pub mod nonfinite;
+pub mod observe;
 pub mod output;
 pub mod points;
 pub mod regularizers;

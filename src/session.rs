@@ -49,7 +49,6 @@ use crate::script;
 use crate::sphere_trace_block::RenderPlan;
 use crate::train_block::TrainPlan;
 use crate::train_sdf_block::SdfTrainPlan;
-use crate::viewer::Live;
 use crate::viz_block::VizPlan;
 use crate::volume_block::VolumePlan;
 
@@ -63,16 +62,7 @@ enum Plan {
     Mesh(MeshPlan),
 }
 
-/// What a caller follows of a running block, and how training starts.
-#[derive(Default)]
-pub struct Observer<'a> {
-    /// Called as a render block finishes frames, with the frames done so far.
-    pub frames: Option<&'a (dyn Fn(usize) + Sync)>,
-    /// A live viewer that follows training (its progress and params).
-    pub live: Option<&'a Live>,
-    /// Training continues from the block's checkpoint when there is one.
-    pub resume: bool,
-}
+pub use crate::observe::Observer;
 
 /// A checked script with its params and compiled kernels, ready to run its blocks.
 pub struct Session {
@@ -207,9 +197,16 @@ impl Session {
         match &self.plans[index] {
             Plan::Trace(p) => p.run(program, params, cache, &frames),
             Plan::Volume(p) => p.run(program, params, cache, &frames),
-            Plan::Train(p) => p.run(program, params, cache, observer.resume, observer.live),
+            Plan::Train(p) => p.run(
+                program,
+                params,
+                cache,
+                observer.resume,
+                observer.live,
+                observer.bars(),
+            ),
             Plan::Viz(p) => p.run(),
-            Plan::FitSdf(p) => p.run(program, params, cache, observer.resume),
+            Plan::FitSdf(p) => p.run(program, params, cache, observer.resume, observer.bars()),
             Plan::Mesh(p) => {
                 // A mesh of a function fitted to a cloud scaled into the unit sphere is written in the cloud's
                 // units: the frame of the last point-cloud fit before this block.

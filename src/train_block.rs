@@ -16,10 +16,10 @@ use crate::block::Block;
 use crate::data_source::{data_path, data_set, DataKind, DataSet};
 use crate::failure::Result;
 use crate::jit_field::{VolumeField, VolumeFields};
+use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::settings::CallArgs;
 use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
-use crate::viewer::Live;
 
 /// The columns of a volume training run's metrics log.
 const LOG_COLUMNS: &[&str] = &[
@@ -525,7 +525,7 @@ impl TrainPlan {
             validation: None,
             ..*self
         };
-        let line = quiet.run(program, params, &KernelCache::new(), false, None)?;
+        let line = quiet.run(program, params, &KernelCache::new(), false, None, &NoBars)?;
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
@@ -570,7 +570,8 @@ impl TrainPlan {
         params: &mut Vec<f32>,
         cache: &KernelCache,
         resume: bool,
-        live: Option<&Live>,
+        live: Option<&dyn TrainingObserver>,
+        bars: &dyn ProgressBars,
     ) -> Result<String> {
         let (views, val_views) = self.load_views()?;
         let t = Instant::now();
@@ -620,6 +621,7 @@ impl TrainPlan {
             tensorboard: self.tensorboard.as_deref(),
             log_columns: LOG_COLUMNS,
             verb: "training",
+            bars,
         };
         let end = training_loop::train(program, params, &loop_settings, &mut objective)?;
         if end.complete {
@@ -694,7 +696,7 @@ struct VolumeObjective<'a> {
     settings: VolumeSettings,
     /// The steps' and validation's settings (with early termination when asked).
     step_settings: VolumeSettings,
-    live: Option<&'a Live>,
+    live: Option<&'a dyn TrainingObserver>,
     rng: Rng,
     grid: Option<OccupancyGrid>,
     /// The running occupancy of `grid_update: ema` and the random points of its updates.

@@ -16,6 +16,7 @@ use nerfjit_runtime::{bounding_box, read_points, render_points, PointFrame, Rng,
 
 use crate::block::Block;
 use crate::failure::{Failure, Result};
+use crate::observe::{NoBars, ProgressBars};
 use crate::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::schema::Kind;
 use crate::settings::CallArgs;
@@ -195,7 +196,7 @@ impl SdfTrainPlan {
             points_gif: None,
             ..self
         };
-        let line = quiet.run(program, params, &KernelCache::new(), false)?;
+        let line = quiet.run(program, params, &KernelCache::new(), false, &NoBars)?;
         Ok(line.lines().next().unwrap_or_default().to_string())
     }
 
@@ -207,6 +208,7 @@ impl SdfTrainPlan {
         params: &mut Vec<f32>,
         cache: &KernelCache,
         resume: bool,
+        bars: &dyn ProgressBars,
     ) -> Result<String> {
         let input = read_points(&self.data, self.key.as_deref())?;
         let frame = self.frame_of(&input)?;
@@ -237,6 +239,7 @@ impl SdfTrainPlan {
             tensorboard: self.tensorboard.as_deref(),
             log_columns: LOG_COLUMNS,
             verb: "fitting",
+            bars,
         };
         let end = training_loop::train(program, params, &settings, &mut objective)?;
         if end.complete {

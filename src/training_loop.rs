@@ -17,7 +17,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use nerfjit_dsl::Program;
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_runtime::Schedule;
@@ -25,6 +24,7 @@ use nerfjit_runtime::Schedule;
 use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
 use crate::metrics_log::RunLog;
+use crate::observe::{BarKind, ProgressBar, ProgressBars};
 use crate::train_block::AdamSettings;
 
 /// How a block trains, whatever it trains.
@@ -51,6 +51,8 @@ pub struct LoopSettings<'a> {
     pub log_columns: &'static [&'static str],
     /// What the progress bar says the run is doing ("training", "fitting").
     pub verb: &'a str,
+    /// Where the progress bar is drawn.
+    pub bars: &'a dyn ProgressBars,
 }
 
 /// One step's loss and the gradient of the params.
@@ -88,7 +90,7 @@ pub struct Progress {
 
 /// What hooks may use of the loop: its progress bar, its metrics log and its signal watch.
 pub struct Ui {
-    bar: ProgressBar,
+    bar: Box<dyn ProgressBar>,
     log: RunLog,
     watch: Watch,
 }
@@ -96,11 +98,7 @@ pub struct Ui {
 impl Ui {
     /// Prints a line above the progress bar (or to standard error when there is no terminal).
     pub fn report(&self, line: String) {
-        if self.bar.is_hidden() {
-            eprintln!("{line}");
-        } else {
-            self.bar.println(line);
-        }
+        self.bar.println(line);
     }
 
     /// Sets the progress bar's message.
@@ -247,7 +245,9 @@ pub fn train(
         first > 0,
     )?;
     let mut ui = Ui {
-        bar: step_bar(settings.steps, settings.verb),
+        bar: settings
+            .bars
+            .bar(u64::from(settings.steps), BarKind::Steps(settings.verb)),
         log,
         watch: Watch::start(),
     };
@@ -329,17 +329,6 @@ pub fn train(
     Ok(finished)
 }
 
-/// The progress bar of a training loop of `steps` steps: `verb` (e.g. "training"), the steps, the loop's
-/// message, the time taken and the time to go.
-fn step_bar(steps: u32, verb: &str) -> ProgressBar {
-    ProgressBar::new(u64::from(steps)).with_style(
-        ProgressStyle::with_template(&format!(
-            "{{spinner}} {verb} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}}, {{eta}} to go"
-        ))
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    )
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -406,6 +395,7 @@ mod tests {
             tensorboard: None,
             log_columns: &["step"],
             verb: "testing",
+            bars: &crate::observe::NoBars,
         }
     }
 

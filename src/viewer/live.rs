@@ -8,6 +8,7 @@ use serde_json::Value;
 
 use super::mailbox::Mailbox;
 use crate::interrupt::Watch;
+use crate::observe::TrainingObserver;
 
 /// How often (in steps) the training loop hands its params to the viewer at most.
 const PARAMS_EVERY: u32 = 10;
@@ -125,6 +126,12 @@ impl Live {
     /// A receiver of the latest record.
     pub fn subscribe(&self) -> tokio::sync::watch::Receiver<Value> {
         self.latest.subscribe()
+    }
+}
+
+impl TrainingObserver for Live {
+    fn after_step(&self, done: u32, last: bool, params: &[f32], record: Option<Value>, watch: &Watch) {
+        Live::after_step(self, done, last, params, record, watch);
     }
 }
 
