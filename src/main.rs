@@ -7,10 +7,12 @@ use std::sync::Arc;
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::observe::TrainingObserver;
 use nerfjit::{
-    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points,
-    run, schema, script, transmittance_command, viewer, views, WORK_STACK_BYTES,
+    check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points, run,
+    schema, script, transmittance_command, views, WORK_STACK_BYTES,
 };
+use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
+use nerfjit_viewer as viewer;
 
 mod terminal;
 use terminal::TerminalBars;

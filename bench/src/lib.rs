@@ -10,12 +10,12 @@ use nerfjit_jit::{Kernel, Options, Precision};
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::{on_pool, render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
-use crate::block::first_block;
-use crate::failure::{Failure, Result};
-use crate::jit_field::JitFn;
-use crate::schema::Kind;
-use crate::script;
-use crate::sphere_trace_block::RenderPlan;
+use nerfjit::block::first_block;
+use nerfjit::failure::{Failure, Result};
+use nerfjit::jit_field::JitFn;
+use nerfjit::schema::Kind;
+use nerfjit::script;
+use nerfjit::sphere_trace_block::RenderPlan;
 
 /// A benchmark workload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -105,14 +105,14 @@ const W7_SCENE: &str = "examples/complex_scene.sdf";
 fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
     const N: usize = 1 << 20;
     let program = script::load(scene)?;
-    crate::jit_field::check_signature(&program, "sdf", &[&[Type::Vec(3)]], &Type::F32)?;
+    nerfjit::jit_field::check_signature(&program, "sdf", &[&[Type::Vec(3)]], &Type::F32)?;
     let f = program.lower("sdf")?;
     let mut rng = Rng::new(7);
     let cols: Vec<Vec<f32>> = (0..3)
         .map(|_| (0..N).map(|_| rng.next_f32() * 8.0 - 4.0).collect())
         .collect();
     let ins: Vec<&[f32]> = cols.iter().map(Vec::as_slice).collect();
-    crate::emit(&(format!("W7 sdf_eval: {N} points, the sdf of {scene}, median of {reps}") + "\n"));
+    nerfjit::emit(&(format!("W7 sdf_eval: {N} points, the sdf of {scene}, median of {reps}") + "\n"));
     let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     for (label, graph) in [
         ("distance", kernels::value(&f)),
@@ -125,7 +125,7 @@ fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
                 let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
                 kernel.eval_parallel(N, &ins, &mut refs, &program.param_values, &mut [], t);
             });
-            crate::emit(
+            nerfjit::emit(
                 &(format!(
                 "  {label:<18} {t} thread{}: {:6.2} ns/point   (JIT compile {:.1} ms, {} IR nodes, {} bytes)",
                 if t == 1 { " " } else { "s" },
@@ -144,8 +144,8 @@ fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
 }
 
 /// The value, gradient and bounds kernels of a benchmark script's `sdf`.
-fn mesh_kernels(compiler: &crate::jit_field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
-    let kernels = crate::mesh_command::MeshKernels::compile(compiler, "sdf", true)?;
+fn mesh_kernels(compiler: &nerfjit::jit_field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
+    let kernels = nerfjit::mesh_command::MeshKernels::compile(compiler, "sdf", true)?;
     let bounds = kernels
         .bounds
         .ok_or_else(|| Failure::Message("the script's interval bounds are constant".into()))?;
@@ -156,7 +156,7 @@ fn mesh(reps: usize) -> Result<()> {
     const RESOLUTION: usize = 512;
     let program = script::load(W7_SCENE)?;
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = crate::jit_field::Compiler {
+    let compiler = nerfjit::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -187,7 +187,7 @@ fn mesh(reps: usize) -> Result<()> {
     let (specialized, regions) = specialized.expect("timed");
     let same = |m: &nerfjit_runtime::Mesh| m.vertices == brute.vertices && m.triangles == brute.triangles;
     let verdict = |m| if same(m) { "the same mesh" } else { "MESHES DIFFER" };
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "mesh: W7 scene at {RESOLUTION}³ cells, median of {reps}\n  every grid point   {:7.3} s\n  interval-pruned    {:7.3} s   ({:.3}× brute force; {:.2}% of the points evaluated, {} boxes bounded; kernels compiled in {:.1} ms): {}\n  and specialized    {:7.3} s   ({:.3}× brute force; {} of {} regions restricted, the restrictions within the time): {}\n  {} triangles\n",
         brute_s,
         pruned_s,
@@ -214,7 +214,7 @@ fn mesh(reps: usize) -> Result<()> {
 /// The pruned mesh of a script's `sdf` with its regions specialized (the specialization is part of the
 /// time).
 fn specialized_mesh(
-    compiler: &crate::jit_field::Compiler,
+    compiler: &nerfjit::jit_field::Compiler,
     value: &JitFn,
     gradient: &JitFn,
     bounds_of: &JitFn,
@@ -240,18 +240,18 @@ fn specialized_mesh(
 fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     let (script, name) = match model {
         Some(path) => {
-            let imported = crate::import::script_of(path)?;
+            let imported = nerfjit::import::script_of(path)?;
             (imported.script, imported.name)
         }
         None => (
-            crate::import::convert(&crate::large_model::city(), "city.vm").map_err(Failure::Message)?,
+            nerfjit::import::convert(&nerfjit::large_model::city(), "city.vm").map_err(Failure::Message)?,
             "a city of 288 boxes".to_string(),
         ),
     };
     let program = nerfjit_dsl::compile(&format!("{name} (imported)"), &script)?;
     let f = program.lower("sdf")?;
-    let ops = crate::import::operations(&script);
-    crate::emit(&format!(
+    let ops = nerfjit::import::operations(&script);
+    nerfjit::emit(&format!(
         "large: {name}, {ops} operations in the .vm format, median of {reps}\n"
     ));
     for (label, graph) in [
@@ -262,14 +262,14 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
         let seconds = time_reps(reps.min(3), || {
             Kernel::compile(&graph, Options::default()).expect("an imported model compiles");
         });
-        crate::emit(&format!(
+        nerfjit::emit(&format!(
             "  JIT compile {label:<15} {:7.3} s ({} IR nodes)\n",
             seconds,
             graph.compact().len()
         ));
     }
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = crate::jit_field::Compiler {
+    let compiler = nerfjit::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -280,7 +280,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     let grid = ([-1.0; 3], [1.0; 3]);
     let (pruned, pruning) = extract_pruned(&value, Some(&gradient), &bounds_of, None, grid, 512, 0.0)?;
     let mesh_s = t.elapsed().as_secs_f64();
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "  mesh at 512³, interval-pruned, one run {:7.3} s (field evaluations {:.2}% of the grid's points)\n",
         mesh_s,
         100.0 * pruning.points_evaluated as f64 / pruning.points as f64
@@ -289,7 +289,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     let (specialized, regions) = specialized_mesh(&compiler, &value, &gradient, &bounds_of, grid, 512);
     let specialized_s = t.elapsed().as_secs_f64();
     let same = specialized.vertices == pruned.vertices && specialized.triangles == pruned.triangles;
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "  and specialized, one run             {:7.3} s ({} of {} regions restricted, the restrictions within the time): {}\n",
         specialized_s,
         regions.regions_specialized,
@@ -321,7 +321,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
         .zip(&plain.depth)
         .filter(|(a, b)| a.is_finite() && b.is_finite())
         .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "  sphere trace one {w}×{h} frame {:7.3} s ({:.2} M rays/s; {:.3} s without skipping the space its bounds prove empty: {hits_differ} hits differ, depths by {depth_differs:.1e} at most)\n",
         trace_s,
         f64::from(w * h) / trace_s / 1e6,
@@ -329,7 +329,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     ));
     // Large models are to trace at 1024² in seconds: one frame at that size.
     let (big_s, _) = trace(&sdf, (1024, 1024));
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "  sphere trace one 1024×1024 frame {:7.3} s ({:.2} M rays/s)\n",
         big_s,
         1024.0 * 1024.0 / big_s / 1e6
@@ -373,7 +373,7 @@ fn w1(reps: usize) -> Result<()> {
     let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let compiler = crate::jit_field::Compiler {
+    let compiler = nerfjit::jit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -415,13 +415,13 @@ fn w1(reps: usize) -> Result<()> {
             .sum::<f64>();
     }
     let mean_diff = diff / (frames.len() as f64 * f64::from(w * h) * 3.0);
-    crate::emit(
+    nerfjit::emit(
         &(format!(
             "W1 sphere_trace_torus: {} frames of {w}×{h}, median of {reps}",
             frames.len()
         ) + "\n"),
     );
-    crate::emit(
+    nerfjit::emit(
         &(format!(
             "  {:.3} ms/frame, {:.1} M rays/s (JIT compile {:.1} ms)",
             per_frame * 1e3,
@@ -429,7 +429,7 @@ fn w1(reps: usize) -> Result<()> {
             compile_s * 1e3
         ) + "\n"),
     );
-    crate::emit(
+    nerfjit::emit(
         &(format!("  mean |difference| from plain f64 sphere tracing: {mean_diff:.4} of 255 per channel")
             + "\n"),
     );
@@ -439,10 +439,10 @@ fn w1(reps: usize) -> Result<()> {
 /// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
-    let plan = crate::volume_block::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
+    let plan = nerfjit::volume_block::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let field = crate::jit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
+    let field = nerfjit::jit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
     let compile_s = t.elapsed().as_secs_f64();
     let (forward, _) = field.bind(&program.param_values);
     let settings = plan.settings(&field);
@@ -453,14 +453,14 @@ fn w2(reps: usize) -> Result<()> {
                 .expect("validated settings render");
         }
     });
-    crate::emit(
+    nerfjit::emit(
         &(format!(
             "W2 volume_render_box: {} frames of {w}×{h}×{} samples, median of {reps}",
             plan.cameras.len(),
             plan.samples
         ) + "\n"),
     );
-    crate::emit(
+    nerfjit::emit(
         &(format!(
         "  {:.2} ms/frame, {:.1} M samples/s (exact composite: no early termination; JIT compile {:.1} ms)",
         1e3 * seconds / plan.cameras.len() as f64,
@@ -488,7 +488,7 @@ fn w2(reps: usize) -> Result<()> {
             (bounds, resolution, threshold),
         )
     };
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "W2 {w}×{h}×{}: exact: {:.2} ms/frame\n",
         plan.samples,
         1e3 * seconds / plan.cameras.len() as f64
@@ -515,7 +515,7 @@ fn w2(reps: usize) -> Result<()> {
                 (max_err, sum_err, count) = (max_err.max(err), sum_err + err as u64, count + 1);
             }
         }
-        crate::emit(&format!(
+        nerfjit::emit(&format!(
             "  with an occupancy grid {label}: {:.2} ms/frame (grid built in {grid_ms:.1} ms, {:.1}% of {resolution}³ cells occupied), max |Δ| {max_err}/255, mean {:.4}/255\n",
             1e3 * grid_seconds / plan.cameras.len() as f64,
             100.0 * grid.occupancy(),
@@ -544,16 +544,16 @@ where
 
 fn w3(reps: usize) -> Result<()> {
     let program = script::load("examples/train_box.sdf")?;
-    let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+    let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
     let steps = 50 * reps.max(1);
     let mut params = program.param_values.clone();
     let t = Instant::now();
     let summary = plan.run_steps(&program, &mut params, steps as u32)?;
     let seconds = t.elapsed().as_secs_f64();
-    crate::emit(
+    nerfjit::emit(
         &(format!("W3 train_box: {steps} steps of 4096 rays × 64 samples (forward, backward, Adam)") + "\n"),
     );
-    crate::emit(
+    nerfjit::emit(
         &(format!(
             "  {:.2} ms/step including JIT compile and data loading ({summary})",
             1e3 * seconds / steps as f64
@@ -654,7 +654,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
     let run = |name: &str, make: &(dyn Fn() -> Box<dyn FnMut()> + Sync)| {
         let one = gflops(reps, 1, PER_THREAD, flops, make);
         let many = gflops(reps, all, PER_THREAD, flops, make);
-        crate::emit(
+        nerfjit::emit(
             &(format!("dense {name} {WIDTH}×{WIDTH} × {TILE} points ({:?}): {one:.1} GFLOP/s on 1 thread, {many:.1} GFLOP/s on {all}", gemm::Backend::best())
                 + "\n"),
         );
@@ -679,7 +679,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
 /// line.
 fn volume_training(script: &str, steps: u32, products: Precision) -> Result<String> {
     let program = script::load_with(script, &[products_override("train", products)])?;
-    let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
+    let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
     profiled(|| plan.run_steps(&program, &mut params, steps))
 }
@@ -701,12 +701,12 @@ fn products_override(block: &str, products: Precision) -> String {
 fn w4(reps: usize, products: Precision) -> Result<()> {
     let steps = 10 * reps.max(1) as u32;
     let summary = volume_training("examples/nerf_lego.sdf", steps, products)?;
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "W4 nerf_lego: {steps} steps of 1024 rays × 128 samples ({products:?} products): {summary}\n"
     ));
     let program = script::load("examples/nerf_lego.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
-    let field = crate::jit_field::VolumeField::compile(&program, &cache, products)?;
+    let field = nerfjit::jit_field::VolumeField::compile(&program, &cache, products)?;
     let (forward, _) = field.bind(&program.param_values);
     let settings = nerfjit_runtime::VolumeSettings {
         near: 2.0,
@@ -725,7 +725,7 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
         let frame = nerfjit_runtime::render_volume(&camera, 128, 128, &forward, &settings);
         std::hint::black_box(frame.is_ok());
     });
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "W4 render: one 128×128 view, 128 samples per ray ({products:?} products): {seconds:.2} s/view\n"
     ));
     Ok(())
@@ -738,10 +738,10 @@ fn w8(reps: usize) -> Result<()> {
         let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
         let overrides = [format!("train.batch={batch}")];
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
-        let plan = crate::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+        let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
         let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
-        crate::emit(&format!(
+        nerfjit::emit(&format!(
             "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {summary}\n"
         ));
     }
@@ -772,11 +772,12 @@ fn w5(reps: usize, products: Precision) -> Result<()> {
         "examples/neural_sdf_bunny.sdf",
         &[products_override("train", products)],
     )?;
-    let plan = crate::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
+    let plan =
+        nerfjit::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
     let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "W5 neural_sdf_bunny: {steps} steps of 4096 + 4096 points ({products:?} products): {summary}\n"
     ));
     Ok(())
@@ -785,7 +786,7 @@ fn w5(reps: usize, products: Precision) -> Result<()> {
 fn w6(reps: usize, products: Precision) -> Result<()> {
     let steps = 10 * reps.max(1) as u32;
     let summary = volume_training("examples/volsdf_lego.sdf", steps, products)?;
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "W6 volsdf_lego: {steps} steps of 1024 rays × 128 samples + eikonal ({products:?} products): {summary}\n"
     ));
     Ok(())

@@ -15,7 +15,7 @@ use super::live::Live;
 use super::mailbox::{ExportRequest, FrameRequest, Mailbox};
 use super::scene::Scene;
 use super::Document;
-use crate::failure::Failure;
+use nerfjit::failure::Failure;
 
 /// A message for the page: JSON text, or a frame (a binary message).
 #[derive(Debug)]

@@ -300,7 +300,8 @@ mod tests {
     #[test]
     fn large_sdfs_are_traced_with_their_interval_bounds_and_small_ones_without() {
         let city = crate::import::convert(&crate::large_model::city(), "city.vm").expect("converts");
-        let torus = std::fs::read_to_string("examples/torus.sdf").expect("the torus example");
+        let torus = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/torus.sdf"))
+            .expect("the torus example");
         let cache = KernelCache::new();
         for (script, large) in [(city, true), (torus, false)] {
             let program = nerfjit_dsl::compile("scene.sdf", &script).expect("compiles");

@@ -8,8 +8,8 @@ use glam::{Quat, Vec3};
 use image::RgbImage;
 
 use super::scene::{Layer, Scene, ViewCamera};
-use crate::failure::{Failure, Result};
-use crate::mesh_command::{extract_and_write, MeshArgs};
+use nerfjit::failure::{Failure, Result};
+use nerfjit::mesh_command::{extract_and_write, MeshArgs};
 
 /// What to export.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -143,7 +143,7 @@ fn checkpoint(scene: &Scene, stem: &str, step: u32) -> Result<File> {
     let scratch = Scratch::new("ckpt.safetensors");
     let params = scene.params();
     let fresh = nerfjit_runtime::Adam::new(params.len(), 0.0);
-    crate::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh, None)?;
+    nerfjit::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh, None)?;
     Ok(File {
         name: format!("{stem}.ckpt.safetensors"),
         mime: "application/octet-stream",
@@ -154,7 +154,7 @@ fn checkpoint(scene: &Scene, stem: &str, step: u32) -> Result<File> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::checkpoint::Script;
+    use nerfjit::checkpoint::Script;
     use std::path::Path;
 
     #[test]
@@ -203,7 +203,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join(&file.name);
         std::fs::write(&path, &file.bytes).unwrap();
-        let (program, params) = crate::checkpoint::load_trained(&path).unwrap();
+        let (program, params) = nerfjit::checkpoint::load_trained(&path).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
         assert_eq!(params, [0.75]);
         assert_eq!(Script::of(&program).source, text);

@@ -5,9 +5,9 @@ use std::fs;
 use std::path::Path;
 
 fn main() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples");
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
     println!("cargo:rerun-if-changed={}", dir.display());
-    println!("cargo:rerun-if-changed=dsl/prelude.sdf");
+    println!("cargo:rerun-if-changed=../dsl/prelude.sdf");
     let mut entries: Vec<_> = fs::read_dir(&dir)
         .expect("examples/ exists")
         .filter_map(|e| e.ok().map(|e| e.path()))

@@ -1,7 +1,9 @@
 //! nerfjit: neural volume and surface rendering on the CPU, driven by `.sdf` scene scripts. This crate is
-//! the application the `nerfjit` command line drives: running a script's blocks (training, rendering,
-//! meshing), checkpoints, the live viewer, and the commands' work; the compiler, JIT and runtime are the
-//! `nerfjit-dsl`, `nerfjit-jit` and `nerfjit-runtime` crates.
+//! the library the `nerfjit` command line (`nerfjit-cli`) drives: running a script's blocks (training,
+//! rendering, meshing), checkpoints, and the commands' work; the compiler, JIT and runtime are the
+//! `nerfjit-dsl`, `nerfjit-jit` and `nerfjit-runtime` crates, the live viewer `nerfjit-viewer` (a
+//! [`observe::TrainingObserver`]) and the benchmark workloads `nerfjit-bench`. It has no web server and
+//! no terminal UI: progress bars and Ctrl-C are the command line's ([`observe`], [`interrupt`]).
 //!
 //! Running a script from Rust as `nerfjit run` does (here a shipped example, smaller, into a folder):
 //!
@@ -23,7 +25,6 @@
 //! [`training_loop::Objective`]. The other modules are the commands' work (one function per command or
 //! block kind).
 
-pub mod bench;
 pub mod block;
 pub mod camera_setting;
 pub mod check;
@@ -59,7 +60,6 @@ pub mod train_block;
 pub mod train_sdf_block;
 pub mod training_loop;
 pub mod transmittance_command;
-pub mod viewer;
 pub mod views;
 pub mod viz_block;
 pub mod volume_block;

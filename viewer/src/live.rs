@@ -7,8 +7,8 @@ use std::time::Duration;
 use serde_json::Value;
 
 use super::mailbox::Mailbox;
-use crate::interrupt::Watch;
-use crate::observe::TrainingObserver;
+use nerfjit::interrupt::Watch;
+use nerfjit::observe::TrainingObserver;
 
 /// How often (in steps) the training loop hands its params to the viewer at most.
 const PARAMS_EVERY: u32 = 10;

@@ -237,7 +237,7 @@ fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)> {
 }
 
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
-pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
+pub fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     if is_checkpoint(source) {
         crate::checkpoint::load_trained(Path::new(source))
     } else {
@@ -248,7 +248,7 @@ pub(crate) fn load(source: &str) -> Result<(Program, Vec<f32>)> {
 }
 
 /// Whether `source` names a checkpoint (a `.safetensors` or `.json` file) rather than a script.
-pub(crate) fn is_checkpoint(source: &str) -> bool {
+pub fn is_checkpoint(source: &str) -> bool {
     source.ends_with(".safetensors") || source.ends_with(".json")
 }
 
@@ -344,7 +344,7 @@ fn path_cameras(text: &str) -> Result<Vec<Camera>> {
 }
 
 /// The cameras of the first `render` block of `program` that sets `camera`, if any.
-pub(crate) fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
+pub fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
     for block in program.blocks().into_iter().filter(|b| b.kind.name == "render") {
         let mut settings = Settings::new(program, block).map_err(|d| at(program, d))?;
         let Some(v) = settings.take("camera") else {

@@ -935,7 +935,7 @@ mod tests {
 
     #[test]
     fn the_language_reference_documents_every_setting_and_no_other() {
-        let reference = include_str!("../docs/LANGUAGE.md");
+        let reference = include_str!("../../docs/LANGUAGE.md");
         for schema in BLOCKS {
             let (names, tabled) = documented(reference, schema);
             for setting in schema.names() {
@@ -1081,7 +1081,7 @@ mod tests {
 
     #[test]
     fn the_language_reference_gives_the_schemas_defaults() {
-        let reference = include_str!("../docs/LANGUAGE.md");
+        let reference = include_str!("../../docs/LANGUAGE.md");
         let mut compared = 0;
         for schema in BLOCKS {
             for (names, default) in documented_defaults(reference, schema) {

@@ -1,6 +1,7 @@
 //! `nerfjit view`: a live view of a script or a checkpoint in the browser. The page orbits the scene,
 //! edits the script (re-checked, re-compiled and re-rendered on every edit, diagnostics at their line and
-//! column) and moves its consts with sliders.
+//! column) and moves its consts with sliders. `nerfjit run --view` follows a training run through [`Live`],
+//! the library's [`nerfjit::observe::TrainingObserver`].
 //!
 //! The page runs native code compiled from what is typed into it, so the server binds the loopback address
 //! unless told otherwise and answers nothing without the random token in the URL it prints.
@@ -19,7 +20,7 @@ pub use live::Live;
 
 use nerfjit_dsl::{Program, Type};
 
-use crate::failure::{Failure, Result};
+use nerfjit::failure::{Failure, Result};
 
 /// What `nerfjit view` serves and where.
 pub struct ViewArgs<'a> {
@@ -54,8 +55,8 @@ struct Trained {
 impl Document {
     /// The document of a script file (or shipped example) or a checkpoint.
     pub fn load(source: &str) -> Result<Document> {
-        let (program, params) = crate::views::load(source)?;
-        Document::of(&program, params, crate::views::is_checkpoint(source))
+        let (program, params) = nerfjit::views::load(source)?;
+        Document::of(&program, params, nerfjit::views::is_checkpoint(source))
     }
 
     /// The document of `program` (its script and `--set` overrides) with `params`, trained ones for a
@@ -115,7 +116,7 @@ fn open(args: &ViewArgs, document: &Document) -> Result<(TcpListener, String)> {
             "warning: serving on {bound}: anyone who can reach it and has the token runs code on this machine"
         );
     }
-    crate::emit(&format!(
+    nerfjit::emit(&format!(
         "nerfjit view: {} on http://{bound}/?token={token}\n",
         document.name
     ));

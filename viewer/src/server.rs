@@ -18,7 +18,7 @@ use super::mailbox::{ExportRequest, FrameRequest, Mailbox};
 use super::renderer::{self, Outgoing, MAX_SIDE};
 use super::scene::{Layer, ViewCamera};
 use super::{Document, Live};
-use crate::failure::{Failure, Result};
+use nerfjit::failure::{Failure, Result};
 
 const PAGE: &str = include_str!("page/index.html");
 const SCRIPT: &str = include_str!("page/viewer.js");
@@ -142,7 +142,7 @@ async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Ar
         let live = live.clone();
         std::thread::Builder::new()
             .name("nerfjit view".into())
-            .stack_size(crate::WORK_STACK_BYTES)
+            .stack_size(nerfjit::WORK_STACK_BYTES)
             .spawn(move || {
                 nerfjit_runtime::flush_denormals();
                 renderer::serve(&document, &mailbox, &outbox, live.as_deref());

@@ -13,11 +13,11 @@ use nerfjit_runtime::{
     depth_image, normal_image, rgb_image, sphere_trace, Camera, Quantize, Shading, TraceSettings,
 };
 
-use crate::block::{Block, Outputs};
-use crate::failure::{at, Failure, Result};
-use crate::jit_field::{Compiler, JitFn, Kind, VolumeFields};
-use crate::sphere_trace_block::{RenderPlan, ShadingChoice, TraceFields};
-use crate::views::{script_cameras, Rendering};
+use nerfjit::block::{Block, Outputs};
+use nerfjit::failure::{at, Failure, Result};
+use nerfjit::jit_field::{Compiler, JitFn, Kind, VolumeFields};
+use nerfjit::sphere_trace_block::{RenderPlan, ShadingChoice, TraceFields};
+use nerfjit::views::{script_cameras, Rendering};
 
 /// What a frame shows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -157,7 +157,7 @@ impl Scene {
         let mut cameras = labeled("script view", script_cameras(&program)?.unwrap_or_default());
         cameras.extend(labeled(
             "data view",
-            crate::train_block::data_cameras(&program, script_dir).unwrap_or_default(),
+            nerfjit::train_block::data_cameras(&program, script_dir).unwrap_or_default(),
         ));
         Ok(Scene {
             consts: program.scalar_consts(),
@@ -284,7 +284,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
     let block = program
         .blocks()
         .into_iter()
-        .find(|b| crate::schema::kind_of(b) == Some(crate::schema::Kind::SphereTrace));
+        .find(|b| nerfjit::schema::kind_of(b) == Some(nerfjit::schema::Kind::SphereTrace));
     let (shading, trace, lipschitz) = match block {
         Some(block) => {
             let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
