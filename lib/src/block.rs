@@ -184,7 +184,7 @@ impl<'p> Block<'p> {
         let Some(v) = self.take_checked("spacing")? else {
             return Ok(nerfjit_runtime::DepthSpacing::Linear);
         };
-        let spacing = crate::volume_block::depth_spacing(&v).map_err(|d| self.error(d))?;
+        let spacing = crate::setting_values::depth_spacing(&v).map_err(|d| self.error(d))?;
         spacing.check(near, far).map_err(|e| {
             self.error(Diagnostic::new(v.span, e.to_string()).with_hint("raise near above 0 or the split"))
         })?;

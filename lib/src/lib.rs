@@ -52,6 +52,7 @@ pub mod run;
 pub mod schema;
 pub mod script;
 pub mod session;
+pub mod setting_values;
 pub mod settings;
 pub mod sphere_trace_block;
 pub mod steepness;

@@ -682,35 +682,35 @@ pub const VIZ: BlockSchema = BlockSchema {
 };
 
 fn check_spacing(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::volume_block::depth_spacing(v).map(drop)
+    crate::setting_values::depth_spacing(v).map(drop)
 }
 
 fn check_skip_empty(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::volume_block::skip_empty(v).map(drop)
+    crate::setting_values::skip_empty(v).map(drop)
 }
 
 fn check_schedule(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train_block::schedule(Some(v.clone()), 1.0).map(drop)
+    crate::setting_values::schedule(Some(v.clone()), 1.0).map(drop)
 }
 
 fn check_optimizer(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train_block::optimizer(Some(v.clone())).map(drop)
+    crate::setting_values::optimizer(Some(v.clone())).map(drop)
 }
 
 fn check_grid_update(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train_block::grid_update(Some(v.clone())).map(drop)
+    crate::setting_values::grid_update(Some(v.clone())).map(drop)
 }
 
 fn check_grid_seed(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train_block::grid_seed(v).map(drop)
+    crate::setting_values::grid_seed(v).map(drop)
 }
 
 fn check_minutes(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::train_block::minutes_list(v).map(drop)
+    crate::setting_values::minutes_list(v).map(drop)
 }
 
 fn check_bounding_sphere(v: &Spanned) -> Result<(), Diagnostic> {
-    crate::sphere_trace_block::bounding_sphere(v).map(drop)
+    crate::setting_values::bounding_sphere(v).map(drop)
 }
 
 /// Every block kind, in the order of the language reference.

@@ -4,9 +4,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::Vec3;
-use nerfjit_dsl::config::Spanned;
 use nerfjit_dsl::ir::Op;
-use nerfjit_dsl::{Diagnostic, Lowered, Program, Type};
+use nerfjit_dsl::{Lowered, Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::{
     depth_image, normal_image, render_frames, rgb_image, BatchFn, Camera, Frame, Quantize, Shading,
@@ -18,7 +17,7 @@ use crate::failure::{Failure, Result};
 use crate::jit_field::{Compiler, JitFn, Kind};
 use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
-use crate::settings::{triple, CallArgs};
+use crate::setting_values::bounding_sphere;
 use crate::steepness;
 
 /// How hit points are shaded.
@@ -215,20 +214,6 @@ fn write_frames(
         .map(to_image)
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     write_images(path, images, frame_ms)
-}
-
-/// The `bounds` setting of sphere tracing: `sphere(center: [x, y, z], radius: r)`.
-pub(crate) fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), Diagnostic> {
-    let a = CallArgs::new(v, &["center", "radius"])?;
-    let center = a.raw("center").map(triple).transpose()?.unwrap_or([0.0; 3]);
-    let radius = a.number("radius", None)?;
-    if !(radius > 0.0 && radius < 1e9) {
-        return Err(Diagnostic::new(
-            v.span,
-            format!("radius {radius} must be positive"),
-        ));
-    }
-    Ok((Vec3::from_array(center), radius as f32))
 }
 
 /// `f` with its outputs divided by `by` (`f` itself for 1).

@@ -18,6 +18,8 @@ use crate::failure::Result;
 use crate::jit_field::{VolumeField, VolumeFields};
 use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
+pub use crate::setting_values::AdamSettings;
+use crate::setting_values::{grid_seed, grid_update, minutes_list, optimizer, schedule, GridUpdate};
 use crate::settings::CallArgs;
 use crate::training_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 
@@ -98,78 +100,12 @@ struct Eikonal {
 /// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
 #[derive(Clone, Copy, Debug)]
 struct TrainingGrid {
-    grid: crate::volume_block::SkipEmpty,
+    grid: crate::setting_values::SkipEmpty,
     every: u32,
     warmup: u32,
     update: GridUpdate,
     /// Before the warm-up, the cells within this many cells of the data's sparse points.
     seed: Option<usize>,
-}
-
-/// The `grid_seed` setting: `points` or `points(dilate: n)` (n cells around each point, 2 by default;
-/// 0 to 16), or `none`.
-pub(crate) fn grid_seed(v: &Spanned) -> std::result::Result<Option<usize>, Diagnostic> {
-    let hint = "write points or points(dilate: 2)";
-    match &v.value {
-        Value::Name(n) if n == "none" => Ok(None),
-        Value::Name(n) if n == "points" => Ok(Some(2)),
-        Value::Call(n, _) if n == "points" => {
-            let a = CallArgs::new(v, &["dilate"])?;
-            let dilate = match a.raw("dilate") {
-                Some(d) => crate::settings::whole(d, 0, 16)?,
-                None => 2,
-            };
-            Ok(Some(dilate as usize))
-        }
-        _ => Err(
-            Diagnostic::new(v.span, format!("expected a grid seed, found {}", v.describe())).with_hint(hint),
-        ),
-    }
-}
-
-/// How a training grid follows the field: rebuilt from probes of every cell, or instant-ngp's running
-/// maximum refreshed at random points (`grid_update: ema(decay: 0.95, fraction: 0.125)`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) enum GridUpdate {
-    /// Probes of every cell, dilated by a cell.
-    Rebuild,
-    /// The running maximum, its decay per update and the fraction of the cells each update probes.
-    Ema { decay: f32, fraction: f32 },
-}
-
-/// The `grid_update` setting: `rebuild` (the default) or `ema(decay: 0.95, fraction: 0.125)` (both
-/// arguments optional).
-pub(crate) fn grid_update(v: Option<Spanned>) -> std::result::Result<GridUpdate, Diagnostic> {
-    let Some(v) = v else {
-        return Ok(GridUpdate::Rebuild);
-    };
-    let hint = "write rebuild or ema(decay: 0.95, fraction: 0.125)";
-    match &v.value {
-        Value::Name(name) if name == "rebuild" => return Ok(GridUpdate::Rebuild),
-        Value::Name(name) if name == "ema" => {}
-        Value::Call(name, _) if name == "ema" => {}
-        _ => {
-            return Err(
-                Diagnostic::new(v.span, format!("expected a grid update, found {}", v.describe()))
-                    .with_hint(hint),
-            )
-        }
-    }
-    let (decay, fraction) = match &v.value {
-        Value::Call(..) => {
-            let a = CallArgs::new(&v, &["decay", "fraction"])?;
-            let arg = |slot: &str, lo: f64, default: f64| match a.raw(slot) {
-                None => Ok(default),
-                Some(x) => crate::settings::ranged(x, lo, 1.0),
-            };
-            (arg("decay", 0.0, 0.95)?, arg("fraction", 1e-6, 0.125)?)
-        }
-        _ => (0.95, 0.125),
-    };
-    Ok(GridUpdate::Ema {
-        decay: decay as f32,
-        fraction: fraction as f32,
-    })
 }
 
 /// Which views validation scores.
@@ -189,20 +125,6 @@ struct Validation {
     every: u32,
     at_seconds: Vec<f64>,
     views: Option<usize>,
-}
-
-/// The `val_minutes` setting: one number or a list of them, in minutes of training, as seconds in order.
-pub(crate) fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
-    let items = match &v.value {
-        Value::List(items) => items
-            .iter()
-            .map(|x| crate::settings::ranged(x, 0.0, 1e6))
-            .collect(),
-        _ => crate::settings::ranged(v, 0.0, 1e6).map(|x| vec![x]),
-    };
-    let mut seconds: Vec<f64> = items?.into_iter().map(|m| 60.0 * m).collect();
-    seconds.sort_by(f64::total_cmp);
-    Ok(seconds)
 }
 
 /// The `val` setting: `holdout(every: 8)` (every n-th view of the data, 0, n, 2n, …, kept from training) or
@@ -246,109 +168,6 @@ pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_
         .ok()?
         .take("data")?;
     data_set(&data, script_dir).ok()?.cameras().ok()
-}
-
-/// Adam's decay rates and ε: the `optimizer` setting.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct AdamSettings {
-    /// Decay of the first moment.
-    pub beta1: f32,
-    /// Decay of the second moment.
-    pub beta2: f32,
-    /// Added to √v̂ in the denominator.
-    pub eps: f32,
-    /// Whether grid tables are updated as PyTorch's SparseAdam updates them (entries with a zero gradient
-    /// left alone), as instant-ngp does.
-    pub sparse: bool,
-}
-
-impl Default for AdamSettings {
-    /// Kingma and Ba's defaults: β = (0.9, 0.999), ε = 1e-8.
-    fn default() -> AdamSettings {
-        AdamSettings {
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            sparse: false,
-        }
-    }
-}
-
-/// The `optimizer` setting: `adam(beta1: 0.9, beta2: 0.99, eps: 1e-15, sparse: true)` (every argument
-/// optional, the default Adam when the setting is absent).
-pub(crate) fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagnostic> {
-    let defaults = AdamSettings::default();
-    let Some(v) = v else {
-        return Ok(defaults);
-    };
-    let hint = "write adam(beta1: 0.9, beta2: 0.99, eps: 1e-15, sparse: true)";
-    match &v.value {
-        Value::Call(name, _) if name == "adam" => {}
-        Value::Name(name) if name == "adam" => return Ok(defaults),
-        _ => {
-            return Err(
-                Diagnostic::new(v.span, format!("expected an optimizer, found {}", v.describe()))
-                    .with_hint(hint),
-            )
-        }
-    }
-    let a = CallArgs::new(&v, &["beta1", "beta2", "eps", "sparse"])?;
-    let decay = |slot: &str, default: f32| -> std::result::Result<f32, Diagnostic> {
-        match a.raw(slot) {
-            None => Ok(default),
-            Some(x) => Ok(crate::settings::ranged(x, 0.0, 0.999_999)? as f32),
-        }
-    };
-    let eps = match a.raw("eps") {
-        None => defaults.eps,
-        Some(x) => crate::settings::ranged(x, 1e-30, 1.0)? as f32,
-    };
-    Ok(AdamSettings {
-        beta1: decay("beta1", defaults.beta1)?,
-        beta2: decay("beta2", defaults.beta2)?,
-        eps,
-        sparse: a.choice("sparse", &["true", "false"], "false")? == "true",
-    })
-}
-
-pub(crate) fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
-    let Some(v) = v else {
-        return Ok(Schedule::Constant { lr });
-    };
-    if let Value::Name(n) = &v.value {
-        if n == "constant" {
-            return Ok(Schedule::Constant { lr });
-        }
-    }
-    let Value::Call(name, _) = &v.value else {
-        return Err(
-            Diagnostic::new(v.span, format!("expected a schedule, found {}", v.describe())).with_hint(
-                "write constant, exponential(gamma: 0.1, every: 1000) or step(factor: 0.8, every: 50)",
-            ),
-        );
-    };
-    let a = CallArgs::new(&v, &["gamma", "factor", "every"])?;
-    let every = a.number("every", None)?;
-    if every < 1.0 || every.fract() != 0.0 {
-        return Err(Diagnostic::new(
-            v.span,
-            "'every' must be a whole number of steps ≥ 1",
-        ));
-    }
-    match name.as_str() {
-        "exponential" => Ok(Schedule::Exponential {
-            lr,
-            gamma: a.number("gamma", None)? as f32,
-            steps_per_decay: every as u32,
-        }),
-        "step" => Ok(Schedule::Step {
-            lr,
-            factor: a.number("factor", None)? as f32,
-            every: every as u32,
-        }),
-        other => Err(Diagnostic::new(v.span, format!("unknown schedule '{other}'"))
-            .with_hint("use constant, exponential(gamma, every) or step(factor, every)")),
-    }
 }
 
 impl TrainPlan {
@@ -422,7 +241,7 @@ impl TrainPlan {
         let recompute_forward = b.flag("recompute_forward")?;
         let skip_empty = match b.take("skip_empty") {
             None => None,
-            Some(v) => crate::volume_block::skip_empty(&v).map_err(|d| b.error(d))?,
+            Some(v) => crate::setting_values::skip_empty(&v).map_err(|d| b.error(d))?,
         };
         let every = b.whole("grid_every")? as u32;
         let warmup = b.whole("grid_warmup")? as u32;

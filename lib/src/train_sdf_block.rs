@@ -39,7 +39,7 @@ pub struct SdfTrainPlan {
     /// Adam's learning rate over the steps (pre-training included).
     schedule: Schedule,
     /// Adam's decay rates and ε.
-    optimizer: crate::train_block::AdamSettings,
+    optimizer: crate::setting_values::AdamSettings,
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
@@ -114,8 +114,8 @@ impl SdfTrainPlan {
         }
         let function = b.function("function")?;
         let lr = b.number("lr")? as f32;
-        let schedule = crate::train_block::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
-        let optimizer = crate::train_block::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
+        let schedule = crate::setting_values::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = crate::setting_values::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
         let plan = SdfTrainPlan {
             data,
             key,

@@ -25,7 +25,7 @@ use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
 use crate::metrics_log::RunLog;
 use crate::observe::{BarKind, ProgressBar, ProgressBars};
-use crate::train_block::AdamSettings;
+use crate::setting_values::AdamSettings;
 
 /// How a block trains, whatever it trains.
 pub struct LoopSettings<'a> {

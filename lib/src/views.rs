@@ -19,8 +19,8 @@ use crate::camera_setting::FrameSize;
 use crate::failure::{at, Failure, Result};
 use crate::jit_field::VolumeFields;
 use crate::output::write_images;
+use crate::setting_values::SkipEmpty;
 use crate::settings::triple;
-use crate::volume_block::SkipEmpty;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
 /// block (a checkpoint's script included): see [`ViewArgs::resolve`].
@@ -151,12 +151,12 @@ impl TrainedWith {
         let background = settings.take("background").and_then(|v| triple(&v).ok());
         let spacing = settings
             .take("spacing")
-            .and_then(|v| crate::volume_block::depth_spacing(&v).ok());
+            .and_then(|v| crate::setting_values::depth_spacing(&v).ok());
         let skip_empty = settings
             .take("skip_empty")
-            .and_then(|v| crate::volume_block::skip_empty(&v).ok().flatten());
-        let running_grid = crate::train_block::grid_update(settings.take("grid_update"))
-            .is_ok_and(|u| u != crate::train_block::GridUpdate::Rebuild);
+            .and_then(|v| crate::setting_values::skip_empty(&v).ok().flatten());
+        let running_grid = crate::setting_values::grid_update(settings.take("grid_update"))
+            .is_ok_and(|u| u != crate::setting_values::GridUpdate::Rebuild);
         let products = match settings.take("products").map(|v| v.value) {
             Some(Value::Name(n)) => Precision::named(&n).unwrap_or_default(),
             _ => Precision::F32,

@@ -3,8 +3,6 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nerfjit_dsl::config::{Spanned, Value};
-use nerfjit_dsl::Diagnostic;
 use nerfjit_dsl::Program;
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
@@ -14,18 +12,8 @@ use crate::failure::Result;
 use crate::jit_field::{VolumeField, VolumeFields};
 use crate::nonfinite::{self, ProbeRays};
 use crate::output::write_images;
-use crate::settings::CallArgs;
-
-/// Empty-space skipping: an occupancy grid of the field, built once before rendering.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SkipEmpty {
-    /// The grid's corners: nothing outside is rendered.
-    pub bounds: ([f32; 3], [f32; 3]),
-    /// Cells per axis.
-    pub resolution: usize,
-    /// Values at or below this count as empty.
-    pub threshold: f32,
-}
+use crate::setting_values::skip_empty;
+pub use crate::setting_values::SkipEmpty;
 
 /// A checked `render volume` block.
 pub struct VolumePlan {
@@ -208,65 +196,4 @@ fn write(
         .map(|f| rgb_image(f.width, f.height, &pixels(f), Quantize::Truncate))
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
     write_images(path, images, frame_ms)
-}
-
-/// The `spacing` setting: `linear`, or `lindisp(split: 6)` (half the samples evenly in depth up to `split`,
-/// half evenly in disparity beyond it).
-pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnostic> {
-    match &v.value {
-        Value::Name(n) if n == "linear" => Ok(DepthSpacing::Linear),
-        Value::Call(n, _) if n == "lindisp" => {
-            let a = CallArgs::new(v, &["split"])?;
-            let split = a.number("split", None)?;
-            if !(split.is_finite() && split > 0.0 && split < 1e9) {
-                return Err(Diagnostic::new(
-                    v.span,
-                    format!("split {split} must be a positive depth"),
-                ));
-            }
-            Ok(DepthSpacing::LinDisp { split: split as f32 })
-        }
-        _ => Err(Diagnostic::new(
-            v.span,
-            format!("expected a depth spacing, found {}", v.describe()),
-        )
-        .with_hint("write linear or lindisp(split: 6)")),
-    }
-}
-
-/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`, or `none`
-/// (exact: for `--set` to switch a script's grid off).
-pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
-    if matches!(&v.value, Value::Name(n) if n == "none") {
-        return Ok(None);
-    }
-    let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
-    let bounds = match a.raw("bounds") {
-        None => {
-            return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)"))
-        }
-        Some(b) if matches!(b.value, Value::Number(_)) => {
-            let r = b.number()? as f32;
-            ([-r; 3], [r; 3])
-        }
-        Some(b) => {
-            let x = b.numbers(6)?;
-            (
-                [x[0] as f32, x[1] as f32, x[2] as f32],
-                [x[3] as f32, x[4] as f32, x[5] as f32],
-            )
-        }
-    };
-    let resolution = a.number("resolution", Some(64.0))?;
-    if !(1.0..=256.0).contains(&resolution) || resolution.fract() != 0.0 {
-        return Err(Diagnostic::new(
-            v.span,
-            "the grid's resolution is a whole number from 1 to 256",
-        ));
-    }
-    Ok(Some(SkipEmpty {
-        bounds,
-        resolution: resolution as usize,
-        threshold: a.number("threshold", Some(1e-4))? as f32,
-    }))
 }
