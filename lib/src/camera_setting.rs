@@ -144,3 +144,25 @@ fn frame_count(a: &CallArgs, default: f64) -> Result<usize, Diagnostic> {
             .with_hint(format!("a camera path has 1 to {MAX_FRAMES} frames")))
     }
 }
+
+/// 36 cameras circling the box `bounds` about the `up` axis, 25° above its center, framing it.
+pub fn turntable(bounds: ([f32; 3], [f32; 3]), up: Up) -> nerfjit_runtime::Result<Vec<Camera>> {
+    let (lo, hi) = (Vec3::from_array(bounds.0), Vec3::from_array(bounds.1));
+    let center = lo.lerp(hi, 0.5);
+    let radius = 0.8 * (hi - lo).length();
+    let elevation = 25f32.to_radians();
+    // Two directions spanning the plane of the circle, right-handed with `up`.
+    let (a, b) = match up {
+        Up::Y => (Vec3::X, Vec3::NEG_Z),
+        Up::Z => (Vec3::X, Vec3::Y),
+    };
+    (0..36)
+        .map(|i| {
+            let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
+            let flat = radius * elevation.cos();
+            let eye =
+                center + flat * phi.cos() * a + flat * phi.sin() * b + radius * elevation.sin() * up.vector();
+            Camera::look_at(eye, center, up.vector(), Vec2::splat(1.2), Vec2::ZERO)
+        })
+        .collect()
+}

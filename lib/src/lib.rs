@@ -61,6 +61,7 @@ pub mod train_block;
 pub mod train_sdf_block;
 pub mod training_loop;
 pub mod transmittance_command;
+pub mod validation;
 pub mod views;
 pub mod viz_block;
 pub mod volume_block;

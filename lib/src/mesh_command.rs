@@ -4,15 +4,16 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::surfaces::regions::Specialize;
-use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Camera, Mesh, PointFrame, Up};
+use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Mesh, PointFrame, Up};
 
 use crate::block::Block;
+use crate::camera_setting::turntable;
 use crate::failure::{Failure, Result};
 use crate::jit_field::{check_signature, Compiler, JitFn, Kind};
 use crate::settings::CallArgs;
@@ -42,28 +43,6 @@ pub struct MeshArgs<'a> {
     /// The frame the function was fitted to a point cloud in, when that cloud was scaled into the unit
     /// sphere: the mesh is written in the cloud's own units (the grid's bounds are in the frame's).
     pub frame: Option<PointFrame>,
-}
-
-/// 36 cameras circling the box `bounds` about the `up` axis, 25° above its center, framing it.
-pub fn turntable(bounds: ([f32; 3], [f32; 3]), up: Up) -> nerfjit_runtime::Result<Vec<Camera>> {
-    let (lo, hi) = (Vec3::from_array(bounds.0), Vec3::from_array(bounds.1));
-    let center = lo.lerp(hi, 0.5);
-    let radius = 0.8 * (hi - lo).length();
-    let elevation = 25f32.to_radians();
-    // Two directions spanning the plane of the circle, right-handed with `up`.
-    let (a, b) = match up {
-        Up::Y => (Vec3::X, Vec3::NEG_Z),
-        Up::Z => (Vec3::X, Vec3::Y),
-    };
-    (0..36)
-        .map(|i| {
-            let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
-            let flat = radius * elevation.cos();
-            let eye =
-                center + flat * phi.cos() * a + flat * phi.sin() * b + radius * elevation.sin() * up.vector();
-            Camera::look_at(eye, center, up.vector(), Vec2::splat(1.2), Vec2::ZERO)
-        })
-        .collect()
 }
 
 /// Parses `--bounds`: `r` for [−r, r]³, or six numbers `x0,y0,z0,x1,y1,z1`.
@@ -399,6 +378,7 @@ impl MeshPlan {
 mod tests {
     use super::*;
     use nerfjit_runtime::surfaces::marching::extract_pruned;
+    use nerfjit_runtime::Camera;
 
     #[test]
     fn turntables_circle_their_up_axis_above_the_center() {

@@ -595,8 +595,9 @@ impl VolumeObjective<'_> {
         if !(p.done.is_multiple_of(v.every) || time_mark || (p.last && !p.interrupted)) {
             return Ok(());
         }
-        let scores = crate::views::score(val, self.fields, params, &self.step_settings, self.grid.as_ref())?;
-        let means = crate::views::means(&scores);
+        let scores =
+            crate::validation::score(val, self.fields, params, &self.step_settings, self.grid.as_ref())?;
+        let means = crate::validation::means(&scores);
         let (psnr, ssim) = (means.psnr, means.ssim);
         let masked = means
             .masked_psnr

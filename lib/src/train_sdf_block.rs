@@ -442,7 +442,7 @@ fn write_points_gif(path: &std::path::Path, points: &[[f32; 3]]) -> Result<()> {
     let Some(bounds) = bounding_box(points) else {
         return Ok(());
     };
-    let frames = crate::mesh_command::turntable(bounds, nerfjit_runtime::Up::Y)?
+    let frames = crate::camera_setting::turntable(bounds, nerfjit_runtime::Up::Y)?
         .iter()
         .map(|camera| render_points(camera, 256, 256, points, 1.5, [0.9, 0.8, 0.6], [0.1, 0.11, 0.14]))
         .collect::<nerfjit_runtime::Result<Vec<_>>>()?;

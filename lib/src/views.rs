@@ -10,8 +10,7 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{
-    psnr, rgb_image, ssim, Camera, DensityEma, DepthSpacing, ImageF32, OccupancyGrid, Quantize, Views,
-    VolumeSettings,
+    rgb_image, Camera, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Views, VolumeSettings,
 };
 
 use crate::block::MAX_PIXELS;
@@ -21,6 +20,7 @@ use crate::jit_field::VolumeFields;
 use crate::output::write_images;
 use crate::setting_values::SkipEmpty;
 use crate::settings::triple;
+use crate::validation::{means, score};
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
 /// block (a checkpoint's script included): see [`ViewArgs::resolve`].
@@ -355,77 +355,6 @@ pub fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
         return Ok(Some(cameras));
     }
     Ok(None)
-}
-
-/// One view's scores against its image.
-#[derive(Clone, Copy, Debug)]
-pub struct ViewScore {
-    /// PSNR over the whole image, in dB.
-    pub psnr: f32,
-    /// SSIM over the whole image.
-    pub ssim: f32,
-    /// PSNR inside the view's object mask, when the views have masks (DTU's protocol).
-    pub masked_psnr: Option<f32>,
-}
-
-/// The mean of every view's scores.
-#[derive(Clone, Copy, Debug)]
-pub struct MeanScores {
-    /// Mean PSNR in dB.
-    pub psnr: f64,
-    /// Mean SSIM.
-    pub ssim: f64,
-    /// Mean PSNR inside the masks, over the views whose mask holds pixels.
-    pub masked_psnr: Option<f64>,
-}
-
-/// Renders every view of `views` with `settings` (and `grid`, the occupancy grid to skip empty space
-/// with) and scores it against its image: PSNR, SSIM, and PSNR inside its mask when the views have masks.
-pub fn score(
-    views: &Views,
-    fields: &VolumeFields,
-    params: &[f32],
-    settings: &VolumeSettings,
-    grid: Option<&OccupancyGrid>,
-) -> Result<Vec<ViewScore>> {
-    views
-        .cameras
-        .iter()
-        .zip(&views.images)
-        .enumerate()
-        .map(|(i, (camera, target))| {
-            let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
-            let rendered = ImageF32 {
-                width: f.width,
-                height: f.height,
-                pixels: f.rgb,
-            };
-            let mse = nerfjit_runtime::mse(&rendered, target)?;
-            let mask = views.masks.as_ref().and_then(|m| m.get(i));
-            let masked_mse = match mask {
-                Some(mask) => nerfjit_runtime::masked_mse(&rendered, target, mask)?,
-                None => None,
-            };
-            Ok(ViewScore {
-                psnr: psnr(mse),
-                ssim: ssim(&rendered, target)?,
-                masked_psnr: masked_mse.map(psnr),
-            })
-        })
-        .collect()
-}
-
-/// The mean of `scores`.
-pub fn means(scores: &[ViewScore]) -> MeanScores {
-    let mean = |values: Vec<f32>| {
-        let n = values.len();
-        (n > 0).then(|| values.iter().map(|&v| f64::from(v)).sum::<f64>() / n as f64)
-    };
-    MeanScores {
-        psnr: mean(scores.iter().map(|s| s.psnr).collect()).unwrap_or(0.0),
-        ssim: mean(scores.iter().map(|s| s.ssim).collect()).unwrap_or(0.0),
-        masked_psnr: mean(scores.iter().filter_map(|s| s.masked_psnr).collect()),
-    }
 }
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
