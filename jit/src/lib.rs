@@ -27,7 +27,6 @@ mod marcher;
 pub mod profile;
 mod simd;
 mod tape;
-mod tiled;
 
 pub use bf16::Precision;
 pub use cache::KernelCache;
