@@ -1,8 +1,8 @@
 //! Volume rendering of a field: samples along each pixel's ray, one field evaluation per
-//! sample, composited by a [`Compositor`].
+//! sample, composited by a [`Compositor`](crate::volume::composite::Compositor).
 //!
 //! The field maps a point (x, y, z), optionally followed by the unit view direction
-//! (dx, dy, dz), to 4 outputs: density σ or opacity a (see [`Mode`]), then r, g, b. Each ray
+//! (dx, dy, dz), to 4 outputs: density σ or opacity a (see [`Mode`](crate::volume::composite::Mode)), then r, g, b. Each ray
 //! samples `linspace(near, far, samples)`.
 //!
 //! The image is cut into tiles of about [`TILE_POINTS`] sample points, rendered in parallel by the
@@ -25,7 +25,7 @@
 //! composited with the same operations, so the result is, bit for bit, the exact render of the
 //! field with its first output set to 0 in the empty cells (given finite colors): the two renders
 //! differ only by what the skipped samples would have added. Note the course's last δ of
-//! 1e10: in [`Mode::Density`] a last sample of tiny σ has alpha ≈ 1 and would take the
+//! 1e10: in [`Mode::Density`](crate::volume::composite::Mode::Density) a last sample of tiny σ has alpha ≈ 1 and would take the
 //! remaining transmittance; skipped, it contributes nothing.
 
 use rayon::prelude::*;
