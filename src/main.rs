@@ -19,7 +19,7 @@ use terminal::TerminalBars;
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
-#[command(version, about)]
+#[command(name = "nerfjit", version, about)]
 struct Cli {
     /// Worker threads (default: all cores; at most 8 per core).
     #[arg(long, global = true)]
