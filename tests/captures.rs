@@ -478,6 +478,58 @@ fn an_unbounded_scene_trains_through_the_contraction_with_disparity_spacing() {
         trained > 19.0 && trained > start + 6.0,
         "held-out PSNR {start:.2} dB after 1 step, {trained:.2} dB after 300"
     );
+    // The same with a running occupancy grid over the contracted scene (all of space): it trains as well,
+    // its cells beyond the contraction's reach stay empty (59.6% of its 32³ cells meet the ball of radius
+    // 2), some inside it empty too (this small field's fog keeps most of them after 300 steps: 54.5%
+    // occupied in all when written), and the checkpoint keeps it, so that eval-views scores what the
+    // validation scored.
+    let grid = ", skip_empty: grid(bounds: 2, resolution: 32, threshold: 0.01, space: contracted), grid_update: ema(decay: 0.95, \
+                fraction: 0.25), grid_warmup: 50, grid_every: 10, checkpoint: \"train.ckpt.safetensors\" }";
+    let script = UNBOUNDED_TRAINER
+        .replace("STEPS", "300")
+        .replace(", checkpoint: none", "");
+    std::fs::write(
+        dir.join("train.sdf"),
+        script.trim_end().trim_end_matches('}').to_string() + grid,
+    )
+    .unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    let with_grid = summary["validation"][0]["val_psnr"].as_f64().unwrap();
+    assert!(
+        with_grid > trained - 1.0,
+        "{with_grid:.2} dB with the grid, {trained:.2} without: {out}"
+    );
+    let occupied: f64 = err
+        .lines()
+        .chain(out.lines())
+        .filter_map(|l| {
+            l.split("cells occupied")
+                .next()?
+                .rsplit(", ")
+                .next()?
+                .strip_suffix("% of the ")?
+                .parse()
+                .ok()
+        })
+        .next_back()
+        .unwrap_or_else(|| panic!("no grid update reported: {out}{err}"));
+    assert!(occupied < 58.0, "{occupied}% of the contracted grid occupied");
+    let (ok, _, err) = run(
+        &dir,
+        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"],
+    );
+    assert!(ok, "{err}");
+    let scores: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
+    let again = scores["mean_psnr"].as_f64().unwrap();
+    assert!(
+        (again - with_grid).abs() < 0.01,
+        "eval-views {again} dB, validation {with_grid} dB"
+    );
+    assert_eq!(scores["occupancy_grid"], true);
 }
 
 /// The bytes of a float64 `.npy` file of `shape` holding `values` (C order).

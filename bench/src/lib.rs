@@ -485,7 +485,7 @@ fn w2(reps: usize) -> Result<()> {
             &program,
             &program.param_values,
             &cache,
-            (bounds, resolution, threshold),
+            (bounds, resolution, threshold, nerfjit_runtime::GridSpace::Scene),
         )
     };
     nerfjit::emit(&format!(

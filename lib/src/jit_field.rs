@@ -9,7 +9,7 @@ use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Passes,
 use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
-use nerfjit_runtime::{BatchFn, BatchVjp, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel};
+use nerfjit_runtime::{BatchFn, BatchVjp, GridSpace, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel};
 
 use crate::failure::{Failure, Result};
 
@@ -441,7 +441,7 @@ impl VolumeField {
         program: &Program,
         params: &[f32],
         cache: &KernelCache,
-        (bounds, resolution, threshold): (([f32; 3], [f32; 3]), usize, f32),
+        (bounds, resolution, threshold, space): (([f32; 3], [f32; 3]), usize, f32, GridSpace),
     ) -> Result<OccupancyGrid> {
         let name = match self.mode {
             Mode::Density => "density",
@@ -452,19 +452,20 @@ impl VolumeField {
             params,
             cache,
         };
-        let grid = match compiler.bounds(name, &[Type::Vec(3)], &Type::F32)? {
+        // Interval bounds hold over boxes of the scene: a contracted grid's cells are probed.
+        let bounds_of = match space {
+            GridSpace::Scene => compiler.bounds(name, &[Type::Vec(3)], &Type::F32)?,
+            GridSpace::Contracted => None,
+        };
+        let built = match bounds_of {
             Some(bounds_of) => {
                 OccupancyGrid::from_bounds(&bounds_of, bounds, resolution, self.mode, threshold)
             }
-            None => OccupancyGrid::build(
-                &self.bind_density(params),
-                bounds,
-                resolution,
-                self.mode,
-                threshold,
-            ),
+            None => space.with_field(&self.bind_density(params), |density| {
+                OccupancyGrid::build(density, bounds, resolution, self.mode, threshold)
+            }),
         };
-        Ok(grid?)
+        Ok(built?.in_space(space))
     }
 
     /// The forward and backward kernels bound to `params`.
@@ -708,7 +709,7 @@ mod tests {
         let probed = OccupancyGrid::build(&field.bind_density(params), unit, 8, Mode::Density, 0.5).unwrap();
         assert_eq!(probed.occupied_cells(), 0, "a probe lies on the shell");
         let grid = field
-            .occupancy_grid(&program, params, &cache, (unit, 8, 0.5))
+            .occupancy_grid(&program, params, &cache, (unit, 8, 0.5, GridSpace::Scene))
             .unwrap();
         // Every cell the shell crosses (its nearest point to the origin closer than 0.605, its farthest
         // farther than 0.595) is occupied.

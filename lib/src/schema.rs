@@ -289,9 +289,10 @@ const SPACING: Setting = value(
 );
 const SKIP_EMPTY: Setting = value(
     "skip_empty",
-    "grid(bounds, resolution, threshold) or none",
+    "grid(bounds, resolution, threshold, space: scene or contracted) or none",
     Some(check_skip_empty),
-    "an occupancy grid: samples in its empty cells are skipped",
+    "an occupancy grid: samples in its empty cells are skipped (space: contracted puts its box in contract(p)'s \
+     coordinates, covering all of space)",
 );
 const EARLY_TERMINATION: Setting = number(
     "early_termination",

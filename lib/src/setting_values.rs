@@ -5,7 +5,7 @@
 use glam::Vec3;
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::{DepthSpacing, Schedule};
+use nerfjit_runtime::{DepthSpacing, GridSpace, Schedule};
 
 use crate::settings::{triple, CallArgs};
 
@@ -18,6 +18,8 @@ pub struct SkipEmpty {
     pub resolution: usize,
     /// Values at or below this count as empty.
     pub threshold: f32,
+    /// The space the grid's box is in: the scene's, or mip-NeRF 360's contraction (all of space).
+    pub space: GridSpace,
 }
 
 /// The `spacing` setting: `linear`, or `lindisp(split: 6)` (half the samples evenly in depth up to `split`,
@@ -44,13 +46,14 @@ pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnosti
     }
 }
 
-/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4)`, or `none`
-/// (exact: for `--set` to switch a script's grid off).
+/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4, space: scene)`,
+/// or `none` (exact: for `--set` to switch a script's grid off).
 pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
     if matches!(&v.value, Value::Name(n) if n == "none") {
         return Ok(None);
     }
-    let a = CallArgs::new(v, &["bounds", "resolution", "threshold"])?;
+    let a = CallArgs::new(v, &["bounds", "resolution", "threshold", "space"])?;
+    let space = GridSpace::named(&a.choice("space", &["scene", "contracted"], "scene")?).unwrap_or_default();
     let bounds = match a.raw("bounds") {
         None => {
             return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)"))
@@ -78,6 +81,7 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
         bounds,
         resolution: resolution as usize,
         threshold: a.number("threshold", Some(1e-4))? as f32,
+        space,
     }))
 }
 

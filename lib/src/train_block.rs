@@ -541,25 +541,30 @@ impl VolumeObjective<'_> {
             return Ok(());
         }
         let t = Instant::now();
-        let density = self.fields.fine.bind_density(params);
         let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.settings.mode);
-        let built = match (g.update, &mut self.ema) {
-            (GridUpdate::Rebuild, _) => {
-                OccupancyGrid::build_for_training(&density, bounds, resolution, mode, g.grid.threshold)?
-            }
-            (GridUpdate::Ema { decay, fraction }, Some(state)) => {
-                state.update(&density, decay, fraction, &mut self.ema_rng)?;
-                state.grid(mode, g.grid.threshold)?
-            }
-            (GridUpdate::Ema { .. }, state @ None) => state
-                .insert(DensityEma::sampled(
-                    &density,
-                    bounds,
-                    resolution,
-                    &mut self.ema_rng,
-                )?)
-                .grid(mode, g.grid.threshold)?,
-        };
+        let (ema, rng) = (&mut self.ema, &mut self.ema_rng);
+        let built = g
+            .grid
+            .space
+            .with_field(&self.fields.fine.bind_density(params), |density| {
+                nerfjit_runtime::Result::Ok(match (g.update, ema) {
+                    (GridUpdate::Rebuild, _) => OccupancyGrid::build_for_training(
+                        density,
+                        bounds,
+                        resolution,
+                        mode,
+                        g.grid.threshold,
+                    )?,
+                    (GridUpdate::Ema { decay, fraction }, Some(state)) => {
+                        state.update(density, decay, fraction, rng)?;
+                        state.grid(mode, g.grid.threshold)?
+                    }
+                    (GridUpdate::Ema { .. }, state @ None) => state
+                        .insert(DensityEma::sampled(density, bounds, resolution, rng)?)
+                        .grid(mode, g.grid.threshold)?,
+                })
+            })?;
+        let built = built.in_space(g.grid.space);
         // Every rebuild is reported; running updates every 16th time.
         let updates = (step - g.warmup) / g.every;
         if g.update == GridUpdate::Rebuild || updates.is_multiple_of(16) {
@@ -673,7 +678,9 @@ impl Objective for VolumeObjective<'_> {
             return Ok(());
         }
         let points = self.plan.data.sparse_points()?;
-        let seeded = OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &points, *dilation)?;
+        let in_grid: Vec<[f32; 3]> = points.iter().map(|&p| g.grid.space.point(p)).collect();
+        let seeded = OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &in_grid, *dilation)?
+            .in_space(g.grid.space);
         ui.report(format!(
             "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
             points.len(),

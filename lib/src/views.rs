@@ -206,16 +206,22 @@ impl Rendering {
         };
         if is_checkpoint(source) {
             let saved = crate::checkpoint::saved_occupancy(Path::new(source))?;
-            if let Some(grid) = saved.filter(|g| g.bounds() == s.bounds && g.resolution() == s.resolution) {
+            let same = |g: &OccupancyGrid| {
+                (g.bounds(), g.resolution(), g.space()) == (s.bounds, s.resolution, s.space)
+            };
+            if let Some(grid) = saved.filter(same) {
                 return Ok(Some(grid));
             }
         }
-        let (mode, density) = (fields.fine.mode, fields.fine.bind_density(params));
-        Ok(Some(if self.running_grid {
-            DensityEma::probe(&density, s.bounds, s.resolution)?.grid(mode, s.threshold)?
-        } else {
-            OccupancyGrid::build_for_training(&density, s.bounds, s.resolution, mode, s.threshold)?
-        }))
+        let mode = fields.fine.mode;
+        let grid = s.space.with_field(&fields.fine.bind_density(params), |density| {
+            if self.running_grid {
+                DensityEma::probe(density, s.bounds, s.resolution)?.grid(mode, s.threshold)
+            } else {
+                OccupancyGrid::build_for_training(density, s.bounds, s.resolution, mode, s.threshold)
+            }
+        })?;
+        Ok(Some(grid.in_space(s.space)))
     }
 }
 

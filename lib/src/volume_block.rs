@@ -116,9 +116,12 @@ impl VolumePlan {
         let (w, h) = self.size;
         let start = Instant::now();
         let grid = match self.skip_empty {
-            Some(s) => {
-                Some(field.occupancy_grid(program, params, cache, (s.bounds, s.resolution, s.threshold))?)
-            }
+            Some(s) => Some(field.occupancy_grid(
+                program,
+                params,
+                cache,
+                (s.bounds, s.resolution, s.threshold, s.space),
+            )?),
             None => None,
         };
         let mut frames = Vec::with_capacity(self.cameras.len());

@@ -6,8 +6,9 @@
 //! Adam's step count and the script (name, source and `--set` overrides). A run that skips empty space
 //! also keeps its occupancy grid as it last rendered with it: the tensor `occupancy` (`u8`, the cells'
 //! bits packed 8 to a byte, x fastest) with its box (`occupancy_bounds`, JSON `[lo, hi]`) and
-//! `occupancy_resolution` in the metadata, so that renders and scores of the checkpoint skip exactly the
-//! cells the run's validation skipped.
+//! `occupancy_resolution` in the metadata (and `occupancy_space: contracted` for a grid over contracted
+//! coordinates), so that renders and scores of the checkpoint skip exactly the cells the run's validation
+//! skipped.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -16,7 +17,7 @@ use std::ops::Range;
 use std::path::Path;
 
 use nerfjit_dsl::{Program, Type};
-use nerfjit_runtime::{Adam, OccupancyGrid};
+use nerfjit_runtime::{Adam, GridSpace, OccupancyGrid};
 use safetensors::tensor::{Dtype, SafeTensors, View};
 
 use super::{Saved, Script};
@@ -154,6 +155,9 @@ pub fn write(
             serde_json::to_string(&[lo, hi]).unwrap_or_default(),
         );
         metadata.insert("occupancy_resolution".to_string(), grid.resolution().to_string());
+        if grid.space() != GridSpace::Scene {
+            metadata.insert("occupancy_space".to_string(), grid.space().name().to_string());
+        }
         let tensor = Tensor::Bytes {
             shape: [bytes.len()],
             bytes,
@@ -318,7 +322,15 @@ pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
     std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(begin)).map_err(|e| bad(e.to_string()))?;
     let mut bytes = vec![0u8; (end - start) as usize];
     file.read_exact(&mut bytes).map_err(|e| bad(e.to_string()))?;
+    let space = match meta.get("occupancy_space") {
+        None => GridSpace::Scene,
+        Some(name) => name.as_str().and_then(GridSpace::named).ok_or_else(|| {
+            bad(format!(
+                "its occupancy grid's space {name} is not 'scene' or 'contracted'"
+            ))
+        })?,
+    };
     let grid = OccupancyGrid::from_packed_cells((lo, hi), resolution, &bytes)
         .map_err(|e| bad(format!("its occupancy grid: {e}")))?;
-    Ok(Some(grid))
+    Ok(Some(grid.in_space(space)))
 }

@@ -28,6 +28,12 @@
 //!
 //! The first output is assumed not to depend on the view direction: a field that takes one
 //! is probed with direction (0, 0, 1).
+//!
+//! A grid in [`GridSpace::Contracted`] covers all of space, as instant-ngp's cascades and nerfacto's
+//! grids do for unbounded captures: its box is in the coordinates of mip-NeRF 360's contraction
+//! ([`contract`]: the identity inside the unit ball, all of space inside the ball of radius 2), and a
+//! point is looked up at its contracted coordinates. Such a grid is built from the field read at the
+//! uncontracted points ([`Uncontracted`]): the cells far out stand for ever larger regions of space.
 
 use rayon::prelude::*;
 
@@ -47,9 +53,105 @@ const BUILD_BATCH: usize = 8192;
 /// Layers of cells probed by one parallel task while building.
 const LAYERS_PER_TASK: usize = 4;
 
+/// The space an occupancy grid's box is in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GridSpace {
+    /// The scene's own coordinates: nothing outside the box is occupied.
+    #[default]
+    Scene,
+    /// The coordinates of [`contract`]: a box of [−2, 2]³ covers all of space.
+    Contracted,
+}
+
+impl GridSpace {
+    /// The space named `name` (`scene` or `contracted`).
+    pub fn named(name: &str) -> Option<GridSpace> {
+        match name {
+            "scene" => Some(GridSpace::Scene),
+            "contracted" => Some(GridSpace::Contracted),
+            _ => None,
+        }
+    }
+
+    /// Calls `f` with `field` as a grid in this space reads it: at the uncontracted points of its
+    /// cells for a grid in [`GridSpace::Contracted`] ([`Uncontracted`]).
+    pub fn with_field<R>(self, field: &dyn BatchFn, f: impl FnOnce(&dyn BatchFn) -> R) -> R {
+        match self {
+            GridSpace::Scene => f(field),
+            GridSpace::Contracted => f(&Uncontracted(field)),
+        }
+    }
+
+    /// `p` in the coordinates of a grid in this space.
+    pub fn point(self, p: [f32; 3]) -> [f32; 3] {
+        match self {
+            GridSpace::Scene => p,
+            GridSpace::Contracted => contract(p),
+        }
+    }
+
+    /// The space's name, as [`GridSpace::named`] reads it.
+    pub fn name(self) -> &'static str {
+        match self {
+            GridSpace::Scene => "scene",
+            GridSpace::Contracted => "contracted",
+        }
+    }
+}
+
+/// mip-NeRF 360's scene contraction, as the scripts' `contract(p)` has it: `p` inside the unit ball,
+/// (2 − 1/‖p‖)·p/‖p‖ outside it.
+#[inline(always)]
+pub fn contract([x, y, z]: [f32; 3]) -> [f32; 3] {
+    let r = (x * x + y * y + z * z).sqrt();
+    // Without branches (a select), so that loops over points vectorize.
+    let s = if r > 1.0 { (2.0 - 1.0 / r) / r } else { 1.0 };
+    [x * s, y * s, z * s]
+}
+
+/// The inverse of [`contract`] for points of norm below 2 (points at or beyond norm 2, which stand
+/// for infinity, are taken at norm 2 − 10⁻³: about 1000 units out).
+#[inline(always)]
+pub fn uncontract([x, y, z]: [f32; 3]) -> [f32; 3] {
+    let r = (x * x + y * y + z * z).sqrt();
+    let clamped = r.min(2.0 - 1e-3);
+    // |c| = 2 − 1/|p| outside the unit ball, so |p| = 1/(2 − |c|).
+    let s = if r > 1.0 { 1.0 / ((2.0 - clamped) * r) } else { 1.0 };
+    [x * s, y * s, z * s]
+}
+
+/// A function of a position read at the uncontracted point of its (contracted) input: what a grid in
+/// [`GridSpace::Contracted`] is built from. Further inputs (a view direction) pass unchanged.
+pub struct Uncontracted<'a>(pub &'a dyn BatchFn);
+
+impl BatchFn for Uncontracted<'_> {
+    fn n_inputs(&self) -> usize {
+        self.0.n_inputs()
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.0.n_outputs()
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        let mut points = vec![vec![0.0f32; n]; 3];
+        for i in 0..n {
+            let p = uncontract([inputs[0][i], inputs[1][i], inputs[2][i]]);
+            for (column, value) in points.iter_mut().zip(p) {
+                column[i] = value;
+            }
+        }
+        let mut columns: Vec<&[f32]> = points.iter().map(Vec::as_slice).collect();
+        columns.extend_from_slice(&inputs[3..]);
+        self.0.eval(n, &columns, outputs);
+    }
+}
+
 /// A bit per cell of a `resolution`³ grid over an axis-aligned box. See the module docs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OccupancyGrid {
+    /// The space the box is in.
+    space: GridSpace,
     lo: [f32; 3],
     hi: [f32; 3],
     resolution: usize,
@@ -222,6 +324,7 @@ impl OccupancyGrid {
         }
         let center = [0, 1, 2].map(|i| 0.5 * (lo[i] + hi[i]));
         OccupancyGrid {
+            space: GridSpace::Scene,
             lo,
             hi,
             resolution,
@@ -271,7 +374,49 @@ impl OccupancyGrid {
         }))
     }
 
-    /// The box (lo, hi) covered by the grid.
+    /// The same cells in `space`: a grid built over contracted coordinates (from [`Uncontracted`]) is
+    /// one in [`GridSpace::Contracted`], whose cells wholly outside the ball of radius 2 are cleared (no
+    /// contracted point lies there).
+    pub fn in_space(self, space: GridSpace) -> OccupancyGrid {
+        let mut grid = OccupancyGrid { space, ..self };
+        if space == GridSpace::Contracted {
+            let res = grid.resolution;
+            let cell = [0, 1, 2].map(|i| (grid.hi[i] - grid.lo[i]) / res as f32);
+            // The distance from the origin to cell k's interval along axis i.
+            let gap = |i: usize, k: usize| {
+                let (a, b) = (
+                    grid.lo[i] + cell[i] * k as f32,
+                    grid.lo[i] + cell[i] * (k + 1) as f32,
+                );
+                if a > 0.0 {
+                    a
+                } else if b < 0.0 {
+                    -b
+                } else {
+                    0.0
+                }
+            };
+            for z in 0..res {
+                for y in 0..res {
+                    for x in 0..res {
+                        let nearest = gap(0, x).powi(2) + gap(1, y).powi(2) + gap(2, z).powi(2);
+                        if nearest >= 4.0 {
+                            let bit = bit_of(grid.shift, [x, y, z].map(|c| c as u32)) as usize;
+                            grid.bits[bit / 64] &= !(1 << (bit % 64));
+                        }
+                    }
+                }
+            }
+        }
+        grid
+    }
+
+    /// The space the grid's box is in.
+    pub fn space(&self) -> GridSpace {
+        self.space
+    }
+
+    /// The box (lo, hi) covered by the grid, in its space's coordinates.
     pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
         (self.lo, self.hi)
     }
@@ -301,17 +446,31 @@ impl OccupancyGrid {
         self.bit(bit_of(self.shift, [x, y, z].map(|c| c as u32)))
     }
 
-    /// Whether the cell containing `p` is occupied; points outside the bounds (or NaN) are
-    /// empty. Cells are half-open, except that the upper bounds belong to the last cells.
+    /// Whether the cell containing `p` (in the scene's coordinates; contracted first for a grid in
+    /// [`GridSpace::Contracted`]) is occupied; points outside the bounds (or NaN) are empty. Cells are
+    /// half-open, except that the upper bounds belong to the last cells.
     #[inline]
     pub fn occupied(&self, p: [f32; 3]) -> bool {
         self.bit(self.bit_index(p[0], p[1], p[2]))
     }
 
-    /// The bit of the cell containing (x, y, z), or the last bit (always clear) if the point
-    /// is outside the bounds or NaN. Without branches, so that loops over points vectorize.
+    /// The bit of the cell containing scene point (x, y, z) (see [`OccupancyGrid::occupied`]), or the
+    /// last bit (always clear) if the point is outside the bounds or NaN.
     #[inline(always)]
     fn bit_index(&self, x: f32, y: f32, z: f32) -> u32 {
+        match self.space {
+            GridSpace::Scene => self.box_bit_index(x, y, z),
+            GridSpace::Contracted => {
+                let [x, y, z] = contract([x, y, z]);
+                self.box_bit_index(x, y, z)
+            }
+        }
+    }
+
+    /// The bit of the cell containing (x, y, z) in the box's coordinates, or the last bit (always clear)
+    /// if the point is outside the bounds or NaN. Without branches, so that loops over points vectorize.
+    #[inline(always)]
+    fn box_bit_index(&self, x: f32, y: f32, z: f32) -> u32 {
         let r = self.resolution as u32;
         let (last, top) = ((r - 1) as f32, r as f32);
         let fx = (x - self.lo[0]) * self.scale[0];
@@ -354,8 +513,21 @@ impl OccupancyGrid {
     ) -> usize {
         let n = x.len();
         let (y, z, index, cells) = (&mut y[..n], &mut z[..n], &mut index[..n], &mut cells[..n]);
-        for (((cell, x), y), z) in cells.iter_mut().zip(&*x).zip(&*y).zip(&*z) {
-            *cell = self.bit_index(*x, *y, *z);
+        // The space's branch outside the loops, so that each of them vectorizes.
+        let cells_of = |bit_index: &dyn Fn(f32, f32, f32) -> u32, cells: &mut [u32]| {
+            for (((cell, x), y), z) in cells.iter_mut().zip(&*x).zip(&*y).zip(&*z) {
+                *cell = bit_index(*x, *y, *z);
+            }
+        };
+        match self.space {
+            GridSpace::Scene => cells_of(&|x, y, z| self.box_bit_index(x, y, z), cells),
+            GridSpace::Contracted => cells_of(
+                &|x, y, z| {
+                    let [x, y, z] = contract([x, y, z]);
+                    self.box_bit_index(x, y, z)
+                },
+                cells,
+            ),
         }
         if cells.iter().all(|&cell| self.bit(cell)) {
             for (i, index) in index.iter_mut().enumerate() {
@@ -376,7 +548,8 @@ impl OccupancyGrid {
 
     /// The depths [t0, t1] (t0 may be negative) where the ray `o + t·d` is inside the bounds
     /// widened by a tiny margin, or `None` if it misses them: every point of the ray that
-    /// [`OccupancyGrid::occupied`] may accept is in that interval.
+    /// [`OccupancyGrid::occupied`] may accept is in that interval (the whole ray for a grid in
+    /// [`GridSpace::Contracted`]).
     pub fn ray_interval(&self, o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
         let (t0, t1) = self.interval(o, d);
         (t0 <= t1).then_some((t0, t1))
@@ -405,6 +578,9 @@ impl OccupancyGrid {
     #[inline(always)]
     fn interval(&self, o: [f32; 3], d: [f32; 3]) -> (f32, f32) {
         let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+        if self.space == GridSpace::Contracted {
+            return (t0, t1);
+        }
         for i in 0..3 {
             let inv = 1.0 / d[i];
             let (a, b) = ((self.outer[0][i] - o[i]) * inv, (self.outer[1][i] - o[i]) * inv);
@@ -582,6 +758,70 @@ mod tests {
     use crate::field::ClosureFn;
 
     const UNIT: ([f32; 3], [f32; 3]) = ([-1.0; 3], [1.0; 3]);
+
+    proptest::proptest! {
+        /// The contraction puts all of space inside the ball of radius 2, and its inverse takes it back.
+        #[test]
+        fn contraction_round_trips(p in proptest::array::uniform3(-300.0f32..300.0)) {
+            let c = contract(p);
+            let norm = |v: [f32; 3]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            proptest::prop_assert!(norm(c) < 2.0 && norm(c) <= norm(p) + 1e-6);
+            let back = uncontract(c);
+            // The inverse loses precision as |c| nears 2: |p| = 1/(2 − |c|).
+            let tolerance = 1e-5 * norm(p).max(1.0).powi(2);
+            proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {c:?} {back:?}");
+        }
+    }
+
+    #[test]
+    fn a_contracted_grid_covers_all_of_space() {
+        // A ball of radius 3 ten units out along x, and nothing else: in a contracted grid over
+        // [−2, 2]³ it lies in the cells of x from 2 − 1/7 to 2 − 1/13.
+        let field = ClosureFn::new(3, 4, |p, out| {
+            let d2 = (p[0] - 10.0).powi(2) + p[1] * p[1] + p[2] * p[2];
+            out.fill(0.0);
+            out[0] = if d2 < 9.0 { 1.0 } else { 0.0 };
+        });
+        let box2 = ([-2.0; 3], [2.0; 3]);
+        let grid = OccupancyGrid::build(&Uncontracted(&field), box2, 32, Mode::Density, 0.5)
+            .unwrap()
+            .in_space(GridSpace::Contracted);
+        assert_eq!(grid.space(), GridSpace::Contracted);
+        assert!(grid.occupied([10.0, 0.0, 0.0]) && grid.occupied([8.5, 1.0, -1.0]));
+        assert!(
+            !grid.occupied([0.0; 3]) && !grid.occupied([-10.0, 0.0, 0.0]) && !grid.occupied([2.0, 0.0, 0.0])
+        );
+        assert!(grid.occupancy() < 0.02, "{}", grid.occupancy());
+        // Rays are never clipped by its box.
+        assert_eq!(
+            grid.ray_interval([0.0; 3], [1.0, 0.0, 0.0]),
+            Some((f32::NEG_INFINITY, f32::INFINITY))
+        );
+        // Packing points agrees with the lookup of each.
+        let points = [[10.0f32, 0.0, 0.0], [0.0; 3], [9.0, 2.0, 0.0], [-10.0, 0.0, 0.0]];
+        let [mut x, mut y, mut z] = [0, 1, 2].map(|k| points.iter().map(|p| p[k]).collect::<Vec<f32>>());
+        let (mut index, mut cells) = (vec![0u32; 4], vec![0u32; 4]);
+        let n = grid.pack_occupied([&mut x, &mut y, &mut z], &mut index, 10, &mut cells);
+        assert_eq!(&index[..n], &[10, 12]);
+        // The same cells in the scene's space are a box of side 4 at the origin, which holds nothing there.
+        let scene = grid.clone().in_space(GridSpace::Scene);
+        assert!(!scene.occupied([10.0, 0.0, 0.0]));
+        // The corners of the box, beyond the contraction's reach, are empty whatever the field says.
+        let everywhere = ClosureFn::new(3, 4, |_, out| out.fill(1.0));
+        let full = OccupancyGrid::build(&everywhere, box2, 8, Mode::Density, 0.5).unwrap();
+        assert_eq!(full.occupied_cells(), 512);
+        let contracted = full.in_space(GridSpace::Contracted);
+        // Of 8³ cells of side 0.5, those whose nearest point is 2 or more from the center: along each
+        // axis a cell's nearest coordinate is 0, 0.5, 1 or 1.5 (two cells each side).
+        let near: usize = (0..512)
+            .filter(|i| {
+                let gap = |k: usize| [1.5f32, 1.0, 0.5, 0.0, 0.0, 0.5, 1.0, 1.5][k];
+                gap(i % 8).powi(2) + gap(i / 8 % 8).powi(2) + gap(i / 64).powi(2) < 4.0
+            })
+            .count();
+        assert_eq!(contracted.occupied_cells(), near);
+        assert!(contracted.occupied([1e6, 0.0, 0.0]) && !contracted.cell(0, 0, 0));
+    }
 
     #[test]
     fn a_field_in_one_cell_marks_it_and_its_26_neighbours() {
