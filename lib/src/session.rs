@@ -52,6 +52,8 @@ use crate::train_sdf_block::SdfTrainPlan;
 use crate::viz_block::VizPlan;
 use crate::volume_block::VolumePlan;
 
+pub use crate::observe::Observer;
+
 /// What one block of a script does, with its settings read and checked.
 enum Plan {
     Trace(RenderPlan),
@@ -61,8 +63,6 @@ enum Plan {
     FitSdf(SdfTrainPlan),
     Mesh(MeshPlan),
 }
-
-pub use crate::observe::Observer;
 
 /// A checked script with its params and compiled kernels, ready to run its blocks.
 pub struct Session {
