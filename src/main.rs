@@ -2,17 +2,24 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use clap::{CommandFactory, Parser, Subcommand};
+use nerfjit::observe::TrainingObserver;
 use nerfjit::{
-    bench, check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points,
-    run, schema, script, transmittance_command, viewer, views, WORK_STACK_BYTES,
+    check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points, run,
+    schema, script, transmittance_command, views, WORK_STACK_BYTES,
 };
+use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
+use nerfjit_viewer as viewer;
+
+mod terminal;
+use terminal::TerminalBars;
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
-#[command(version, about)]
+#[command(name = "nerfjit", version, about)]
 struct Cli {
     /// Worker threads (default: all cores; at most 8 per core).
     #[arg(long, global = true)]
@@ -93,7 +100,7 @@ enum Command {
         function: String,
         /// Which kernel.
         #[arg(long, value_enum, default_value = "value")]
-        kind: ir_dump::KernelKind,
+        kind: KernelKind,
         /// Short for `--kind grad`.
         #[arg(long, conflicts_with = "kind")]
         grad: bool,
@@ -356,12 +363,43 @@ impl ViewOptions {
     }
 }
 
+/// Which kernel of a function to show.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum KernelKind {
+    /// The function's values.
+    Value,
+    /// Values and the gradient of each output with respect to the inputs.
+    Grad,
+    /// The vector-Jacobian product: input gradients per point, param gradients reduced.
+    Vjp,
+    /// The param gradient of c_f·f + c_g·∇ₓf (for the eikonal loss; scalar functions only).
+    SecondOrder,
+    /// Interval bounds of the values over boxes of inputs (low corners, then high corners).
+    Bounds,
+    /// The SDF regularizers' loss kernel (scalar functions of a point): the near-surface term
+    /// exp(−100·|f|) and the eikonal term (|∇ₓf| − 1)² per point, unit weights, and their param gradient.
+    Regularizers,
+}
+
+impl From<KernelKind> for ir_dump::KernelKind {
+    fn from(kind: KernelKind) -> ir_dump::KernelKind {
+        match kind {
+            KernelKind::Value => ir_dump::KernelKind::Value,
+            KernelKind::Grad => ir_dump::KernelKind::Grad,
+            KernelKind::Vjp => ir_dump::KernelKind::Vjp,
+            KernelKind::SecondOrder => ir_dump::KernelKind::SecondOrder,
+            KernelKind::Bounds => ir_dump::KernelKind::Bounds,
+            KernelKind::Regularizers => ir_dump::KernelKind::Regularizers,
+        }
+    }
+}
+
 /// Most `--threads` per core.
 const MAX_THREADS_PER_CORE: usize = 8;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    interrupt::install();
+    terminal::install_interrupt_handler();
     if let Some(bytes) = cli.max_memory {
         budget::set_max_memory(bytes);
     }
@@ -403,6 +441,37 @@ fn main() -> ExitCode {
     }
 }
 
+/// `nerfjit run`: every block of the script in order, with progress bars and, with `view`, a live viewer
+/// that follows the training (and stays open after the last block until the process is stopped).
+fn run_script(
+    path: &str,
+    overrides: &[String],
+    out_dir: Option<&std::path::Path>,
+    resume: bool,
+    view: Option<&viewer::ViewArgs>,
+) -> failure::Result<()> {
+    let mut session = run::open(path, overrides, out_dir)?;
+    let live = match view {
+        Some(args) => {
+            let live = Arc::new(viewer::Live::new());
+            let program = session.program();
+            let document = viewer::Document::of(program, program.param_values.clone(), false)?;
+            viewer::attach(args, document, Arc::clone(&live))?;
+            Some(live)
+        }
+        None => None,
+    };
+    let observer = live.as_deref().map(|l| l as &dyn TrainingObserver);
+    run::run_session(&mut session, resume, &TerminalBars, observer)?;
+    if live.is_some() {
+        eprintln!("done: the viewer stays open until Ctrl-C");
+        loop {
+            std::thread::park();
+        }
+    }
+    Ok(())
+}
+
 /// Runs the command line's command; prints its error, if any.
 fn run_command(cli: Cli) -> ExitCode {
     let result = match cli.command {
@@ -420,7 +489,7 @@ fn run_command(cli: Cli) -> ExitCode {
                 host,
                 port,
             });
-            run::run(&script, &set, out.as_deref(), resume, view.as_ref())
+            run_script(&script, &set, out.as_deref(), resume, view.as_ref())
         }
         Command::Transmittance { segments, from, to } => {
             transmittance_command::run(&segments, from.zip(to)).map(|text| emit(&text))
@@ -449,8 +518,8 @@ fn run_command(cli: Cli) -> ExitCode {
             grad,
             graph_only,
         } => {
-            let kind = if grad { ir_dump::KernelKind::Grad } else { kind };
-            ir_dump::run(&script, &function, kind, graph_only).map(|text| emit(&text))
+            let kind = if grad { KernelKind::Grad } else { kind };
+            ir_dump::run(&script, &function, kind.into(), graph_only).map(|text| emit(&text))
         }
         Command::Bench {
             workload,

@@ -6,11 +6,12 @@
 use std::collections::HashMap;
 
 use crate::ast::*;
-use crate::builtins;
 use crate::diag::{closest, Diagnostic, Span};
 use crate::ir::{Graph, Op, V};
 use crate::types::Type;
 use crate::value::Val;
+
+pub(crate) mod builtins;
 
 /// The most nested user-function calls in one lowering.
 pub const MAX_CALL_DEPTH: usize = 64;

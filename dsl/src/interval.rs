@@ -118,7 +118,7 @@ impl NodeBounds {
                     for (slot, v) in a.iter_mut().zip(args.iter()) {
                         *slot = vals[v.0 as usize];
                     }
-                    crate::interp::apply(*op, &a[..args.len()])
+                    crate::ir::semantics::apply(*op, &a[..args.len()])
                 }
             };
             vals.push(v);

@@ -24,6 +24,8 @@
 use rustc_hash::FxHashMap;
 use std::fmt;
 
+pub(crate) mod semantics;
+
 /// A value in a [`Graph`]: the index of the node that computes it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct V(pub u32);
@@ -517,7 +519,7 @@ impl Graph {
         let args = op.args();
         if !args.is_empty() && args.iter().all(|&a| self.const_value(a).is_some()) {
             let vals: Vec<f64> = args.iter().map(|&a| self.const_value(a).unwrap_or(0.0)).collect();
-            return self.constant(crate::interp::apply(op, &vals));
+            return self.constant(semantics::apply(op, &vals));
         }
         let op = match op {
             Add(a, b) | Mul(a, b) | Eq(a, b) if a > b => op.map_args(|x| if x == a { b } else { a }),

@@ -20,7 +20,6 @@
 pub mod ast;
 pub mod autodiff;
 pub mod budget;
-mod builtins;
 pub mod config;
 pub mod diag;
 mod elaborate;

@@ -5,8 +5,8 @@ use std::collections::HashMap;
 
 use crate::ast::*;
 use crate::budget;
-use crate::builtins;
 use crate::diag::{Diagnostic, Report, SourceMap, Span};
+use crate::elaborate::builtins;
 use crate::elaborate::{Elaborator, Globals, ParamSlot, MAX_TOTAL_STEPS};
 use crate::init::Initializer;
 use crate::ir::Graph;

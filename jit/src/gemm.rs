@@ -96,6 +96,7 @@ impl Backend {
     }
 
     /// Every backend this CPU runs, widest first.
+    #[cfg_attr(not(feature = "bench"), allow(dead_code))] // its tests' and the benchmarks'
     pub fn available() -> Vec<Backend> {
         let mut all = Vec::new();
         if has_avx512() {

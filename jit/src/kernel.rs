@@ -10,7 +10,9 @@ use nerfjit_dsl::ir::{Graph, Op};
 
 use crate::bf16::Precision;
 use crate::codegen::{self, Columns};
-use crate::tiled::{self, Tiled};
+
+mod tiled;
+use tiled::Tiled;
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 

@@ -17,17 +17,24 @@
 //! ```
 #![warn(missing_docs)]
 
+// The dense products (f32 with AVX-512/AVX2, bfloat16 on AMX) are public only with the `bench` feature,
+// for the benchmark workloads of `nerfjit-bench` that time them alone.
+#[cfg(feature = "bench")]
 pub mod bf16;
+#[cfg(not(feature = "bench"))]
+mod bf16;
 mod cache;
 mod codegen;
 mod encode;
+#[cfg(feature = "bench")]
 pub mod gemm;
+#[cfg(not(feature = "bench"))]
+mod gemm;
 mod kernel;
 mod marcher;
 pub mod profile;
 mod simd;
 mod tape;
-mod tiled;
 
 pub use bf16::Precision;
 pub use cache::KernelCache;

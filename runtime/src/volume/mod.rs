@@ -13,5 +13,6 @@ pub mod occupancy_ema;
 pub(crate) mod pass;
 pub mod render;
 pub mod sampler;
+pub mod settings;
 pub mod train;
 pub mod transmittance;

@@ -34,7 +34,7 @@ use crate::volume::composite::{
 };
 use crate::volume::importance;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::render::{VolumeSettings, CHUNK_SAMPLES, PACKED_CHUNK_SAMPLES};
+use crate::volume::settings::{VolumeSettings, CHUNK_SAMPLES, PACKED_CHUNK_SAMPLES};
 
 /// Per-worker buffers of the volume pass, grown on demand and reused across tiles, frames and steps.
 #[derive(Debug, Default)]

@@ -1,8 +1,8 @@
 //! Volume rendering of a field: samples along each pixel's ray, one field evaluation per
-//! sample, composited by a [`Compositor`].
+//! sample, composited by a [`Compositor`](crate::volume::composite::Compositor).
 //!
 //! The field maps a point (x, y, z), optionally followed by the unit view direction
-//! (dx, dy, dz), to 4 outputs: density σ or opacity a (see [`Mode`]), then r, g, b. Each ray
+//! (dx, dy, dz), to 4 outputs: density σ or opacity a (see [`Mode`](crate::volume::composite::Mode)), then r, g, b. Each ray
 //! samples `linspace(near, far, samples)`.
 //!
 //! The image is cut into tiles of about [`TILE_POINTS`] sample points, rendered in parallel by the
@@ -25,7 +25,7 @@
 //! composited with the same operations, so the result is, bit for bit, the exact render of the
 //! field with its first output set to 0 in the empty cells (given finite colors): the two renders
 //! differ only by what the skipped samples would have added. Note the course's last δ of
-//! 1e10: in [`Mode::Density`] a last sample of tiny σ has alpha ≈ 1 and would take the
+//! 1e10: in [`Mode::Density`](crate::volume::composite::Mode::Density) a last sample of tiny σ has alpha ≈ 1 and would take the
 //! remaining transmittance; skipped, it contributes nothing.
 
 use rayon::prelude::*;
@@ -33,77 +33,12 @@ use rayon::prelude::*;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::BatchFn;
-use crate::volume::composite::{Compositor, Mode, SharedDepths};
+use crate::volume::composite::SharedDepths;
 use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, RayOutputs};
-use crate::volume::sampler::{linspace, DepthSpacing};
-
-/// About this many sample points are evaluated per field call.
-pub const TILE_POINTS: usize = 8192;
-
-/// Samples per field call when early termination is on.
-pub const CHUNK_SAMPLES: usize = 16;
-
-/// Rays per tile at most when an occupancy grid skips samples (tiles are also kept small
-/// enough for eight a thread).
-pub const PACKED_TILE_RAYS: usize = 16384;
-
-/// Sample rows per field call when early termination is on and a grid skips samples.
-pub const PACKED_CHUNK_SAMPLES: usize = 8;
-
-/// Parameters of volume rendering and training.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct VolumeSettings {
-    /// Depth of the first sample (>= 0).
-    pub near: f32,
-    /// Depth of the last sample (> near).
-    pub far: f32,
-    /// Samples per ray (>= 2).
-    pub samples: usize,
-    /// Whether the field's first output is a density or an opacity.
-    pub mode: Mode,
-    /// Color seen through the remaining transmittance; `None` is black.
-    pub background: Option<[f32; 3]>,
-    /// Stop a ray once its transmittance falls below this (in (0, 1]); `None` is exact.
-    pub early_termination: Option<f32>,
-    /// How the samples are spread between near and far.
-    pub spacing: DepthSpacing,
-}
-
-impl VolumeSettings {
-    /// Checks the settings.
-    pub(crate) fn check(&self) -> Result<()> {
-        let ok = self.near.is_finite() && self.far.is_finite() && 0.0 <= self.near && self.near < self.far;
-        if !ok || self.samples < 2 {
-            return Err(Error::Invalid(format!(
-                "volume rendering needs finite 0 <= near < far and at least 2 samples, got near {}, far {}, {} samples",
-                self.near, self.far, self.samples
-            )));
-        }
-        self.spacing.check(self.near, self.far)?;
-        self.compositor().check()
-    }
-
-    /// The fixed sample depths of a ray: `linspace(near, far, out.len())` spread by the spacing.
-    pub(crate) fn fixed_depths(&self, out: &mut [f32]) {
-        linspace(self.near, self.far, out);
-        self.spacing.warp_all(self.near, self.far, out);
-    }
-
-    /// The compositor of these settings.
-    pub(crate) fn compositor(&self) -> Compositor {
-        Compositor {
-            mode: self.mode,
-            background: self.background,
-            early_termination: self.early_termination,
-        }
-    }
-
-    /// Rays per tile: about [`TILE_POINTS`] points.
-    pub(crate) fn rays_per_tile(&self) -> usize {
-        (TILE_POINTS / self.samples).clamp(1, 1024)
-    }
-}
+pub use crate::volume::settings::{
+    VolumeSettings, CHUNK_SAMPLES, PACKED_CHUNK_SAMPLES, PACKED_TILE_RAYS, TILE_POINTS,
+};
 
 /// Checks that `field` maps a point (and maybe a view direction) to 4 outputs; returns
 /// whether it takes the view direction.
@@ -224,7 +159,9 @@ pub fn render_volume_with(
 mod tests {
     use super::*;
     use crate::field::ClosureFn;
+    use crate::volume::composite::Mode;
     use crate::volume::composite::Samples;
+    use crate::volume::sampler::linspace;
     use glam::{Vec2, Vec3};
     use std::sync::atomic::{AtomicUsize, Ordering};
 

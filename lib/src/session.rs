@@ -1,0 +1,284 @@
+//! A script and its state between calls: the checked program, its current params, one kernel cache, and
+//! a plan for each block. `nerfjit run` is a [`Session`] run block by block with progress bars; a Rust
+//! program can run the same blocks, read and change the params between them, and render with what a
+//! `train` block learned without compiling the field again.
+//!
+//! Fitting the course's box from Rust (its four views are first rendered by a script of the true box):
+//!
+//! ```
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use nerfjit::session::Session;
+//! let dir = std::env::temp_dir().join(format!("nerfjit-session-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir)?;
+//! let camera = |image: &str, eye: &str| format!(r#"{{"image": "{image}", "focal": 1.0, "principal_point": [0, 0],
+//!     "eye": {eye}, "scene_center": [0, 0, 0], "up": [0, 1, 0]}}"#);
+//! let cameras = [camera("v_000.png", "[-2.5, 0.3, 0]"), camera("v_001.png", "[-1, 0.5, -2.2]"),
+//!                camera("v_002.png", "[0, -0.4, -2.5]"), camera("v_003.png", "[1.8, 0.8, -1.6]")];
+//! let json = format!(r#"{{"image_size": [40, 40], "cameras": [{}]}}"#, cameras.join(","));
+//! std::fs::write(dir.join("cams.json"), json)?;
+//! let field = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, sides), alpha: 1.0, beta: 0.05)
+//!              fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)";
+//! let truth = format!("const center = [0.2, -0.1, 0.1]\nconst sides = [1.2, 0.8, 1.0]\n{field}\n\
+//!     render volume {{ camera: cameras(\"cams.json\"), size: 40, near: 0, far: 5, samples: 48, out: \"v.png\" }}");
+//! Session::from_source("truth.sdf", &truth, &dir)?.run()?;
+//! let fit = format!("param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1, 1, 1]\n{field}\n\
+//!     train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: 300, batch: 800, lr: 0.01 }}");
+//! let mut session = Session::from_source("fit.sdf", &fit, &dir)?;
+//! session.run()?;
+//! let center = session.param("center").expect("a param of the script");
+//! for (got, want) in center.iter().zip([0.2, -0.1, 0.1]) {
+//!     assert!((got - want).abs() < 0.01, "learned center {center:?}");
+//! }
+//! # std::fs::remove_dir_all(&dir)?;
+//! # Ok(())
+//! # }
+//! ```
+
+use std::path::Path;
+use std::rc::Rc;
+
+use nerfjit_dsl::config::Settings;
+use nerfjit_dsl::{compile_with, Program};
+use nerfjit_jit::KernelCache;
+
+use crate::block::{Block, Outputs};
+use crate::failure::{at, Failure, Result};
+use crate::mesh_command::MeshPlan;
+use crate::schema::Kind;
+use crate::script;
+use crate::sphere_trace_block::RenderPlan;
+use crate::train_block::TrainPlan;
+use crate::train_sdf_block::SdfTrainPlan;
+use crate::viz_block::VizPlan;
+use crate::volume_block::VolumePlan;
+
+pub use crate::observe::Observer;
+
+/// What one block of a script does, with its settings read and checked.
+enum Plan {
+    Trace(RenderPlan),
+    Volume(VolumePlan),
+    Train(Box<TrainPlan>),
+    Viz(VizPlan),
+    FitSdf(SdfTrainPlan),
+    Mesh(MeshPlan),
+}
+
+/// A checked script with its params and compiled kernels, ready to run its blocks.
+pub struct Session {
+    program: Program,
+    params: Vec<f32>,
+    cache: KernelCache,
+    plans: Vec<Plan>,
+}
+
+impl Session {
+    /// Reads and checks the script at `path` (or the embedded example it names) with `--set` style
+    /// `overrides`; relative inputs are found next to the script and outputs written to `out_dir` (created
+    /// if needed) or, without one, next to the script. Every block is checked before any runs.
+    pub fn open(path: &str, overrides: &[String], out_dir: Option<&Path>) -> Result<Session> {
+        let program = script::load_with(path, overrides)?;
+        let script_dir = Path::new(path).parent().unwrap_or(Path::new("."));
+        Session::of(program, script_dir, out_dir)
+    }
+
+    /// Checks the script `source` (called `name` in messages) whose relative files live in `dir`, where
+    /// its outputs are written too.
+    pub fn from_source(name: &str, source: &str, dir: &Path) -> Result<Session> {
+        let program = compile_with(name, source, &[]).map_err(Failure::Script)?;
+        Session::of(program, dir, Some(dir))
+    }
+
+    fn of(program: Program, script_dir: &Path, out_dir: Option<&Path>) -> Result<Session> {
+        if let Some(dir) = out_dir {
+            std::fs::create_dir_all(dir).map_err(|e| {
+                Failure::Message(format!("cannot create output folder '{}': {e}", dir.display()))
+            })?;
+        }
+        let outputs = Rc::new(Outputs::default());
+        let mut plans = Vec::new();
+        for block in program.blocks() {
+            let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
+            let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs))?;
+            plans.push(match b.schema().id {
+                Kind::SphereTrace => Plan::Trace(RenderPlan::new(b)?),
+                Kind::Volume => Plan::Volume(VolumePlan::new(b)?),
+                Kind::Train => Plan::Train(Box::new(TrainPlan::new(b)?)),
+                Kind::Viz => Plan::Viz(VizPlan::new(b)?),
+                Kind::TrainSdf => Plan::FitSdf(SdfTrainPlan::new(b)?),
+                Kind::Mesh => Plan::Mesh(MeshPlan::new(b)?),
+            });
+        }
+        let params = program.param_values.clone();
+        Ok(Session {
+            program,
+            params,
+            cache: KernelCache::new(),
+            plans,
+        })
+    }
+
+    /// The checked program.
+    pub fn program(&self) -> &Program {
+        &self.program
+    }
+
+    /// The current values of all params, in the program's order (`ParamInfo::offset`): the script's
+    /// initial values until a training block has run.
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// The current values of the param called `name`.
+    pub fn param(&self, name: &str) -> Option<&[f32]> {
+        let p = self.program.params.iter().find(|p| p.name == name)?;
+        Some(&self.params[p.offset..p.offset + p.ty.scalars()])
+    }
+
+    /// Replaces the values of the param called `name` (which must hold as many values as its type).
+    pub fn set_param(&mut self, name: &str, values: &[f32]) -> Result<()> {
+        let p = self
+            .program
+            .params
+            .iter()
+            .find(|p| p.name == name)
+            .ok_or_else(|| Failure::Message(format!("the script has no param '{name}'")))?;
+        if values.len() != p.ty.scalars() {
+            return Err(Failure::Message(format!(
+                "param '{name}' of type {} holds {} values, not {}",
+                p.ty,
+                p.ty.scalars(),
+                values.len()
+            )));
+        }
+        self.params[p.offset..p.offset + values.len()].copy_from_slice(values);
+        Ok(())
+    }
+
+    /// How many blocks the script has.
+    pub fn len(&self) -> usize {
+        self.plans.len()
+    }
+
+    /// Whether the script has no block to run.
+    pub fn is_empty(&self) -> bool {
+        self.plans.is_empty()
+    }
+
+    /// The kind of block `index`.
+    pub fn kind(&self, index: usize) -> Kind {
+        match &self.plans[index] {
+            Plan::Trace(_) => Kind::SphereTrace,
+            Plan::Volume(_) => Kind::Volume,
+            Plan::Train(_) => Kind::Train,
+            Plan::Viz(_) => Kind::Viz,
+            Plan::FitSdf(_) => Kind::TrainSdf,
+            Plan::Mesh(_) => Kind::Mesh,
+        }
+    }
+
+    /// The frames a render block writes (0 for other blocks).
+    pub fn frames(&self, index: usize) -> usize {
+        match &self.plans[index] {
+            Plan::Trace(p) => p.cameras.len(),
+            Plan::Volume(p) => p.cameras.len(),
+            _ => 0,
+        }
+    }
+
+    /// Runs block `index` with the current params (a training block updates them); returns its summary.
+    pub fn run_block(&mut self, index: usize, observer: &Observer) -> Result<String> {
+        let frames = |done: usize| {
+            if let Some(f) = observer.frames {
+                f(done)
+            }
+        };
+        let (program, params, cache) = (&self.program, &mut self.params, &self.cache);
+        match &self.plans[index] {
+            Plan::Trace(p) => p.run(program, params, cache, &frames),
+            Plan::Volume(p) => p.run(program, params, cache, &frames),
+            Plan::Train(p) => p.run(
+                program,
+                params,
+                cache,
+                observer.resume,
+                observer.live,
+                observer.bars(),
+            ),
+            Plan::Viz(p) => p.run(),
+            Plan::FitSdf(p) => p.run(program, params, cache, observer.resume, observer.bars()),
+            Plan::Mesh(p) => {
+                // A mesh of a function fitted to a cloud scaled into the unit sphere is written in the cloud's
+                // units: the frame of the last point-cloud fit before this block.
+                let fit = self.plans[..index].iter().rev().find_map(|p| match p {
+                    Plan::FitSdf(fit) => Some(fit),
+                    _ => None,
+                });
+                let frame = fit.map(SdfTrainPlan::normalized_frame).transpose()?.flatten();
+                p.run(program, params, cache, frame)
+            }
+        }
+    }
+
+    /// Runs every block in order, quietly; returns their summaries.
+    pub fn run(&mut self) -> Result<Vec<String>> {
+        (0..self.len())
+            .map(|i| self.run_block(i, &Observer::default()))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn session(source: &str) -> Session {
+        Session::from_source("test.sdf", source, &std::env::temp_dir()).expect("a valid script")
+    }
+
+    #[test]
+    fn params_are_read_and_replaced_by_name() {
+        let mut s = session(
+            "param c: vec3 = [1, 2, 3]\nparam r: f32 = 0.5\nfn sdf(p: vec3) -> f32 = length(p - c) - r\n",
+        );
+        assert_eq!(s.param("c"), Some(&[1.0, 2.0, 3.0][..]));
+        assert_eq!(s.param("nothing"), None);
+        s.set_param("r", &[0.25]).unwrap();
+        assert_eq!(s.params(), &[1.0, 2.0, 3.0, 0.25]);
+        let wrong = s.set_param("c", &[1.0]).unwrap_err().to_string();
+        assert!(wrong.contains("holds 3 values, not 1"), "{wrong}");
+        let unknown = s.set_param("d", &[1.0]).unwrap_err().to_string();
+        assert!(unknown.contains("no param 'd'"), "{unknown}");
+        assert!(s.is_empty());
+    }
+
+    #[test]
+    fn blocks_run_one_at_a_time_with_the_params_set_between_them() {
+        let out = std::env::temp_dir().join(format!("nerfjit-session-test-{}", std::process::id()));
+        std::fs::create_dir_all(&out).unwrap();
+        let source = "param r: f32 = 0.5\nfn sdf(p: vec3) -> f32 = length(p) - r\n\
+                      mesh { resolution: 16, bounds: 1.0, out: \"ball.obj\" }\n";
+        let mut s = Session::from_source("ball.sdf", source, &out).unwrap();
+        assert_eq!((s.len(), s.kind(0), s.frames(0)), (1, Kind::Mesh, 0));
+        let size = |s: &mut Session| {
+            s.run_block(0, &Observer::default()).unwrap();
+            let obj = std::fs::read_to_string(out.join("ball.obj")).unwrap();
+            obj.lines()
+                .filter_map(|l| l.strip_prefix("v "))
+                .map(|v| {
+                    v.split(' ')
+                        .map(|x| x.parse::<f32>().unwrap().abs())
+                        .fold(0.0, f32::max)
+                })
+                .fold(0.0, f32::max)
+        };
+        let small = size(&mut s);
+        s.set_param("r", &[0.8]).unwrap();
+        let large = size(&mut s);
+        assert!(
+            (small - 0.5).abs() < 0.05 && (large - 0.8).abs() < 0.05,
+            "{small} {large}"
+        );
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+}
