@@ -313,7 +313,9 @@ impl TrainPlan {
             far: self.far,
             samples: self.samples,
             mode: field.mode,
-            background: self.background,
+            // Missed rays show the data's background unless the block says otherwise: renders on black
+            // against views on white would have to learn a white fog.
+            background: Some(self.background.unwrap_or_else(|| self.data.background())),
             early_termination: None,
             spacing: self.spacing,
         }
