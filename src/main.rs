@@ -125,6 +125,9 @@ enum Command {
         /// import` reads) in place of the generated city.
         #[arg(long)]
         scene: Option<String>,
+        /// quality: minutes of training for each recipe.
+        #[arg(long, default_value_t = 5.0)]
+        minutes: f64,
     },
     /// Extract the marching-cubes mesh of a script's function (its zero level set by default), or of a
     /// trained field from a checkpoint.
@@ -526,12 +529,14 @@ fn run_command(cli: Cli) -> ExitCode {
             reps,
             products,
             scene,
+            minutes,
         } => bench::run(
             workload,
             reps,
             cli.threads,
             nerfjit_jit::Precision::named(&products).unwrap_or_default(),
             scene.as_deref(),
+            minutes,
         ),
         Command::Mesh {
             script,

@@ -1130,3 +1130,27 @@ fn bench_w7_and_large_take_a_given_scene_and_other_workloads_refuse_one() {
         "{stderr}"
     );
 }
+
+#[test]
+fn bench_quality_skips_the_data_sets_that_are_not_there() {
+    // Beside a folder with no ../shared/data, every recipe is skipped, and the table is empty.
+    let dir = scratch("quality").join("checkout");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(["bench", "quality", "--minutes", "1"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    let report = stdout + &stderr;
+    assert_eq!(report.matches("skipped: ../shared/data/").count(), 4, "{report}");
+    let table = std::fs::read_to_string(dir.join("target/bench-quality/quality.json")).unwrap();
+    assert_eq!(table.trim(), "[]");
+    let out = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+        .args(["bench", "quality", "--minutes", "0"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && text(&out).1.contains("give a positive number of minutes"));
+}

@@ -17,6 +17,8 @@ use nerfjit::schema::Kind;
 use nerfjit::script;
 use nerfjit::sphere_trace_block::RenderPlan;
 
+mod quality;
+
 /// A benchmark workload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Workload {
@@ -48,6 +50,9 @@ pub enum Workload {
     /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
     /// tiles of points, on one thread and on all threads.
     Dense,
+    /// Quality: each shipped recipe trained on each data set of ../shared/data for `--minutes`, one
+    /// after the other; one table of held-out PSNR / SSIM, speed and occupied cells.
+    Quality,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -69,14 +74,15 @@ fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 /// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`; W7
-/// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise), and `large` imports the
-/// model `scene` names (the generated city otherwise).
+/// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise), `large` imports the
+/// model `scene` names (the generated city otherwise), and `quality` trains each recipe for `minutes`.
 pub fn run(
     workload: Workload,
     reps: usize,
     threads: Option<usize>,
     products: Precision,
     scene: Option<&str>,
+    minutes: f64,
 ) -> Result<()> {
     if scene.is_some() && !matches!(workload, Workload::W7 | Workload::Large) {
         return Err(Failure::Message(
@@ -96,6 +102,7 @@ pub fn run(
         Workload::Mesh => mesh(reps),
         Workload::Large => large(reps, scene.map(Path::new)),
         Workload::Dense => dense(reps, threads),
+        Workload::Quality => quality::quality(minutes),
     }
 }
 

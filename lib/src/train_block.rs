@@ -463,6 +463,7 @@ impl TrainPlan {
                 "compile_seconds": compile_s,
                 "train_seconds": end.train_seconds,
                 "validation": objective.history,
+                "occupied_cells": objective.grid.as_ref().map(OccupancyGrid::occupancy),
                 "params": params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
