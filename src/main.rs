@@ -100,7 +100,7 @@ enum Command {
         function: String,
         /// Which kernel.
         #[arg(long, value_enum, default_value = "value")]
-        kind: KernelKind,
+        kind: ir_dump::KernelKind,
         /// Short for `--kind grad`.
         #[arg(long, conflicts_with = "kind")]
         grad: bool,
@@ -366,37 +366,6 @@ impl ViewOptions {
     }
 }
 
-/// Which kernel of a function to show.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum KernelKind {
-    /// The function's values.
-    Value,
-    /// Values and the gradient of each output with respect to the inputs.
-    Grad,
-    /// The vector-Jacobian product: input gradients per point, param gradients reduced.
-    Vjp,
-    /// The param gradient of c_f·f + c_g·∇ₓf (for the eikonal loss; scalar functions only).
-    SecondOrder,
-    /// Interval bounds of the values over boxes of inputs (low corners, then high corners).
-    Bounds,
-    /// The SDF regularizers' loss kernel (scalar functions of a point): the near-surface term
-    /// exp(−100·|f|) and the eikonal term (|∇ₓf| − 1)² per point, unit weights, and their param gradient.
-    Regularizers,
-}
-
-impl From<KernelKind> for ir_dump::KernelKind {
-    fn from(kind: KernelKind) -> ir_dump::KernelKind {
-        match kind {
-            KernelKind::Value => ir_dump::KernelKind::Value,
-            KernelKind::Grad => ir_dump::KernelKind::Grad,
-            KernelKind::Vjp => ir_dump::KernelKind::Vjp,
-            KernelKind::SecondOrder => ir_dump::KernelKind::SecondOrder,
-            KernelKind::Bounds => ir_dump::KernelKind::Bounds,
-            KernelKind::Regularizers => ir_dump::KernelKind::Regularizers,
-        }
-    }
-}
-
 /// Most `--threads` per core.
 const MAX_THREADS_PER_CORE: usize = 8;
 
@@ -521,8 +490,8 @@ fn run_command(cli: Cli) -> ExitCode {
             grad,
             graph_only,
         } => {
-            let kind = if grad { KernelKind::Grad } else { kind };
-            ir_dump::run(&script, &function, kind.into(), graph_only).map(|text| emit(&text))
+            let kind = if grad { ir_dump::KernelKind::Grad } else { kind };
+            ir_dump::run(&script, &function, kind, graph_only).map(|text| emit(&text))
         }
         Command::Bench {
             workload,

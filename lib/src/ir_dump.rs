@@ -9,6 +9,7 @@ use crate::script;
 
 /// Which kernel of a function to show.
 #[derive(Clone, Copy, Debug)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum KernelKind {
     /// The function's values.
     Value,
