@@ -5,11 +5,13 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use clap::{CommandFactory, Parser, Subcommand};
-use nerfjit::observe::TrainingObserver;
-use nerfjit::{
-    check, compare, data_check, emit, eval, failure, import, interrupt, ir_dump, mesh_command, points, run,
-    schema, script, transmittance_command, views, WORK_STACK_BYTES,
+use nerfjit::blocks::mesh;
+use nerfjit::commands::{
+    check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, transmittance,
 };
+use nerfjit::observe::TrainingObserver;
+use nerfjit::settings::schema;
+use nerfjit::{emit, failure, interrupt, script, WORK_STACK_BYTES};
 use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
 use nerfjit_viewer as viewer;
@@ -309,11 +311,11 @@ struct CameraChoice {
 }
 
 impl CameraChoice {
-    fn source(&self) -> views::CameraSource<'_> {
+    fn source(&self) -> render_views::CameraSource<'_> {
         match (&self.cameras, &self.path) {
-            (Some(file), _) => views::CameraSource::File(file),
-            (None, Some(text)) => views::CameraSource::Path(text),
-            (None, None) => views::CameraSource::Default,
+            (Some(file), _) => render_views::CameraSource::File(file),
+            (None, Some(text)) => render_views::CameraSource::Path(text),
+            (None, None) => render_views::CameraSource::Default,
         }
     }
 }
@@ -349,8 +351,8 @@ struct ViewOptions {
 }
 
 impl ViewOptions {
-    fn args<'a>(&'a self, source: &'a str) -> views::ViewArgs<'a> {
-        views::ViewArgs {
+    fn args<'a>(&'a self, source: &'a str) -> render_views::ViewArgs<'a> {
+        render_views::ViewArgs {
             source,
             size: self.size,
             near: self.near,
@@ -464,7 +466,7 @@ fn run_command(cli: Cli) -> ExitCode {
             run_script(&script, &set, out.as_deref(), resume, view.as_ref())
         }
         Command::Transmittance { segments, from, to } => {
-            transmittance_command::run(&segments, from.zip(to)).map(|text| emit(&text))
+            transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
         }
         Command::Check { script } => check::run(&script).map(|text| emit(&text)),
         Command::Eval {
@@ -518,10 +520,10 @@ fn run_command(cli: Cli) -> ExitCode {
             gif,
             up,
             no_prune,
-        } => mesh_command::parse_bounds(&bounds)
+        } => mesh::parse_bounds(&bounds)
             .map_err(failure::Failure::Message)
             .and_then(|bounds| {
-                let args = mesh_command::MeshArgs {
+                let args = mesh::MeshArgs {
                     function: &function,
                     resolution: res,
                     bounds,
@@ -533,7 +535,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     color: color.as_deref(),
                     frame: None,
                 };
-                mesh_command::run(&script, &args)
+                mesh::run(&script, &args)
             })
             .map(|text| emit(&format!("{text}\n"))),
         Command::Render {
@@ -542,7 +544,7 @@ fn run_command(cli: Cli) -> ExitCode {
             view,
             out,
             gif,
-        } => views::render(&view.args(&source), cameras.source(), &out, gif)
+        } => render_views::render(&view.args(&source), cameras.source(), &out, gif)
             .map(|text| emit(&format!("{text}\n"))),
         Command::Points {
             source,
@@ -550,7 +552,7 @@ fn run_command(cli: Cli) -> ExitCode {
             view,
             min_opacity,
             out,
-        } => points::run(&points::PointsArgs {
+        } => point_cloud::run(&point_cloud::PointsArgs {
             view: view.args(&source),
             cameras: cameras.source(),
             min_opacity,
@@ -562,7 +564,8 @@ fn run_command(cli: Cli) -> ExitCode {
             cameras,
             view,
             json,
-        } => views::eval(&view.args(&source), cameras.as_deref(), json.as_deref()).map(|text| emit(&text)),
+        } => render_views::eval(&view.args(&source), cameras.as_deref(), json.as_deref())
+            .map(|text| emit(&text)),
         Command::Compare {
             cameras,
             view,
@@ -602,5 +605,130 @@ fn run_command(cli: Cli) -> ExitCode {
             eprint!("{failure}");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeSet;
+
+    use clap::CommandFactory;
+
+    use super::Cli;
+
+    /// The command reference's `## `nerfjit …`` sections: the command path and the section's text.
+    fn sections() -> Vec<(String, String)> {
+        let text = include_str!("../docs/COMMANDS.md");
+        let mut out: Vec<(String, String)> = Vec::new();
+        for line in text.lines() {
+            if let Some(title) = line.strip_prefix("## ") {
+                let name = title.strip_prefix("`nerfjit ").and_then(|t| t.strip_suffix('`'));
+                out.push((name.unwrap_or(title).to_string(), String::new()));
+            } else if let Some((_, body)) = out.last_mut() {
+                body.push_str(line);
+                body.push('\n');
+            }
+        }
+        out
+    }
+
+    /// The long flags a section mentions (`--name`).
+    fn flags_in(text: &str) -> BTreeSet<String> {
+        let mut flags = BTreeSet::new();
+        for (i, _) in text.match_indices("--") {
+            let name: String = text[i + 2..]
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '-')
+                .collect();
+            let starts_word = i == 0 || !text[..i].ends_with(|c: char| c.is_ascii_alphanumeric() || c == '-');
+            if starts_word && name.starts_with(|c: char| c.is_ascii_lowercase()) {
+                flags.insert(name);
+            }
+        }
+        flags
+    }
+
+    /// The long flags of a command and of all its subcommands, without clap's `help` and `version`.
+    fn flags_of(cmd: &clap::Command) -> BTreeSet<String> {
+        let mut flags: BTreeSet<String> = cmd
+            .get_arguments()
+            .filter(|a| !a.is_global_set())
+            .filter_map(|a| a.get_long().map(str::to_string))
+            .filter(|l| l != "help" && l != "version")
+            .collect();
+        for sub in cmd.get_subcommands() {
+            flags.extend(flags_of(sub));
+        }
+        flags
+    }
+
+    /// docs/COMMANDS.md in step with the binary: every command has its section (a command with
+    /// subcommands, one section or one per subcommand), every flag of a command is in its section, and a
+    /// section names no command or flag the binary does not have; the global flags are in "Options of every
+    /// command".
+    #[test]
+    fn the_command_reference_matches_the_binary() {
+        let cli = Cli::command();
+        let sections = sections();
+        let section = |path: &str| {
+            sections
+                .iter()
+                .find(|(name, _)| name == path)
+                .map(|(_, text)| text)
+        };
+        let mut problems = Vec::new();
+        let mut documented = BTreeSet::new();
+        for cmd in cli.get_subcommands().filter(|c| c.get_name() != "help") {
+            let name = cmd.get_name();
+            let pieces: Vec<(String, &clap::Command)> = match section(name) {
+                Some(_) => vec![(name.to_string(), cmd)],
+                None => cmd
+                    .get_subcommands()
+                    .map(|s| (format!("{name} {}", s.get_name()), s))
+                    .collect(),
+            };
+            if pieces.is_empty() {
+                problems.push(format!("no section `nerfjit {name}`"));
+            }
+            for (path, cmd) in pieces {
+                let Some(text) = section(&path) else {
+                    problems.push(format!("no section `nerfjit {path}`"));
+                    continue;
+                };
+                let (want, have) = (flags_of(cmd), flags_in(text));
+                for flag in want.difference(&have) {
+                    problems.push(format!("`nerfjit {path}` does not mention --{flag}"));
+                }
+                for flag in have.difference(&want) {
+                    problems.push(format!("`nerfjit {path}` names --{flag}, which it does not have"));
+                }
+                documented.insert(path);
+            }
+        }
+        let global: BTreeSet<String> = cli
+            .get_arguments()
+            .filter(|a| a.is_global_set())
+            .filter_map(|a| a.get_long().map(str::to_string))
+            .collect();
+        match section("Options of every command") {
+            Some(text) if flags_in(text) == global => {}
+            Some(text) => problems.push(format!(
+                "the global options are {global:?}, documented {:?}",
+                flags_in(text)
+            )),
+            None => problems.push("no section \"Options of every command\"".to_string()),
+        }
+        for (name, _) in &sections {
+            if !["Options of every command", "Diagnostics"].contains(&name.as_str())
+                && !documented.contains(name)
+            {
+                problems.push(format!("a section on `nerfjit {name}`, which does not exist"));
+            }
+        }
+        assert!(
+            problems.is_empty(),
+            "docs/COMMANDS.md is out of step with the binary:\n{}",
+            problems.join("\n")
+        );
     }
 }

@@ -4,18 +4,18 @@
 use std::path::Path;
 use std::time::Instant;
 
-use nerfjit_dsl::{kernels, Type};
+use nerfjit_dsl::{kernel_graphs, Type};
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_jit::{Kernel, Options, Precision};
 use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
 use nerfjit_runtime::{on_pool, render_frames, sphere_trace_into, Quantize, Rng, Shading};
 
-use nerfjit::block::first_block;
+use nerfjit::blocks::sphere_trace::SphereTracePlan;
 use nerfjit::failure::{Failure, Result};
-use nerfjit::jit_field::JitFn;
-use nerfjit::schema::Kind;
 use nerfjit::script;
-use nerfjit::sphere_trace_block::RenderPlan;
+use nerfjit::settings::block::first_block;
+use nerfjit::settings::schema::Kind;
+use nerfjit_field::JitFn;
 
 mod quality;
 
@@ -112,7 +112,7 @@ const W7_SCENE: &str = "examples/complex_scene.sdf";
 fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
     const N: usize = 1 << 20;
     let program = script::load(scene)?;
-    nerfjit::jit_field::check_signature(&program, "sdf", &[&[Type::Vec(3)]], &Type::F32)?;
+    nerfjit_field::check_signature(&program, "sdf", &[&[Type::Vec(3)]], &Type::F32)?;
     let f = program.lower("sdf")?;
     let mut rng = Rng::new(7);
     let cols: Vec<Vec<f32>> = (0..3)
@@ -122,8 +122,8 @@ fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
     nerfjit::emit(&(format!("W7 sdf_eval: {N} points, the sdf of {scene}, median of {reps}") + "\n"));
     let max_threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     for (label, graph) in [
-        ("distance", kernels::value(&f)),
-        ("distance+gradient", kernels::with_gradient(&f)),
+        ("distance", kernel_graphs::value(&f)),
+        ("distance+gradient", kernel_graphs::with_gradient(&f)),
     ] {
         let kernel = Kernel::compile(&graph, Options::default())?;
         let mut outs = vec![vec![0.0f32; N]; kernel.n_outputs];
@@ -151,8 +151,8 @@ fn w7(reps: usize, threads: Option<usize>, scene: &str) -> Result<()> {
 }
 
 /// The value, gradient and bounds kernels of a benchmark script's `sdf`.
-fn mesh_kernels(compiler: &nerfjit::jit_field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
-    let kernels = nerfjit::mesh_command::MeshKernels::compile(compiler, "sdf", true)?;
+fn mesh_kernels(compiler: &nerfjit_field::Compiler) -> Result<(JitFn, JitFn, JitFn)> {
+    let kernels = nerfjit::blocks::mesh::MeshKernels::compile(compiler, "sdf", true)?;
     let bounds = kernels
         .bounds
         .ok_or_else(|| Failure::Message("the script's interval bounds are constant".into()))?;
@@ -163,7 +163,7 @@ fn mesh(reps: usize) -> Result<()> {
     const RESOLUTION: usize = 512;
     let program = script::load(W7_SCENE)?;
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = nerfjit::jit_field::Compiler {
+    let compiler = nerfjit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -221,7 +221,7 @@ fn mesh(reps: usize) -> Result<()> {
 /// The pruned mesh of a script's `sdf` with its regions specialized (the specialization is part of the
 /// time).
 fn specialized_mesh(
-    compiler: &nerfjit::jit_field::Compiler,
+    compiler: &nerfjit_field::Compiler,
     value: &JitFn,
     gradient: &JitFn,
     bounds_of: &JitFn,
@@ -247,24 +247,25 @@ fn specialized_mesh(
 fn large(reps: usize, model: Option<&Path>) -> Result<()> {
     let (script, name) = match model {
         Some(path) => {
-            let imported = nerfjit::import::script_of(path)?;
+            let imported = nerfjit::commands::import::script_of(path)?;
             (imported.script, imported.name)
         }
         None => (
-            nerfjit::import::convert(&nerfjit::large_model::city(), "city.vm").map_err(Failure::Message)?,
+            nerfjit::commands::import::convert(&nerfjit::city_model::city(), "city.vm")
+                .map_err(Failure::Message)?,
             "a city of 288 boxes".to_string(),
         ),
     };
     let program = nerfjit_dsl::compile(&format!("{name} (imported)"), &script)?;
     let f = program.lower("sdf")?;
-    let ops = nerfjit::import::operations(&script);
+    let ops = nerfjit::commands::import::operations(&script);
     nerfjit::emit(&format!(
         "large: {name}, {ops} operations in the .vm format, median of {reps}\n"
     ));
     for (label, graph) in [
-        ("value", kernels::value(&f)),
-        ("value+gradient", kernels::with_gradient(&f)),
-        ("bounds", kernels::interval(&f)),
+        ("value", kernel_graphs::value(&f)),
+        ("value+gradient", kernel_graphs::with_gradient(&f)),
+        ("bounds", kernel_graphs::interval(&f)),
     ] {
         let seconds = time_reps(reps.min(3), || {
             Kernel::compile(&graph, Options::default()).expect("an imported model compiles");
@@ -276,7 +277,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
         ));
     }
     let cache = nerfjit_jit::KernelCache::new();
-    let compiler = nerfjit::jit_field::Compiler {
+    let compiler = nerfjit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -303,7 +304,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
         regions.regions,
         if same { "the same mesh" } else { "MESHES DIFFER" }
     ));
-    let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
+    let plan = SphereTracePlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let fields = plan.compile_fields(&compiler)?;
     let sdf = fields.traced_sdf();
     let shading = Shading::Lambert {
@@ -345,7 +346,7 @@ fn large(reps: usize, model: Option<&Path>) -> Result<()> {
 }
 
 /// Plain sphere tracing of the torus in f64, one ray at a time: the reference for W1's output.
-fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
+fn reference_torus_frame(plan: &SphereTracePlan, camera: usize) -> Vec<[f32; 3]> {
     let (w, h) = plan.size;
     let cam = &plan.cameras[camera];
     let s = &plan.trace;
@@ -377,10 +378,10 @@ fn reference_torus_frame(plan: &RenderPlan, camera: usize) -> Vec<[f32; 3]> {
 
 fn w1(reps: usize) -> Result<()> {
     let program = script::load("examples/torus.sdf")?;
-    let plan = RenderPlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
+    let plan = SphereTracePlan::new(first_block(&program, Kind::SphereTrace, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let compiler = nerfjit::jit_field::Compiler {
+    let compiler = nerfjit_field::Compiler {
         program: &program,
         params: &program.param_values,
         cache: &cache,
@@ -446,10 +447,10 @@ fn w1(reps: usize) -> Result<()> {
 /// The first block of `kind` in a benchmark script, with outputs going to the temporary folder.
 fn w2(reps: usize) -> Result<()> {
     let program = script::load("examples/box.sdf")?;
-    let plan = nerfjit::volume_block::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
+    let plan = nerfjit::blocks::volume::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let field = nerfjit::jit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
+    let field = nerfjit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
     let compile_s = t.elapsed().as_secs_f64();
     let (forward, _) = field.bind(&program.param_values);
     let settings = plan.settings(&field);
@@ -551,7 +552,7 @@ where
 
 fn w3(reps: usize) -> Result<()> {
     let program = script::load("examples/train_box.sdf")?;
-    let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+    let plan = nerfjit::blocks::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
     let steps = 50 * reps.max(1);
     let mut params = program.param_values.clone();
     let t = Instant::now();
@@ -686,7 +687,8 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
 /// line.
 fn volume_training(script: &str, steps: u32, products: Precision) -> Result<String> {
     let program = script::load_with(script, &[products_override("train", products)])?;
-    let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
+    let plan =
+        nerfjit::blocks::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?.exact();
     let mut params = program.param_values.clone();
     profiled(|| plan.run_steps(&program, &mut params, steps))
 }
@@ -713,7 +715,7 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
     ));
     let program = script::load("examples/nerf_lego.sdf")?;
     let cache = nerfjit_jit::KernelCache::new();
-    let field = nerfjit::jit_field::VolumeField::compile(&program, &cache, products)?;
+    let field = nerfjit_field::VolumeField::compile(&program, &cache, products)?;
     let (forward, _) = field.bind(&program.param_values);
     let settings = nerfjit_runtime::VolumeSettings {
         near: 2.0,
@@ -745,7 +747,7 @@ fn w8(reps: usize) -> Result<()> {
         let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
         let overrides = [format!("train.batch={batch}")];
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
-        let plan = nerfjit::train_block::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
+        let plan = nerfjit::blocks::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
         let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
         nerfjit::emit(&format!(
@@ -780,7 +782,7 @@ fn w5(reps: usize, products: Precision) -> Result<()> {
         &[products_override("train", products)],
     )?;
     let plan =
-        nerfjit::train_sdf_block::SdfTrainPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
+        nerfjit::blocks::train_sdf::TrainSdfPlan::new(first_block(&program, Kind::TrainSdf, "examples")?)?;
     let steps = 20 * reps.max(1) as u32;
     let mut params = program.param_values.clone();
     let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;

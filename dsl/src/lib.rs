@@ -1,7 +1,7 @@
 //! The `.sdf` language of nerfjit: source text to typed, differentiable IR.
 //!
 //! The facade: [`compile`] (or [`compile_with`], with `--set` overrides) turns a script into a
-//! [`Program`] whose functions lower to [`ir`] graphs; [`autodiff`] and [`kernels`] transform the graphs
+//! [`Program`] whose functions lower to [`ir`] graphs; [`autodiff`] and [`kernel_graphs`] transform the graphs
 //! (gradients, VJPs, second order, interval bounds); [`interp`] is the f64 reference interpreter and
 //! [`interval`] its interval counterpart; [`simplify`] restricts a graph to a box of inputs; [`nearest`]
 //! differentiates unions through their nearest primitive of each shape. Errors are
@@ -28,7 +28,7 @@ pub mod init;
 pub mod interp;
 pub mod interval;
 pub mod ir;
-pub mod kernels;
+pub mod kernel_graphs;
 mod lexer;
 pub mod march_rays;
 pub mod nearest;

@@ -97,6 +97,6 @@ fn read(name: &str, file: &Path, dir: &Path) {
         "llff/poses_bounds.npy" => drop(llff::load_llff(&dir.join("llff"), 1)),
         "dtu/cameras_sphere.npz" => drop(dtu::load_dtu(&dir.join("dtu"), false)),
         "checkpoint.safetensors" | "checkpoint.ckpt.json" => drop(nerfjit::checkpoint::load_trained(file)),
-        _ => drop(nerfjit::import::run(file, Some(&dir.join("model.sdf")))),
+        _ => drop(nerfjit::commands::import::run(file, Some(&dir.join("model.sdf")))),
     }
 }

@@ -16,7 +16,7 @@ fuzz_target!(|data: &[u8]| {
         Ok(program) => {
             for sig in program.functions() {
                 if let Ok(f) = program.lower(&sig.name) {
-                    let _ = nerfjit_dsl::kernels::with_gradient(&f);
+                    let _ = nerfjit_dsl::kernel_graphs::with_gradient(&f);
                 }
             }
         }

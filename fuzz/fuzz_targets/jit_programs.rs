@@ -7,7 +7,7 @@
 mod size;
 
 use libfuzzer_sys::fuzz_target;
-use nerfjit_dsl::kernels;
+use nerfjit_dsl::kernel_graphs;
 use nerfjit_jit::{Kernel, Options};
 
 /// Points per evaluation: one full group of four and an unaligned tail.
@@ -28,7 +28,7 @@ fuzz_target!(|data: &[u8]| {
         let Ok(f) = program.lower(&sig.name) else {
             continue;
         };
-        for graph in [kernels::value(&f), kernels::with_gradient(&f)] {
+        for graph in [kernel_graphs::value(&f), kernel_graphs::with_gradient(&f)] {
             if graph.len() > 20_000 {
                 continue;
             }

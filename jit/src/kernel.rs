@@ -11,8 +11,8 @@ use nerfjit_dsl::ir::{Graph, Op};
 use crate::bf16::Precision;
 use crate::codegen::{self, Columns};
 
-mod tiled;
-use tiled::Tiled;
+mod dense_layers;
+use dense_layers::Tiled;
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
 
@@ -435,7 +435,7 @@ impl Kernel {
                 );
                 Some(Passes {
                     kernel: self,
-                    passes: tiled::Passes::new(t, params),
+                    passes: dense_layers::Passes::new(t, params),
                 })
             }
             _ => None,
@@ -515,7 +515,7 @@ impl Kernel {
 /// outputs, as often as wanted; [`Passes::finish`] adds what the backward passes summed.
 pub struct Passes<'a> {
     kernel: &'a Kernel,
-    passes: tiled::Passes<'a>,
+    passes: dense_layers::Passes<'a>,
 }
 
 impl Passes<'_> {

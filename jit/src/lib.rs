@@ -3,13 +3,13 @@
 //!
 //! Every Cranelift call of the project lives in this crate. A [`Kernel`] is compiled from any
 //! [`nerfjit_dsl::ir::Graph`]; the kernel kinds (value, gradient, vector-Jacobian product, second order)
-//! differ only in the graph, built by [`nerfjit_dsl::kernels`].
+//! differ only in the graph, built by [`nerfjit_dsl::kernel_graphs`].
 //!
 //! ```
-//! use nerfjit_dsl::{compile, kernels};
+//! use nerfjit_dsl::{compile, kernel_graphs};
 //! let program = compile("s.sdf", "fn sdf(p: vec3) -> f32 = length(p) - 1.0").unwrap();
 //! let f = program.lower("sdf").unwrap();
-//! let k = nerfjit_jit::Kernel::compile(&kernels::value(&f), Default::default()).unwrap();
+//! let k = nerfjit_jit::Kernel::compile(&kernel_graphs::value(&f), Default::default()).unwrap();
 //! let (x, y, z) = ([2.0f32, 0.0], [0.0f32, 0.5], [0.0f32, 0.0]);
 //! let mut d = [0.0f32; 2];
 //! k.eval(2, &[&x, &y, &z], &mut [&mut d], &[], &mut []);
@@ -25,11 +25,11 @@ pub mod bf16;
 mod bf16;
 mod cache;
 mod codegen;
-mod encode;
 #[cfg(feature = "bench")]
 pub mod gemm;
 #[cfg(not(feature = "bench"))]
 mod gemm;
+mod grid_encoding;
 mod kernel;
 mod marcher;
 pub mod profile;

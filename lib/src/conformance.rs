@@ -5,12 +5,12 @@
 //! the interpreter; the fused tracer must trace the images the interpreter traces step by step.
 
 use nerfjit_dsl::ir::Graph;
-use nerfjit_dsl::{interp, kernels, Program, Type};
+use nerfjit_dsl::{interp, kernel_graphs, Program, Type};
 use nerfjit_jit::{KernelCache, Tape};
 use nerfjit_runtime::surfaces::sphere_trace::{sphere_trace, Shading, TraceSettings};
 use nerfjit_runtime::{BatchFn, Camera, ClosureFn, Rng};
 
-use crate::jit_field::{Compiler, Kind, TapeFn};
+use nerfjit_field::{Compiler, Kind, TapeFn};
 
 /// The functions of the shipped examples the suite evaluates: elementwise SDFs and colors, CSG,
 /// dense layers, hash grids with spherical harmonics.
@@ -134,7 +134,7 @@ fn conforms<B: Backend>() -> (usize, usize) {
     let (mut taken, mut tiled) = (0, 0);
     for &(path, name) in FUNCTIONS {
         let program = crate::script::load(path).expect("a shipped example");
-        let graph = kernels::value(&program.lower(name).expect("lowers"));
+        let graph = kernel_graphs::value(&program.lower(name).expect("lowers"));
         let Some(field) = B::build(&program, name, &graph) else {
             continue;
         };
@@ -199,7 +199,7 @@ fn the_fused_sphere_tracer_traces_what_the_interpreter_traces() {
     let mut traced = 0;
     for &(path, name) in FUNCTIONS.iter().filter(|(_, name)| *name == "sdf") {
         let program = crate::script::load(path).expect("a shipped example");
-        let graph = kernels::value(&program.lower(name).expect("lowers"));
+        let graph = kernel_graphs::value(&program.lower(name).expect("lowers"));
         if graph.needs_tiles() {
             continue;
         }

@@ -39,6 +39,15 @@ impl From<nerfjit_jit::JitError> for Failure {
     }
 }
 
+impl From<nerfjit_field::FieldError> for Failure {
+    fn from(e: nerfjit_field::FieldError) -> Self {
+        match e {
+            nerfjit_field::FieldError::Script(report) => Failure::Script(report),
+            nerfjit_field::FieldError::Message(m) => Failure::Message(m),
+        }
+    }
+}
+
 impl From<budget::OverBudget> for Failure {
     fn from(e: budget::OverBudget) -> Self {
         Failure::Message(format!("{e}\n  = hint: {}", budget::HINT))

@@ -11,7 +11,7 @@
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! let out = std::env::temp_dir().join(format!("nerfjit-doctest-{}", std::process::id()));
 //! let overrides = ["render.size=32".to_string()];
-//! nerfjit::run::run("examples/torus.sdf", &overrides, Some(&out), false, None)?;
+//! nerfjit::commands::run::run("examples/torus.sdf", &overrides, Some(&out), false, None)?;
 //! assert!(std::fs::metadata(out.join("torus.gif"))?.len() > 0);
 //! # std::fs::remove_dir_all(&out)?;
 //! # Ok(())
@@ -21,50 +21,28 @@
 //! A [`session::Session`] keeps a checked script, its params and one kernel cache between calls: its
 //! blocks run one at a time, and the params a `train` block learned can be read, changed and rendered
 //! with (a field trained and then rendered or meshed is compiled once); its documentation trains the
-//! course's box from Rust. Both kinds of training run [`training_loop::train`], each block an
-//! [`training_loop::Objective`]. The other modules are the commands' work (one function per command or
-//! block kind).
+//! course's box from Rust. Its modules, by subsystem: [`blocks`] (what each kind of block does),
+//! [`settings`] (the schema of every block setting and their parsers), [`training`] (both kinds of training
+//! run [`training::train_loop::train`], each block an [`training::train_loop::Objective`]; validation; logs),
+//! [`checkpoint`], [`commands`] (the work of the other commands) and [`diagnostics`]. The JIT's kernels reach
+//! the runtime as fields through the `nerfjit-field` crate.
 
-pub mod block;
-pub mod camera_setting;
-pub mod check;
+pub mod blocks;
 pub mod checkpoint;
-pub mod compare;
+pub mod city_model;
+pub mod commands;
 #[cfg(test)]
 mod conformance;
-pub mod data_check;
-pub mod data_source;
-pub mod eval;
+pub mod diagnostics;
 pub mod failure;
-pub mod import;
+pub mod frame_files;
 pub mod interrupt;
-pub mod ir_dump;
-pub mod jit_field;
-pub mod large_model;
-pub mod mesh_command;
-pub mod metrics_log;
-pub mod nonfinite;
+
 pub mod observe;
-pub mod output;
-pub mod points;
-pub mod regularizers;
-pub mod run;
-pub mod schema;
 pub mod script;
 pub mod session;
-pub mod setting_values;
 pub mod settings;
-pub mod sphere_trace_block;
-pub mod steepness;
-pub mod tensorboard;
-pub mod train_block;
-pub mod train_sdf_block;
-pub mod training_loop;
-pub mod transmittance_command;
-pub mod validation;
-pub mod views;
-pub mod viz_block;
-pub mod volume_block;
+pub mod training;
 
 /// The stack of the thread that does the work: deep (but limited) expressions make the compiler's
 /// passes recurse deeply; the pages are only committed as they are used.

@@ -41,26 +41,26 @@ use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::{compile_with, Program};
 use nerfjit_jit::KernelCache;
 
-use crate::block::{Block, Outputs};
+use crate::blocks::mesh::MeshPlan;
+use crate::blocks::sphere_trace::SphereTracePlan;
+use crate::blocks::train::TrainPlan;
+use crate::blocks::train_sdf::TrainSdfPlan;
+use crate::blocks::viz::VizPlan;
+use crate::blocks::volume::VolumePlan;
 use crate::failure::{at, Failure, Result};
-use crate::mesh_command::MeshPlan;
-use crate::schema::Kind;
 use crate::script;
-use crate::sphere_trace_block::RenderPlan;
-use crate::train_block::TrainPlan;
-use crate::train_sdf_block::SdfTrainPlan;
-use crate::viz_block::VizPlan;
-use crate::volume_block::VolumePlan;
+use crate::settings::block::{Block, Outputs};
+use crate::settings::schema::Kind;
 
 pub use crate::observe::Observer;
 
 /// What one block of a script does, with its settings read and checked.
 enum Plan {
-    Trace(RenderPlan),
+    SphereTrace(SphereTracePlan),
     Volume(VolumePlan),
     Train(Box<TrainPlan>),
     Viz(VizPlan),
-    FitSdf(SdfTrainPlan),
+    TrainSdf(TrainSdfPlan),
     Mesh(MeshPlan),
 }
 
@@ -101,11 +101,11 @@ impl Session {
             let settings = Settings::new(&program, block).map_err(|d| at(&program, d))?;
             let b = Block::new(&program, settings, script_dir, out_dir, Rc::clone(&outputs))?;
             plans.push(match b.schema().id {
-                Kind::SphereTrace => Plan::Trace(RenderPlan::new(b)?),
+                Kind::SphereTrace => Plan::SphereTrace(SphereTracePlan::new(b)?),
                 Kind::Volume => Plan::Volume(VolumePlan::new(b)?),
                 Kind::Train => Plan::Train(Box::new(TrainPlan::new(b)?)),
                 Kind::Viz => Plan::Viz(VizPlan::new(b)?),
-                Kind::TrainSdf => Plan::FitSdf(SdfTrainPlan::new(b)?),
+                Kind::TrainSdf => Plan::TrainSdf(TrainSdfPlan::new(b)?),
                 Kind::Mesh => Plan::Mesh(MeshPlan::new(b)?),
             });
         }
@@ -168,11 +168,11 @@ impl Session {
     /// The kind of block `index`.
     pub fn kind(&self, index: usize) -> Kind {
         match &self.plans[index] {
-            Plan::Trace(_) => Kind::SphereTrace,
+            Plan::SphereTrace(_) => Kind::SphereTrace,
             Plan::Volume(_) => Kind::Volume,
             Plan::Train(_) => Kind::Train,
             Plan::Viz(_) => Kind::Viz,
-            Plan::FitSdf(_) => Kind::TrainSdf,
+            Plan::TrainSdf(_) => Kind::TrainSdf,
             Plan::Mesh(_) => Kind::Mesh,
         }
     }
@@ -180,7 +180,7 @@ impl Session {
     /// The frames a render block writes (0 for other blocks).
     pub fn frames(&self, index: usize) -> usize {
         match &self.plans[index] {
-            Plan::Trace(p) => p.cameras.len(),
+            Plan::SphereTrace(p) => p.cameras.len(),
             Plan::Volume(p) => p.cameras.len(),
             _ => 0,
         }
@@ -195,7 +195,7 @@ impl Session {
         };
         let (program, params, cache) = (&self.program, &mut self.params, &self.cache);
         match &self.plans[index] {
-            Plan::Trace(p) => p.run(program, params, cache, &frames),
+            Plan::SphereTrace(p) => p.run(program, params, cache, &frames),
             Plan::Volume(p) => p.run(program, params, cache, &frames),
             Plan::Train(p) => p.run(
                 program,
@@ -206,15 +206,15 @@ impl Session {
                 observer.bars(),
             ),
             Plan::Viz(p) => p.run(),
-            Plan::FitSdf(p) => p.run(program, params, cache, observer.resume, observer.bars()),
+            Plan::TrainSdf(p) => p.run(program, params, cache, observer.resume, observer.bars()),
             Plan::Mesh(p) => {
                 // A mesh of a function fitted to a cloud scaled into the unit sphere is written in the cloud's
                 // units: the frame of the last point-cloud fit before this block.
                 let fit = self.plans[..index].iter().rev().find_map(|p| match p {
-                    Plan::FitSdf(fit) => Some(fit),
+                    Plan::TrainSdf(fit) => Some(fit),
                     _ => None,
                 });
-                let frame = fit.map(SdfTrainPlan::normalized_frame).transpose()?.flatten();
+                let frame = fit.map(TrainSdfPlan::normalized_frame).transpose()?.flatten();
                 p.run(program, params, cache, frame)
             }
         }

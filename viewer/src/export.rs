@@ -8,8 +8,8 @@ use glam::{Quat, Vec3};
 use image::RgbImage;
 
 use super::scene::{Layer, Scene, ViewCamera};
+use nerfjit::blocks::mesh::{extract_and_write, MeshArgs};
 use nerfjit::failure::{Failure, Result};
-use nerfjit::mesh_command::{extract_and_write, MeshArgs};
 
 /// What to export.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -13,11 +13,11 @@ use nerfjit_runtime::{
     depth_image, normal_image, rgb_image, sphere_trace, Camera, Quantize, Shading, TraceSettings,
 };
 
-use nerfjit::block::{Block, Outputs};
+use nerfjit::blocks::sphere_trace::{ShadingChoice, SphereTracePlan, TraceFields};
+use nerfjit::commands::render_views::{script_cameras, Rendering};
 use nerfjit::failure::{at, Failure, Result};
-use nerfjit::jit_field::{Compiler, JitFn, Kind, VolumeFields};
-use nerfjit::sphere_trace_block::{RenderPlan, ShadingChoice, TraceFields};
-use nerfjit::views::{script_cameras, Rendering};
+use nerfjit::settings::block::{Block, Outputs};
+use nerfjit_field::{Compiler, JitFn, Kind, VolumeFields};
 
 /// What a frame shows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -157,7 +157,7 @@ impl Scene {
         let mut cameras = labeled("script view", script_cameras(&program)?.unwrap_or_default());
         cameras.extend(labeled(
             "data view",
-            nerfjit::train_block::data_cameras(&program, script_dir).unwrap_or_default(),
+            nerfjit::blocks::train::data_cameras(&program, script_dir).unwrap_or_default(),
         ));
         Ok(Scene {
             consts: program.scalar_consts(),
@@ -281,10 +281,9 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
         params,
         cache,
     };
-    let block = program
-        .blocks()
-        .into_iter()
-        .find(|b| nerfjit::schema::kind_of(b) == Some(nerfjit::schema::Kind::SphereTrace));
+    let block = program.blocks().into_iter().find(|b| {
+        nerfjit::settings::schema::kind_of(b) == Some(nerfjit::settings::schema::Kind::SphereTrace)
+    });
     let (shading, trace, lipschitz) = match block {
         Some(block) => {
             let settings = Settings::new(program, block).map_err(|d| at(program, d))?;
@@ -295,7 +294,7 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
                 None,
                 Rc::new(Outputs::default()),
             )?;
-            let plan = RenderPlan::new(b)?;
+            let plan = SphereTracePlan::new(b)?;
             (plan.shading, plan.trace, plan.lipschitz)
         }
         None => (

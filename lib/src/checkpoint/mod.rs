@@ -12,7 +12,7 @@ use nerfjit_dsl::{budget, Program, Type};
 use nerfjit_runtime::{Adam, OccupancyGrid};
 
 use crate::failure::{Failure, Result};
-use crate::setting_values::AdamSettings;
+use crate::settings::values::AdamSettings;
 
 /// The script a checkpoint holds: enough to compile its program again.
 pub struct Script {

@@ -1,0 +1,809 @@
+//! `train { ... }`: fits the script's params to images by differentiable volume rendering, with Adam,
+//! checkpoints (atomic, resumable), a NaN guard, preview renders and a JSON summary.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::{Diagnostic, Program};
+use nerfjit_jit::{KernelCache, Precision};
+use nerfjit_runtime::{
+    load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Rng,
+    Schedule, TrainableModel, Views, VolumeSettings,
+};
+
+use crate::failure::Result;
+use crate::observe::{NoBars, ProgressBars, TrainingObserver};
+use crate::settings::block::Block;
+use crate::settings::primitives::CallArgs;
+pub use crate::settings::values::AdamSettings;
+use crate::settings::values::{grid_seed, grid_update, minutes_list, optimizer, schedule, GridUpdate};
+use crate::training::data_source::{data_path, data_set, DataKind, DataSet};
+use crate::training::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
+use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
+use nerfjit_field::{VolumeField, VolumeFields};
+
+/// The columns of a volume training run's metrics log.
+const LOG_COLUMNS: &[&str] = &[
+    "step",
+    "train_seconds",
+    "lr",
+    "loss",
+    "psnr",
+    "eikonal",
+    "val_psnr",
+    "val_ssim",
+];
+
+/// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
+/// memory.
+const MAX_SAMPLES_PER_STEP: usize = 1 << 26;
+
+/// A checked `train` block.
+pub struct TrainPlan {
+    data: DataSet,
+    near: f32,
+    far: f32,
+    samples: usize,
+    spacing: DepthSpacing,
+    background: Option<[f32; 3]>,
+    steps: u32,
+    /// Stop once the steps alone have taken this many seconds (validation and previews excluded).
+    time_limit: Option<f64>,
+    batch: usize,
+    schedule: Schedule,
+    /// Adam's decay rates and ε.
+    optimizer: AdamSettings,
+    random_views: bool,
+    /// Each step composites its rays and their targets on a random color (`random_background`).
+    random_background: bool,
+    jitter: bool,
+    seed: u64,
+    checkpoint: Option<PathBuf>,
+    checkpoint_every: u32,
+    /// The metrics log (JSON Lines, or CSV).
+    log: Option<PathBuf>,
+    /// A TensorBoard folder the metrics also go to.
+    tensorboard: Option<PathBuf>,
+    summary: Option<PathBuf>,
+    preview: Option<PathBuf>,
+    preview_every: u32,
+    /// VolSDF-style training: the eikonal term on the script's SDF at random points.
+    eikonal: Option<Eikonal>,
+    /// Held-out views scored during training (Blender data only).
+    validation: Option<Validation>,
+    /// Importance samples per ray for hierarchical sampling (0: one field, no fine pass).
+    importance: usize,
+    /// The arithmetic of the networks' products.
+    products: Precision,
+    /// Recompute the networks' forward pass in their backward pass instead of keeping its values.
+    recompute_forward: bool,
+    /// Empty-space skipping during training: an occupancy grid of the (fine) field, rebuilt every
+    /// `every` steps from step `warmup` on.
+    grid: Option<TrainingGrid>,
+    /// Training rays stop once their transmittance is below this (later samples are neither evaluated
+    /// nor back-propagated); validation stops rays the same way, previews are exact.
+    early_termination: Option<f32>,
+}
+
+/// The eikonal term of VolSDF-style training.
+#[derive(Clone, Debug)]
+struct Eikonal {
+    /// The script's SDF (its name).
+    sdf: String,
+    /// The term's weight and points.
+    regularizers: Regularizers,
+    /// Points in the occupancy grid's occupied cells (while there is one) instead of uniform ones.
+    occupied: bool,
+}
+
+/// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
+#[derive(Clone, Copy, Debug)]
+struct TrainingGrid {
+    grid: crate::settings::values::SkipEmpty,
+    every: u32,
+    warmup: u32,
+    update: GridUpdate,
+    /// Before the warm-up, the cells within this many cells of the data's sparse points.
+    seed: Option<usize>,
+}
+
+/// Which views validation scores.
+#[derive(Clone, Debug)]
+enum HeldOut {
+    /// A Blender camera file of held-out views (with Blender data).
+    File(PathBuf),
+    /// Every n-th view of the data set (0, n, 2n, …), which training then does not see.
+    Every(usize),
+}
+
+/// The `val` settings: held-out views rendered and scored every `every` steps, once the training time
+/// passes each of `at_seconds`, and at the end (the first `views` of them, all if None).
+#[derive(Clone, Debug)]
+struct Validation {
+    held_out: HeldOut,
+    every: u32,
+    at_seconds: Vec<f64>,
+    views: Option<usize>,
+}
+
+/// The `val` setting: `holdout(every: 8)` (every n-th view of the data, 0, n, 2n, …, kept from training) or
+/// a Blender camera file (with Blender data).
+fn held_out(v: &Spanned, data: &DataSet, script_dir: &Path) -> std::result::Result<HeldOut, Diagnostic> {
+    if let Value::Call(name, _) = &v.value {
+        if name == "holdout" {
+            let a = CallArgs::new(v, &["every"])?;
+            let every = a
+                .raw("every")
+                .map(|n| crate::settings::primitives::whole(n, 2, 1000))
+                .transpose()?;
+            return Ok(HeldOut::Every(every.unwrap_or(8) as usize));
+        }
+    }
+    let file = data_path(v.string()?, script_dir);
+    if data.blender().is_none() {
+        return Err(Diagnostic::new(
+            v.span,
+            "a validation camera file scores held-out Blender views: it needs data: blender(...)",
+        )
+        .with_hint("for other data, hold out every n-th view: val: holdout(every: 8)"));
+    }
+    if !file.is_file() {
+        return Err(Diagnostic::new(
+            v.span,
+            format!("validation file '{}' not found", file.display()),
+        ));
+    }
+    Ok(HeldOut::File(file))
+}
+
+/// The cameras of the data the first `train` block of `program` trains on (a script in `script_dir`), if
+/// it names data whose camera file can be read.
+pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_runtime::Camera>> {
+    let block = program
+        .blocks()
+        .into_iter()
+        .find(|b| crate::settings::schema::kind_of(b) == Some(crate::settings::schema::Kind::Train))?;
+    let data = nerfjit_dsl::config::Settings::new(program, block)
+        .ok()?
+        .take("data")?;
+    data_set(&data, script_dir).ok()?.cameras().ok()
+}
+
+impl TrainPlan {
+    /// Reads and checks a `train` block.
+    pub fn new(mut b: Block) -> Result<TrainPlan> {
+        let data_v = b.required("data")?;
+        let data = data_set(&data_v, b.script_dir()).map_err(|d| b.error(d))?;
+        let (near, far) = b.near_far()?;
+        let lr = b.number("lr")? as f32;
+        let samples = b.whole("samples")? as usize;
+        let spacing = b.spacing(near, far)?;
+        let steps = b.whole("steps")? as u32;
+        let minutes = b.number("minutes")?;
+        let time_limit = (minutes > 0.0).then_some(60.0 * minutes);
+        let batch = b.whole("batch")? as usize;
+        if batch * samples > MAX_SAMPLES_PER_STEP {
+            return Err(b.block_error(format!(
+                "{batch} rays × {samples} samples is too many for one step (the limit is {MAX_SAMPLES_PER_STEP} samples)"
+            )));
+        }
+        let seed = b.whole("seed")?;
+        let checkpoint_every = b.whole("checkpoint_every")? as u32;
+        let preview_every = b.whole("preview_every")? as u32;
+        let eikonal_weight = b.number("eikonal_weight")? as f32;
+        let eikonal_points = b.whole("eikonal_points")? as usize;
+        let eikonal_bounds = b.number("eikonal_bounds")? as f32;
+        let sdf = b.function("sdf")?;
+        let occupied = b.choice("eikonal_sampling")?.as_deref() == Some("occupied");
+        let eikonal = (eikonal_weight > 0.0).then_some(Eikonal {
+            sdf,
+            regularizers: Regularizers {
+                points: eikonal_points,
+                bound: eikonal_bounds,
+                near_weight: 0.0,
+                near_sharpness: 0.0,
+                eikonal_weight,
+            },
+            occupied,
+        });
+        let background = b.triple("background")?;
+        let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
+        let random_views = b.choice("views")?.as_deref() == Some("random");
+        let jitter = b.flag("jitter")?;
+        let random_background = b.flag("random_background")?;
+        let checkpoint = b.output("checkpoint")?;
+        let log = b.output("log")?;
+        let tensorboard = b.output("tensorboard")?;
+        let summary = b.output("summary")?;
+        let preview = b.output("preview")?;
+        let validation = match b.take("val") {
+            Some(v) => {
+                let held_out = held_out(&v, &data, b.script_dir()).map_err(|d| b.error(d))?;
+                let every = b.whole("val_every")? as u32;
+                let views = b.whole_or_none("val_views")?.map(|n| n as usize);
+                let at_seconds = match b.take("val_minutes") {
+                    Some(v) => minutes_list(&v).map_err(|d| b.error(d))?,
+                    None => Vec::new(),
+                };
+                Some(Validation {
+                    held_out,
+                    every,
+                    at_seconds,
+                    views,
+                })
+            }
+            None => None,
+        };
+        let importance = b.whole("importance")? as usize;
+        let products = b.products()?;
+        let recompute_forward = b.flag("recompute_forward")?;
+        let skip_empty = match b.take("skip_empty") {
+            None => None,
+            Some(v) => crate::settings::values::skip_empty(&v).map_err(|d| b.error(d))?,
+        };
+        let every = b.whole("grid_every")? as u32;
+        let warmup = b.whole("grid_warmup")? as u32;
+        let update = grid_update(b.take("grid_update")).map_err(|d| b.error(d))?;
+        let grid_seeding = match b.take("grid_seed") {
+            Some(v) => {
+                let seed = grid_seed(&v).map_err(|d| b.error(d))?;
+                if seed.is_some() && !matches!(data.kind, DataKind::Colmap(..)) {
+                    return Err(b.error(
+                        Diagnostic::new(v.span, "only a COLMAP model has sparse points to seed the grid")
+                            .with_hint("use data: colmap(...), or remove grid_seed"),
+                    ));
+                }
+                if seed.is_some() && skip_empty.is_none() {
+                    return Err(b.error(
+                        Diagnostic::new(v.span, "grid_seed seeds the occupancy grid of skip_empty")
+                            .with_hint("add e.g. skip_empty: grid(bounds: 1.5)"),
+                    ));
+                }
+                seed
+            }
+            None => None,
+        };
+        let grid = skip_empty.map(|grid| TrainingGrid {
+            grid,
+            every,
+            warmup,
+            update,
+            seed: grid_seeding,
+        });
+        let early_termination = b.number("early_termination")? as f32;
+        b.finish()?;
+        Ok(TrainPlan {
+            early_termination: (early_termination > 0.0).then_some(early_termination),
+            data,
+            near,
+            far,
+            samples,
+            spacing,
+            background,
+            steps,
+            time_limit,
+            batch,
+            schedule,
+            optimizer,
+            random_views,
+            random_background,
+            jitter,
+            seed,
+            checkpoint,
+            checkpoint_every,
+            log,
+            tensorboard,
+            summary,
+            preview,
+            preview_every,
+            eikonal,
+            validation,
+            importance,
+            products,
+            recompute_forward,
+            grid,
+        })
+    }
+
+    fn settings(&self, field: &VolumeField) -> VolumeSettings {
+        VolumeSettings {
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            mode: field.mode,
+            // Missed rays show the data's background unless the block says otherwise: renders on black
+            // against views on white would have to learn a white fog.
+            background: Some(self.background.unwrap_or_else(|| self.data.background())),
+            early_termination: None,
+            spacing: self.spacing,
+        }
+    }
+
+    /// The same plan with every sample evaluated: no occupancy grid, no early termination (the
+    /// benchmark workloads' setting).
+    pub fn exact(self) -> TrainPlan {
+        TrainPlan {
+            grid: None,
+            early_termination: None,
+            ..self
+        }
+    }
+
+    /// Runs only the first `steps` steps (no checkpoints, previews or summary file), for benchmarks;
+    /// returns the ms per step of the training loop alone.
+    pub fn run_steps(&self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
+        let quiet = TrainPlan {
+            steps,
+            checkpoint: None,
+            log: None,
+            tensorboard: None,
+            summary: None,
+            preview: None,
+            data: self.data.clone(),
+            eikonal: self.eikonal.clone(),
+            validation: None,
+            ..*self
+        };
+        let line = quiet.run(program, params, &KernelCache::new(), false, None, &NoBars)?;
+        Ok(line.lines().next().unwrap_or_default().to_string())
+    }
+
+    /// The training views and the held-out views validation scores (if the block asks for validation).
+    /// With `random_background` the training views keep their alpha; held-out views are always on the
+    /// data's background.
+    pub fn load_views(&self) -> Result<(Views, Option<Views>)> {
+        let mut views = self.data.load(self.random_background)?;
+        let val_views = match self.validation.as_ref().map(|v| (&v.held_out, v.views)) {
+            Some((HeldOut::Every(n), limit)) => {
+                let (train, held) = views.hold_out(*n)?;
+                views = train;
+                let mut held = held.on_background(self.data.background());
+                held.cameras.truncate(limit.unwrap_or(usize::MAX));
+                held.images.truncate(limit.unwrap_or(usize::MAX));
+                Some(held)
+            }
+            Some((HeldOut::File(file), limit)) => match self.data.blender() {
+                Some(b) => Some(load_blender_views(file, Some(b.size), b.background, limit)?),
+                None => None,
+            },
+            None => None,
+        };
+        Ok((views, val_views))
+    }
+
+    /// Which views the block holds out, in words (for reports of the protocol scored).
+    pub fn held_out_description(&self) -> Option<String> {
+        let v = self.validation.as_ref()?;
+        let first = v.views.map_or(String::new(), |n| format!(" (the first {n})"));
+        Some(match &v.held_out {
+            HeldOut::Every(n) => format!("every {n}th view of {}{first}", self.data.path.display()),
+            HeldOut::File(file) => format!("the views of {}{first}", file.display()),
+        })
+    }
+
+    /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`),
+    /// publishing its progress and params to a live viewer when given; returns a summary line.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &mut Vec<f32>,
+        cache: &KernelCache,
+        resume: bool,
+        live: Option<&dyn TrainingObserver>,
+        bars: &dyn ProgressBars,
+    ) -> Result<String> {
+        let (views, val_views) = self.load_views()?;
+        let t = Instant::now();
+        let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;
+        let regularizers = match &self.eikonal {
+            Some(e) => Some(RegularizerKernels::compile(
+                program,
+                &e.sdf,
+                &e.regularizers,
+                cache,
+                self.products,
+            )?),
+            None => None,
+        };
+        let compile_s = t.elapsed().as_secs_f64();
+        let settings = self.settings(&fields.fine);
+        let mut objective = VolumeObjective {
+            plan: self,
+            views: &views,
+            val_views: val_views.as_ref(),
+            fields: &fields,
+            regularizers: regularizers.as_ref(),
+            settings,
+            step_settings: VolumeSettings {
+                early_termination: self.early_termination,
+                ..settings
+            },
+            live,
+            rng: Rng::new(self.seed ^ 0x5eed),
+            grid: None,
+            ema: None,
+            ema_rng: Rng::new(self.seed ^ 0x0cc0),
+            psnr: f32::NAN,
+            eikonal_loss: 0.0,
+            history: Vec::new(),
+            next_val_time: 0,
+        };
+        let loop_settings = LoopSettings {
+            steps: self.steps,
+            schedule: &self.schedule,
+            optimizer: self.optimizer,
+            time_limit: self.time_limit,
+            checkpoint: self.checkpoint.as_deref(),
+            checkpoint_every: self.checkpoint_every,
+            resume,
+            log: self.log.as_deref(),
+            tensorboard: self.tensorboard.as_deref(),
+            log_columns: LOG_COLUMNS,
+            verb: "training",
+            bars,
+        };
+        let end = train_loop::train(program, params, &loop_settings, &mut objective)?;
+        if end.complete {
+            return Ok(end.already_complete(self.checkpoint.as_deref()));
+        }
+        let (loss, psnr) = (end.loss, objective.psnr);
+        let (ms_per_step, samples_per_s) = (end.ms_per_step(), end.samples_per_s());
+        if let Some(path) = &self.summary {
+            let json = serde_json::json!({
+                "data": self.data.path.display().to_string(),
+                "steps": end.done,
+                "resumed_from": end.first,
+                "final_loss": loss,
+                "final_psnr": psnr,
+                "seconds": end.wall_seconds,
+                "ms_per_step": ms_per_step,
+                "samples_per_s": samples_per_s,
+                "compile_seconds": compile_s,
+                "train_seconds": end.train_seconds,
+                "validation": objective.history,
+                "occupied_cells": objective.grid.as_ref().map(OccupancyGrid::occupancy),
+                "params": params_json(program, params),
+            });
+            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        end.stopped(self.checkpoint.as_deref())?;
+        Ok(format!(
+            "trained {} steps in {:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
+            end.trained(),
+            end.wall_seconds,
+            samples_per_s * 1e-6,
+            describe_params(program, params)
+        ))
+    }
+
+    fn write_preview(
+        &self,
+        path: &Path,
+        views: &Views,
+        fields: &VolumeFields,
+        params: &[f32],
+        settings: &VolumeSettings,
+    ) -> Result<()> {
+        let frame = fields.render(&views.cameras[0], views.width, views.height, params, settings)?;
+        // The preview shows the render next to the target view.
+        let target = &views.images[0];
+        let (w, h) = (views.width as usize, views.height as usize);
+        let mut side = vec![[0.0f32; 3]; 2 * w * h];
+        for row in 0..h {
+            for col in 0..w {
+                side[row * 2 * w + col] = frame.rgb[row * w + col];
+                side[row * 2 * w + w + col] = target.pixels[row * w + col];
+            }
+        }
+        save_png(
+            path,
+            rgb_image(2 * views.width, views.height, &side, Quantize::Truncate)?,
+        )?;
+        Ok(())
+    }
+}
+
+/// A `train` block's objective: the photometric loss of random rays of the training views (with the
+/// eikonal term of VolSDF-style training), the occupancy grid kept up to date before the steps, and
+/// validation, previews, log records and the live viewer after them.
+struct VolumeObjective<'a> {
+    plan: &'a TrainPlan,
+    views: &'a Views,
+    val_views: Option<&'a Views>,
+    fields: &'a VolumeFields,
+    regularizers: Option<&'a RegularizerKernels>,
+    /// Previews' settings (every sample).
+    settings: VolumeSettings,
+    /// The steps' and validation's settings (with early termination when asked).
+    step_settings: VolumeSettings,
+    live: Option<&'a dyn TrainingObserver>,
+    rng: Rng,
+    grid: Option<OccupancyGrid>,
+    /// The running occupancy of `grid_update: ema` and the random points of its updates.
+    ema: Option<DensityEma>,
+    ema_rng: Rng,
+    /// The last step's training PSNR and eikonal term.
+    psnr: f32,
+    eikonal_loss: f32,
+    /// Every validation's scores, for the summary.
+    history: Vec<serde_json::Value>,
+    /// The first of the block's validation times not reached yet.
+    next_val_time: usize,
+}
+
+impl VolumeObjective<'_> {
+    /// Rebuilds (or updates) the occupancy grid when its schedule says so, and at once when a resumed
+    /// run starts past the warm-up.
+    fn update_grid(&mut self, step: u32, params: &[f32], ui: &Ui) -> Result<()> {
+        let Some(g) = &self.plan.grid else {
+            return Ok(());
+        };
+        if step < g.warmup || (self.grid.is_some() && !(step - g.warmup).is_multiple_of(g.every)) {
+            return Ok(());
+        }
+        let t = Instant::now();
+        let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.settings.mode);
+        let (ema, rng) = (&mut self.ema, &mut self.ema_rng);
+        let built = g
+            .grid
+            .space
+            .with_field(&self.fields.fine.bind_density(params), |density| {
+                nerfjit_runtime::Result::Ok(match (g.update, ema) {
+                    (GridUpdate::Rebuild, _) => OccupancyGrid::build_for_training(
+                        density,
+                        bounds,
+                        resolution,
+                        mode,
+                        g.grid.threshold,
+                    )?,
+                    (GridUpdate::Ema { decay, fraction }, Some(state)) => {
+                        state.update(density, decay, fraction, rng)?;
+                        state.grid(mode, g.grid.threshold)?
+                    }
+                    (GridUpdate::Ema { .. }, state @ None) => state
+                        .insert(DensityEma::sampled(density, bounds, resolution, rng)?)
+                        .grid(mode, g.grid.threshold)?,
+                })
+            })?;
+        let built = built.in_space(g.grid.space);
+        // Every rebuild is reported; running updates every 16th time.
+        let updates = (step - g.warmup) / g.every;
+        if g.update == GridUpdate::Rebuild || updates.is_multiple_of(16) {
+            let verb = match g.update {
+                GridUpdate::Rebuild => "rebuilt",
+                GridUpdate::Ema { .. } => "updated",
+            };
+            ui.report(format!(
+                "step {step}: occupancy grid {verb} in {:.2} s, {:.1}% of the cells occupied",
+                t.elapsed().as_secs_f64(),
+                100.0 * built.occupancy()
+            ));
+        }
+        self.grid = Some(built);
+        Ok(())
+    }
+
+    /// Scores the held-out views when the block's validation is due after `p`'s step.
+    fn validate(&mut self, p: &Progress, params: &[f32], ui: &mut Ui) -> Result<()> {
+        let (Some(v), Some(val)) = (&self.plan.validation, self.val_views) else {
+            return Ok(());
+        };
+        let marks_before = self.next_val_time;
+        while v
+            .at_seconds
+            .get(self.next_val_time)
+            .is_some_and(|&t| p.train_seconds >= t)
+        {
+            self.next_val_time += 1;
+        }
+        let time_mark = self.next_val_time > marks_before;
+        // An interrupted run stops at once: it is not validated.
+        if !(p.done.is_multiple_of(v.every) || time_mark || (p.last && !p.interrupted)) {
+            return Ok(());
+        }
+        let scores = crate::training::validation::score(
+            val,
+            self.fields,
+            params,
+            &self.step_settings,
+            self.grid.as_ref(),
+        )?;
+        let means = crate::training::validation::means(&scores);
+        let (psnr, ssim) = (means.psnr, means.ssim);
+        let masked = means
+            .masked_psnr
+            .map_or(String::new(), |m| format!(", masked PSNR {m:.2} dB"));
+        ui.report(format!(
+            "step {}: val PSNR {psnr:.2} dB, SSIM {ssim:.4}{masked} ({} views) after {:.0} s of training",
+            p.done,
+            val.cameras.len(),
+            p.train_seconds
+        ));
+        self.history.push(serde_json::json!({
+            "step": p.done, "train_seconds": p.train_seconds, "val_psnr": psnr, "val_ssim": ssim,
+            "val_masked_psnr": means.masked_psnr,
+        }));
+        let (step, seconds) = (Some(f64::from(p.done)), Some(p.train_seconds));
+        ui.record(&[step, seconds, None, None, None, None, Some(psnr), Some(ssim)])
+    }
+
+    /// The progress record of `p`'s step (every 10th step and the last), logged and shown on the bar.
+    fn record(&self, p: &Progress, ui: &mut Ui) -> Result<Option<serde_json::Value>> {
+        if !(p.done.is_multiple_of(10) || p.last) {
+            return Ok(None);
+        }
+        let steps_per_s = f64::from(p.done - p.first) / p.wall_seconds;
+        let val_psnr = self.history.last().and_then(|h| h["val_psnr"].as_f64());
+        let record = serde_json::json!({
+            "step": p.done, "steps": p.steps, "loss": p.loss, "psnr": self.psnr,
+            "val_psnr": val_psnr, "train_seconds": p.train_seconds, "steps_per_s": steps_per_s,
+            "eta_seconds": f64::from(p.steps - p.done) / steps_per_s,
+        });
+        let eikonal = self
+            .plan
+            .eikonal
+            .is_some()
+            .then_some(f64::from(self.eikonal_loss));
+        ui.record(&[
+            Some(f64::from(p.done)),
+            Some(p.train_seconds),
+            Some(f64::from(p.lr)),
+            Some(f64::from(p.loss)),
+            Some(f64::from(self.psnr)),
+            eikonal,
+            None,
+            None,
+        ])?;
+        ui.message(format!(
+            "loss {:.5} PSNR {:.2} dB{}{} {:.0}k rays/s",
+            p.loss,
+            self.psnr,
+            val_psnr.map_or(String::new(), |v| format!(" val {v:.2} dB")),
+            eikonal.map_or(String::new(), |e| format!(" eikonal {e:.5}")),
+            steps_per_s * self.plan.batch as f64 / 1e3
+        ));
+        Ok(Some(record))
+    }
+}
+
+impl Objective for VolumeObjective<'_> {
+    fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
+    fn start(&mut self, first: u32, _params: &[f32], ui: &Ui) -> Result<()> {
+        let Some(
+            g @ TrainingGrid {
+                seed: Some(dilation), ..
+            },
+        ) = &self.plan.grid
+        else {
+            return Ok(());
+        };
+        if first >= g.warmup {
+            return Ok(());
+        }
+        let points = self.plan.data.sparse_points()?;
+        let in_grid: Vec<[f32; 3]> = points.iter().map(|&p| g.grid.space.point(p)).collect();
+        let seeded = OccupancyGrid::from_points(g.grid.bounds, g.grid.resolution, &in_grid, *dilation)?
+            .in_space(g.grid.space);
+        ui.report(format!(
+            "occupancy grid seeded from {} sparse points: {:.1}% of the cells occupied until step {}",
+            points.len(),
+            100.0 * seeded.occupancy(),
+            g.warmup
+        ));
+        self.grid = Some(seeded);
+        Ok(())
+    }
+
+    fn before_step(&mut self, step: u32, params: &[f32], ui: &Ui) -> Result<()> {
+        self.update_grid(step, params, ui)
+    }
+
+    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+        let plan = self.plan;
+        let view = if plan.random_views {
+            self.rng.below(self.views.len() as u64) as usize
+        } else {
+            step as usize % self.views.len()
+        };
+        let settings = match plan.random_background {
+            true => VolumeSettings {
+                background: Some([(); 3].map(|_| self.rng.next_f32())),
+                ..self.step_settings
+            },
+            false => self.step_settings,
+        };
+        let (rays, targets) = self.views.random_rays_on(
+            view,
+            plan.batch,
+            plan.seed.wrapping_add(u64::from(step)),
+            settings.background,
+        )?;
+        let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
+        let fields = self.fields.bind(params);
+        let model = TrainableModel {
+            recompute_forward: plan.recompute_forward,
+            ..fields.trainable()
+        };
+        let mut result = model.step((&rays, &targets), &settings, self.grid.as_ref(), jitter)?;
+        if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
+            let reg = &e.regularizers;
+            let points = match &self.grid {
+                Some(grid) if e.occupied => occupied_points(&mut self.rng, reg.points, reg.bound, grid),
+                _ => uniform_points(&mut self.rng, reg.points, reg.bound),
+            };
+            let threads = rayon::current_num_threads();
+            let [_, eikonal] = reg.add_at(k, &points, params, &mut result.param_grads, threads);
+            self.eikonal_loss = eikonal;
+        }
+        self.psnr = result.psnr;
+        Ok(Gradient {
+            loss: result.loss,
+            grads: result.param_grads,
+            samples: result.samples,
+        })
+    }
+
+    fn recycle(&mut self, grads: Vec<f32>) {
+        nerfjit_runtime::volume::train::recycle(grads);
+    }
+
+    fn after_step(&mut self, p: &Progress, params: &[f32], ui: &mut Ui) -> Result<()> {
+        self.validate(p, params, ui)?;
+        let record = self.record(p, ui)?;
+        if let Some(live) = self.live {
+            live.after_step(p.done, p.last, params, record, ui.watch());
+        }
+        if let Some(path) = &self.plan.preview {
+            if p.done.is_multiple_of(self.plan.preview_every) || (p.last && !p.interrupted) {
+                self.plan
+                    .write_preview(path, self.views, self.fields, params, &self.settings)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The params of `program` with their values, one per line.
+pub fn describe_params(program: &Program, params: &[f32]) -> String {
+    program
+        .params
+        .iter()
+        .map(|p| {
+            let values = &params[p.offset..p.offset + p.ty.scalars()];
+            if values.len() <= 8 {
+                let v: Vec<String> = values.iter().map(|x| format!("{x:.4}")).collect();
+                format!("  {} = [{}]", p.name, v.join(", "))
+            } else {
+                format!("  {}: {} values", p.name, values.len())
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The params of `program` by name, as JSON (a grid encoding's table as its type, size and mean |value|).
+pub fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
+    let map: serde_json::Map<String, serde_json::Value> = program
+        .params
+        .iter()
+        .map(|p| {
+            let values = &params[p.offset..p.offset + p.ty.scalars()];
+            let value = match p.ty {
+                // A grid's table (millions of floats) stays in the checkpoint; the summary describes it.
+                nerfjit_dsl::Type::Grid(_) => serde_json::json!({
+                    "type": p.ty.to_string(),
+                    "values": values.len(),
+                    "mean_abs": values.iter().map(|x| f64::from(x.abs())).sum::<f64>() / values.len().max(1) as f64,
+                }),
+                _ => serde_json::json!(values),
+            };
+            (p.name.clone(), value)
+        })
+        .collect();
+    serde_json::Value::Object(map)
+}

@@ -1,0 +1,455 @@
+//! `train sdf { ... }`: fits a script's (neural) SDF to a point cloud: zero on the points, no surface
+//! near random points, and an eikonal term (|∇ₓd| − 1)² whose param gradient comes from the JIT's
+//! second-order kernel. An optional pre-training pulls the SDF toward a sphere first.
+//!
+//! Per step, with cloud points xᵢ (N) and uniform points yⱼ (M) in [−b, b]³:
+//! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)².
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use nerfjit_dsl::kernel_graphs::{self, SdfLoss};
+use nerfjit_dsl::{Diagnostic, Program, Type};
+use nerfjit_jit::{Kernel, KernelCache, Options, Precision};
+use nerfjit_runtime::{bounding_box, read_points, render_points, PointFrame, Rng, Schedule};
+
+use crate::failure::{Failure, Result};
+use crate::observe::{NoBars, ProgressBars};
+use crate::settings::block::Block;
+use crate::settings::primitives::CallArgs;
+use crate::settings::schema::Kind;
+use crate::training::regularizers::{uniform_points, RegularizerKernels, Regularizers};
+use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
+
+/// The columns of a point-cloud fit's metrics log.
+const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near", "eikonal"];
+
+/// A checked `train sdf` block.
+pub struct TrainSdfPlan {
+    data: PathBuf,
+    key: Option<String>,
+    /// Fit the cloud scaled into the unit sphere ([`PointFrame::unit_sphere`]), not merely mean-centered.
+    normalize: bool,
+    function: String,
+    steps: u32,
+    batch: usize,
+    random: usize,
+    bound: f32,
+    /// Adam's learning rate over the steps (pre-training included).
+    schedule: Schedule,
+    /// Adam's decay rates and ε.
+    optimizer: crate::settings::values::AdamSettings,
+    near_weight: f32,
+    near_sharpness: f32,
+    eikonal_weight: f32,
+    /// σ of the noise that moves cloud points into eikonal points (0: none).
+    eikonal_jitter: f32,
+    pretrain_steps: u32,
+    pretrain_radius: f32,
+    seed: u64,
+    checkpoint: Option<PathBuf>,
+    checkpoint_every: u32,
+    /// The metrics log (JSON Lines, or CSV).
+    log: Option<PathBuf>,
+    /// A TensorBoard folder the metrics also go to.
+    tensorboard: Option<PathBuf>,
+    summary: Option<PathBuf>,
+    points_gif: Option<PathBuf>,
+    /// The arithmetic of the network's products.
+    products: Precision,
+}
+
+/// The loss kernels of one SDF: each gives its per-point loss terms and their param gradient in one pass.
+struct Kernels {
+    /// (d(y) − (|y| − r))² / m on random points: pre-training toward a sphere.
+    sphere: Arc<Kernel>,
+    /// |d(x)| / n on cloud points.
+    surface: Arc<Kernel>,
+    regularizers: RegularizerKernels,
+    /// The eikonal term alone at the batch's cloud points moved by Gaussian noise, when asked for.
+    jittered: Option<RegularizerKernels>,
+}
+
+/// The slots of `train sdf`'s `data: points(...)`.
+const POINTS_ARGS: &[&str] = &["file", "key", "normalize"];
+
+/// The frame of the script's point-cloud fit when its data says `normalize: true` (meshes of the fitted
+/// function are then written in the cloud's units), reading the cloud from `script_dir`; None without such
+/// a fit.
+pub fn fitted_frame(program: &Program, script_dir: &str) -> Result<Option<PointFrame>> {
+    let first = || crate::settings::block::first_block(program, Kind::TrainSdf, script_dir);
+    let Ok(mut block) = first() else {
+        return Ok(None);
+    };
+    let data = block.required("data")?;
+    let normalize = CallArgs::new(&data, POINTS_ARGS)
+        .and_then(|a| a.choice("normalize", &["true", "false"], "false"))
+        .map_err(|d| block.error(d))?;
+    if normalize != "true" {
+        return Ok(None);
+    }
+    TrainSdfPlan::new(first()?)?.normalized_frame()
+}
+
+impl TrainSdfPlan {
+    /// Reads and checks a `train sdf` block.
+    pub fn new(mut b: Block) -> Result<TrainSdfPlan> {
+        let data_v = b.required("data")?;
+        let (file, key, normalize) = CallArgs::new(&data_v, POINTS_ARGS)
+            .and_then(|a| {
+                Ok((
+                    a.string("file")?,
+                    a.raw("key").map(|k| k.string().map(str::to_string)).transpose()?,
+                    a.choice("normalize", &["true", "false"], "false")? == "true",
+                ))
+            })
+            .map_err(|d| b.error(d))?;
+        let data = crate::training::data_source::data_path(&file, b.script_dir());
+        if !data.is_file() {
+            return Err(b.error(
+                Diagnostic::new(data_v.span, format!("data file '{}' not found", data.display()))
+                    .with_hint("paths are relative to the working folder or to the script"),
+            ));
+        }
+        let function = b.function("function")?;
+        let lr = b.number("lr")? as f32;
+        let schedule = crate::settings::values::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
+        let optimizer = crate::settings::values::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
+        let plan = TrainSdfPlan {
+            data,
+            key,
+            normalize,
+            function,
+            steps: b.whole("steps")? as u32,
+            batch: b.whole("batch")? as usize,
+            random: b.whole("random")? as usize,
+            bound: b.number("bounds")? as f32,
+            schedule,
+            optimizer,
+            near_weight: b.number("near_weight")? as f32,
+            near_sharpness: b.number("near_sharpness")? as f32,
+            eikonal_weight: b.number("eikonal_weight")? as f32,
+            eikonal_jitter: b.number("eikonal_jitter")? as f32,
+            pretrain_steps: b.whole("pretrain_steps")? as u32,
+            pretrain_radius: b.number("pretrain_radius")? as f32,
+            seed: b.whole("seed")?,
+            checkpoint: b.output("checkpoint")?,
+            checkpoint_every: b.whole("checkpoint_every")? as u32,
+            log: b.output("log")?,
+            tensorboard: b.output("tensorboard")?,
+            summary: b.output("summary")?,
+            points_gif: b.output("points_gif")?,
+            products: b.products()?,
+        };
+        b.finish()?;
+        Ok(plan)
+    }
+
+    fn compile(&self, program: &Program, cache: &KernelCache) -> Result<Kernels> {
+        nerfjit_field::check_signature(program, &self.function, &[&[Type::Vec(3)]], &Type::F32)?;
+        let lowered = program.lower(&self.function)?;
+        let options = Options {
+            products: self.products,
+            ..Options::default()
+        };
+        let loss = |loss: SdfLoss| {
+            cache.get(
+                &kernel_graphs::sdf_loss(&lowered, program.n_params(), loss),
+                options,
+            )
+        };
+        let sphere = SdfLoss::Sphere {
+            radius: f64::from(self.pretrain_radius),
+            scale: 1.0 / self.random as f64,
+        };
+        let surface = SdfLoss::Surface {
+            scale: 1.0 / self.batch as f64,
+        };
+        Ok(Kernels {
+            sphere: loss(sphere)?,
+            surface: loss(surface)?,
+            regularizers: RegularizerKernels::compile(
+                program,
+                &self.function,
+                &self.regularizers(),
+                cache,
+                self.products,
+            )?,
+            jittered: match self.jittered() {
+                Some(reg) => Some(RegularizerKernels::compile(
+                    program,
+                    &self.function,
+                    &reg,
+                    cache,
+                    self.products,
+                )?),
+                None => None,
+            },
+        })
+    }
+
+    /// Runs only `steps` fitting steps (no pre-training, checkpoints, summary or GIF), for benchmarks;
+    /// returns the summary line, with the ms per step of the training loop alone.
+    pub fn run_steps(self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
+        let quiet = TrainSdfPlan {
+            steps,
+            pretrain_steps: 0,
+            checkpoint: None,
+            log: None,
+            summary: None,
+            points_gif: None,
+            ..self
+        };
+        let line = quiet.run(program, params, &KernelCache::new(), false, &NoBars)?;
+        Ok(line.lines().next().unwrap_or_default().to_string())
+    }
+
+    /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`);
+    /// returns a summary.
+    pub fn run(
+        &self,
+        program: &Program,
+        params: &mut Vec<f32>,
+        cache: &KernelCache,
+        resume: bool,
+        bars: &dyn ProgressBars,
+    ) -> Result<String> {
+        let input = read_points(&self.data, self.key.as_deref())?;
+        let frame = self.frame_of(&input)?;
+        let cloud: Vec<[f32; 3]> = input.iter().map(|&p| frame.to_frame(p)).collect();
+        if let Some(path) = &self.points_gif {
+            write_points_gif(path, &cloud)?;
+        }
+        let t = Instant::now();
+        let kernels = self.compile(program, cache)?;
+        let compile_s = t.elapsed().as_secs_f64();
+        let mut objective = SdfObjective {
+            plan: self,
+            kernels: &kernels,
+            cloud: &cloud,
+            rng: Rng::new(self.seed ^ 0xB0_77),
+            threads: rayon::current_num_threads(),
+            terms: [f32::NAN; 3],
+        };
+        let settings = LoopSettings {
+            steps: self.pretrain_steps + self.steps,
+            schedule: &self.schedule,
+            optimizer: self.optimizer,
+            time_limit: None,
+            checkpoint: self.checkpoint.as_deref(),
+            checkpoint_every: self.checkpoint_every,
+            resume,
+            log: self.log.as_deref(),
+            tensorboard: self.tensorboard.as_deref(),
+            log_columns: LOG_COLUMNS,
+            verb: "fitting",
+            bars,
+        };
+        let end = train_loop::train(program, params, &settings, &mut objective)?;
+        if end.complete {
+            return Ok(end.already_complete(self.checkpoint.as_deref()));
+        }
+        let terms = objective.terms;
+        let (seconds, ms) = (end.train_seconds, end.ms_per_step());
+        if let Some(path) = &self.summary {
+            let json = serde_json::json!({
+                "data": self.data.display().to_string(),
+                "points": cloud.len(),
+                "frame": {"center": frame.center, "scale": frame.scale, "normalized": self.normalize},
+                "steps": end.done,
+                "resumed_from": end.first,
+                "surface_loss": terms[0],
+                "near_loss": terms[1],
+                "eikonal_loss": terms[2],
+                "seconds": seconds,
+                "ms_per_step": ms,
+                "compile_seconds": compile_s,
+                "params": crate::blocks::train::params_json(program, params),
+            });
+            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+        }
+        end.stopped(self.checkpoint.as_deref())?;
+        Ok(format!(
+            "fitted '{}' to {} points in {} steps, {seconds:.1} s ({ms:.2} ms/step, JIT compile {compile_s:.2} s): \
+             mean |d| on the points {:.5}, near-surface term {:.5}, eikonal term {:.5}\n{}",
+            self.function,
+            cloud.len(),
+            end.trained(),
+            terms[0],
+            terms[1],
+            terms[2],
+            crate::blocks::train::describe_params(program, params)
+        ))
+    }
+
+    /// The frame the fit sees the cloud in: scaled into the unit sphere when the data says
+    /// `normalize: true`, mean-centered otherwise.
+    fn frame_of(&self, input: &[[f32; 3]]) -> Result<PointFrame> {
+        if !self.normalize {
+            return Ok(PointFrame::mean_centered(input));
+        }
+        PointFrame::unit_sphere(input)
+            .map_err(|e| Failure::Message(format!("cannot normalize {}: {e}", self.data.display())))
+    }
+
+    /// The frame the fit sees its cloud in when it is scaled into the unit sphere (`normalize: true`),
+    /// which meshes of the fitted function are mapped back from.
+    pub fn normalized_frame(&self) -> Result<Option<PointFrame>> {
+        if !self.normalize {
+            return Ok(None);
+        }
+        Ok(Some(
+            self.frame_of(&read_points(&self.data, self.key.as_deref())?)?,
+        ))
+    }
+
+    /// Pre-training toward the sphere of `pretrain_radius`: mean (d(y) − (|y| − r))².
+    fn sphere_step(
+        &self,
+        k: &Kernels,
+        params: &[f32],
+        grads: &mut [f32],
+        rng: &mut Rng,
+        threads: usize,
+    ) -> f32 {
+        let m = self.random;
+        let ys = uniform_points(rng, m, self.bound);
+        let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
+        let mut loss = vec![0.0f32; m];
+        k.sphere
+            .eval_parallel(m, &ins, &mut [&mut loss], params, grads, threads);
+        loss.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
+    }
+
+    /// One step of the fit; returns the three loss terms (already weighted).
+    fn fit_step(
+        &self,
+        k: &Kernels,
+        params: &[f32],
+        grads: &mut [f32],
+        cloud: &[[f32; 3]],
+        rng: &mut Rng,
+        threads: usize,
+    ) -> [f32; 3] {
+        // Points on the surface: mean |d|.
+        let nb = self.batch;
+        let mut xs = [
+            Vec::with_capacity(nb),
+            Vec::with_capacity(nb),
+            Vec::with_capacity(nb),
+        ];
+        for _ in 0..nb {
+            let p = cloud[rng.below(cloud.len() as u64) as usize];
+            for (c, v) in xs.iter_mut().zip(p) {
+                c.push(v);
+            }
+        }
+        let ins: Vec<&[f32]> = xs.iter().map(Vec::as_slice).collect();
+        let mut terms = vec![0.0f32; nb];
+        k.surface
+            .eval_parallel(nb, &ins, &mut [&mut terms], params, grads, threads);
+        let surface = terms.iter().map(|&x| f64::from(x)).sum::<f64>();
+
+        // Random points: the near-surface penalty on d and the eikonal term on ∇d.
+        let [near, mut eikonal] = self
+            .regularizers()
+            .add(&k.regularizers, params, grads, rng, threads);
+        // And the eikonal term about the surface (IGR's sampling): the same cloud points, jittered.
+        if let (Some(kernels), Some(reg)) = (&k.jittered, self.jittered()) {
+            for column in &mut xs {
+                for x in column.iter_mut() {
+                    *x += self.eikonal_jitter * rng.normal();
+                }
+            }
+            eikonal += reg.add_at(kernels, &xs, params, grads, threads)[1];
+        }
+        [surface as f32, near, eikonal]
+    }
+
+    /// The eikonal term at the batch's jittered cloud points, when `eikonal_jitter` asks for it.
+    fn jittered(&self) -> Option<Regularizers> {
+        (self.eikonal_jitter > 0.0 && self.eikonal_weight > 0.0).then_some(Regularizers {
+            points: self.batch,
+            near_weight: 0.0,
+            ..self.regularizers()
+        })
+    }
+
+    fn regularizers(&self) -> Regularizers {
+        Regularizers {
+            points: self.random,
+            bound: self.bound,
+            near_weight: self.near_weight,
+            near_sharpness: self.near_sharpness,
+            eikonal_weight: self.eikonal_weight,
+        }
+    }
+}
+
+/// A `train sdf` block's objective: pre-training toward a sphere for the first `pretrain_steps`, then the
+/// fit's three terms; each step's terms are logged and shown on the progress bar.
+struct SdfObjective<'a> {
+    plan: &'a TrainSdfPlan,
+    kernels: &'a Kernels,
+    cloud: &'a [[f32; 3]],
+    rng: Rng,
+    threads: usize,
+    /// The last step's surface, near-surface and eikonal terms.
+    terms: [f32; 3],
+}
+
+impl Objective for SdfObjective<'_> {
+    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+        let (plan, k, threads) = (self.plan, self.kernels, self.threads);
+        let mut grads = vec![0.0f32; params.len()];
+        self.terms = if step < plan.pretrain_steps {
+            let sphere = plan.sphere_step(k, params, &mut grads, &mut self.rng, threads);
+            [sphere, 0.0, 0.0]
+        } else {
+            plan.fit_step(k, params, &mut grads, self.cloud, &mut self.rng, threads)
+        };
+        Ok(Gradient {
+            loss: self.terms.iter().sum(),
+            grads,
+            samples: 0,
+        })
+    }
+
+    fn after_step(&mut self, p: &Progress, _params: &[f32], ui: &mut Ui) -> Result<()> {
+        if !(p.done.is_multiple_of(10) || p.last) {
+            return Ok(());
+        }
+        let terms = self.terms;
+        let mut record = vec![
+            Some(f64::from(p.done)),
+            Some(p.train_seconds),
+            Some(f64::from(p.lr)),
+            Some(f64::from(p.loss)),
+        ];
+        record.extend(terms.map(|t| Some(f64::from(t))));
+        ui.record(&record)?;
+        let pretraining = if p.done <= self.plan.pretrain_steps {
+            " (pre-training)"
+        } else {
+            ""
+        };
+        ui.message(format!(
+            "surface {:.5} near {:.5} eikonal {:.5}{pretraining}",
+            terms[0], terms[1], terms[2]
+        ));
+        Ok(())
+    }
+}
+
+/// A turntable GIF of a point cloud, framing its bounding box.
+fn write_points_gif(path: &std::path::Path, points: &[[f32; 3]]) -> Result<()> {
+    let Some(bounds) = bounding_box(points) else {
+        return Ok(());
+    };
+    let frames = crate::settings::camera::turntable(bounds, nerfjit_runtime::Up::Y)?
+        .iter()
+        .map(|camera| render_points(camera, 256, 256, points, 1.5, [0.9, 0.8, 0.6], [0.1, 0.11, 0.14]))
+        .collect::<nerfjit_runtime::Result<Vec<_>>>()?;
+    crate::frame_files::write_images(path, frames, 50)
+}

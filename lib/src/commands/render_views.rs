@@ -1,0 +1,435 @@
+//! `nerfjit render` and `nerfjit eval-views`: a script's volume field (or a training checkpoint's)
+//! rendered from every camera of a Blender-format camera file, written as PNGs/GIF or scored against the
+//! file's images with PSNR and SSIM.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nerfjit_dsl::config::{Settings, Value};
+use nerfjit_dsl::{Diagnostic, Program};
+use nerfjit_jit::{KernelCache, Precision};
+use nerfjit_runtime::volume::composite::Mode;
+use nerfjit_runtime::{
+    rgb_image, Camera, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Views, VolumeSettings,
+};
+
+use crate::failure::{at, Failure, Result};
+use crate::frame_files::write_images;
+use crate::settings::block::MAX_PIXELS;
+use crate::settings::camera::FrameSize;
+use crate::settings::primitives::triple;
+use crate::settings::values::SkipEmpty;
+use crate::training::validation::{means, score};
+use nerfjit_field::VolumeFields;
+
+/// Where the field comes from and how to render it. Settings not given come from the script's `train`
+/// block (a checkpoint's script included): see [`ViewArgs::resolve`].
+pub struct ViewArgs<'a> {
+    /// A script, or a checkpoint written by `train` (it holds its script).
+    pub source: &'a str,
+    /// Image side in pixels.
+    pub size: u32,
+    /// Start of the sampled interval.
+    pub near: Option<f32>,
+    /// End of the sampled interval.
+    pub far: Option<f32>,
+    /// Samples per ray.
+    pub samples: Option<usize>,
+    /// Background color (the data's alpha is composited on it too).
+    pub background: Option<[f32; 3]>,
+    /// Importance samples per ray (hierarchical sampling with the script's coarse field; 0: none).
+    pub importance: Option<usize>,
+    /// Evaluate every sample even where the script trains with an occupancy grid or early termination.
+    pub exact: bool,
+}
+
+/// How a field is rendered, every setting decided.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rendering {
+    /// Start of the sampled interval.
+    pub near: f32,
+    /// End of the sampled interval.
+    pub far: f32,
+    /// Samples per ray.
+    pub samples: usize,
+    /// Background color.
+    pub background: [f32; 3],
+    /// Importance samples per ray (0: none).
+    pub importance: usize,
+    /// How the samples are spread between near and far.
+    pub spacing: DepthSpacing,
+    /// The occupancy grid the script trains with (rebuilt from the trained field), if any.
+    pub skip_empty: Option<SkipEmpty>,
+    /// Whether that grid is a running one (`grid_update: ema`): rebuilt undilated, as its first state.
+    pub running_grid: bool,
+    /// Transmittance below which a ray stops, as the script trains.
+    pub early_termination: Option<f32>,
+    /// The arithmetic of the networks' products, as the script trains.
+    pub products: Precision,
+}
+
+impl ViewArgs<'_> {
+    /// The settings given, else those `program`'s first `train` block trains with (its `near`, `far`,
+    /// `samples`, `importance`, and `background` or its Blender data's background), else near 2, far 6,
+    /// 128 samples, black, no importance sampling.
+    pub fn resolve(&self, program: &Program) -> Rendering {
+        let script = Rendering::of_script(program);
+        Rendering {
+            near: self.near.unwrap_or(script.near),
+            far: self.far.unwrap_or(script.far),
+            samples: self.samples.unwrap_or(script.samples),
+            background: self.background.unwrap_or(script.background),
+            importance: self.importance.unwrap_or(script.importance),
+            spacing: script.spacing,
+            skip_empty: script.skip_empty.filter(|_| !self.exact),
+            running_grid: script.running_grid,
+            early_termination: script.early_termination.filter(|_| !self.exact),
+            products: script.products,
+        }
+    }
+}
+
+impl Rendering {
+    /// The settings `program`'s first `train` block trains with, else near 2, far 6, 128 samples, black,
+    /// no importance sampling.
+    pub fn of_script(program: &Program) -> Rendering {
+        let trained = TrainedWith::of(program);
+        Rendering {
+            near: trained.near.unwrap_or(2.0),
+            far: trained.far.unwrap_or(6.0),
+            samples: trained.samples.unwrap_or(128),
+            background: trained.background.unwrap_or([0.0; 3]),
+            importance: trained.importance.unwrap_or(0),
+            spacing: trained.spacing.unwrap_or_default(),
+            skip_empty: trained.skip_empty,
+            running_grid: trained.running_grid,
+            early_termination: trained.early_termination,
+            products: trained.products,
+        }
+    }
+}
+
+/// The render settings a script's `train` block gives (those it writes, valid or not checked here: the
+/// block was checked when it trained).
+#[derive(Default)]
+struct TrainedWith {
+    near: Option<f32>,
+    far: Option<f32>,
+    samples: Option<usize>,
+    background: Option<[f32; 3]>,
+    importance: Option<usize>,
+    spacing: Option<DepthSpacing>,
+    skip_empty: Option<SkipEmpty>,
+    running_grid: bool,
+    early_termination: Option<f32>,
+    products: Precision,
+}
+
+impl TrainedWith {
+    fn of(program: &Program) -> TrainedWith {
+        let block = program
+            .blocks()
+            .into_iter()
+            .find(|b| crate::settings::schema::kind_of(b) == Some(crate::settings::schema::Kind::Train));
+        let Some(mut settings) = block.and_then(|b| Settings::new(program, b).ok()) else {
+            return TrainedWith::default();
+        };
+        let mut number = |key: &str| settings.take(key).and_then(|v| v.number().ok());
+        let (near, far) = (number("near"), number("far"));
+        let (samples, importance) = (number("samples"), number("importance"));
+        let early_termination = number("early_termination")
+            .filter(|&t| t > 0.0 && t <= 1.0)
+            .map(|t| t as f32);
+        let count = |x: Option<f64>| x.filter(|n| *n >= 0.0 && n.fract() == 0.0).map(|n| n as usize);
+        let data_background = settings.take("data").and_then(|data| match data.value {
+            Value::Call(_, args) => args
+                .into_iter()
+                .find(|(name, _)| name.as_deref() == Some("background"))
+                .and_then(|(_, v)| triple(&v).ok()),
+            _ => None,
+        });
+        let background = settings.take("background").and_then(|v| triple(&v).ok());
+        let spacing = settings
+            .take("spacing")
+            .and_then(|v| crate::settings::values::depth_spacing(&v).ok());
+        let skip_empty = settings
+            .take("skip_empty")
+            .and_then(|v| crate::settings::values::skip_empty(&v).ok().flatten());
+        let running_grid = crate::settings::values::grid_update(settings.take("grid_update"))
+            .is_ok_and(|u| u != crate::settings::values::GridUpdate::Rebuild);
+        let products = match settings.take("products").map(|v| v.value) {
+            Some(Value::Name(n)) => Precision::named(&n).unwrap_or_default(),
+            _ => Precision::F32,
+        };
+
+        TrainedWith {
+            near: near.map(|x| x as f32),
+            far: far.map(|x| x as f32),
+            samples: count(samples),
+            background: background.or(data_background),
+            importance: count(importance),
+            spacing,
+            skip_empty,
+            running_grid,
+            early_termination,
+            products,
+        }
+    }
+}
+
+impl Rendering {
+    /// The renderer's settings for a field of `mode`.
+    pub fn settings(&self, mode: Mode) -> VolumeSettings {
+        VolumeSettings {
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            mode,
+            background: Some(self.background),
+            early_termination: self.early_termination,
+            spacing: self.spacing,
+        }
+    }
+
+    /// The occupancy grid to render the field of `source` with: the script's `skip_empty` grid as the
+    /// checkpoint `source` keeps it (the grid its run last validated with), else built from the field
+    /// with `params` as training builds it (a running grid as its first state); with hierarchical
+    /// sampling both passes skip its empty cells.
+    pub fn occupancy(
+        &self,
+        source: &str,
+        fields: &VolumeFields,
+        params: &[f32],
+    ) -> Result<Option<OccupancyGrid>> {
+        let Some(s) = self.skip_empty else {
+            return Ok(None);
+        };
+        if is_checkpoint(source) {
+            let saved = crate::checkpoint::saved_occupancy(Path::new(source))?;
+            let same = |g: &OccupancyGrid| {
+                (g.bounds(), g.resolution(), g.space()) == (s.bounds, s.resolution, s.space)
+            };
+            if let Some(grid) = saved.filter(same) {
+                return Ok(Some(grid));
+            }
+        }
+        let mode = fields.fine.mode;
+        let grid = s.space.with_field(&fields.fine.bind_density(params), |density| {
+            if self.running_grid {
+                DensityEma::probe(density, s.bounds, s.resolution)?.grid(mode, s.threshold)
+            } else {
+                OccupancyGrid::build_for_training(density, s.bounds, s.resolution, mode, s.threshold)
+            }
+        })?;
+        Ok(Some(grid.in_space(s.space)))
+    }
+}
+
+/// The held-out views the first `train` block of `program` (from `source`) validates on, loaded as in
+/// training.
+fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)> {
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let plan = crate::blocks::train::TrainPlan::new(crate::settings::block::first_block(
+        program,
+        crate::settings::schema::Kind::Train,
+        folder,
+    )?)?;
+    let (Some(views), Some(described)) = (plan.load_views()?.1, plan.held_out_description()) else {
+        return Err(Failure::Message(format!(
+            "{source}'s train block holds no views out (no 'val' setting): give --cameras FILE"
+        )));
+    };
+    Ok((views, described))
+}
+
+/// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
+pub fn load(source: &str) -> Result<(Program, Vec<f32>)> {
+    if is_checkpoint(source) {
+        crate::checkpoint::load_trained(Path::new(source))
+    } else {
+        let program = crate::script::load(source)?;
+        let params = program.param_values.clone();
+        Ok((program, params))
+    }
+}
+
+/// Whether `source` names a checkpoint (a `.safetensors` or `.json` file) rather than a script.
+pub fn is_checkpoint(source: &str) -> bool {
+    source.ends_with(".safetensors") || source.ends_with(".json")
+}
+
+/// Where `nerfjit render` takes its cameras from.
+pub enum CameraSource<'a> {
+    /// A camera file: Blender or nerfstudio transforms, a nerfstudio `camera_path.json`, a COLMAP model
+    /// folder or the course's `box_cameras.json`.
+    File(&'a Path),
+    /// A camera path written as in a script, e.g. `orbit(radius: 4, frames: 60, up: z, focal: 2)`.
+    Path(&'a str),
+    /// The command's default: for `render`, the first `render` block of the script (a checkpoint's
+    /// script included) that sets a camera.
+    Default,
+}
+
+impl CameraSource<'_> {
+    /// The cameras of a file or a path with the file's frame size if it states one; `None` for the default.
+    pub(crate) fn cameras(&self) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
+        Ok(match self {
+            CameraSource::File(file) => Some(crate::settings::camera::camera_file(file, true)?),
+            CameraSource::Path(text) => Some((path_cameras(text)?, None)),
+            CameraSource::Default => None,
+        })
+    }
+}
+
+/// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
+/// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
+pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
+    let (program, params) = load(args.source)?;
+    let (cameras, frame) = match cameras.cameras()? {
+        Some(found) => found,
+        None => (
+            script_cameras(&program)?.ok_or_else(|| {
+                Failure::Message(format!(
+                    "{} has no render block with a camera: give --cameras FILE or --path 'orbit(radius: 4, frames: 60, up: z, focal: 2)'",
+                    args.source
+                ))
+            })?,
+            None,
+        ),
+    };
+    // --size is the width; the height keeps the aspect ratio of the file's frames.
+    let (n, width) = (cameras.len(), args.size);
+    let height = frame.map_or(width, |(w, h)| {
+        ((f64::from(width) * f64::from(h) / f64::from(w)).round() as u32).clamp(1, 16384)
+    });
+    let pixels = n as u64 * u64::from(width) * u64::from(height);
+    if pixels > MAX_PIXELS {
+        return Err(Failure::Message(format!(
+            "{n} views of {width}×{height} are {pixels} pixels, more than the {MAX_PIXELS} kept in memory at once"
+        )));
+    }
+    let animation = matches!(out.extension().and_then(|e| e.to_str()), Some("gif" | "mp4"));
+    let target: PathBuf = if animation {
+        out.to_path_buf()
+    } else {
+        std::fs::create_dir_all(out)
+            .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", out.display())))?;
+        out.join(if gif { "views.gif" } else { "view.png" })
+    };
+    let rendering = args.resolve(&program);
+    let cache = KernelCache::new();
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
+    let settings = rendering.settings(fields.fine.mode);
+    let grid = rendering.occupancy(args.source, &fields, &params)?;
+    let start = Instant::now();
+    let images = cameras
+        .iter()
+        .map(|camera| {
+            let f = fields.render_with(camera, (width, height), &params, &settings, grid.as_ref())?;
+            Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let seconds = start.elapsed().as_secs_f64();
+    write_images(&target, images, 100)?;
+    let per_view = seconds / n.max(1) as f64;
+    let written = if animation || gif { &target } else { out };
+    Ok(format!(
+        "rendered {n} views of {width}×{height} in {seconds:.2} s ({per_view:.2} s/view; near {}, far {}, {} samples) → {}",
+        rendering.near,
+        rendering.far,
+        rendering.samples,
+        written.display()
+    ))
+}
+
+/// The cameras of a camera path written as in a script (`--path`).
+fn path_cameras(text: &str) -> Result<Vec<Camera>> {
+    let script = format!("render volume {{ camera: {text} }}\n");
+    let program = nerfjit_dsl::compile("--path", &script).map_err(Failure::Script)?;
+    Ok(script_cameras(&program)?.expect("the block sets a camera"))
+}
+
+/// The cameras of the first `render` block of `program` that sets `camera`, if any.
+pub fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
+    for block in program.blocks().into_iter().filter(|b| b.kind.name == "render") {
+        let mut settings = Settings::new(program, block).map_err(|d| at(program, d))?;
+        let Some(v) = settings.take("camera") else {
+            continue;
+        };
+        let made = crate::settings::camera::cameras(&v, Path::new(".")).map_err(|d| at(program, d))?;
+        let cameras = made.map_err(|e| at(program, Diagnostic::new(v.span, e)))?;
+        return Ok(Some(cameras));
+    }
+    Ok(None)
+}
+
+/// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
+pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Result<String> {
+    let (program, params) = load(args.source)?;
+    let rendering = args.resolve(&program);
+    let (views, described) = match cameras {
+        Some(file) => (
+            crate::training::data_source::file_views(file, args.size, rendering.background)?,
+            format!("the views of {}", file.display()),
+        ),
+        None => held_out_views(args.source, &program)?,
+    };
+    let cache = KernelCache::new();
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
+    let start = Instant::now();
+    let grid = rendering.occupancy(args.source, &fields, &params)?;
+    let scores = score(
+        &views,
+        &fields,
+        &params,
+        &rendering.settings(fields.fine.mode),
+        grid.as_ref(),
+    )?;
+    let seconds = start.elapsed().as_secs_f64();
+    let masked = views.masks.is_some();
+    let mut lines = String::from("view  PSNR (dB)  SSIM");
+    lines += if masked { "    masked PSNR (dB)\n" } else { "\n" };
+    let masked_column = |m: Option<f64>| match (masked, m) {
+        (false, _) => String::new(),
+        (true, Some(m)) => format!("  {m:>15.2}"),
+        (true, None) => format!("  {:>15}", "(empty mask)"),
+    };
+    for (i, v) in scores.iter().enumerate() {
+        let column = masked_column(v.masked_psnr.map(f64::from));
+        lines += &format!("{i:>4}  {:>9.2}  {:.4}{column}\n", v.psnr, v.ssim);
+    }
+    let mean = means(&scores);
+    let column = masked_column(mean.masked_psnr);
+    lines += &format!("mean  {:>9.2}  {:.4}{column}\n", mean.psnr, mean.ssim);
+    if let Some(path) = json {
+        let report = serde_json::json!({
+            "source": args.source,
+            "protocol": {
+                "views": described,
+                "count": views.len(),
+                "width": views.width,
+                "height": views.height,
+                "background": rendering.background,
+                "masks": if masked { "PSNR also inside the data's object masks (mask ≥ ½)" } else { "none: whole images" },
+            },
+            "width": views.width,
+            "height": views.height,
+            "near": rendering.near,
+            "far": rendering.far,
+            "samples": rendering.samples,
+            "importance": rendering.importance,
+            "occupancy_grid": grid.is_some(),
+            "early_termination": rendering.early_termination,
+            "background": rendering.background,
+            "views": scores.iter().map(|v| serde_json::json!({
+                "psnr": v.psnr, "ssim": v.ssim, "masked_psnr": v.masked_psnr,
+            })).collect::<Vec<_>>(),
+            "mean_psnr": mean.psnr,
+            "mean_ssim": mean.ssim,
+            "mean_masked_psnr": mean.masked_psnr,
+            "render_seconds": seconds,
+        });
+        crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&report).unwrap_or_default())?;
+    }
+    Ok(lines)
+}

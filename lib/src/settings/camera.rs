@@ -1,0 +1,168 @@
+//! The `camera` setting of blocks: the course's orbit, a general orbit, one look-at camera, or a camera
+//! file (the course's box_cameras.json, Blender transforms, a nerfstudio transforms.json or a COLMAP model).
+
+use std::path::Path;
+
+use glam::{Vec2, Vec3};
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::Diagnostic;
+use nerfjit_runtime::{
+    default_images_folder, dtu_cameras_file, is_camera_path, is_colmap_model, is_llff, is_nerfstudio,
+    load_blender_cameras, load_box_cameras, load_camera_path, load_colmap, load_dtu, load_llff,
+    load_nerfstudio, orbit, surround, Camera, CameraFormat, Up,
+};
+
+use crate::settings::primitives::{triple, CallArgs};
+
+fn up(args: &CallArgs) -> std::result::Result<Up, Diagnostic> {
+    Ok(Up::named(&args.choice("up", &["y", "z"], "y")?).unwrap_or(Up::Y))
+}
+
+/// The cameras a `camera` value describes; a camera file is resolved against `script_dir`. The outer error
+/// points into the script; the inner one is the runtime's (a bad file, a degenerate camera).
+pub fn cameras(
+    v: &Spanned,
+    script_dir: &Path,
+) -> std::result::Result<std::result::Result<Vec<Camera>, String>, Diagnostic> {
+    let Value::Call(name, _) = &v.value else {
+        return Err(Diagnostic::new(v.span, format!("expected a camera path, found {}", v.describe()))
+            .with_hint("write surround(radius: 3, frames: 20, up: z, focal: 1), orbit(...) or cameras(\"file.json\")"));
+    };
+    let result = match name.as_str() {
+        "surround" => {
+            let a = CallArgs::new(v, &["radius", "frames", "up", "focal"])?;
+            let frames = frame_count(&a, 20.0)?;
+            surround(
+                a.number("radius", None)? as f32,
+                frames,
+                up(&a)?,
+                a.number("focal", Some(1.0))? as f32,
+            )
+        }
+        "orbit" => {
+            let a = CallArgs::new(v, &["radius", "elevation", "frames", "up", "focal"])?;
+            orbit(
+                a.number("radius", None)? as f32,
+                a.number("elevation", Some(0.0))? as f32,
+                frame_count(&a, 36.0)?,
+                up(&a)?,
+                a.number("focal", Some(1.0))? as f32,
+            )
+        }
+        "cameras" => {
+            let a = CallArgs::new(v, &["file", "normalize"])?;
+            let file = script_dir.join(a.string("file")?);
+            let normalize = a.choice("normalize", &["true", "false"], "true")? == "true";
+            camera_file(&file, normalize).map(|(cameras, _)| cameras)
+        }
+        "look_at" => {
+            let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
+            let vec3 = |slot: &str, d: [f32; 3]| -> std::result::Result<Vec3, Diagnostic> {
+                Ok(Vec3::from_array(match a.raw(slot) {
+                    Some(s) => triple(s)?,
+                    None => d,
+                }))
+            };
+            let focal = a.number("focal", Some(1.0))? as f32;
+            Camera::look_at(
+                vec3("eye", [0.0, 0.0, -3.0])?,
+                vec3("at", [0.0; 3])?,
+                vec3("up", [0.0, 1.0, 0.0])?,
+                Vec2::splat(focal),
+                Vec2::ZERO,
+            )
+            .map(|c| vec![c])
+        }
+        other => {
+            return Err(Diagnostic::new(v.span, format!("unknown camera path '{other}'"))
+                .with_hint("use surround(...), orbit(...), look_at(...) or cameras(\"file.json\")"))
+        }
+    };
+    Ok(result.map_err(|e| e.to_string()))
+}
+
+/// The (width, height) of a camera file's images.
+pub type FrameSize = (u32, u32);
+
+/// The cameras of a camera file — the course's, Blender's, a nerfstudio `transforms.json` or
+/// `camera_path.json`, a COLMAP model folder or an LLFF scene folder (captures normalized as for training
+/// unless `normalize` is false), or a DTU scan folder (in the scan's frame, as training keeps it) — and
+/// the (width, height) of its images when the file says.
+pub fn camera_file(
+    file: &Path,
+    normalize: bool,
+) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
+    if dtu_cameras_file(file).is_some() {
+        let capture = load_dtu(file, false)?;
+        let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
+        return Ok((capture.cameras(file, 1, None)?, size));
+    }
+    let capture = if is_llff(file) {
+        let scales = nerfjit_runtime::data::llff::image_scales(file);
+        Some(load_llff(file, scales.last().copied().unwrap_or(1))?.capture)
+    } else if is_colmap_model(file) {
+        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
+        Some(load_colmap(file, &images)?)
+    } else {
+        let text = nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default();
+        if is_camera_path(&text) {
+            let path = load_camera_path(file)?;
+            return Ok((path.cameras, Some((path.width, path.height))));
+        } else if is_nerfstudio(&text) {
+            Some(load_nerfstudio(file)?)
+        } else if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
+            return Ok((load_blender_cameras(file)?.cameras, None));
+        } else {
+            None
+        }
+    };
+    match capture {
+        Some(mut capture) => {
+            if normalize {
+                capture.normalize()?;
+            }
+            let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
+            Ok((capture.cameras(file, 1, None)?, size))
+        }
+        None => {
+            let set = load_box_cameras(file)?;
+            Ok((set.cameras, set.image_size))
+        }
+    }
+}
+
+/// The most frames a camera path may have.
+pub const MAX_FRAMES: usize = 10_000;
+
+/// The `frames` argument of a path: a whole number from 1 to [`MAX_FRAMES`].
+fn frame_count(a: &CallArgs, default: f64) -> Result<usize, Diagnostic> {
+    let n = a.number("frames", Some(default))?;
+    if n.fract() == 0.0 && (1.0..=MAX_FRAMES as f64).contains(&n) {
+        Ok(n as usize)
+    } else {
+        Err(Diagnostic::new(a.span(), format!("{n} frames is out of range"))
+            .with_hint(format!("a camera path has 1 to {MAX_FRAMES} frames")))
+    }
+}
+
+/// 36 cameras circling the box `bounds` about the `up` axis, 25° above its center, framing it.
+pub fn turntable(bounds: ([f32; 3], [f32; 3]), up: Up) -> nerfjit_runtime::Result<Vec<Camera>> {
+    let (lo, hi) = (Vec3::from_array(bounds.0), Vec3::from_array(bounds.1));
+    let center = lo.lerp(hi, 0.5);
+    let radius = 0.8 * (hi - lo).length();
+    let elevation = 25f32.to_radians();
+    // Two directions spanning the plane of the circle, right-handed with `up`.
+    let (a, b) = match up {
+        Up::Y => (Vec3::X, Vec3::NEG_Z),
+        Up::Z => (Vec3::X, Vec3::Y),
+    };
+    (0..36)
+        .map(|i| {
+            let phi = std::f32::consts::TAU * i as f32 / 36.0 + std::f32::consts::FRAC_PI_2;
+            let flat = radius * elevation.cos();
+            let eye =
+                center + flat * phi.cos() * a + flat * phi.sin() * b + radius * elevation.sin() * up.vector();
+            Camera::look_at(eye, center, up.vector(), Vec2::splat(1.2), Vec2::ZERO)
+        })
+        .collect()
+}

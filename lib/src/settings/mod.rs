@@ -1,0 +1,8 @@
+//! The settings of blocks: the schema of every setting of every block kind, typed access to one block's
+//! settings, and the parsers of their values (primitives, composite values, cameras).
+
+pub mod block;
+pub mod camera;
+pub mod primitives;
+pub mod schema;
+pub mod values;

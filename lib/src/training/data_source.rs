@@ -1,0 +1,438 @@
+//! The `data` setting of `train`: which images and cameras a radiance field is fitted to, and how
+//! they are loaded.
+//!
+//! - `views("box_cameras.json")`: the course's cameras with `.npy`/PNG images;
+//! - `blender("transforms_train.json", size: 128, background: [0, 0, 0], views: 20)`: NeRF-synthetic
+//!   data, area-downscaled to `size`², alpha composited on the background, the first `views` frames;
+//! - `nerfstudio("transforms.json", downscale: 2, background: [0, 0, 0], views: 20, normalize: true)`:
+//!   a nerfstudio / instant-ngp capture (per-frame intrinsics, distortion, any image size, PNG or JPEG);
+//! - `colmap("sparse/0", images: "images", downscale: 2, ...)`: a COLMAP model (text or binary);
+//! - `llff("fern", downscale: 8, ...)`: an LLFF forward-facing scene (`poses_bounds.npy`, the images of
+//!   `images_8/` or of `images/` divided on load);
+//! - `dtu("scan24", masks: true, ...)`: a DTU scan in the IDR / NeuS layout (`cameras_sphere.npz`,
+//!   `image/` or `images/`, `mask/`), in the frame where the object is inside the unit sphere.
+//!
+//! Captures are moved into nerfjit's frame (z up, centered on what the cameras look at, cameras 4 units
+//! away on average) unless `normalize: false`, the default of `dtu` (its unit sphere is the frame every
+//! surface method works in).
+
+use std::path::{Path, PathBuf};
+
+use nerfjit_dsl::config::{Spanned, Value};
+use nerfjit_dsl::{budget, Diagnostic};
+use nerfjit_runtime::{
+    default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
+    load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
+};
+
+use crate::failure::Result;
+use crate::settings::primitives::{triple, whole, CallArgs};
+
+/// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
+#[derive(Clone, Copy, Debug)]
+pub struct BlenderData {
+    /// Side of the square images after downscaling.
+    pub size: u32,
+    /// The color under transparent pixels.
+    pub background: [f32; 3],
+    /// Only the first this many frames, if given.
+    pub views: Option<usize>,
+}
+
+/// How to load a capture (nerfstudio or COLMAP).
+#[derive(Clone, Copy, Debug)]
+pub struct CaptureData {
+    /// Divide both image sides by this.
+    pub downscale: u32,
+    /// The color under transparent pixels.
+    pub background: [f32; 3],
+    /// Only the first this many frames, if given.
+    pub views: Option<usize>,
+    /// Move the capture into nerfjit's frame.
+    pub normalize: bool,
+}
+
+/// The kinds of data set.
+#[derive(Clone, Debug)]
+pub enum DataKind {
+    /// The course's `box_cameras.json`.
+    Course,
+    /// A Blender / NeRF-synthetic `transforms_*.json`.
+    Blender(BlenderData),
+    /// A nerfstudio / instant-ngp `transforms.json`.
+    Nerfstudio(CaptureData),
+    /// A COLMAP model folder and the folder of its images.
+    Colmap(CaptureData, PathBuf),
+    /// An LLFF scene folder (`poses_bounds.npy`).
+    Llff(CaptureData),
+    /// A DTU scan folder (`cameras_sphere.npz`), and whether its masks are applied.
+    Dtu(CaptureData, bool),
+}
+
+/// A data set: where it is and how to load it.
+#[derive(Clone, Debug)]
+pub struct DataSet {
+    /// The camera file (or, for COLMAP, LLFF and DTU, the model's or the scene's folder).
+    pub path: PathBuf,
+    /// Its kind.
+    pub kind: DataKind,
+}
+
+const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.json\", size: 128), \
+                    nerfstudio(\"transforms.json\"), colmap(\"sparse/0\", images: \"images\"), \
+                    llff(\"scene\", downscale: 8) or dtu(\"scan\", masks: true)";
+
+/// The views of a camera file with its images, to score renders against: a nerfstudio capture, a
+/// COLMAP model folder, an LLFF scene folder or a DTU scan folder (with its masks where it has them)
+/// (every frame, normalized by its own cameras as training and `render --cameras`
+/// normalize it, downscaled by the whole factor nearest to the frames' width ÷ `width`), or Blender
+/// transforms at `width`².
+pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views> {
+    let data = CaptureData {
+        downscale: 1,
+        background,
+        views: None,
+        normalize: true,
+    };
+    let kind = if nerfjit_runtime::is_llff(file) {
+        let downscale = nerfjit_runtime::data::llff::downscale_for_width(file, width)?;
+        let set = DataSet {
+            path: file.to_path_buf(),
+            kind: DataKind::Llff(CaptureData { downscale, ..data }),
+        };
+        return set.views();
+    } else if nerfjit_runtime::dtu_cameras_file(file).is_some() {
+        DataKind::Dtu(
+            CaptureData {
+                normalize: false,
+                ..data
+            },
+            file.join("mask").is_dir(),
+        )
+    } else if nerfjit_runtime::is_colmap_model(file) {
+        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
+        DataKind::Colmap(data, images)
+    } else if nerfjit_runtime::is_nerfstudio(
+        &nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default(),
+    ) {
+        DataKind::Nerfstudio(data)
+    } else {
+        return Ok(load_blender_views(file, Some(width), background, None)?);
+    };
+    let set = DataSet {
+        path: file.to_path_buf(),
+        kind,
+    };
+    let (capture, _) = set.capture()?.expect("a capture's kind");
+    let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
+    let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
+    set.downscaled(downscale).load(false)
+}
+
+/// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
+pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, Diagnostic> {
+    let Value::Call(kind, _) = &v.value else {
+        return Err(
+            Diagnostic::new(v.span, format!("expected a data source, found {}", v.describe()))
+                .with_hint(HINT),
+        );
+    };
+    let kind_name = kind.as_str();
+    let slots: &'static [&'static str] = match kind_name {
+        "views" => &["file"],
+        "blender" => &["file", "size", "background", "views"],
+        "nerfstudio" => &["file", "downscale", "background", "views", "normalize"],
+        "colmap" => &["model", "images", "downscale", "background", "views", "normalize"],
+        "llff" => &["folder", "downscale", "background", "views", "normalize"],
+        "dtu" => &["folder", "masks", "downscale", "background", "views", "normalize"],
+        other => {
+            return Err(Diagnostic::new(v.span, format!("unknown data source '{other}'")).with_hint(HINT));
+        }
+    };
+    let a = CallArgs::new(v, slots)?;
+    let first = match kind_name {
+        "colmap" => "model",
+        "llff" | "dtu" => "folder",
+        _ => "file",
+    };
+    let path = data_path(&a.string(first)?, script_dir);
+    let exists = match kind_name {
+        "colmap" => nerfjit_runtime::is_colmap_model(&path),
+        "llff" => nerfjit_runtime::is_llff(&path),
+        "dtu" => nerfjit_runtime::dtu_cameras_file(&path).is_some(),
+        _ => path.is_file(),
+    };
+    if !exists {
+        let what = match kind_name {
+            "colmap" => format!(
+                "'{}' holds no COLMAP model (cameras.txt or cameras.bin)",
+                path.display()
+            ),
+            "llff" => format!("'{}' holds no LLFF scene (poses_bounds.npy)", path.display()),
+            "dtu" => format!(
+                "'{}' holds no DTU scan (cameras_sphere.npz or cameras.npz)",
+                path.display()
+            ),
+            _ => format!("data file '{}' not found", path.display()),
+        };
+        return Err(Diagnostic::new(v.span, what)
+            .with_hint("paths are relative to the working folder or to the script"));
+    }
+    let background = || -> std::result::Result<[f32; 3], Diagnostic> {
+        a.raw("background")
+            .map(triple)
+            .transpose()
+            .map(|b| b.unwrap_or([0.0; 3]))
+    };
+    let views = || -> std::result::Result<Option<usize>, Diagnostic> {
+        a.raw("views")
+            .map(|n| whole(n, 1, 100_000).map(|n| n as usize))
+            .transpose()
+    };
+    let capture = |normalize: &'static str| -> std::result::Result<CaptureData, Diagnostic> {
+        Ok(CaptureData {
+            downscale: a
+                .raw("downscale")
+                .map(|n| whole(n, 1, 64))
+                .transpose()?
+                .unwrap_or(1) as u32,
+            background: background()?,
+            views: views()?,
+            normalize: a.choice("normalize", &["true", "false"], normalize)? == "true",
+        })
+    };
+    let kind = match kind_name {
+        "views" => DataKind::Course,
+        "blender" => {
+            let size = a.number("size", Some(128.0))?;
+            if !(1.0..=4096.0).contains(&size) || size.fract() != 0.0 {
+                return Err(Diagnostic::new(v.span, "'size' is a whole number from 1 to 4096"));
+            }
+            DataKind::Blender(BlenderData {
+                size: size as u32,
+                background: background()?,
+                views: views()?,
+            })
+        }
+        "nerfstudio" => DataKind::Nerfstudio(capture("true")?),
+        "llff" => DataKind::Llff(capture("true")?),
+        "dtu" => DataKind::Dtu(
+            capture("false")?,
+            a.choice("masks", &["true", "false"], "false")? == "true",
+        ),
+        _ => {
+            let images = match a.raw("images") {
+                Some(_) => data_path(&a.string("images")?, script_dir),
+                None => default_images_folder(&path).ok_or_else(|| {
+                    Diagnostic::new(
+                        v.span,
+                        format!("no 'images' folder beside the model '{}'", path.display()),
+                    )
+                    .with_hint("name it: colmap(\"sparse/0\", images: \"path/to/images\")")
+                })?,
+            };
+            if !images.is_dir() {
+                let span = a.raw("images").map_or(v.span, |i| i.span);
+                return Err(Diagnostic::new(
+                    span,
+                    format!("image folder '{}' not found", images.display()),
+                ));
+            }
+            DataKind::Colmap(capture("true")?, images)
+        }
+    };
+    Ok(DataSet { path, kind })
+}
+
+/// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
+/// script's folder.
+pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
+    let direct = PathBuf::from(written);
+    if direct.exists() || direct.is_absolute() {
+        direct
+    } else {
+        let beside = script_dir.join(written);
+        if beside.exists() {
+            beside
+        } else {
+            direct
+        }
+    }
+}
+
+impl DataSet {
+    /// Whether the data set is a Blender one (which validation views require).
+    pub fn blender(&self) -> Option<BlenderData> {
+        match self.kind {
+            DataKind::Blender(b) => Some(b),
+            _ => None,
+        }
+    }
+
+    /// The capture of a nerfstudio, COLMAP, LLFF or DTU data set, normalized when asked, and how to
+    /// load it.
+    fn capture(&self) -> Result<Option<(Capture, CaptureData)>> {
+        let (mut capture, data) = match &self.kind {
+            DataKind::Nerfstudio(data) => (load_nerfstudio(&self.path)?, *data),
+            DataKind::Colmap(data, images) => {
+                let capture = load_colmap(&self.path, images)?;
+                // mip-NeRF 360's layout: `images_4/` beside `images/` holds them divided by 4.
+                let smaller = images.with_file_name(format!("images_{}", data.downscale));
+                if data.downscale > 1 && images.file_name().is_some_and(|n| n == "images") && smaller.is_dir()
+                {
+                    let data = CaptureData {
+                        downscale: 1,
+                        ..*data
+                    };
+                    (capture.with_images_in(&smaller)?, data)
+                } else {
+                    (capture, *data)
+                }
+            }
+            DataKind::Llff(data) => {
+                let scene = load_llff(&self.path, data.downscale)?;
+                let data = CaptureData {
+                    downscale: scene.remaining_downscale,
+                    ..*data
+                };
+                (scene.capture, data)
+            }
+            DataKind::Dtu(data, masks) => (load_dtu(&self.path, *masks)?, *data),
+            _ => return Ok(None),
+        };
+        if data.normalize {
+            capture.normalize()?;
+        }
+        Ok(Some((capture, data)))
+    }
+
+    /// The same capture read at `downscale` (other data sets unchanged).
+    fn downscaled(&self, downscale: u32) -> DataSet {
+        let mut set = self.clone();
+        match &mut set.kind {
+            DataKind::Course | DataKind::Blender(_) => {}
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.downscale = downscale
+            }
+        }
+        set
+    }
+
+    /// The same data set composited on `background`.
+    pub fn on_background(&self, background: [f32; 3]) -> DataSet {
+        let mut set = self.clone();
+        match &mut set.kind {
+            DataKind::Course => {}
+            DataKind::Blender(b) => b.background = background,
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.background = background
+            }
+        }
+        set
+    }
+
+    /// The background the data set's images are composited on (black for the course's views).
+    pub fn background(&self) -> [f32; 3] {
+        match &self.kind {
+            DataKind::Course => [0.0; 3],
+            DataKind::Blender(b) => b.background,
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                c.background
+            }
+        }
+    }
+
+    /// Whether the data set's alpha comes from object masks (a DTU scan read with its masks), inside
+    /// which its held-out views are also scored.
+    pub fn has_masks(&self) -> bool {
+        matches!(self.kind, DataKind::Dtu(_, true))
+    }
+
+    /// The views as training and scoring read them: premultiplied with their alpha when `with_alpha`
+    /// (composited on the data's background otherwise), with the data's object masks when it has them.
+    pub fn load(&self, with_alpha: bool) -> Result<Views> {
+        if !(with_alpha || self.has_masks()) {
+            return self.views();
+        }
+        let mut views = self.views_with_alpha()?;
+        if self.has_masks() {
+            views = views.masked_by_alpha();
+        }
+        Ok(if with_alpha {
+            views
+        } else {
+            views.on_background(self.background())
+        })
+    }
+
+    /// Loads the training views premultiplied, with their alpha (see [`Views::with_alpha`]), having
+    /// checked that both loads fit in the memory limit.
+    pub fn views_with_alpha(&self) -> Result<Views> {
+        let black = self.on_background([0.0; 3]).views()?;
+        let white = self.on_background([1.0; 3]).views()?;
+        Ok(Views::with_alpha(black, white)?)
+    }
+
+    /// Loads the training views, having checked that they fit in the memory limit.
+    pub fn views(&self) -> Result<Views> {
+        if let Some((capture, data)) = self.capture()? {
+            return self.capture_views(&capture, &data);
+        }
+        Ok(match self.kind {
+            DataKind::Blender(b) => {
+                let frames = load_blender_cameras(&self.path)?.images.len();
+                self.check_memory(b.views.unwrap_or(frames).min(frames), b.size, b.size)?;
+                load_blender_views(&self.path, Some(b.size), b.background, b.views)?
+            }
+            _ => {
+                let cameras = load_box_cameras(&self.path)?;
+                if let Some((width, height)) = cameras.image_size {
+                    self.check_memory(cameras.images.len(), width, height)?;
+                }
+                load_box_views(&self.path)?
+            }
+        })
+    }
+
+    /// The views of `capture` (this data set's, loaded) as `data` asks, having checked that they fit in
+    /// the memory limit.
+    fn capture_views(&self, capture: &Capture, data: &CaptureData) -> Result<Views> {
+        let (n, width, height) = capture.view_sizes(&self.path, data.downscale, data.views)?;
+        self.check_memory(n, width, height)?;
+        let request = CaptureRequest {
+            downscale: data.downscale,
+            background: data.background,
+            limit: data.views,
+        };
+        Ok(capture.views(&self.path, request)?)
+    }
+
+    /// Checks that `n` decoded views of `width`×`height` (RGB, f32) fit in the memory limit.
+    fn check_memory(&self, n: usize, width: u32, height: u32) -> Result<()> {
+        let pixels = n as u64 * u64::from(width) * u64::from(height);
+        let views = if n == 1 { "view" } else { "views" };
+        let what = || format!("{n} {views} of {width}×{height} from '{}'", self.path.display());
+        Ok(budget::check(what, budget::bytes_of(pixels, 12))?)
+    }
+
+    /// The sparse points of a COLMAP model (its `points3D`), moved as its cameras are; none for other
+    /// data.
+    pub fn sparse_points(&self) -> Result<Vec<[f32; 3]>> {
+        let points = match self.capture()? {
+            Some((capture, _)) => capture.points.iter().map(|p| p.to_array()).collect(),
+            None => Vec::new(),
+        };
+        Ok(points)
+    }
+
+    /// The cameras of the training views, without their images.
+    pub fn cameras(&self) -> Result<Vec<Camera>> {
+        if let Some((capture, data)) = self.capture()? {
+            return Ok(capture.cameras(&self.path, data.downscale, data.views)?);
+        }
+        Ok(match self.kind {
+            DataKind::Blender(_) => load_blender_cameras(&self.path)?.cameras,
+            _ => load_box_cameras(&self.path)?.cameras,
+        })
+    }
+}

@@ -1,0 +1,540 @@
+//! The one training loop of `train` (volume rendering) and `train sdf` (point clouds): where to start
+//! (a checkpoint or step 0), Adam steps on a learning-rate schedule, the guard against divergence, the
+//! checkpoint every so many steps and at the end, the training-time limit, Ctrl-C, the progress bar and
+//! the metrics log. What is trained is an [`Objective`]: it gives each step's loss and param gradient, and
+//! its hooks do the rest of a block's work (an occupancy grid before a step; validation, previews, log
+//! records and a live viewer after it).
+//!
+//! Per step k from the first (0, or the checkpoint's step when resuming) to `steps`:
+//! 1. [`Objective::before_step`], then [`Objective::gradient`] at the params;
+//! 2. a non-finite loss or gradient stops the run with [`crate::checkpoint::diverged`] (the checkpoint on
+//!    disk is the last good one: it is only ever written after a finite step);
+//! 3. Adam at the schedule's rate for step k; should a param become non-finite all the same, the params of
+//!    before the step are restored and the run stops;
+//! 4. [`Objective::after_step`] with the [`Progress`]; the checkpoint when due; the run ends after the last
+//!    step, once the steps (hooks excluded) have taken the time limit, or when Ctrl-C asked it to.
+
+use std::path::Path;
+use std::time::Instant;
+
+use nerfjit_dsl::Program;
+use nerfjit_jit::profile::{self, Phase};
+use nerfjit_runtime::Schedule;
+
+use crate::failure::{Failure, Result};
+use crate::interrupt::Watch;
+use crate::observe::{BarKind, ProgressBar, ProgressBars};
+use crate::settings::values::AdamSettings;
+use crate::training::metrics_log::RunLog;
+
+/// How a block trains, whatever it trains.
+pub struct LoopSettings<'a> {
+    /// The step the run ends after (pre-training steps included).
+    pub steps: u32,
+    /// Adam's learning rate by step.
+    pub schedule: &'a Schedule,
+    /// Adam's decay rates and ε.
+    pub optimizer: AdamSettings,
+    /// Stop once the steps alone have taken this many seconds.
+    pub time_limit: Option<f64>,
+    /// Where the checkpoint is written (atomically), and read from when resuming.
+    pub checkpoint: Option<&'a Path>,
+    /// Steps between checkpoints (the last step always writes one).
+    pub checkpoint_every: u32,
+    /// Continue from the checkpoint when there is one.
+    pub resume: bool,
+    /// The metrics log (JSON Lines, or CSV).
+    pub log: Option<&'a Path>,
+    /// A TensorBoard folder the metrics also go to.
+    pub tensorboard: Option<&'a Path>,
+    /// The columns of the metrics log, the step first.
+    pub log_columns: &'static [&'static str],
+    /// What the progress bar says the run is doing ("training", "fitting").
+    pub verb: &'a str,
+    /// Where the progress bar is drawn.
+    pub bars: &'a dyn ProgressBars,
+}
+
+/// One step's loss and the gradient of the params.
+pub struct Gradient {
+    /// The loss (all terms).
+    pub loss: f32,
+    /// ∂loss/∂params, one per param value.
+    pub grads: Vec<f32>,
+    /// Field samples the step evaluated (0 where the objective does not count them).
+    pub samples: usize,
+}
+
+/// Where a run is, as hooks see it after a step.
+#[derive(Clone, Copy, Debug)]
+pub struct Progress {
+    /// Steps done, the one just taken included.
+    pub done: u32,
+    /// The step the run started at (the checkpoint's when resuming).
+    pub first: u32,
+    /// The step the run ends after.
+    pub steps: u32,
+    /// Seconds taken by the steps of this run (hooks excluded).
+    pub train_seconds: f64,
+    /// Seconds since the loop started (hooks included).
+    pub wall_seconds: f64,
+    /// The learning rate of the step just taken.
+    pub lr: f32,
+    /// The step's loss.
+    pub loss: f32,
+    /// Whether this is the run's last step (the steps are done, the time is up, or Ctrl-C was pressed).
+    pub last: bool,
+    /// Whether Ctrl-C (or SIGTERM) asked the run to stop.
+    pub interrupted: bool,
+}
+
+/// What hooks may use of the loop: its progress bar, its metrics log and its signal watch.
+pub struct Ui {
+    bar: Box<dyn ProgressBar>,
+    log: RunLog,
+    watch: Watch,
+}
+
+impl Ui {
+    /// Prints a line above the progress bar (or to standard error when there is no terminal).
+    pub fn report(&self, line: String) {
+        self.bar.println(line);
+    }
+
+    /// Sets the progress bar's message.
+    pub fn message(&self, message: String) {
+        self.bar.set_message(message);
+    }
+
+    /// Writes one record to the metrics log: a value (or nothing) per column, the step first.
+    pub fn record(&mut self, values: &[Option<f64>]) -> Result<()> {
+        self.log.record(values)
+    }
+
+    /// The run's claim on Ctrl-C (a live viewer's pause ends when it is pressed).
+    pub fn watch(&self) -> &Watch {
+        &self.watch
+    }
+}
+
+/// What a training loop trains.
+pub trait Objective {
+    /// Called once before the first step, `first` being the step the run starts at.
+    fn start(&mut self, _first: u32, _params: &[f32], _ui: &Ui) -> Result<()> {
+        Ok(())
+    }
+
+    /// Work before step `step` that belongs to the step's time (e.g. updating an occupancy grid).
+    fn before_step(&mut self, _step: u32, _params: &[f32], _ui: &Ui) -> Result<()> {
+        Ok(())
+    }
+
+    /// The loss of step `step` at `params` and its gradient.
+    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient>;
+
+    /// Takes back a step's gradient buffer once the params are updated (to reuse it).
+    fn recycle(&mut self, _grads: Vec<f32>) {}
+
+    /// Work after each step, outside the training time: log records, validation, previews, viewers.
+    fn after_step(&mut self, progress: &Progress, params: &[f32], ui: &mut Ui) -> Result<()>;
+
+    /// The occupancy grid the objective renders with now (validation included), kept in checkpoints.
+    fn occupancy(&self) -> Option<&nerfjit_runtime::OccupancyGrid> {
+        None
+    }
+}
+
+/// How a run ended.
+#[derive(Clone, Copy, Debug)]
+pub struct Finished {
+    /// The step the run started at.
+    pub first: u32,
+    /// Steps done (the checkpoint holds the params after this many).
+    pub done: u32,
+    /// The last step's loss (NaN if no step was taken).
+    pub loss: f32,
+    /// Seconds taken by the steps of this run.
+    pub train_seconds: f64,
+    /// Seconds since the loop started.
+    pub wall_seconds: f64,
+    /// Samples evaluated by the steps of this run.
+    pub samples: usize,
+    /// Whether Ctrl-C (or SIGTERM) stopped the run.
+    pub interrupted: bool,
+    /// Whether the resumed checkpoint already held every step: nothing was trained, logged or written.
+    pub complete: bool,
+}
+
+impl Finished {
+    /// The message of a run that was already complete (see [`Finished::complete`]), whose results —
+    /// checkpoint, log, summary — are kept as they were.
+    pub fn already_complete(&self, checkpoint: Option<&Path>) -> String {
+        let at = checkpoint.map_or(String::new(), |p| format!(": '{}'", p.display()));
+        format!(
+            "the run is already complete{at} holds all {} steps; nothing trained, its results are kept \
+             (raise 'steps' to train further, or train without --resume to start again)",
+            self.done
+        )
+    }
+
+    /// Steps taken by this run.
+    pub fn trained(&self) -> u32 {
+        self.done - self.first
+    }
+
+    /// Milliseconds a step of this run took on average (0 without steps).
+    pub fn ms_per_step(&self) -> f64 {
+        match self.trained() {
+            0 => 0.0,
+            n => 1e3 * self.train_seconds / f64::from(n),
+        }
+    }
+
+    /// Samples evaluated a second of training (0 without training time).
+    pub fn samples_per_s(&self) -> f64 {
+        if self.train_seconds > 0.0 {
+            self.samples as f64 / self.train_seconds
+        } else {
+            0.0
+        }
+    }
+
+    /// The run's outcome once its summary is written: the error of a run that Ctrl-C stopped (saying where
+    /// its checkpoint is), or nothing.
+    pub fn stopped(&self, checkpoint: Option<&Path>) -> Result<()> {
+        if self.interrupted {
+            return Err(crate::interrupt::stopped(self.done, checkpoint));
+        }
+        Ok(())
+    }
+}
+
+/// Trains `params` of `program` in place by `objective` (see the module docs).
+pub fn train(
+    program: &Program,
+    params: &mut Vec<f32>,
+    settings: &LoopSettings,
+    objective: &mut dyn Objective,
+) -> Result<Finished> {
+    let schedule = settings.schedule;
+    let (mut adam, first) = crate::checkpoint::resume_or_start(
+        program,
+        settings.checkpoint,
+        settings.resume,
+        params,
+        settings.optimizer,
+        |k| schedule.lr(k),
+    )?;
+    let mut finished = Finished {
+        first,
+        done: first,
+        loss: f32::NAN,
+        train_seconds: 0.0,
+        wall_seconds: 0.0,
+        samples: 0,
+        interrupted: false,
+        complete: first >= settings.steps,
+    };
+    if finished.complete {
+        return Ok(finished);
+    }
+    let log = RunLog::open(
+        settings.log,
+        settings.tensorboard,
+        settings.log_columns,
+        first > 0,
+    )?;
+    let mut ui = Ui {
+        bar: settings
+            .bars
+            .bar(u64::from(settings.steps), BarKind::Steps(settings.verb)),
+        log,
+        watch: Watch::start(),
+    };
+    ui.bar.set_position(u64::from(first));
+    let start = Instant::now();
+    objective.start(first, params, &ui)?;
+    // The params before a step, to restore if the step makes one non-finite (kept between steps).
+    let mut before = Vec::with_capacity(params.len());
+    for step in first..settings.steps {
+        let step_start = Instant::now();
+        objective.before_step(step, params, &ui)?;
+        let Gradient { loss, grads, samples } = objective.gradient(step, params)?;
+        if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
+            ui.bar.abandon();
+            return Err(crate::checkpoint::diverged(
+                program,
+                step,
+                loss,
+                &grads,
+                settings.checkpoint,
+            ));
+        }
+        adam.lr = schedule.lr(step);
+        before.clear();
+        before.extend_from_slice(params);
+        let update = Instant::now();
+        adam.step(params, &grads)?;
+        profile::record(Phase::Optimizer, update.elapsed());
+        if params.iter().any(|p| !p.is_finite()) {
+            params.copy_from_slice(&before);
+            ui.bar.abandon();
+            return Err(Failure::Message(format!(
+                "training diverged at step {step}: a param became non-finite"
+            )));
+        }
+        objective.recycle(grads);
+        let step_time = step_start.elapsed();
+        profile::record(Phase::Steps, step_time);
+        finished.train_seconds += step_time.as_secs_f64();
+        finished.samples += samples;
+        finished.loss = loss;
+        finished.done = step + 1;
+        let out_of_time = settings
+            .time_limit
+            .is_some_and(|limit| finished.train_seconds >= limit);
+        finished.interrupted = ui.watch.requested();
+        let progress = Progress {
+            done: finished.done,
+            first,
+            steps: settings.steps,
+            train_seconds: finished.train_seconds,
+            wall_seconds: start.elapsed().as_secs_f64(),
+            lr: adam.lr,
+            loss,
+            last: finished.done == settings.steps || out_of_time || finished.interrupted,
+            interrupted: finished.interrupted,
+        };
+        objective.after_step(&progress, params, &mut ui)?;
+        ui.bar.set_position(u64::from(finished.done));
+        if let Some(path) = settings.checkpoint {
+            if finished.done.is_multiple_of(settings.checkpoint_every) || progress.last {
+                crate::checkpoint::write(path, program, finished.done, params, &adam, objective.occupancy())?;
+            }
+        }
+        if finished.interrupted {
+            break;
+        }
+        if out_of_time {
+            ui.report(format!(
+                "stopped at step {}: the time limit of {:.1} minutes is reached",
+                finished.done,
+                finished.train_seconds / 60.0
+            ));
+            break;
+        }
+    }
+    ui.bar.finish_and_clear();
+    finished.wall_seconds = start.elapsed().as_secs_f64();
+    Ok(finished)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A program of one param, `p: vec3`.
+    fn program() -> Program {
+        nerfjit_dsl::compile_with("loop.sdf", "param p: vec3 = [0, 0, 0]\n", &[]).expect("a valid script")
+    }
+
+    /// Pulls the params toward `target`: loss Σ (p − target)²; the gradient of step `poison` is NaN.
+    struct Quadratic {
+        target: [f32; 3],
+        poison: Option<u32>,
+        started_at: Option<u32>,
+        seen: Vec<Progress>,
+    }
+
+    impl Quadratic {
+        fn new(poison: Option<u32>) -> Quadratic {
+            Quadratic {
+                target: [1.0, -2.0, 0.5],
+                poison,
+                started_at: None,
+                seen: Vec::new(),
+            }
+        }
+    }
+
+    impl Objective for Quadratic {
+        fn start(&mut self, first: u32, _params: &[f32], _ui: &Ui) -> Result<()> {
+            self.started_at = Some(first);
+            Ok(())
+        }
+
+        fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+            let diff: Vec<f32> = params.iter().zip(self.target).map(|(p, t)| p - t).collect();
+            let mut grads: Vec<f32> = diff.iter().map(|d| 2.0 * d).collect();
+            if self.poison == Some(step) {
+                grads[1] = f32::NAN;
+            }
+            Ok(Gradient {
+                loss: diff.iter().map(|d| d * d).sum(),
+                grads,
+                samples: 3,
+            })
+        }
+
+        fn after_step(&mut self, progress: &Progress, _params: &[f32], _ui: &mut Ui) -> Result<()> {
+            self.seen.push(*progress);
+            Ok(())
+        }
+    }
+
+    fn settings<'a>(steps: u32, schedule: &'a Schedule, checkpoint: Option<&'a Path>) -> LoopSettings<'a> {
+        LoopSettings {
+            steps,
+            schedule,
+            optimizer: AdamSettings::default(),
+            time_limit: None,
+            checkpoint,
+            checkpoint_every: 5,
+            resume: true,
+            log: None,
+            tensorboard: None,
+            log_columns: &["step"],
+            verb: "testing",
+            bars: &crate::observe::NoBars,
+        }
+    }
+
+    fn temp(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("nerfjit-loop-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join("run.ckpt")
+    }
+
+    #[test]
+    fn the_loop_minimizes_and_calls_its_hooks_once_a_step() {
+        let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
+        let mut params = program.param_values.clone();
+        let mut objective = Quadratic::new(None);
+        let end = train(
+            &program,
+            &mut params,
+            &settings(400, &schedule, None),
+            &mut objective,
+        )
+        .unwrap();
+        assert_eq!(
+            (end.first, end.done, end.trained(), end.samples),
+            (0, 400, 400, 1200)
+        );
+        assert!(!end.interrupted);
+        assert_eq!(objective.started_at, Some(0));
+        for (p, t) in params.iter().zip(objective.target) {
+            assert!((p - t).abs() < 1e-2, "{params:?}");
+        }
+        let steps: Vec<u32> = objective.seen.iter().map(|p| p.done).collect();
+        assert_eq!(steps, (1..=400).collect::<Vec<_>>());
+        let lasts: Vec<bool> = objective.seen.iter().map(|p| p.last).collect();
+        assert_eq!(lasts.iter().filter(|&&l| l).count(), 1);
+        assert!(lasts[399]);
+        assert!(objective
+            .seen
+            .iter()
+            .all(|p| p.lr == 0.05 && p.first == 0 && p.steps == 400));
+    }
+
+    #[test]
+    fn a_resumed_run_starts_at_the_checkpoint_and_a_finished_one_takes_no_step() {
+        let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
+        let path = temp("resume");
+        let mut params = program.param_values.clone();
+        let mut first = Quadratic::new(None);
+        train(
+            &program,
+            &mut params,
+            &settings(12, &schedule, Some(&path)),
+            &mut first,
+        )
+        .unwrap();
+        // A fresh run with the same settings resumes from step 12 and ends where one run of 20 steps ends.
+        let mut resumed_params = program.param_values.clone();
+        let mut second = Quadratic::new(None);
+        let end = train(
+            &program,
+            &mut resumed_params,
+            &settings(20, &schedule, Some(&path)),
+            &mut second,
+        )
+        .unwrap();
+        assert_eq!(
+            (second.started_at, end.first, end.done, end.trained()),
+            (Some(12), 12, 20, 8)
+        );
+        let mut straight = program.param_values.clone();
+        train(
+            &program,
+            &mut straight,
+            &settings(20, &schedule, None),
+            &mut Quadratic::new(None),
+        )
+        .unwrap();
+        assert_eq!(resumed_params, straight);
+        let mut again = program.param_values.clone();
+        let end = train(
+            &program,
+            &mut again,
+            &settings(20, &schedule, Some(&path)),
+            &mut Quadratic::new(None),
+        )
+        .unwrap();
+        assert_eq!((end.trained(), end.loss.is_nan(), end.complete), (0, true, true));
+        assert_eq!(again, straight);
+        assert!(end.already_complete(Some(&path)).starts_with(&format!(
+            "the run is already complete: '{}' holds all 20 steps",
+            path.display()
+        )));
+        std::fs::remove_dir_all(path.parent().unwrap()).unwrap();
+    }
+
+    #[test]
+    fn a_non_finite_gradient_stops_the_run_and_keeps_the_last_good_checkpoint() {
+        let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
+        let path = temp("diverge");
+        let mut params = program.param_values.clone();
+        let error = train(
+            &program,
+            &mut params,
+            &settings(20, &schedule, Some(&path)),
+            &mut Quadratic::new(Some(7)),
+        )
+        .expect_err("the NaN gradient stops the run")
+        .to_string();
+        assert!(error.contains("training diverged at step 7"), "{error}");
+        assert!(
+            error.contains("'p' (1 of 3 elements, the first 1 = NaN)"),
+            "{error}"
+        );
+        assert!(error.contains("last good checkpoint is kept"), "{error}");
+        // The checkpoint holds step 5's params: resuming continues from there.
+        let mut resumed = program.param_values.clone();
+        let mut objective = Quadratic::new(None);
+        let end = train(
+            &program,
+            &mut resumed,
+            &settings(6, &schedule, Some(&path)),
+            &mut objective,
+        )
+        .unwrap();
+        assert_eq!((end.first, end.trained()), (5, 1));
+        std::fs::remove_dir_all(path.parent().unwrap()).unwrap();
+    }
+
+    #[test]
+    fn the_time_limit_ends_the_run_after_the_step_that_reaches_it() {
+        let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
+        let mut params = program.param_values.clone();
+        let mut objective = Quadratic::new(None);
+        let limited = LoopSettings {
+            time_limit: Some(0.0),
+            ..settings(100, &schedule, None)
+        };
+        let end = train(&program, &mut params, &limited, &mut objective).unwrap();
+        assert_eq!(end.done, 1);
+        assert!(objective.seen[0].last && !objective.seen[0].interrupted);
+        assert!(end.stopped(None).is_ok());
+    }
+}

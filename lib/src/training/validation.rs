@@ -1,0 +1,78 @@
+//! Validation: rendering held-out views and scoring them against their images (PSNR, SSIM, PSNR inside
+//! their masks), as `train` validates and `nerfjit eval-views` scores a checkpoint.
+
+use nerfjit_runtime::{psnr, ssim, ImageF32, OccupancyGrid, Views, VolumeSettings};
+
+use crate::failure::Result;
+use nerfjit_field::VolumeFields;
+
+/// One view's scores against its image.
+#[derive(Clone, Copy, Debug)]
+pub struct ViewScore {
+    /// PSNR over the whole image, in dB.
+    pub psnr: f32,
+    /// SSIM over the whole image.
+    pub ssim: f32,
+    /// PSNR inside the view's object mask, when the views have masks (DTU's protocol).
+    pub masked_psnr: Option<f32>,
+}
+
+/// The mean of every view's scores.
+#[derive(Clone, Copy, Debug)]
+pub struct MeanScores {
+    /// Mean PSNR in dB.
+    pub psnr: f64,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean PSNR inside the masks, over the views whose mask holds pixels.
+    pub masked_psnr: Option<f64>,
+}
+
+/// Renders every view of `views` with `settings` (and `grid`, the occupancy grid to skip empty space
+/// with) and scores it against its image: PSNR, SSIM, and PSNR inside its mask when the views have masks.
+pub fn score(
+    views: &Views,
+    fields: &VolumeFields,
+    params: &[f32],
+    settings: &VolumeSettings,
+    grid: Option<&OccupancyGrid>,
+) -> Result<Vec<ViewScore>> {
+    views
+        .cameras
+        .iter()
+        .zip(&views.images)
+        .enumerate()
+        .map(|(i, (camera, target))| {
+            let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
+            let rendered = ImageF32 {
+                width: f.width,
+                height: f.height,
+                pixels: f.rgb,
+            };
+            let mse = nerfjit_runtime::mse(&rendered, target)?;
+            let mask = views.masks.as_ref().and_then(|m| m.get(i));
+            let masked_mse = match mask {
+                Some(mask) => nerfjit_runtime::masked_mse(&rendered, target, mask)?,
+                None => None,
+            };
+            Ok(ViewScore {
+                psnr: psnr(mse),
+                ssim: ssim(&rendered, target)?,
+                masked_psnr: masked_mse.map(psnr),
+            })
+        })
+        .collect()
+}
+
+/// The mean of `scores`.
+pub fn means(scores: &[ViewScore]) -> MeanScores {
+    let mean = |values: Vec<f32>| {
+        let n = values.len();
+        (n > 0).then(|| values.iter().map(|&v| f64::from(v)).sum::<f64>() / n as f64)
+    };
+    MeanScores {
+        psnr: mean(scores.iter().map(|s| s.psnr).collect()).unwrap_or(0.0),
+        ssim: mean(scores.iter().map(|s| s.ssim).collect()).unwrap_or(0.0),
+        masked_psnr: mean(scores.iter().filter_map(|s| s.masked_psnr).collect()),
+    }
+}
