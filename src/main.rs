@@ -7,7 +7,7 @@ use std::sync::Arc;
 use clap::{CommandFactory, Parser, Subcommand};
 use nerfjit::blocks::mesh;
 use nerfjit::commands::{
-    check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, transmittance,
+    check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, sweep, transmittance,
 };
 use nerfjit::observe::TrainingObserver;
 use nerfjit::settings::schema;
@@ -60,6 +60,19 @@ enum Command {
         /// With --view: the port (0: any free one).
         #[arg(long, default_value_t = 7007, requires = "view")]
         port: u16,
+    },
+    /// Run a script once for every combination of values of its consts and block settings (a grid search),
+    /// each run in its own folder; writes a table of every run's final metrics (sweep.json, sweep.md).
+    Sweep {
+        /// The script (a path, or the name of a shipped example).
+        script: String,
+        /// A const or block setting and its values, as `--set` names them: `beta=[0.01, 0.05]`,
+        /// `train.lr=[1e-3, 1e-2]` (one value without brackets sets it in every run); repeatable.
+        #[arg(long = "set", value_name = "NAME=[VALUE, ...]", required = true, value_parser = sweep::parse_axis)]
+        set: Vec<sweep::Axis>,
+        /// The folder of the runs (run_000/, run_001/, ...) and the table.
+        #[arg(long, default_value = "sweep")]
+        out: PathBuf,
     },
     /// Transmittance through a piecewise-constant medium along a ray.
     Transmittance {
@@ -464,6 +477,9 @@ fn run_command(cli: Cli) -> ExitCode {
                 port,
             });
             run_script(&script, &set, out.as_deref(), resume, view.as_ref())
+        }
+        Command::Sweep { script, set, out } => {
+            sweep::sweep(&script, &set, &out, &TerminalBars).map(|table| emit(&format!("\n{table}")))
         }
         Command::Transmittance { segments, from, to } => {
             transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))

@@ -885,3 +885,70 @@ fn a_run_killed_at_any_moment_leaves_a_checkpoint_that_resumes() {
         std::fs::remove_file(dir.join("train.ckpt.safetensors")).unwrap();
     }
 }
+
+/// `nerfjit sweep`: a 2 × 2 grid of the box's training (learning rate × steps) runs each combination in
+/// its own folder, and its table holds each run's settings and final metrics, the same as the run's own
+/// summary; a combination that does not check stops the sweep before any run.
+#[test]
+fn a_sweep_runs_every_combination_and_tabulates_their_final_metrics() {
+    let dir = scratch("sweep");
+    make_views(&dir);
+    std::fs::write(dir.join("box.sdf"), trainer(60)).unwrap();
+    let args = [
+        "sweep",
+        "box.sdf",
+        "--set",
+        "train.lr=[0.002, 0.02]",
+        "--set",
+        "train.steps=[20, 60]",
+    ];
+    let (ok, out, err) = run(&dir, &args);
+    assert!(ok, "{err}");
+    let table: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("sweep/sweep.json")).unwrap()).unwrap();
+    let runs = table["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 4);
+    let mut psnrs = Vec::new();
+    for (i, (lr, steps)) in [("0.002", 20), ("0.002", 60), ("0.02", 20), ("0.02", 60)]
+        .into_iter()
+        .enumerate()
+    {
+        let r = &runs[i];
+        assert_eq!(r["settings"]["train.lr"], lr);
+        assert_eq!(r["settings"]["train.steps"], steps.to_string());
+        assert_eq!(r["status"], "done");
+        assert_eq!(r["metrics"]["step"], steps, "run {i}: {r}");
+        let summary: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.join(format!("sweep/run_{i:03}/summary.json"))).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(summary["steps"], steps);
+        assert_eq!(r["metrics"]["loss"], summary["final_loss"], "run {i}");
+        psnrs.push(r["metrics"]["psnr"].as_f64().unwrap());
+    }
+    // More steps at the larger rate fit the box better than fewer at the smaller one.
+    assert!(psnrs[3] > psnrs[0] + 3.0, "{psnrs:?}");
+    let markdown = std::fs::read_to_string(dir.join("sweep/sweep.md")).unwrap();
+    assert!(out.contains(&markdown), "{out}");
+    assert_eq!(markdown.lines().count(), 2 + 4);
+    assert!(
+        markdown
+            .lines()
+            .next()
+            .unwrap()
+            .contains("| train.lr | train.steps |"),
+        "{markdown}"
+    );
+
+    let (ok, _, err) = run(
+        &dir,
+        &["sweep", "box.sdf", "--set", "train.lr=[0.01, -1]", "--out", "bad"],
+    );
+    assert!(!ok);
+    assert!(
+        err.contains("train.lr=-1") && err.contains("does not check"),
+        "{err}"
+    );
+    assert!(!dir.join("bad").exists(), "no run started");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -10,4 +10,5 @@ pub mod ir_dump;
 pub mod point_cloud;
 pub mod render_views;
 pub mod run;
+pub mod sweep;
 pub mod transmittance;
