@@ -207,22 +207,19 @@ fn final_metrics(folder: &Path) -> serde_json::Map<String, serde_json::Value> {
 
 /// The runs as a Markdown table: the settings, the status, the seconds and every metric any run has.
 fn markdown(axes: &[Axis], results: &[serde_json::Value]) -> String {
+    // A column's metric, without the name of its log when the run has several.
+    let metric = |c: &str| c.rsplit('.').next().unwrap_or(c).to_string();
     let mut columns: Vec<String> = Vec::new();
     for r in results {
         for k in r["metrics"].as_object().into_iter().flat_map(|m| m.keys()) {
-            if !columns.contains(k) && !k.ends_with("train_seconds") && !k.ends_with("lr") {
+            if !columns.contains(k) && !["train_seconds", "lr"].contains(&metric(k).as_str()) {
                 columns.push(k.clone());
             }
         }
     }
     // The step first, then the losses and scores in the order of the metrics log.
     let order = ["step", "loss", "psnr", "eikonal", "val_psnr", "val_ssim"];
-    let rank = |c: &String| {
-        order
-            .iter()
-            .position(|o| c.rsplit('.').next() == Some(*o))
-            .unwrap_or(order.len())
-    };
+    let rank = |c: &String| order.iter().position(|o| metric(c) == *o).unwrap_or(order.len());
     columns.sort_by_key(|c| (c.rsplit_once('.').map(|(log, _)| log.to_string()), rank(c)));
     let mut text = String::from("| run |");
     for a in axes {
