@@ -16,6 +16,8 @@ use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
 use nerfjit_viewer as viewer;
 
+#[cfg(feature = "mpi")]
+mod mpi_cluster;
 mod terminal;
 use terminal::TerminalBars;
 
@@ -386,6 +388,9 @@ const MAX_THREADS_PER_CORE: usize = 8;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Under mpirun, this process is one rank of the job (MPI is finalized when this is dropped, at the end).
+    #[cfg(feature = "mpi")]
+    let _mpi = mpi_cluster::install();
     terminal::install_interrupt_handler();
     if let Some(bytes) = cli.max_memory {
         budget::set_max_memory(bytes);

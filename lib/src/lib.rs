@@ -30,6 +30,7 @@
 pub mod blocks;
 pub mod checkpoint;
 pub mod city_model;
+pub mod cluster;
 pub mod commands;
 #[cfg(test)]
 mod conformance;
@@ -52,5 +53,9 @@ pub const WORK_STACK_BYTES: usize = 1 << 30;
 /// quietly instead of panicking.
 pub fn emit(text: &str) {
     use std::io::Write;
+    // In an MPI job, rank 0 alone prints.
+    if cluster::current().rank() != 0 {
+        return;
+    }
     let _ = std::io::stdout().lock().write_all(text.as_bytes());
 }

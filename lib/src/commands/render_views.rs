@@ -322,13 +322,19 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let settings = rendering.settings(fields.fine.mode);
     let grid = rendering.occupancy(args.source, &fields, &params)?;
     let start = Instant::now();
-    let images = cameras
-        .iter()
-        .map(|camera| {
-            let f = fields.render_with(camera, (width, height), &params, &settings, grid.as_ref())?;
-            Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?)
-        })
-        .collect::<Result<Vec<_>>>()?;
+    // Each rank renders its share of the views; rank 0 gathers and writes them.
+    let rendered = crate::cluster::split(n, |i| -> Result<Vec<u8>> {
+        let f = fields.render_with(&cameras[i], (width, height), &params, &settings, grid.as_ref())?;
+        Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?.into_raw())
+    })
+    .map_err(Failure::Message)?;
+    let Some(rendered) = rendered else {
+        return Ok(String::new());
+    };
+    let images = rendered
+        .into_iter()
+        .map(|raw| image::RgbImage::from_raw(width, height, raw).expect("a frame of the size rendered"))
+        .collect();
     let seconds = start.elapsed().as_secs_f64();
     write_images(&target, images, 100)?;
     let per_view = seconds / n.max(1) as f64;

@@ -1,0 +1,68 @@
+//! The ranks of an MPI job as the library's [`Cluster`] (the `mpi` feature: rsmpi against the system's
+//! Open MPI or MPICH). Without `mpirun` the same binary is one rank of one.
+
+use mpi::datatype::PartitionMut;
+use mpi::environment::Universe;
+use mpi::topology::SimpleCommunicator;
+use mpi::traits::*;
+use nerfjit::cluster::Cluster;
+
+/// MPI's world communicator. MPI is initialized for serialized calls from any thread: only the one thread
+/// that runs the command calls it.
+struct MpiCluster {
+    world: SimpleCommunicator,
+}
+
+// SAFETY: MPI is initialized with `Threading::Serialized` and only the command's thread makes MPI calls,
+// one at a time.
+unsafe impl Send for MpiCluster {}
+// SAFETY: as above.
+unsafe impl Sync for MpiCluster {}
+
+impl Cluster for MpiCluster {
+    fn rank(&self) -> usize {
+        self.world.rank() as usize
+    }
+
+    fn size(&self) -> usize {
+        self.world.size() as usize
+    }
+
+    fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>> {
+        let root = self.world.process_at_rank(0);
+        let count = i32::try_from(mine.len()).expect("less than 2 GiB a rank");
+        if self.world.rank() != 0 {
+            root.gather_into(&count);
+            root.gather_varcount_into(mine);
+            return None;
+        }
+        let mut counts = vec![0i32; self.size()];
+        root.gather_into_root(&count, &mut counts[..]);
+        let displs: Vec<i32> = counts
+            .iter()
+            .scan(0, |at, &c| Some(std::mem::replace(at, *at + c)))
+            .collect();
+        let mut all = vec![0u8; counts.iter().map(|&c| c as usize).sum()];
+        {
+            let mut partition = PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
+            root.gather_varcount_into_root(mine, &mut partition);
+        }
+        Some(
+            counts
+                .iter()
+                .zip(&displs)
+                .map(|(&c, &d)| all[d as usize..(d + c) as usize].to_vec())
+                .collect(),
+        )
+    }
+}
+
+/// Initializes MPI and installs its world as the library's cluster; the returned universe finalizes MPI
+/// when dropped, after the command has run.
+pub fn install() -> Option<Universe> {
+    let (universe, _) = mpi::initialize_with_threading(mpi::Threading::Serialized)?;
+    nerfjit::cluster::install(Box::new(MpiCluster {
+        world: universe.world(),
+    }));
+    Some(universe)
+}
