@@ -19,7 +19,7 @@ use crate::settings::block::MAX_PIXELS;
 use crate::settings::camera::FrameSize;
 use crate::settings::primitives::triple;
 use crate::settings::values::SkipEmpty;
-use crate::training::validation::{means, score};
+use crate::training::validation::{means, score_on_ranks};
 use nerfjit_field::VolumeFields;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
@@ -384,13 +384,11 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let start = Instant::now();
     let grid = rendering.occupancy(args.source, &fields, &params)?;
-    let scores = score(
-        &views,
-        &fields,
-        &params,
-        &rendering.settings(fields.fine.mode),
-        grid.as_ref(),
-    )?;
+    // Each rank scores its share of the views; rank 0 reports them all.
+    let settings = rendering.settings(fields.fine.mode);
+    let Some(scores) = score_on_ranks(&views, &fields, &params, &settings, grid.as_ref())? else {
+        return Ok(String::new());
+    };
     let seconds = start.elapsed().as_secs_f64();
     let masked = views.masks.is_some();
     let mut lines = String::from("view  PSNR (dB)  SSIM");

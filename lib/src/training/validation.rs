@@ -3,7 +3,7 @@
 
 use nerfjit_runtime::{psnr, ssim, ImageF32, OccupancyGrid, Views, VolumeSettings};
 
-use crate::failure::Result;
+use crate::failure::{Failure, Result};
 use nerfjit_field::VolumeFields;
 
 /// One view's scores against its image.
@@ -37,31 +37,71 @@ pub fn score(
     settings: &VolumeSettings,
     grid: Option<&OccupancyGrid>,
 ) -> Result<Vec<ViewScore>> {
-    views
-        .cameras
-        .iter()
-        .zip(&views.images)
-        .enumerate()
-        .map(|(i, (camera, target))| {
-            let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
-            let rendered = ImageF32 {
-                width: f.width,
-                height: f.height,
-                pixels: f.rgb,
-            };
-            let mse = nerfjit_runtime::mse(&rendered, target)?;
-            let mask = views.masks.as_ref().and_then(|m| m.get(i));
-            let masked_mse = match mask {
-                Some(mask) => nerfjit_runtime::masked_mse(&rendered, target, mask)?,
-                None => None,
-            };
-            Ok(ViewScore {
-                psnr: psnr(mse),
-                ssim: ssim(&rendered, target)?,
-                masked_psnr: masked_mse.map(psnr),
-            })
-        })
+    (0..views.cameras.len())
+        .map(|i| score_view(i, views, fields, params, settings, grid))
         .collect()
+}
+
+/// [`score`] with the views split over the ranks of the [`crate::cluster`]: every rank scores its share and
+/// rank 0 gets every view's scores, in order; the other ranks get `None`.
+pub fn score_on_ranks(
+    views: &Views,
+    fields: &VolumeFields,
+    params: &[f32],
+    settings: &VolumeSettings,
+    grid: Option<&OccupancyGrid>,
+) -> Result<Option<Vec<ViewScore>>> {
+    let scored = crate::cluster::split(views.cameras.len(), |i| -> Result<Vec<u8>> {
+        let s = score_view(i, views, fields, params, settings, grid)?;
+        let masked = s.masked_psnr.unwrap_or(f32::NAN);
+        Ok([s.psnr, s.ssim, masked]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect())
+    })
+    .map_err(Failure::Message)?;
+    Ok(scored.map(|all| {
+        all.iter()
+            .map(|bytes| {
+                let at = |k: usize| f32::from_le_bytes(bytes[4 * k..4 * k + 4].try_into().unwrap_or([0; 4]));
+                ViewScore {
+                    psnr: at(0),
+                    ssim: at(1),
+                    masked_psnr: Some(at(2)).filter(|m| !m.is_nan()),
+                }
+            })
+            .collect()
+    }))
+}
+
+/// View `i` rendered and scored against its image.
+fn score_view(
+    i: usize,
+    views: &Views,
+    fields: &VolumeFields,
+    params: &[f32],
+    settings: &VolumeSettings,
+    grid: Option<&OccupancyGrid>,
+) -> Result<ViewScore> {
+    let camera = &views.cameras[i];
+    let target = &views.images[i];
+    let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
+    let rendered = ImageF32 {
+        width: f.width,
+        height: f.height,
+        pixels: f.rgb,
+    };
+    let mse = nerfjit_runtime::mse(&rendered, target)?;
+    let mask = views.masks.as_ref().and_then(|m| m.get(i));
+    let masked_mse = match mask {
+        Some(mask) => nerfjit_runtime::masked_mse(&rendered, target, mask)?,
+        None => None,
+    };
+    Ok(ViewScore {
+        psnr: psnr(mse),
+        ssim: ssim(&rendered, target)?,
+        masked_psnr: masked_mse.map(psnr),
+    })
 }
 
 /// The mean of `scores`.
