@@ -1,6 +1,7 @@
 //! The ranks of an MPI job as the library's [`Cluster`] (the `mpi` feature: rsmpi against the system's
 //! Open MPI or MPICH). Without `mpirun` the same binary is one rank of one.
 
+use mpi::collective::SystemOperation;
 use mpi::datatype::PartitionMut;
 use mpi::environment::Universe;
 use mpi::topology::SimpleCommunicator;
@@ -54,6 +55,18 @@ impl Cluster for MpiCluster {
                 .map(|(&c, &d)| all[d as usize..(d + c) as usize].to_vec())
                 .collect(),
         )
+    }
+
+    fn all_reduce_sum(&self, values: &mut [f32]) {
+        self.sum(values);
+    }
+}
+
+impl MpiCluster {
+    fn sum(&self, values: &mut [f32]) {
+        let mine = values.to_vec();
+        self.world
+            .all_reduce_into(&mine[..], values, SystemOperation::sum());
     }
 }
 

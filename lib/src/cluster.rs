@@ -13,6 +13,8 @@ pub trait Cluster: Send + Sync {
     fn size(&self) -> usize;
     /// Every rank's `mine`, on rank 0 in rank order; `None` on the other ranks. Every rank must call it.
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>>;
+    /// Replaces `values` by their sums over the ranks, on every rank. Every rank must call it.
+    fn all_reduce_sum(&self, values: &mut [f32]);
 }
 
 /// One process: rank 0 of 1.
@@ -30,6 +32,8 @@ impl Cluster for OneProcess {
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>> {
         Some(vec![mine.to_vec()])
     }
+
+    fn all_reduce_sum(&self, _values: &mut [f32]) {}
 }
 
 static CLUSTER: OnceLock<Box<dyn Cluster>> = OnceLock::new();

@@ -421,7 +421,7 @@ impl TrainPlan {
                 ..settings
             },
             live,
-            rng: Rng::new(self.seed ^ 0x5eed),
+            rng: Rng::new(self.seed ^ 0x5eed ^ ((crate::cluster::current().rank() as u64) << 40)),
             grid: None,
             ema: None,
             ema_rng: Rng::new(self.seed ^ 0x0cc0),
@@ -450,7 +450,11 @@ impl TrainPlan {
         }
         let (loss, psnr) = (end.loss, objective.psnr);
         let (ms_per_step, samples_per_s) = (end.ms_per_step(), end.samples_per_s());
-        if let Some(path) = &self.summary {
+        if let Some(path) = self
+            .summary
+            .as_ref()
+            .filter(|_| crate::cluster::current().rank() == 0)
+        {
             let json = serde_json::json!({
                 "data": self.data.path.display().to_string(),
                 "steps": end.done,
@@ -720,7 +724,10 @@ impl Objective for VolumeObjective<'_> {
         let (rays, targets) = self.views.random_rays_on(
             view,
             plan.batch,
-            plan.seed.wrapping_add(u64::from(step)),
+            // Each rank of an MPI job draws its own rays.
+            plan.seed
+                .wrapping_add(u64::from(step))
+                .wrapping_add((crate::cluster::current().rank() as u64) << 32),
             settings.background,
         )?;
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };

@@ -252,7 +252,11 @@ impl TrainSdfPlan {
         }
         let terms = objective.terms;
         let (seconds, ms) = (end.train_seconds, end.ms_per_step());
-        if let Some(path) = &self.summary {
+        if let Some(path) = self
+            .summary
+            .as_ref()
+            .filter(|_| crate::cluster::current().rank() == 0)
+        {
             let json = serde_json::json!({
                 "data": self.data.display().to_string(),
                 "points": cloud.len(),

@@ -238,9 +238,13 @@ pub fn train(
     if finished.complete {
         return Ok(finished);
     }
+    // In an MPI job every rank trains the same params on its own rays (data parallel); rank 0 alone logs and
+    // writes checkpoints.
+    let cluster = crate::cluster::current();
+    let (root, ranks) = (cluster.rank() == 0, cluster.size());
     let log = RunLog::open(
-        settings.log,
-        settings.tensorboard,
+        settings.log.filter(|_| root),
+        settings.tensorboard.filter(|_| root),
         settings.log_columns,
         first > 0,
     )?;
@@ -259,7 +263,28 @@ pub fn train(
     for step in first..settings.steps {
         let step_start = Instant::now();
         objective.before_step(step, params, &ui)?;
-        let Gradient { loss, grads, samples } = objective.gradient(step, params)?;
+        let Gradient {
+            mut loss,
+            mut grads,
+            samples,
+        } = objective.gradient(step, params)?;
+        // Data parallel: every rank takes the mean of the ranks' gradients and losses, and stops when any rank
+        // is interrupted or out of time, so that the params stay the same on every rank.
+        let mut stop_everywhere = None;
+        if ranks > 1 {
+            let out_of_time = settings.time_limit.is_some_and(|l| finished.train_seconds >= l);
+            grads.extend([
+                loss,
+                f32::from(u8::from(ui.watch.requested())),
+                f32::from(u8::from(out_of_time)),
+            ]);
+            cluster.all_reduce_sum(&mut grads);
+            let flags = grads.split_off(grads.len() - 3);
+            let scale = 1.0 / ranks as f32;
+            grads.iter_mut().for_each(|g| *g *= scale);
+            loss = flags[0] * scale;
+            stop_everywhere = Some((flags[1] > 0.0, flags[2] > 0.0));
+        }
         if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
             ui.bar.abandon();
             return Err(crate::checkpoint::diverged(
@@ -290,10 +315,13 @@ pub fn train(
         finished.samples += samples;
         finished.loss = loss;
         finished.done = step + 1;
-        let out_of_time = settings
-            .time_limit
-            .is_some_and(|limit| finished.train_seconds >= limit);
-        finished.interrupted = ui.watch.requested();
+        let (interrupted, out_of_time) = stop_everywhere.unwrap_or((
+            ui.watch.requested(),
+            settings
+                .time_limit
+                .is_some_and(|limit| finished.train_seconds >= limit),
+        ));
+        finished.interrupted = interrupted;
         let progress = Progress {
             done: finished.done,
             first,
@@ -305,9 +333,12 @@ pub fn train(
             last: finished.done == settings.steps || out_of_time || finished.interrupted,
             interrupted: finished.interrupted,
         };
+        if ranks > 1 && (finished.done.is_multiple_of(100) || progress.last) {
+            check_same_params(cluster, params, finished.done)?;
+        }
         objective.after_step(&progress, params, &mut ui)?;
         ui.bar.set_position(u64::from(finished.done));
-        if let Some(path) = settings.checkpoint {
+        if let Some(path) = settings.checkpoint.filter(|_| root) {
             if finished.done.is_multiple_of(settings.checkpoint_every) || progress.last {
                 crate::checkpoint::write(path, program, finished.done, params, &adam, objective.occupancy())?;
             }
@@ -327,6 +358,22 @@ pub fn train(
     ui.bar.finish_and_clear();
     finished.wall_seconds = start.elapsed().as_secs_f64();
     Ok(finished)
+}
+
+/// Fails (on rank 0) unless every rank of the job holds the same params, bit for bit.
+fn check_same_params(cluster: &dyn crate::cluster::Cluster, params: &[f32], done: u32) -> Result<()> {
+    let hash = params.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, p| {
+        (h ^ u64::from(p.to_bits())).wrapping_mul(0x0100_0000_01b3)
+    });
+    match cluster.gather(&hash.to_le_bytes()) {
+        Some(all) if all.iter().any(|h| *h != all[0]) => {
+            Err(Failure::Message(format!(
+            "after step {done} the ranks' params differ (checksums {:?}): data-parallel training lost step",
+            all.iter().map(|h| u64::from_le_bytes(h[..8].try_into().unwrap_or([0; 8]))).collect::<Vec<_>>()
+        )))
+        }
+        _ => Ok(()),
+    }
 }
 
 #[cfg(test)]
