@@ -433,6 +433,15 @@ fn main() -> ExitCode {
     }
 }
 
+/// The terminal's progress bars; none on the ranks of an MPI job other than rank 0, which alone prints.
+fn bars() -> &'static dyn nerfjit::observe::ProgressBars {
+    if nerfjit::cluster::current().rank() == 0 {
+        &TerminalBars
+    } else {
+        &nerfjit::observe::NoBars
+    }
+}
+
 /// `nerfjit run`: every block of the script in order, with progress bars and, with `view`, a live viewer
 /// that follows the training (and stays open after the last block until the process is stopped).
 fn run_script(
@@ -454,7 +463,7 @@ fn run_script(
         None => None,
     };
     let observer = live.as_deref().map(|l| l as &dyn TrainingObserver);
-    run::run_session(&mut session, resume, &TerminalBars, observer)?;
+    run::run_session(&mut session, resume, bars(), observer)?;
     if live.is_some() {
         eprintln!("done: the viewer stays open until Ctrl-C");
         loop {
@@ -484,7 +493,7 @@ fn run_command(cli: Cli) -> ExitCode {
             run_script(&script, &set, out.as_deref(), resume, view.as_ref())
         }
         Command::Sweep { script, set, out } => {
-            sweep::sweep(&script, &set, &out, &TerminalBars).map(|table| emit(&format!("\n{table}")))
+            sweep::sweep(&script, &set, &out, bars()).map(|table| emit(&format!("\n{table}")))
         }
         Command::Transmittance { segments, from, to } => {
             transmittance::run(&segments, from.zip(to)).map(|text| emit(&text))
