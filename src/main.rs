@@ -625,14 +625,22 @@ fn run_command(cli: Cli) -> ExitCode {
             Ok(())
         }
     };
+    // In an MPI job every rank stops together when interrupted (rank 0 says so); any other rank's error is
+    // its own, and says which rank it is.
+    let rank = nerfjit::cluster::current().rank();
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(failure @ failure::Failure::Interrupted(_)) => {
-            eprint!("{failure}");
+            if rank == 0 {
+                eprint!("{failure}");
+            }
             ExitCode::from(interrupt::EXIT_STATUS)
         }
         Err(failure) => {
-            eprint!("{failure}");
+            match rank {
+                0 => eprint!("{failure}"),
+                _ => eprint!("rank {rank}: {failure}"),
+            }
             ExitCode::FAILURE
         }
     }

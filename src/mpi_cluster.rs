@@ -12,6 +12,10 @@ use nerfjit::cluster::Cluster;
 /// that runs the command calls it.
 struct MpiCluster {
     world: SimpleCommunicator,
+    /// This process's rank and the job's size, asked once (so that other threads, such as the signal
+    /// handler's, can read them without calling MPI).
+    rank: usize,
+    size: usize,
 }
 
 // SAFETY: MPI is initialized with `Threading::Serialized` and only the command's thread makes MPI calls,
@@ -22,19 +26,21 @@ unsafe impl Sync for MpiCluster {}
 
 impl Cluster for MpiCluster {
     fn rank(&self) -> usize {
-        self.world.rank() as usize
+        self.rank
     }
 
     fn size(&self) -> usize {
-        self.world.size() as usize
+        self.size
     }
 
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>> {
         let root = self.world.process_at_rank(0);
+        // Every rank sends at least a byte: Open MPI refuses the empty buffer of a rank with nothing to send.
+        let mine = [&[0u8][..], mine].concat();
         let count = i32::try_from(mine.len()).expect("less than 2 GiB a rank");
-        if self.world.rank() != 0 {
+        if self.rank != 0 {
             root.gather_into(&count);
-            root.gather_varcount_into(mine);
+            root.gather_varcount_into(&mine[..]);
             return None;
         }
         let mut counts = vec![0i32; self.size()];
@@ -46,19 +52,23 @@ impl Cluster for MpiCluster {
         let mut all = vec![0u8; counts.iter().map(|&c| c as usize).sum()];
         {
             let mut partition = PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
-            root.gather_varcount_into_root(mine, &mut partition);
+            root.gather_varcount_into_root(&mine[..], &mut partition);
         }
         Some(
             counts
                 .iter()
                 .zip(&displs)
-                .map(|(&c, &d)| all[d as usize..(d + c) as usize].to_vec())
+                .map(|(&c, &d)| all[d as usize + 1..(d + c) as usize].to_vec())
                 .collect(),
         )
     }
 
     fn all_reduce_sum(&self, values: &mut [f32]) {
         self.sum(values);
+    }
+
+    fn barrier(&self) {
+        self.world.barrier();
     }
 }
 
@@ -74,8 +84,8 @@ impl MpiCluster {
 /// when dropped, after the command has run.
 pub fn install() -> Option<Universe> {
     let (universe, _) = mpi::initialize_with_threading(mpi::Threading::Serialized)?;
-    nerfjit::cluster::install(Box::new(MpiCluster {
-        world: universe.world(),
-    }));
+    let world = universe.world();
+    let (rank, size) = (world.rank() as usize, world.size() as usize);
+    nerfjit::cluster::install(Box::new(MpiCluster { world, rank, size }));
     Some(universe)
 }

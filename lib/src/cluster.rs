@@ -3,6 +3,7 @@
 //! them on rank 0, which alone prints and writes; the library never links MPI itself: the command line
 //! installs its [`Cluster`] once, before any command runs.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::OnceLock;
 
 /// What a command needs of the processes it runs on.
@@ -15,6 +16,10 @@ pub trait Cluster: Send + Sync {
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>>;
     /// Replaces `values` by their sums over the ranks, on every rank. Every rank must call it.
     fn all_reduce_sum(&self, values: &mut [f32]);
+    /// Returns when every rank has called it.
+    fn barrier(&self) {
+        self.all_reduce_sum(&mut [0.0]);
+    }
 }
 
 /// One process: rank 0 of 1.
@@ -37,15 +42,47 @@ impl Cluster for OneProcess {
 }
 
 static CLUSTER: OnceLock<Box<dyn Cluster>> = OnceLock::new();
+/// Whether this process works alone for now ([`alone`]).
+static ALONE: AtomicBool = AtomicBool::new(false);
 
 /// Makes `cluster` the processes every command runs on; only the first call counts.
 pub fn install(cluster: Box<dyn Cluster>) {
     let _ = CLUSTER.set(cluster);
 }
 
-/// The installed cluster ([`OneProcess`] unless the command line installed another).
+/// The installed cluster ([`OneProcess`] unless the command line installed another, or inside [`alone`]).
 pub fn current() -> &'static dyn Cluster {
+    if ALONE.load(Ordering::SeqCst) {
+        return &OneProcess;
+    }
     CLUSTER.get_or_init(|| Box::new(OneProcess)).as_ref()
+}
+
+/// The job's cluster even inside [`alone`]: for the work that divides a job's runs among its ranks.
+pub fn job() -> &'static dyn Cluster {
+    CLUSTER.get_or_init(|| Box::new(OneProcess)).as_ref()
+}
+
+/// Runs `work` as if this process were the only one (rank 0 of 1: it prints, writes and trains by itself),
+/// as each rank of a sweep runs its own runs.
+pub fn alone<T>(work: impl FnOnce() -> T) -> T {
+    let before = ALONE.swap(true, Ordering::SeqCst);
+    let out = work();
+    ALONE.store(before, Ordering::SeqCst);
+    out
+}
+
+/// `values` as little-endian bytes, to send between ranks.
+pub fn f32_bytes<'a>(values: impl IntoIterator<Item = &'a f32>) -> Vec<u8> {
+    values.into_iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// The values that [`f32_bytes`] made `bytes` of.
+pub fn f32s_of(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
 }
 
 /// The items of `0..n` that rank `rank` of `size` handles: every `size`-th from its rank (so that frames
@@ -118,6 +155,18 @@ mod tests {
             all.sort();
             assert_eq!(all, (0..11).collect::<Vec<_>>());
         }
+    }
+
+    #[test]
+    fn floats_survive_their_bytes() {
+        let values = [0.0, -1.5, f32::INFINITY, f32::MIN_POSITIVE, 3.25e7];
+        assert_eq!(f32s_of(&f32_bytes(&values)), values);
+    }
+
+    #[test]
+    fn alone_is_one_process_until_it_returns() {
+        assert!(alone(|| current().size() == 1 && current().rank() == 0));
+        assert!(!ALONE.load(Ordering::SeqCst));
     }
 
     #[test]

@@ -21,7 +21,7 @@ pub fn on_signal() {
     if WATCHERS.load(Ordering::SeqCst) == 0 || REQUESTED.swap(true, Ordering::SeqCst) {
         std::process::exit(i32::from(EXIT_STATUS));
     }
-    eprintln!("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
+    crate::note("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
 }
 
 /// A training loop's claim on the signal while it lives.

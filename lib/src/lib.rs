@@ -59,3 +59,10 @@ pub fn emit(text: &str) {
     }
     let _ = std::io::stdout().lock().write_all(text.as_bytes());
 }
+
+/// Writes a line of news or warning to standard error; in an MPI job, rank 0 alone does.
+pub fn note(line: &str) {
+    if cluster::current().rank() == 0 {
+        eprintln!("{line}");
+    }
+}

@@ -194,6 +194,11 @@ impl Session {
             }
         };
         let (program, params, cache) = (&self.program, &mut self.params, &self.cache);
+        // In an MPI job, meshes and diagrams are made by rank 0 alone (not split over the ranks).
+        let not_root = crate::cluster::current().rank() != 0;
+        if not_root && matches!(self.plans[index], Plan::Viz(_) | Plan::Mesh(_)) {
+            return Ok(String::new());
+        }
         match &self.plans[index] {
             Plan::SphereTrace(p) => p.run(program, params, cache, &frames),
             Plan::Volume(p) => p.run(program, params, cache, &frames),

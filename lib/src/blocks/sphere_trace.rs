@@ -154,7 +154,27 @@ impl SphereTracePlan {
         };
         let start = Instant::now();
         let (w, h) = self.size;
-        let frames = render_frames(&self.cameras, w, h, &sdf, &shading, &self.trace, Some(progress))?;
+        // Each rank of an MPI job traces its share of the frames (in one call, which keeps the thread pool
+        // awake from frame to frame); rank 0 gathers and writes them.
+        let (n, cluster) = (self.cameras.len(), crate::cluster::current());
+        let mine: Vec<Camera> = crate::cluster::share(n, cluster.rank(), cluster.size())
+            .map(|i| self.cameras[i])
+            .collect();
+        let mut traced = render_frames(&mine, w, h, &sdf, &shading, &self.trace, Some(progress))
+            .map(|frames| frames.into_iter());
+        // `split` asks for this rank's share in order: the frames just traced.
+        let rendered = crate::cluster::split(n, |_| match &mut traced {
+            Ok(frames) => frames
+                .next()
+                .map(|f| frame_bytes(&f))
+                .ok_or_else(|| "a frame of this rank's share was not traced".to_string()),
+            Err(e) => Err(e.to_string()),
+        })
+        .map_err(Failure::Message)?;
+        let Some(rendered) = rendered else {
+            return Ok(String::new());
+        };
+        let frames: Vec<Frame> = rendered.iter().map(|b| frame_of(b, (w, h))).collect();
         let seconds = start.elapsed().as_secs_f64();
         if let Some(camera) = self.cameras.first() {
             let rays = ProbeRays {
@@ -169,7 +189,7 @@ impl SphereTracePlan {
                 .into_iter()
                 .flatten()
             {
-                eprintln!("{line}");
+                crate::note(&line);
             }
         }
         write_frames(&self.out, &frames, self.frame_ms, |f| {
@@ -199,6 +219,28 @@ impl SphereTracePlan {
             compile_s,
             self.out.display()
         ))
+    }
+}
+
+/// A frame's colors, depths, normals and hits as bytes, to send between ranks.
+fn frame_bytes(frame: &Frame) -> Vec<u8> {
+    let hits: Vec<f32> = frame.hit.iter().map(|&h| f32::from(u8::from(h))).collect();
+    let (rgb, normal) = (frame.rgb.iter().flatten(), frame.normal.iter().flatten());
+    crate::cluster::f32_bytes(rgb.chain(&frame.depth).chain(normal).chain(&hits))
+}
+
+/// The `size` frame that [`frame_bytes`] made `bytes` of.
+fn frame_of(bytes: &[u8], (width, height): (u32, u32)) -> Frame {
+    let values = crate::cluster::f32s_of(bytes);
+    let n = (width * height) as usize;
+    let triples = |v: &[f32]| v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    Frame {
+        width,
+        height,
+        rgb: triples(&values[..3 * n]),
+        depth: values[3 * n..4 * n].to_vec(),
+        normal: triples(&values[4 * n..7 * n]),
+        hit: values[7 * n..8 * n].iter().map(|&h| h > 0.5).collect(),
     }
 }
 

@@ -8,7 +8,7 @@ use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
 
 use crate::diagnostics::nonfinite::{self, ProbeRays};
-use crate::failure::Result;
+use crate::failure::{Failure, Result};
 use crate::frame_files::write_images;
 use crate::settings::block::Block;
 use crate::settings::values::skip_empty;
@@ -124,11 +124,19 @@ impl VolumePlan {
             )?),
             None => None,
         };
-        let mut frames = Vec::with_capacity(self.cameras.len());
-        for (i, camera) in self.cameras.iter().enumerate() {
-            frames.push(fields.render_with(camera, (w, h), params, &settings, grid.as_ref())?);
-            progress(i + 1);
-        }
+        // Each rank of an MPI job renders its share of the frames; rank 0 gathers and writes them.
+        let mut done = 0;
+        let rendered = crate::cluster::split(self.cameras.len(), |i| -> Result<Vec<u8>> {
+            let frame = fields.render_with(&self.cameras[i], (w, h), params, &settings, grid.as_ref())?;
+            done += 1;
+            progress(done);
+            Ok(frame_bytes(&frame))
+        })
+        .map_err(Failure::Message)?;
+        let Some(rendered) = rendered else {
+            return Ok(String::new());
+        };
+        let frames: Vec<VolumeFrame> = rendered.iter().map(|b| frame_of(b, (w, h))).collect();
         let seconds = start.elapsed().as_secs_f64();
         if let Some(camera) = self.cameras.first() {
             let rays = ProbeRays {
@@ -144,7 +152,7 @@ impl VolumePlan {
             let warning = nonfinite::warning(name, &field.bind_density(params), rays)
                 .or_else(|| nonfinite::warning("color", &field.bind(params).0, rays));
             if let Some(line) = warning {
-                eprintln!("{line}");
+                crate::note(&line);
             }
         }
         write(&self.out, &frames, self.frame_ms, |f| f.rgb.clone())?;
@@ -184,6 +192,28 @@ impl VolumePlan {
             1e3 * seconds / frames.len() as f64,
             self.out.display()
         ))
+    }
+}
+
+/// A frame's colors, depths and opacities as bytes, to send between ranks.
+pub(crate) fn frame_bytes(frame: &VolumeFrame) -> Vec<u8> {
+    let rgb = frame.rgb.iter().flatten();
+    crate::cluster::f32_bytes(rgb.chain(&frame.depth).chain(&frame.opacity))
+}
+
+/// The `size` frame that [`frame_bytes`] made `bytes` of.
+pub(crate) fn frame_of(bytes: &[u8], (width, height): (u32, u32)) -> VolumeFrame {
+    let values = crate::cluster::f32s_of(bytes);
+    let n = (width * height) as usize;
+    VolumeFrame {
+        width,
+        height,
+        rgb: values[..3 * n]
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect(),
+        depth: values[3 * n..4 * n].to_vec(),
+        opacity: values[4 * n..5 * n].to_vec(),
     }
 }
 

@@ -163,14 +163,14 @@ pub fn resume_or_start(
     let path = match checkpoint {
         Some(path) if resume && path.exists() => path,
         Some(path) if resume => {
-            eprintln!(
+            crate::note(&format!(
                 "nothing to resume: no checkpoint at '{}' yet; starting at step 0",
                 path.display()
-            );
+            ));
             return fresh();
         }
         None if resume => {
-            eprintln!("nothing to resume: the training block writes no checkpoint; starting at step 0");
+            crate::note("nothing to resume: the training block writes no checkpoint; starting at step 0");
             return fresh();
         }
         _ => return fresh(),
@@ -189,7 +189,11 @@ pub fn resume_or_start(
     *params = saved.params;
     let mut adam = saved.adam;
     adam.lr = lr(saved.step);
-    eprintln!("resuming from {} at step {}", path.display(), saved.step);
+    crate::note(&format!(
+        "resuming from {} at step {}",
+        path.display(),
+        saved.step
+    ));
     Ok((configured(adam, settings, program), saved.step))
 }
 

@@ -70,8 +70,17 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         colors: Vec::new(),
     };
     let grid = rendering.occupancy(args.view.source, &fields, &params)?;
-    for camera in &cameras {
-        let frame = fields.render_with(camera, (size, size), &params, &settings, grid.as_ref())?;
+    // Each rank of an MPI job renders its share of the views; rank 0 gathers them and makes the cloud.
+    let rendered = crate::cluster::split(cameras.len(), |i| -> Result<Vec<u8>> {
+        let frame = fields.render_with(&cameras[i], (size, size), &params, &settings, grid.as_ref())?;
+        Ok(crate::blocks::volume::frame_bytes(&frame))
+    })
+    .map_err(Failure::Message)?;
+    let Some(rendered) = rendered else {
+        return Ok(String::new());
+    };
+    for (camera, bytes) in cameras.iter().zip(&rendered) {
+        let frame = crate::blocks::volume::frame_of(bytes, (size, size));
         add_points(
             &mut cloud,
             camera,

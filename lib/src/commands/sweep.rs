@@ -96,7 +96,8 @@ pub const MAX_RUNS: usize = 10_000;
 /// Runs `script` for every combination of `axes` (an axis of one value sets it in every run), each in
 /// `out/run_NNN/`, and
 /// writes `out/sweep.json` and `out/sweep.md`; returns the table. A failed run is reported in the table and
-/// the sweep goes on; Ctrl-C stops it after writing the table of the runs so far.
+/// the sweep goes on; Ctrl-C stops it after writing the table of the runs so far. In an MPI job the ranks
+/// share the runs (each run on one rank, by itself) and rank 0 writes the table.
 pub fn sweep(script: &str, axes: &[Axis], out: &Path, bars: &dyn ProgressBars) -> Result<String> {
     let runs = combinations(axes);
     if runs.len() > MAX_RUNS {
@@ -116,26 +117,30 @@ pub fn sweep(script: &str, axes: &[Axis], out: &Path, bars: &dyn ProgressBars) -
     }
     std::fs::create_dir_all(out)
         .map_err(|e| Failure::Message(format!("cannot create '{}': {e}", out.display())))?;
-    let mut results = Vec::new();
+    // In an MPI job each rank takes every size-th run and runs it by itself; rank 0 gathers the rows.
+    let job = crate::cluster::job();
+    let mut mine = Vec::new();
     let mut stopped = None;
-    for (i, run) in runs.iter().enumerate() {
-        let folder = out.join(format!("run_{i:03}"));
-        crate::emit(&format!(
-            "run {}/{} in {}: {}\n",
-            i + 1,
-            runs.len(),
-            folder.display(),
-            run.join(" ")
-        ));
+    for i in crate::cluster::share(runs.len(), job.rank(), job.size()) {
+        let (run, folder) = (&runs[i], out.join(format!("run_{i:03}")));
         let start = Instant::now();
-        let outcome = open(script, run, Some(&folder))
-            .and_then(|mut session| run_session(&mut session, false, bars, None));
+        let outcome = crate::cluster::alone(|| {
+            crate::emit(&format!(
+                "run {}/{} in {}: {}\n",
+                i + 1,
+                runs.len(),
+                folder.display(),
+                run.join(" ")
+            ));
+            open(script, run, Some(&folder))
+                .and_then(|mut session| run_session(&mut session, false, bars, None))
+        });
         let seconds = start.elapsed().as_secs_f64();
         let status = match &outcome {
             Ok(()) => "done".to_string(),
             Err(e) => e.to_string().trim().to_string(),
         };
-        results.push(serde_json::json!({
+        mine.push(serde_json::json!({
             "run": i,
             "folder": folder.display().to_string(),
             "settings": axes.iter().zip(run).map(|(a, o)| (a.name.clone(), serde_json::json!(o[a.name.len() + 1..])))
@@ -149,6 +154,22 @@ pub fn sweep(script: &str, axes: &[Axis], out: &Path, bars: &dyn ProgressBars) -
             break;
         }
     }
+    let sent = serde_json::json!({ "rows": mine, "stopped": stopped });
+    let Some(every_rank) = job.gather(sent.to_string().as_bytes()) else {
+        return stopped.map_or(Ok(String::new()), |m| Err(Failure::Interrupted(m)));
+    };
+    let mut results = Vec::new();
+    for bytes in every_rank {
+        let mut got: serde_json::Value = serde_json::from_slice(&bytes)
+            .map_err(|e| Failure::Message(format!("a rank's rows of the sweep do not read: {e}")))?;
+        if let Some(rows) = got["rows"].as_array_mut() {
+            results.append(rows);
+        }
+        if let Some(m) = got["stopped"].as_str() {
+            stopped.get_or_insert_with(|| m.to_string());
+        }
+    }
+    results.sort_by_key(|row| row["run"].as_u64());
     let table = markdown(axes, &results);
     let json = serde_json::json!({ "script": script, "runs": results });
     write(

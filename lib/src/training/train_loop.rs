@@ -258,6 +258,14 @@ pub fn train(
     ui.bar.set_position(u64::from(first));
     let start = Instant::now();
     objective.start(first, params, &ui)?;
+    if ranks > 1 {
+        // What each rank sends a step: every gradient, the loss and two stop flags, in one all-reduce.
+        let floats = params.len() + 3;
+        ui.report(format!(
+            "data parallel over {ranks} ranks: each step all-reduces {floats} floats ({:.2} MB) a rank",
+            floats as f64 * 4e-6
+        ));
+    }
     // The params before a step, to restore if the step makes one non-finite (kept between steps).
     let mut before = Vec::with_capacity(params.len());
     for step in first..settings.steps {
@@ -342,6 +350,10 @@ pub fn train(
             if finished.done.is_multiple_of(settings.checkpoint_every) || progress.last {
                 crate::checkpoint::write(path, program, finished.done, params, &adam, objective.occupancy())?;
             }
+        }
+        if ranks > 1 && progress.last {
+            // No rank leaves (and, interrupted, ends the job) before rank 0 has written the last checkpoint.
+            cluster.barrier();
         }
         if finished.interrupted {
             break;
