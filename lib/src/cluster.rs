@@ -91,6 +91,13 @@ pub fn share(n: usize, rank: usize, size: usize) -> impl Iterator<Item = usize> 
     (rank..n).step_by(size.max(1))
 }
 
+/// How many of a batch of `total` items rank `rank` of `size` draws: an equal part, the first `total % size`
+/// ranks one more (so that a step of data-parallel training sees the batch the script asks for).
+pub fn part(total: usize, rank: usize, size: usize) -> usize {
+    let size = size.max(1);
+    total / size + usize::from(rank < total % size)
+}
+
 /// Runs `work` on this rank's share of `0..n` items and gathers every item's bytes on rank 0, in item
 /// order; `None` on the other ranks. An error on any rank is an error on rank 0 (the others return theirs).
 pub fn split<E: std::fmt::Display>(
@@ -154,6 +161,15 @@ mod tests {
             let mut all: Vec<usize> = (0..size).flat_map(|r| share(11, r, size)).collect();
             all.sort();
             assert_eq!(all, (0..11).collect::<Vec<_>>());
+        }
+    }
+
+    #[test]
+    fn parts_add_up_to_the_batch() {
+        for size in 1..6 {
+            let parts: Vec<usize> = (0..size).map(|r| part(1023, r, size)).collect();
+            assert_eq!(parts.iter().sum::<usize>(), 1023);
+            assert!(parts.iter().max().unwrap() - parts.iter().min().unwrap() <= 1);
         }
     }
 

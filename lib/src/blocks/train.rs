@@ -721,13 +721,14 @@ impl Objective for VolumeObjective<'_> {
             },
             false => self.step_settings,
         };
+        // Each rank of an MPI job draws its own part of the step's rays.
+        let (rank, ranks) = (crate::cluster::current().rank(), crate::cluster::current().size());
         let (rays, targets) = self.views.random_rays_on(
             view,
-            plan.batch,
-            // Each rank of an MPI job draws its own rays.
+            crate::cluster::part(plan.batch, rank, ranks),
             plan.seed
                 .wrapping_add(u64::from(step))
-                .wrapping_add((crate::cluster::current().rank() as u64) << 32),
+                .wrapping_add((rank as u64) << 32),
             settings.background,
         )?;
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };

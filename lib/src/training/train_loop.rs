@@ -268,6 +268,8 @@ pub fn train(
     }
     // The params before a step, to restore if the step makes one non-finite (kept between steps).
     let mut before = Vec::with_capacity(params.len());
+    // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
+    let (mut reduce_seconds, mut step_seconds) = (0.0, 0.0);
     for step in first..settings.steps {
         let step_start = Instant::now();
         objective.before_step(step, params, &ui)?;
@@ -280,13 +282,17 @@ pub fn train(
         // is interrupted or out of time, so that the params stay the same on every rank.
         let mut stop_everywhere = None;
         if ranks > 1 {
-            let out_of_time = settings.time_limit.is_some_and(|l| finished.train_seconds >= l);
+            // The time this step will have taken, as one process reckons it after the step.
+            let spent = finished.train_seconds + step_start.elapsed().as_secs_f64();
+            let out_of_time = settings.time_limit.is_some_and(|l| spent >= l);
             grads.extend([
                 loss,
                 f32::from(u8::from(ui.watch.requested())),
                 f32::from(u8::from(out_of_time)),
             ]);
+            let reducing = Instant::now();
             cluster.all_reduce_sum(&mut grads);
+            reduce_seconds += reducing.elapsed().as_secs_f64();
             let flags = grads.split_off(grads.len() - 3);
             let scale = 1.0 / ranks as f32;
             grads.iter_mut().for_each(|g| *g *= scale);
@@ -320,6 +326,7 @@ pub fn train(
         let step_time = step_start.elapsed();
         profile::record(Phase::Steps, step_time);
         finished.train_seconds += step_time.as_secs_f64();
+        step_seconds += step_time.as_secs_f64();
         finished.samples += samples;
         finished.loss = loss;
         finished.done = step + 1;
@@ -366,6 +373,14 @@ pub fn train(
             ));
             break;
         }
+    }
+    if ranks > 1 && finished.done > first {
+        let steps = f64::from(finished.done - first);
+        ui.report(format!(
+            "all-reduce: {:.2} ms a step ({:.1}% of the training time; waiting for the slowest rank included)",
+            1e3 * reduce_seconds / steps,
+            100.0 * reduce_seconds / step_seconds.max(1e-9)
+        ));
     }
     ui.bar.finish_and_clear();
     finished.wall_seconds = start.elapsed().as_secs_f64();
