@@ -607,13 +607,18 @@ impl VolumeObjective<'_> {
         if !(p.done.is_multiple_of(v.every) || time_mark || (p.last && !p.interrupted)) {
             return Ok(());
         }
-        let scores = crate::training::validation::score(
+        // In an MPI job the ranks (which agree on the step and the training time) share the views; rank 0,
+        // which alone reports and logs, gets every score.
+        let Some(scores) = crate::training::validation::score_on_ranks(
             val,
             self.fields,
             params,
             &self.step_settings,
             self.grid.as_ref(),
-        )?;
+        )?
+        else {
+            return Ok(());
+        };
         let means = crate::training::validation::means(&scores);
         let (psnr, ssim) = (means.psnr, means.ssim);
         let masked = means

@@ -270,6 +270,10 @@ pub fn train(
     let mut before = Vec::with_capacity(params.len());
     // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
     let (mut reduce_seconds, mut step_seconds) = (0.0, 0.0);
+    // In an MPI job the ranks keep one clock: the mean of their training times, agreed at each all-reduce
+    // (validation times, the time limit and the logs then agree on every rank). `tail`: this rank's seconds of
+    // the last step after its all-reduce, counted at the next one.
+    let mut tail = 0.0;
     for step in first..settings.steps {
         let step_start = Instant::now();
         objective.before_step(step, params, &ui)?;
@@ -278,26 +282,22 @@ pub fn train(
             mut grads,
             samples,
         } = objective.gradient(step, params)?;
-        // Data parallel: every rank takes the mean of the ranks' gradients and losses, and stops when any rank
-        // is interrupted or out of time, so that the params stay the same on every rank.
-        let mut stop_everywhere = None;
+        // Data parallel: every rank takes the mean of the ranks' gradients, losses and clocks, and stops when
+        // any rank is interrupted, so that the params stay the same on every rank.
+        let mut agreed = None;
+        let mut reduced_at = step_start;
         if ranks > 1 {
-            // The time this step will have taken, as one process reckons it after the step.
-            let spent = finished.train_seconds + step_start.elapsed().as_secs_f64();
-            let out_of_time = settings.time_limit.is_some_and(|l| spent >= l);
-            grads.extend([
-                loss,
-                f32::from(u8::from(ui.watch.requested())),
-                f32::from(u8::from(out_of_time)),
-            ]);
+            let spent = finished.train_seconds + tail + step_start.elapsed().as_secs_f64();
+            grads.extend([loss, f32::from(u8::from(ui.watch.requested())), spent as f32]);
             let reducing = Instant::now();
             cluster.all_reduce_sum(&mut grads);
-            reduce_seconds += reducing.elapsed().as_secs_f64();
-            let flags = grads.split_off(grads.len() - 3);
+            reduced_at = Instant::now();
+            reduce_seconds += (reduced_at - reducing).as_secs_f64();
+            let sums = grads.split_off(grads.len() - 3);
             let scale = 1.0 / ranks as f32;
             grads.iter_mut().for_each(|g| *g *= scale);
-            loss = flags[0] * scale;
-            stop_everywhere = Some((flags[1] > 0.0, flags[2] > 0.0));
+            loss = sums[0] * scale;
+            agreed = Some((sums[1] > 0.0, f64::from(sums[2] * scale)));
         }
         if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
             ui.bar.abandon();
@@ -325,18 +325,24 @@ pub fn train(
         objective.recycle(grads);
         let step_time = step_start.elapsed();
         profile::record(Phase::Steps, step_time);
-        finished.train_seconds += step_time.as_secs_f64();
         step_seconds += step_time.as_secs_f64();
+        finished.interrupted = match agreed {
+            Some((interrupted, seconds)) => {
+                finished.train_seconds = seconds;
+                tail = reduced_at.elapsed().as_secs_f64();
+                interrupted
+            }
+            None => {
+                finished.train_seconds += step_time.as_secs_f64();
+                ui.watch.requested()
+            }
+        };
         finished.samples += samples;
         finished.loss = loss;
         finished.done = step + 1;
-        let (interrupted, out_of_time) = stop_everywhere.unwrap_or((
-            ui.watch.requested(),
-            settings
-                .time_limit
-                .is_some_and(|limit| finished.train_seconds >= limit),
-        ));
-        finished.interrupted = interrupted;
+        let out_of_time = settings
+            .time_limit
+            .is_some_and(|limit| finished.train_seconds >= limit);
         let progress = Progress {
             done: finished.done,
             first,

@@ -30,20 +30,8 @@ pub struct MeanScores {
 
 /// Renders every view of `views` with `settings` (and `grid`, the occupancy grid to skip empty space
 /// with) and scores it against its image: PSNR, SSIM, and PSNR inside its mask when the views have masks.
-pub fn score(
-    views: &Views,
-    fields: &VolumeFields,
-    params: &[f32],
-    settings: &VolumeSettings,
-    grid: Option<&OccupancyGrid>,
-) -> Result<Vec<ViewScore>> {
-    (0..views.cameras.len())
-        .map(|i| score_view(i, views, fields, params, settings, grid))
-        .collect()
-}
-
-/// [`score`] with the views split over the ranks of the [`crate::cluster`]: every rank scores its share and
-/// rank 0 gets every view's scores, in order; the other ranks get `None`.
+/// The views are split over the ranks of the [`crate::cluster`]: every rank scores its share and rank 0 gets
+/// every view's scores, in order; the other ranks get `None` (one process gets them all).
 pub fn score_on_ranks(
     views: &Views,
     fields: &VolumeFields,
