@@ -452,7 +452,8 @@ fn run_script(
     view: Option<&viewer::ViewArgs>,
 ) -> failure::Result<()> {
     let mut session = run::open(path, overrides, out_dir)?;
-    let live = match view {
+    // In an MPI job rank 0 alone serves the viewer (when it pauses, the other ranks wait at the next step).
+    let live = match view.filter(|_| nerfjit::cluster::current().rank() == 0) {
         Some(args) => {
             let live = Arc::new(viewer::Live::new());
             let program = session.program();
