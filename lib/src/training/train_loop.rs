@@ -259,7 +259,8 @@ pub fn train(
     let start = Instant::now();
     objective.start(first, params, &ui)?;
     if ranks > 1 {
-        // What each rank sends a step: every gradient, the loss and two stop flags, in one all-reduce.
+        // What each rank sends a step: every gradient, the loss, the Ctrl-C flag and its clock, in one
+        // all-reduce.
         let floats = params.len() + 3;
         ui.report(format!(
             "data parallel over {ranks} ranks: each step all-reduces {floats} floats ({:.2} MB) a rank",

@@ -42,24 +42,25 @@ pub fn score_on_ranks(
     let scored = crate::cluster::split(views.cameras.len(), |i| -> Result<Vec<u8>> {
         let s = score_view(i, views, fields, params, settings, grid)?;
         let masked = s.masked_psnr.unwrap_or(f32::NAN);
-        Ok([s.psnr, s.ssim, masked]
-            .iter()
-            .flat_map(|x| x.to_le_bytes())
-            .collect())
+        Ok(crate::cluster::f32_bytes(&[s.psnr, s.ssim, masked]))
     })
     .map_err(Failure::Message)?;
-    Ok(scored.map(|all| {
-        all.iter()
-            .map(|bytes| {
-                let at = |k: usize| f32::from_le_bytes(bytes[4 * k..4 * k + 4].try_into().unwrap_or([0; 4]));
-                ViewScore {
-                    psnr: at(0),
-                    ssim: at(1),
-                    masked_psnr: Some(at(2)).filter(|m| !m.is_nan()),
-                }
-            })
-            .collect()
-    }))
+    let Some(all) = scored else {
+        return Ok(None);
+    };
+    all.iter()
+        .map(|bytes| match crate::cluster::f32s_of(bytes)[..] {
+            [psnr, ssim, masked] => Ok(ViewScore {
+                psnr,
+                ssim,
+                masked_psnr: Some(masked).filter(|m| !m.is_nan()),
+            }),
+            _ => Err(Failure::Message(
+                "a rank sent a view's scores that do not read".into(),
+            )),
+        })
+        .collect::<Result<Vec<_>>>()
+        .map(Some)
 }
 
 /// View `i` rendered and scored against its image.
