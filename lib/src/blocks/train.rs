@@ -421,7 +421,8 @@ impl TrainPlan {
                 ..settings
             },
             live,
-            rng: Rng::new(self.seed ^ 0x5eed ^ ((crate::cluster::current().rank() as u64) << 40)),
+            step_rng: Rng::new(self.seed ^ 0x5eed),
+            rng: Rng::new(self.seed ^ 0xd1ce ^ ((crate::cluster::current().rank() as u64) << 40)),
             grid: None,
             ema: None,
             ema_rng: Rng::new(self.seed ^ 0x0cc0),
@@ -523,6 +524,11 @@ struct VolumeObjective<'a> {
     /// The steps' and validation's settings (with early termination when asked).
     step_settings: VolumeSettings,
     live: Option<&'a dyn TrainingObserver>,
+    /// The step's view and background colour: the same on every rank of an MPI job, whose ranks then
+    /// split a step of one process (rays of one view). With a view per rank instead, the DTU NeuS recipe
+    /// (its eikonal term) trained to 16.7 dB over 2 ranks against 22.0–22.5 in one process.
+    step_rng: Rng,
+    /// The samples' jitter and the eikonal term's points: this rank's own.
     rng: Rng,
     grid: Option<OccupancyGrid>,
     /// The running occupancy of `grid_update: ema` and the random points of its updates.
@@ -715,13 +721,13 @@ impl Objective for VolumeObjective<'_> {
     fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
         let plan = self.plan;
         let view = if plan.random_views {
-            self.rng.below(self.views.len() as u64) as usize
+            self.step_rng.below(self.views.len() as u64) as usize
         } else {
             step as usize % self.views.len()
         };
         let settings = match plan.random_background {
             true => VolumeSettings {
-                background: Some([(); 3].map(|_| self.rng.next_f32())),
+                background: Some([(); 3].map(|_| self.step_rng.next_f32())),
                 ..self.step_settings
             },
             false => self.step_settings,
