@@ -194,9 +194,9 @@ impl Session {
             }
         };
         let (program, params, cache) = (&self.program, &mut self.params, &self.cache);
-        // In an MPI job, meshes and diagrams are made by rank 0 alone (not split over the ranks).
+        // In an MPI job, diagrams are made by rank 0 alone (meshes are split over the ranks by slabs).
         let not_root = crate::cluster::current().rank() != 0;
-        if not_root && matches!(self.plans[index], Plan::Viz(_) | Plan::Mesh(_)) {
+        if not_root && matches!(self.plans[index], Plan::Viz(_)) {
             return Ok(String::new());
         }
         match &self.plans[index] {

@@ -126,12 +126,15 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         color: None,
         frame: None,
     };
-    extract_and_write(
-        scene.program(),
-        scene.params(),
-        &args,
-        &nerfjit_jit::KernelCache::new(),
-    )?;
+    // The viewer is served by one rank of an MPI job: it meshes alone.
+    nerfjit::cluster::alone(|| {
+        extract_and_write(
+            scene.program(),
+            scene.params(),
+            &args,
+            &nerfjit_jit::KernelCache::new(),
+        )
+    })?;
     Ok(File {
         name: format!("{stem}.ply"),
         mime: "application/octet-stream",

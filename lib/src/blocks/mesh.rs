@@ -7,7 +7,7 @@ use std::time::Instant;
 use glam::Vec3;
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::surfaces::marching::{extract, extract_pruned, Pruning};
+use nerfjit_runtime::surfaces::marching::{extract_slab, join, Fields, Part, Pruning, Slab};
 use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::surfaces::regions::Specialize;
 use nerfjit_runtime::{chamfer_report, mean_center, read_points, BatchFn, Mesh, PointFrame, Up};
@@ -67,26 +67,24 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
 /// `nerfjit mesh`: meshes `args.function` of a script (with the params' initial values) or of a training
 /// checkpoint (with the trained ones).
 pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
-    // In an MPI job rank 0 alone meshes (the grid is not split over the ranks).
-    if crate::cluster::current().rank() != 0 {
-        return Ok(String::new());
-    }
     let (program, params) = crate::commands::render_views::load(source)?;
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
     let frame = crate::blocks::train_sdf::fitted_frame(&program, folder)?;
     let args = &MeshArgs { frame, ..*args };
-    let (_, summary) = extract_and_write(&program, &params, args, &KernelCache::new())?;
-    Ok(summary)
+    let meshed = extract_and_write(&program, &params, args, &KernelCache::new())?;
+    Ok(meshed.map(|(_, summary)| summary).unwrap_or_default())
 }
 
 /// Extracts the mesh with `params` (compiling through `cache`), writes it (and the GIF); returns it and a
-/// summary line.
+/// summary line. In an MPI job every rank meshes its slab of the grid's z-layers and rank 0 joins them
+/// (the mesh of one process, bit for bit), writes the files and returns the mesh; the other ranks return
+/// `None`.
 pub fn extract_and_write(
     program: &Program,
     params: &[f32],
     args: &MeshArgs,
     cache: &KernelCache,
-) -> Result<(Mesh, String)> {
+) -> Result<Option<(Mesh, String)>> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
     if !matches!(ext, "ply" | "obj" | "stl") {
         return Err(Failure::Message(format!(
@@ -126,27 +124,23 @@ pub fn extract_and_write(
     } = MeshKernels::compile(&compiler, args.function, args.prune)?;
     let compile_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let (mesh, pruning) = match &bounds_of {
-        Some(bounds_of) => {
-            let specializer = compiler.specializer(args.function, &[Type::Vec(3)], &Type::F32)?;
-            let (mesh, pruning) = extract_pruned(
-                &value,
-                Some(&gradient),
-                bounds_of,
-                Some(&specializer as &dyn Specialize).filter(|_| specializer.pays()),
-                args.bounds,
-                args.resolution,
-                args.level,
-            )?;
-            (mesh, Some(pruning))
-        }
-        None => (
-            extract(&value, Some(&gradient), args.bounds, args.resolution, args.level)?,
-            None,
-        ),
+    let specializer = match &bounds_of {
+        Some(_) => Some(compiler.specializer(args.function, &[Type::Vec(3)], &Type::F32)?),
+        None => None,
+    };
+    let fields = Fields {
+        field: &value,
+        gradient: Some(&gradient),
+        bounds_of: bounds_of.as_ref().map(|b| b as &dyn BatchFn),
+        specialize: specializer
+            .as_ref()
+            .filter(|s| s.pays())
+            .map(|s| s as &dyn Specialize),
+    };
+    let Some((mut mesh, pruning)) = extract_on_ranks(fields, args)? else {
+        return Ok(None);
     };
     let extract_s = t.elapsed().as_secs_f64();
-    let mut mesh = mesh;
     if let Some(color) = args.color {
         mesh.colors = vertex_colors(&compiler, color, &mesh)?;
     }
@@ -192,7 +186,43 @@ pub fn extract_and_write(
         if mesh.is_closed() { "closed" } else { "open (the surface leaves the grid or is not closed)" },
         args.out.display()
     );
-    Ok((mesh, summary))
+    Ok(Some((mesh, summary)))
+}
+
+/// The mesh `args` asks for, of `fields`, with what pruning did (its evaluations summed over the ranks): on
+/// rank 0 of an MPI job from every rank's slab of the grid, `None` on the other ranks.
+fn extract_on_ranks(fields: Fields, args: &MeshArgs) -> Result<Option<(Mesh, Option<Pruning>)>> {
+    let cluster = crate::cluster::current();
+    let part = Part {
+        index: cluster.rank(),
+        of: cluster.size(),
+    };
+    let mut mine = None;
+    // Each rank's item: its points evaluated, then its slab.
+    let slabs = crate::cluster::split(part.of, |_| {
+        let (slab, pruning) = extract_slab(fields, args.bounds, args.resolution, args.level, part)?;
+        let evaluated = pruning.map_or(0, |p| p.points_evaluated);
+        mine = pruning;
+        let mut bytes = (evaluated as u64).to_le_bytes().to_vec();
+        bytes.extend(slab.to_bytes());
+        nerfjit_runtime::Result::Ok(bytes)
+    })
+    .map_err(Failure::Message)?;
+    let Some(slabs) = slabs else {
+        return Ok(None);
+    };
+    let mut evaluated = 0;
+    let mut parts = Vec::with_capacity(slabs.len());
+    for bytes in &slabs {
+        let (count, slab) = bytes.split_at(8.min(bytes.len()));
+        evaluated += count.try_into().map_or(0, u64::from_le_bytes) as usize;
+        parts.push(Slab::from_bytes(slab)?);
+    }
+    let pruning = mine.map(|p| Pruning {
+        points_evaluated: evaluated,
+        ..p
+    });
+    Ok(Some((join(parts)?, pruning)))
 }
 
 /// The kernels meshing a function needs.
@@ -355,7 +385,9 @@ impl MeshPlan {
             color: None,
             frame,
         };
-        let (mesh, mut summary) = extract_and_write(program, params, &args, cache)?;
+        let Some((mesh, mut summary)) = extract_and_write(program, params, &args, cache)? else {
+            return Ok(String::new());
+        };
         if let Some((file, key)) = &self.compare {
             // The points as the mesh is written: in their own units after a normalized fit, mean-centered
             // (as the fit saw them) otherwise.

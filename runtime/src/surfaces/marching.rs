@@ -762,12 +762,18 @@ pub fn extract(
     resolution: usize,
     level: f32,
 ) -> Result<Mesh> {
-    let grid = Grid::new(field, gradient, bounds, resolution, level)?;
-    polygonize(grid, field, gradient, None, None).map(|(mesh, _)| mesh)
+    let fields = Fields {
+        field,
+        gradient,
+        bounds_of: None,
+        specialize: None,
+    };
+    let (slab, _) = extract_slab(fields, bounds, resolution, level, Part { index: 0, of: 1 })?;
+    join(vec![slab])
 }
 
 /// What pruning did in [`extract_pruned`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Pruning {
     /// Boxes whose bounds were evaluated.
     pub boxes: usize,
@@ -801,14 +807,151 @@ pub fn extract_pruned(
     resolution: usize,
     level: f32,
 ) -> Result<(Mesh, Pruning)> {
+    let fields = Fields {
+        field,
+        gradient,
+        bounds_of: Some(bounds_of),
+        specialize,
+    };
+    let (slab, pruning) = extract_slab(fields, bounds, resolution, level, Part { index: 0, of: 1 })?;
+    // With `bounds_of`, the slab always comes with its pruning.
+    Ok((join(vec![slab])?, pruning.unwrap_or_default()))
+}
+
+/// The functions [`extract_slab`] evaluates: the field, and optionally its gradient (for normals), bounds
+/// of it over boxes (to prune, as [`extract_pruned`]) and restrictions of it to regions.
+#[derive(Clone, Copy)]
+pub struct Fields<'a> {
+    /// Points (3 inputs) → values.
+    pub field: &'a dyn BatchFn,
+    /// Points → value, ∂x, ∂y, ∂z.
+    pub gradient: Option<&'a dyn BatchFn>,
+    /// A box's corners (6 inputs) → lower and upper bounds of the field over it.
+    pub bounds_of: Option<&'a dyn BatchFn>,
+    /// Restrictions of the field to regions of the grid (only with `bounds_of`).
+    pub specialize: Option<&'a dyn Specialize>,
+}
+
+/// Which of `of` contiguous slabs of the grid's z-slices (as equal as they can be, in order) to polygonize.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Part {
+    /// The slab, from 0.
+    pub index: usize,
+    /// How many slabs the grid is cut into.
+    pub of: usize,
+}
+
+/// The z-slices `part` covers of a grid of `resolution` cells per axis.
+fn slab_slices(resolution: usize, part: Part) -> (usize, usize) {
+    let (slices, of) = (resolution + 1, part.of.max(1));
+    let at = |i: usize| slices * i / of;
+    (at(part.index.min(of)), at((part.index + 1).min(of)))
+}
+
+/// A slab of the grid's z-layers polygonized by itself: [`join`] puts the slabs of every [`Part`] together,
+/// in order, into the mesh of the whole grid — the same mesh, bit for bit, however the grid was cut.
+pub struct Slab {
+    chunks: Vec<ChunkMesh>,
+}
+
+impl Slab {
+    /// The slab as bytes (little-endian), for another process to [`Slab::from_bytes`].
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        let words = |out: &mut Vec<u8>, values: &mut dyn Iterator<Item = u32>, count: usize| {
+            out.extend((count as u64).to_le_bytes());
+            values.for_each(|w| out.extend(w.to_le_bytes()));
+        };
+        out.extend((self.chunks.len() as u64).to_le_bytes());
+        for c in &self.chunks {
+            let floats = |v: &[[f32; 3]]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
+            words(&mut out, &mut floats(&c.vertices).into_iter(), c.vertices.len());
+            words(&mut out, &mut floats(&c.normals).into_iter(), c.normals.len());
+            words(
+                &mut out,
+                &mut c.triangles.iter().flatten().copied(),
+                c.triangles.len(),
+            );
+            words(&mut out, &mut c.first_slice.iter().copied(), c.first_slice.len());
+        }
+        out
+    }
+
+    /// The slab [`Slab::to_bytes`] wrote into `bytes`; an error if they are cut short or malformed.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Slab> {
+        let bad = || Error::Invalid("a mesh slab from another process is cut short or malformed".into());
+        let mut at = 0usize;
+        let mut word = |size: usize| -> Result<u64> {
+            let b = bytes.get(at..at + size).ok_or_else(bad)?;
+            at += size;
+            Ok(match size {
+                8 => u64::from_le_bytes(b.try_into().map_err(|_| bad())?),
+                _ => u64::from(u32::from_le_bytes(b.try_into().map_err(|_| bad())?)),
+            })
+        };
+        let counted = |word: &mut dyn FnMut(usize) -> Result<u64>, per: usize| -> Result<Vec<u32>> {
+            let count = usize::try_from(word(8)?).map_err(|_| bad())?;
+            let total = count
+                .checked_mul(per)
+                .filter(|&t| t <= bytes.len() / 4)
+                .ok_or_else(bad)?;
+            (0..total).map(|_| word(4).map(|w| w as u32)).collect()
+        };
+        let chunk_count = word(8)?;
+        let mut chunks = Vec::new();
+        for _ in 0..chunk_count {
+            let triples = |w: Vec<u32>| w.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect::<Vec<_>>();
+            let points = |w: Vec<u32>| triples(w).into_iter().map(|t| t.map(f32::from_bits)).collect();
+            let vertices = points(counted(&mut word, 3)?);
+            let normals = points(counted(&mut word, 3)?);
+            let triangles = triples(counted(&mut word, 3)?);
+            let first_slice = counted(&mut word, 1)?;
+            chunks.push(ChunkMesh {
+                vertices,
+                normals,
+                triangles,
+                first_slice,
+            });
+        }
+        Ok(Slab { chunks })
+    }
+}
+
+/// The mesh of the slabs of every part of one grid, in order.
+pub fn join(slabs: Vec<Slab>) -> Result<Mesh> {
+    merge(slabs.into_iter().flat_map(|s| s.chunks).collect())
+}
+
+/// The slab `part` of the mesh [`extract`] (or, with `fields.bounds_of`, [`extract_pruned`]) makes of the
+/// level set `field = level` on a grid of `resolution` cells per axis spanning `bounds`, and what pruning did
+/// in it. Each part evaluates only the points of its own slab (and the bounds of the whole grid's boxes).
+pub fn extract_slab(
+    fields: Fields<'_>,
+    bounds: ([f32; 3], [f32; 3]),
+    resolution: usize,
+    level: f32,
+    part: Part,
+) -> Result<(Slab, Option<Pruning>)> {
+    let Fields {
+        field,
+        gradient,
+        bounds_of,
+        specialize,
+    } = fields;
     let grid = Grid::new(field, gradient, bounds, resolution, level)?;
+    let slices = slab_slices(resolution, part);
+    let Some(bounds_of) = bounds_of else {
+        let (chunks, _) = polygonize(grid, field, gradient, None, None, slices)?;
+        return Ok((Slab { chunks }, None));
+    };
     let coord = |axis: usize, i: usize| grid.coord(axis, i);
     let blocks = Blocks::classify(bounds_of, grid.n, &coord, level, gradient.is_none())?;
     let regions = specialize
         .map(|s| Regions::build(s, &blocks, grid.n, &coord, gradient.is_some()))
         .transpose()?;
     let (regions_specialized, region_count) = regions.as_ref().map_or((0, 0), |r| (r.specialized(), r.len()));
-    let (mesh, points_evaluated) = polygonize(grid, field, gradient, Some(&blocks), regions.as_ref())?;
+    let (chunks, points_evaluated) =
+        polygonize(grid, field, gradient, Some(&blocks), regions.as_ref(), slices)?;
     let count = resolution.div_ceil(crate::surfaces::prune::BLOCK);
     let pruning = Pruning {
         boxes: blocks.boxes,
@@ -819,19 +962,19 @@ pub fn extract_pruned(
         regions_specialized,
         regions: region_count,
     };
-    Ok((mesh, pruning))
+    Ok((Slab { chunks }, Some(pruning)))
 }
 
-/// Polygonizes the grid in parallel chunks of z-layers; returns the mesh and the number of field
-/// points evaluated.
+/// Polygonizes the z-slices `slices` (from, to) of the grid in parallel chunks; returns the chunks and the
+/// number of field points evaluated.
 fn polygonize(
     grid: Grid,
     field: &dyn BatchFn,
     gradient: Option<&dyn BatchFn>,
     blocks: Option<&Blocks>,
     regions: Option<&Regions>,
-) -> Result<(Mesh, usize)> {
-    let n = grid.n;
+    (from, to): (usize, usize),
+) -> Result<(Vec<ChunkMesh>, usize)> {
     let job = Job {
         grid,
         field,
@@ -841,18 +984,18 @@ fn polygonize(
         evaluated: AtomicUsize::new(0),
     };
     // A few chunks per thread balance the load; each one re-evaluates up to three slices.
-    let per_chunk = (n + 1)
+    let per_chunk = (to - from)
         .div_ceil(4 * rayon::current_num_threads().max(1))
         .max(MIN_CHUNK_LAYERS);
-    let ranges: Vec<(usize, usize)> = (0..=n)
+    let ranges: Vec<(usize, usize)> = (from..to)
         .step_by(per_chunk)
-        .map(|k0| (k0, (k0 + per_chunk).min(n + 1)))
+        .map(|k0| (k0, (k0 + per_chunk).min(to)))
         .collect();
     let chunks = ranges
         .par_iter()
         .map(|&(k0, k1)| job.chunk(k0, k1))
         .collect::<Result<Vec<_>>>()?;
-    Ok((merge(chunks)?, job.evaluated.into_inner()))
+    Ok((chunks, job.evaluated.into_inner()))
 }
 
 #[cfg(test)]
@@ -1008,6 +1151,55 @@ mod tests {
                 "{v:?} {normal:?}"
             );
         }
+    }
+
+    #[test]
+    fn slabs_sent_as_bytes_join_into_the_mesh_of_the_whole_grid() {
+        let bounds_of = crate::surfaces::prune::tests::sphere_bounds(0.6);
+        let gradient = sphere_gradient(0.6);
+        let box_ = ([-1.0, -0.9, -1.1], [1.0, 0.8, 0.9]);
+        for (n, pruned, with_gradient) in [(40, true, true), (23, false, false), (5, true, false)] {
+            let fields = Fields {
+                field: &sphere(0.6),
+                gradient: with_gradient.then_some(&gradient as &dyn BatchFn),
+                bounds_of: pruned.then_some(&bounds_of as &dyn BatchFn),
+                specialize: None,
+            };
+            let whole = extract(&sphere(0.6), fields.gradient, box_, n, 0.0).unwrap();
+            assert!(!whole.triangles.is_empty());
+            // More parts than slices leaves some slabs empty.
+            for parts in [1, 2, 3, 7, n + 3] {
+                let slabs: Vec<Slab> = (0..parts)
+                    .map(|index| {
+                        let part = Part { index, of: parts };
+                        let (slab, pruning) = extract_slab(fields, box_, n, 0.0, part).unwrap();
+                        assert_eq!(pruning.is_some(), pruned);
+                        Slab::from_bytes(&slab.to_bytes()).unwrap()
+                    })
+                    .collect();
+                assert_eq!(join(slabs).unwrap(), whole, "n = {n}, {parts} parts");
+            }
+        }
+    }
+
+    #[test]
+    fn a_cut_or_malformed_slab_is_an_error() {
+        let fields = Fields {
+            field: &sphere(0.6),
+            gradient: None,
+            bounds_of: None,
+            specialize: None,
+        };
+        let (slab, _) =
+            extract_slab(fields, ([-1.0; 3], [1.0; 3]), 12, 0.0, Part { index: 0, of: 2 }).unwrap();
+        let bytes = slab.to_bytes();
+        for cut in [0, 7, 8, 20, bytes.len() / 2, bytes.len() - 1] {
+            assert!(Slab::from_bytes(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut huge = bytes.clone();
+        huge[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(Slab::from_bytes(&huge).is_err());
+        assert!(Slab::from_bytes(&bytes).is_ok());
     }
 
     #[test]
