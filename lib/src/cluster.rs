@@ -98,6 +98,17 @@ pub fn part(total: usize, rank: usize, size: usize) -> usize {
     total / size + usize::from(rank < total % size)
 }
 
+/// That every rank of the job draws at least one of a step's `total` items (`what`: the setting's name).
+pub fn check_batch(total: usize, what: &str) -> Result<(), String> {
+    let size = current().size();
+    match total >= size {
+        true => Ok(()),
+        false => Err(format!(
+            "{what} is {total}, fewer than the job's {size} ranks: every rank draws a part of each step's batch"
+        )),
+    }
+}
+
 /// Runs `work` on this rank's share of `0..n` items and gathers every item's bytes on rank 0, in item
 /// order; `None` on the other ranks. An error on any rank is an error on rank 0 (the others return theirs).
 pub fn split<E: std::fmt::Display>(

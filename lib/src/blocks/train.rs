@@ -12,7 +12,7 @@ use nerfjit_runtime::{
     Schedule, TrainableModel, Views, VolumeSettings,
 };
 
-use crate::failure::Result;
+use crate::failure::{Failure, Result};
 use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
@@ -394,6 +394,7 @@ impl TrainPlan {
         live: Option<&dyn TrainingObserver>,
         bars: &dyn ProgressBars,
     ) -> Result<String> {
+        crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
         let (views, val_views) = self.load_views()?;
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;

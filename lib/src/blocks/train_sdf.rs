@@ -161,10 +161,10 @@ impl TrainSdfPlan {
         };
         let sphere = SdfLoss::Sphere {
             radius: f64::from(self.pretrain_radius),
-            scale: 1.0 / self.random as f64,
+            scale: 1.0 / self.random_here() as f64,
         };
         let surface = SdfLoss::Surface {
-            scale: 1.0 / self.batch as f64,
+            scale: 1.0 / self.batch_here() as f64,
         };
         Ok(Kernels {
             sphere: loss(sphere)?,
@@ -215,6 +215,8 @@ impl TrainSdfPlan {
         resume: bool,
         bars: &dyn ProgressBars,
     ) -> Result<String> {
+        crate::cluster::check_batch(self.batch, "train sdf's batch").map_err(Failure::Message)?;
+        crate::cluster::check_batch(self.random, "train sdf's random").map_err(Failure::Message)?;
         let input = read_points(&self.data, self.key.as_deref())?;
         let frame = self.frame_of(&input)?;
         let cloud: Vec<[f32; 3]> = input.iter().map(|&p| frame.to_frame(p)).collect();
@@ -228,7 +230,8 @@ impl TrainSdfPlan {
             plan: self,
             kernels: &kernels,
             cloud: &cloud,
-            rng: Rng::new(self.seed ^ 0xB0_77),
+            // Each rank of an MPI job draws its own points.
+            rng: Rng::new(self.seed ^ 0xB0_77 ^ ((crate::cluster::current().rank() as u64) << 40)),
             threads: rayon::current_num_threads(),
             terms: [f32::NAN; 3],
         };
@@ -317,7 +320,7 @@ impl TrainSdfPlan {
         rng: &mut Rng,
         threads: usize,
     ) -> f32 {
-        let m = self.random;
+        let m = self.random_here();
         let ys = uniform_points(rng, m, self.bound);
         let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
         let mut loss = vec![0.0f32; m];
@@ -337,7 +340,7 @@ impl TrainSdfPlan {
         threads: usize,
     ) -> [f32; 3] {
         // Points on the surface: mean |d|.
-        let nb = self.batch;
+        let nb = self.batch_here();
         let mut xs = [
             Vec::with_capacity(nb),
             Vec::with_capacity(nb),
@@ -374,15 +377,27 @@ impl TrainSdfPlan {
     /// The eikonal term at the batch's jittered cloud points, when `eikonal_jitter` asks for it.
     fn jittered(&self) -> Option<Regularizers> {
         (self.eikonal_jitter > 0.0 && self.eikonal_weight > 0.0).then_some(Regularizers {
-            points: self.batch,
+            points: self.batch_here(),
             near_weight: 0.0,
             ..self.regularizers()
         })
     }
 
+    /// This rank's part of a step's cloud points (all of them in one process).
+    fn batch_here(&self) -> usize {
+        let cluster = crate::cluster::current();
+        crate::cluster::part(self.batch, cluster.rank(), cluster.size())
+    }
+
+    /// This rank's part of a step's random points.
+    fn random_here(&self) -> usize {
+        let cluster = crate::cluster::current();
+        crate::cluster::part(self.random, cluster.rank(), cluster.size())
+    }
+
     fn regularizers(&self) -> Regularizers {
         Regularizers {
-            points: self.random,
+            points: self.random_here(),
             bound: self.bound,
             near_weight: self.near_weight,
             near_sharpness: self.near_sharpness,
