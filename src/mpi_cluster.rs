@@ -45,22 +45,20 @@ impl Cluster for MpiCluster {
         }
         let mut counts = vec![0i32; self.size()];
         root.gather_into_root(&count, &mut counts[..]);
-        let displs: Vec<i32> = counts
-            .iter()
-            .scan(0, |at, &c| Some(std::mem::replace(at, *at + c)))
-            .collect();
-        let mut all = vec![0u8; counts.iter().map(|&c| c as usize).sum()];
-        {
-            let mut partition = PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
-            root.gather_varcount_into_root(&mine[..], &mut partition);
-        }
-        Some(
-            counts
-                .iter()
-                .zip(&displs)
-                .map(|(&c, &d)| all[d as usize + 1..(d + c) as usize].to_vec())
-                .collect(),
-        )
+        Some(receive(&counts, |partition| {
+            root.gather_varcount_into_root(&mine[..], partition)
+        }))
+    }
+
+    fn all_gather(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+        // At least a byte from every rank, as in `gather`.
+        let mine = [&[0u8][..], mine].concat();
+        let count = i32::try_from(mine.len()).expect("less than 2 GiB a rank");
+        let mut counts = vec![0i32; self.size];
+        self.world.all_gather_into(&count, &mut counts[..]);
+        receive(&counts, |partition| {
+            self.world.all_gather_varcount_into(&mine[..], partition)
+        })
     }
 
     fn all_reduce_sum(&self, values: &mut [f32]) {
@@ -70,6 +68,22 @@ impl Cluster for MpiCluster {
     fn barrier(&self) {
         self.world.barrier();
     }
+}
+
+/// The ranks' messages of `counts` bytes each (each with the lead byte every rank sends), received by
+/// `collect` into one buffer partitioned by rank, without their lead bytes.
+fn receive(counts: &[i32], collect: impl FnOnce(&mut PartitionMut<[u8], &[i32], Vec<i32>>)) -> Vec<Vec<u8>> {
+    let displs: Vec<i32> = counts
+        .iter()
+        .scan(0, |at, &c| Some(std::mem::replace(at, *at + c)))
+        .collect();
+    let mut all = vec![0u8; counts.iter().map(|&c| c as usize).sum()];
+    collect(&mut PartitionMut::new(&mut all[..], counts, displs.clone()));
+    counts
+        .iter()
+        .zip(&displs)
+        .map(|(&c, &d)| all[d as usize + 1..(d + c) as usize].to_vec())
+        .collect()
 }
 
 impl MpiCluster {

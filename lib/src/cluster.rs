@@ -14,6 +14,8 @@ pub trait Cluster: Send + Sync {
     fn size(&self) -> usize;
     /// Every rank's `mine`, on rank 0 in rank order; `None` on the other ranks. Every rank must call it.
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>>;
+    /// Every rank's `mine`, on every rank in rank order. Every rank must call it.
+    fn all_gather(&self, mine: &[u8]) -> Vec<Vec<u8>>;
     /// Replaces `values` by their sums over the ranks, on every rank. Every rank must call it.
     fn all_reduce_sum(&self, values: &mut [f32]);
     /// Returns when every rank has called it.
@@ -36,6 +38,10 @@ impl Cluster for OneProcess {
 
     fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>> {
         Some(vec![mine.to_vec()])
+    }
+
+    fn all_gather(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+        vec![mine.to_vec()]
     }
 
     fn all_reduce_sum(&self, _values: &mut [f32]) {}
@@ -96,6 +102,88 @@ pub fn share(n: usize, rank: usize, size: usize) -> impl Iterator<Item = usize> 
 pub fn part(total: usize, rank: usize, size: usize) -> usize {
     let size = size.max(1);
     total / size + usize::from(rank < total % size)
+}
+
+/// How an all-reduce of a gradient travels between the ranks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reduction {
+    /// Every value: MPI's all-reduce (a ring of N ranks sends 2(N − 1)/N × 4 bytes a value from each).
+    Dense,
+    /// Only the non-zero values: each rank sends a bitmask of the non-zero entries (1 bit each) and their
+    /// values (4 bytes each) to every other rank, and each rank sums every rank's values in rank order.
+    Sparse,
+}
+
+impl Reduction {
+    /// `NERFJIT_ALL_REDUCE`: `dense` (the default), `sparse`, or `auto` (`None`), where each step takes the
+    /// one that sends fewer bytes ([`Reduction::cheaper`]). Dense is the default because on the machine it
+    /// was measured on (two ranks sharing memory) sparse steps sent 19–27% fewer bytes but took no less time.
+    pub fn from_env() -> Result<Option<Reduction>, String> {
+        match std::env::var("NERFJIT_ALL_REDUCE").as_deref() {
+            Ok("auto") => Ok(None),
+            Err(_) | Ok("dense") => Ok(Some(Reduction::Dense)),
+            Ok("sparse") => Ok(Some(Reduction::Sparse)),
+            Ok(other) => Err(format!(
+                "NERFJIT_ALL_REDUCE is '{other}': use auto, dense or sparse"
+            )),
+        }
+    }
+
+    /// The bytes each of `ranks` ranks sends to reduce `n` values of which the ranks hold `nonzero` non-zero
+    /// ones in all (summed over the ranks).
+    pub fn bytes_sent(self, n: usize, nonzero: usize, ranks: usize) -> f64 {
+        let ranks = ranks.max(1) as f64;
+        match self {
+            Reduction::Dense => 2.0 * (ranks - 1.0) / ranks * 4.0 * n as f64,
+            // Its own bitmask and values, to each of the others.
+            Reduction::Sparse => (ranks - 1.0) * (n as f64 / 8.0 + 4.0 * nonzero as f64 / ranks),
+        }
+    }
+
+    /// The reduction that sends fewer bytes.
+    pub fn cheaper(n: usize, nonzero: usize, ranks: usize) -> Reduction {
+        let sparse = Reduction::Sparse.bytes_sent(n, nonzero, ranks);
+        match sparse < Reduction::Dense.bytes_sent(n, nonzero, ranks) {
+            true => Reduction::Sparse,
+            false => Reduction::Dense,
+        }
+    }
+}
+
+/// Replaces `values` by their sums over the ranks of `cluster`, sending only the non-zero values
+/// ([`Reduction::Sparse`]); every rank gets the same sums, bit for bit.
+pub fn all_reduce_sparse_sum(cluster: &dyn Cluster, values: &mut [f32]) {
+    let n = values.len();
+    let mask_bytes = n.div_ceil(8);
+    // The bitmask (value i in bit i % 8 of byte i / 8), then the non-zero values in order.
+    let mut mine = vec![0u8; mask_bytes];
+    let mut nonzero = Vec::with_capacity(4 * n / 2);
+    for (byte, eight) in mine.iter_mut().zip(values.chunks(8)) {
+        for (bit, v) in eight.iter().enumerate() {
+            if *v != 0.0 {
+                *byte |= 1 << bit;
+                nonzero.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    mine.extend(nonzero);
+    values.fill(0.0);
+    for theirs in cluster.all_gather(&mine) {
+        let (mask, floats) = theirs.split_at(mask_bytes.min(theirs.len()));
+        let mut next = floats.chunks_exact(4);
+        for (&byte, eight) in mask.iter().zip(values.chunks_mut(8)) {
+            if byte == 0 {
+                continue;
+            }
+            for (bit, v) in eight.iter_mut().enumerate() {
+                if byte >> bit & 1 == 1 {
+                    if let Some(b) = next.next() {
+                        *v += f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// That every rank of the job draws at least one of a step's `total` items (`what`: the setting's name).
@@ -182,6 +270,83 @@ mod tests {
             assert_eq!(parts.iter().sum::<usize>(), 1023);
             assert!(parts.iter().max().unwrap() - parts.iter().min().unwrap() <= 1);
         }
+    }
+
+    /// Rank 0 of a job whose other ranks' all-gather messages are given; it keeps what it sent.
+    struct Others {
+        theirs: Vec<Vec<u8>>,
+        sent: std::sync::Mutex<Vec<u8>>,
+    }
+
+    impl Cluster for Others {
+        fn rank(&self) -> usize {
+            0
+        }
+        fn size(&self) -> usize {
+            1 + self.theirs.len()
+        }
+        fn gather(&self, mine: &[u8]) -> Option<Vec<Vec<u8>>> {
+            Some(self.all_gather(mine))
+        }
+        fn all_gather(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+            *self.sent.lock().unwrap() = mine.to_vec();
+            std::iter::once(mine.to_vec())
+                .chain(self.theirs.iter().cloned())
+                .collect()
+        }
+        fn all_reduce_sum(&self, _values: &mut [f32]) {
+            unreachable!("the sparse sum gathers")
+        }
+    }
+
+    /// `values` summed with the other ranks' messages `theirs`, and what this rank sent.
+    fn sparse_sum(values: &[f32], theirs: Vec<Vec<u8>>) -> (Vec<f32>, Vec<u8>) {
+        let job = Others {
+            theirs,
+            sent: std::sync::Mutex::new(Vec::new()),
+        };
+        let mut sum = values.to_vec();
+        all_reduce_sparse_sum(&job, &mut sum);
+        (sum, job.sent.into_inner().unwrap())
+    }
+
+    /// What [`all_reduce_sparse_sum`] sends of `values`.
+    fn sparse_message(values: &[f32]) -> Vec<u8> {
+        sparse_sum(values, Vec::new()).1
+    }
+
+    #[test]
+    fn the_sparse_sum_is_the_sum_of_every_ranks_values() {
+        // Three ranks' gradients of 21 values, some entries zero on some ranks (or all), and -0.0.
+        let ranks: Vec<Vec<f32>> = (0..3)
+            .map(|r| {
+                (0..21)
+                    .map(|i| match (i + r) % 4 {
+                        0 => 0.0,
+                        1 => -0.0,
+                        _ => (i as f32 - 7.5) * 0.25 + r as f32,
+                    })
+                    .collect()
+            })
+            .collect();
+        let (sum, _) = sparse_sum(&ranks[0], ranks[1..].iter().map(|v| sparse_message(v)).collect());
+        let expected: Vec<f32> = (0..21).map(|i| ranks.iter().fold(0.0, |s, r| s + r[i])).collect();
+        assert_eq!(f32_bytes(&sum), f32_bytes(&expected));
+        // Each message: a bit per value and 4 bytes per non-zero value.
+        let nonzero = ranks[1].iter().filter(|v| **v != 0.0).count();
+        assert_eq!(sparse_message(&ranks[1]).len(), 21usize.div_ceil(8) + 4 * nonzero);
+    }
+
+    #[test]
+    fn the_cheaper_reduction_follows_the_bytes() {
+        // Two ranks: a dense all-reduce sends 4 bytes a value; a sparse one 1/8 + 4 × the non-zero share.
+        assert_eq!(Reduction::Dense.bytes_sent(1000, 2000, 2), 4000.0);
+        assert_eq!(Reduction::Sparse.bytes_sent(1000, 1400, 2), 125.0 + 2800.0);
+        assert_eq!(Reduction::cheaper(1000, 1400, 2), Reduction::Sparse);
+        assert_eq!(Reduction::cheaper(1000, 1990, 2), Reduction::Dense);
+        // More ranks: each rank's values go to every other rank, so sparse pays only when few are non-zero.
+        assert_eq!(Reduction::cheaper(1000, 8 * 700, 8), Reduction::Dense);
+        assert_eq!(Reduction::cheaper(1000, 8 * 100, 8), Reduction::Sparse);
     }
 
     #[test]

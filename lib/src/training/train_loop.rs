@@ -21,6 +21,7 @@ use nerfjit_dsl::Program;
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_runtime::Schedule;
 
+use crate::cluster::Reduction;
 use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
 use crate::observe::{BarKind, ProgressBar, ProgressBars};
@@ -258,15 +259,23 @@ pub fn train(
     ui.bar.set_position(u64::from(first));
     let start = Instant::now();
     objective.start(first, params, &ui)?;
+    // How the gradients travel: fixed by NERFJIT_ALL_REDUCE, or each step the cheaper (`None`).
+    let forced = crate::cluster::Reduction::from_env().map_err(Failure::Message)?;
     if ranks > 1 {
-        // What each rank sends a step: every gradient, the loss, the Ctrl-C flag and its clock, in one
-        // all-reduce.
+        // What each rank reduces a step: every gradient, the loss, the Ctrl-C flag and its clock.
         let floats = params.len() + 3;
         ui.report(format!(
-            "data parallel over {ranks} ranks: each step all-reduces {floats} floats ({:.2} MB) a rank",
-            floats as f64 * 4e-6
+            "data parallel over {ranks} ranks: each step all-reduces {floats} floats ({:.2} MB), {}",
+            floats as f64 * 4e-6,
+            match forced {
+                Some(Reduction::Dense) => "every value",
+                Some(Reduction::Sparse) => "the non-zero ones (NERFJIT_ALL_REDUCE=sparse)",
+                None => "every value or only the non-zero ones, whichever sends fewer bytes (NERFJIT_ALL_REDUCE=auto)",
+            }
         ));
     }
+    // Bytes each rank sent in the all-reduces, and the steps that sent only the non-zero values.
+    let (mut bytes_sent, mut sparse_steps) = (0.0, 0u32);
     // The params before a step, to restore if the step makes one non-finite (kept between steps).
     let mut before = Vec::with_capacity(params.len());
     // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
@@ -291,7 +300,24 @@ pub fn train(
             let spent = finished.train_seconds + tail + step_start.elapsed().as_secs_f64();
             grads.extend([loss, f32::from(u8::from(ui.watch.requested())), spent as f32]);
             let reducing = Instant::now();
-            cluster.all_reduce_sum(&mut grads);
+            let reduction = match forced {
+                Some(r) => r,
+                None => {
+                    // The ranks agree on the non-zero count first (one float), then on the reduction.
+                    let mut nonzero = [grads.iter().filter(|g| **g != 0.0).count() as f32];
+                    cluster.all_reduce_sum(&mut nonzero);
+                    Reduction::cheaper(grads.len(), nonzero[0] as usize, ranks)
+                }
+            };
+            let nonzero = grads.iter().filter(|g| **g != 0.0).count() * ranks;
+            bytes_sent += reduction.bytes_sent(grads.len(), nonzero, ranks);
+            match reduction {
+                Reduction::Dense => cluster.all_reduce_sum(&mut grads),
+                Reduction::Sparse => {
+                    sparse_steps += 1;
+                    crate::cluster::all_reduce_sparse_sum(cluster, &mut grads);
+                }
+            }
             reduced_at = Instant::now();
             reduce_seconds += (reduced_at - reducing).as_secs_f64();
             let sums = grads.split_off(grads.len() - 3);
@@ -384,9 +410,11 @@ pub fn train(
     if ranks > 1 && finished.done > first {
         let steps = f64::from(finished.done - first);
         ui.report(format!(
-            "all-reduce: {:.2} ms a step ({:.1}% of the training time; waiting for the slowest rank included)",
+            "all-reduce: {:.2} ms a step ({:.1}% of the training time; waiting for the slowest rank included), \
+             {:.2} MB sent a step by each rank, only the non-zero values in {sparse_steps} of {steps} steps",
             1e3 * reduce_seconds / steps,
-            100.0 * reduce_seconds / step_seconds.max(1e-9)
+            100.0 * reduce_seconds / step_seconds.max(1e-9),
+            bytes_sent * 1e-6 / steps
         ));
     }
     ui.bar.finish_and_clear();
