@@ -300,16 +300,17 @@ pub fn train(
             let spent = finished.train_seconds + tail + step_start.elapsed().as_secs_f64();
             grads.extend([loss, f32::from(u8::from(ui.watch.requested())), spent as f32]);
             let reducing = Instant::now();
-            let reduction = match forced {
-                Some(r) => r,
-                None => {
-                    // The ranks agree on the non-zero count first (one float), then on the reduction.
-                    let mut nonzero = [grads.iter().filter(|g| **g != 0.0).count() as f32];
-                    cluster.all_reduce_sum(&mut nonzero);
-                    Reduction::cheaper(grads.len(), nonzero[0] as usize, ranks)
-                }
+            // This rank's non-zero values (only the sparse reductions need them), as a count for all ranks.
+            let nonzero = match forced {
+                Some(Reduction::Dense) => 0,
+                _ => grads.iter().filter(|g| **g != 0.0).count() * ranks,
             };
-            let nonzero = grads.iter().filter(|g| **g != 0.0).count() * ranks;
+            let reduction = forced.unwrap_or_else(|| {
+                // The ranks agree on the non-zero count first (one float), then on the reduction.
+                let mut total = [(nonzero / ranks) as f32];
+                cluster.all_reduce_sum(&mut total);
+                Reduction::cheaper(grads.len(), total[0] as usize, ranks)
+            });
             bytes_sent += reduction.bytes_sent(grads.len(), nonzero, ranks);
             match reduction {
                 Reduction::Dense => cluster.all_reduce_sum(&mut grads),
