@@ -18,6 +18,7 @@ use nerfjit::settings::schema::Kind;
 use nerfjit_field::JitFn;
 
 mod quality;
+pub mod roofline;
 
 /// A benchmark workload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -38,7 +39,8 @@ pub enum Workload {
     W6,
     /// W8: hash-grid training steps of `instant_lego.sdf` (needs ../shared/data/lego): its recipe (2^14
     /// entries per hashed level, 1024 rays a step, the occupancy grid from step 50), and instant-ngp's
-    /// table of 2^19 entries with 4096 rays a step.
+    /// table of 2^19 entries with 4096 rays a step; each with its roofline (the step's phases against the
+    /// machine's FMA, random-access and memory rates, measured in the same sitting).
     W8,
     /// Marching cubes of W7's 20-primitive scene at 512³ over [-4, 4]³: every grid point evaluated, and only
     /// the blocks that interval bounds leave near the surface (the same mesh, checked).
@@ -740,6 +742,8 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
     Ok(())
 }
 
+/// W8 with its roofline: each table size's steps, then the machine's rates measured right after them
+/// (for a table of the model's size) and the steps' phases set against them.
 fn w8(reps: usize) -> Result<()> {
     let steps = 200 * reps.max(1) as u32;
     let (name, source) = script::read("examples/instant_lego.sdf")?;
@@ -749,9 +753,31 @@ fn w8(reps: usize) -> Result<()> {
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
         let plan = nerfjit::blocks::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
-        let summary = profiled(|| plan.run_steps(&program, &mut params, steps))?;
+        let levels: Vec<usize> = program
+            .params
+            .iter()
+            .filter_map(|p| match &p.ty {
+                Type::Grid(shape) => Some(shape),
+                _ => None,
+            })
+            .flat_map(|g| {
+                let g = &g.layout;
+                (0..g.levels).map(|l| (g.level_size(l) * u64::from(g.features) * 4) as usize)
+            })
+            .collect();
+        // The machine's rates before and after the steps, the better of each kept.
+        let before = roofline::Rates::measure(&levels, params.len(), 5);
+        profile::take();
+        profile::enable(true);
+        let summary = plan.run_steps(&program, &mut params, steps);
+        profile::enable(false);
+        let times = profile::take();
+        let rates = roofline::Rates::measure(&levels, params.len(), 5).best(&before);
         nerfjit::emit(&format!(
-            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {summary}\n"
+            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {}\n  {}\n{}\n",
+            summary?,
+            rates.describe(),
+            roofline::table(&times, &rates, rayon::current_num_threads()),
         ));
     }
     Ok(())

@@ -94,6 +94,12 @@ impl GridPlan {
         self.end
     }
 
+    /// The table entries a point reads (or a scatter writes): 8 corners on each level, `features` floats
+    /// each.
+    pub(crate) fn corners_per_point(&self) -> u64 {
+        8 * self.levels.len() as u64
+    }
+
     #[inline(always)]
     fn corners(&self, level: &Level, p: [f32; 3]) -> Corners {
         let res = level.res as f32;

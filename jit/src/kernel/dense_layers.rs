@@ -753,6 +753,7 @@ impl<'a> Workspace<'a> {
                         Matrix::Bf16(m) => bf16::matmul(m, &x, &out, &mut self.bf16_scratch),
                     }
                 };
+                laps.count(Phase::Products, 2 * (p.out.len() * p.x.len() * count) as u64);
             }
             laps.lap(Phase::Products);
             for step in &plan.grids[s] {
@@ -760,6 +761,7 @@ impl<'a> Workspace<'a> {
                 // SAFETY: all columns are TILE ≥ count floats in the arena; the outputs are picks,
                 // whose slots the point (read before them) does not share.
                 unsafe { step.plan.read(point, &writes(&step.out), self.params, count) };
+                laps.count(Phase::GridReads, step.plan.corners_per_point() * count as u64);
             }
             laps.lap(Phase::GridReads);
             if let Some(seg) = &plan.segments[s] {
@@ -785,6 +787,10 @@ impl<'a> Workspace<'a> {
                         Precision::Bf16 => bf16::outer(&left, &right, count, g, &mut self.bf16_scratch),
                     }
                 };
+                laps.count(
+                    Phase::OuterProducts,
+                    2 * (left.len() * right.len() * count) as u64,
+                );
             }
             laps.lap(Phase::OuterProducts);
         }
@@ -807,6 +813,7 @@ impl<'a> Workspace<'a> {
             let cotangent: Vec<*const f32> = sc.cotangent.iter().map(|&s| column(s)).collect();
             // SAFETY: operand columns hold TILE ≥ count floats.
             unsafe { sc.plan.scatter(sc.p.map(column), &cotangent, reductions, count) };
+            laps.count(Phase::GridScatters, sc.plan.corners_per_point() * count as u64);
         }
         laps.lap(Phase::GridScatters);
     }

@@ -342,7 +342,13 @@ pub fn train(
         before.extend_from_slice(params);
         let update = Instant::now();
         adam.step(params, &grads)?;
-        profile::record(Phase::Optimizer, update.elapsed());
+        // Adam runs on every thread: its time summed over them, as the kernels' phases are.
+        profile::record(
+            Phase::Optimizer,
+            update.elapsed() * rayon::current_num_threads() as u32,
+        );
+        // Adam reads the params, gradients and both moments and writes all but the gradients.
+        profile::count(Phase::Optimizer, 28 * params.len() as u64);
         if params.iter().any(|p| !p.is_finite()) {
             params.copy_from_slice(&before);
             ui.bar.abandon();
@@ -353,6 +359,7 @@ pub fn train(
         objective.recycle(grads);
         let step_time = step_start.elapsed();
         profile::record(Phase::Steps, step_time);
+        profile::count(Phase::Steps, samples as u64);
         step_seconds += step_time.as_secs_f64();
         finished.interrupted = match agreed {
             Some((interrupted, seconds)) => {
