@@ -2,15 +2,16 @@
 //! sitting as the step (the machine's speed varies from day to day), and the step's phases set against it.
 //!
 //! The limits are the rates of the simplest loops that do a phase's kind of work on every thread at once:
-//! independent fused multiply-adds in vector registers (the products), reads and read-modify-writes of
-//! 8-byte entries at random places of a table of each grid level's size (the grid's reads and scatters: a
-//! point reads 8 corners on every level, so a corner's time is the mean over the levels of the time of one
-//! random access in a table of that level's size, in L1, L2, L3 or memory), and a pass of the
-//! optimizer's reads and writes over arrays of the model's size (Adam). The elementwise code and the rest of the step (ray
-//! set-up, compositing, gradient sums) have no such single limit.
+//! - the products: independent fused multiply-adds in vector registers;
+//! - the grid's reads and scatters: reads and read-modify-writes of 8-byte entries at random places of a
+//!   table of each grid level's size (in L1, L2, L3 or memory); a point reads 8 corners on every level, so
+//!   a corner's time is the mean over the levels of one random access's time at that level's size;
+//! - the optimizer: a pass of Adam's reads and writes over arrays of the model's size.
 //!
-//! The random accesses are uniform over a level's table; the corners of one cell share cache lines and
-//! nearby points share cells, so the grid's phases can beat these limits where their points are coherent.
+//! The elementwise code and the rest of the step (ray set-up, compositing, gradient sums) have no such
+//! single limit. The random accesses are uniform over a level's table; the corners of one cell share cache
+//! lines and nearby points share cells, so the grid's phases could beat these limits where their points
+//! are coherent (none did in the sittings of docs/BENCHMARKS.md).
 
 use std::time::Instant;
 
@@ -94,7 +95,7 @@ impl Rates {
             Phase::Products | Phase::OuterProducts => Some(self.fma),
             Phase::GridReads => Some(self.corners(&self.random_reads)),
             Phase::GridScatters => Some(self.corners(&self.random_updates)),
-            Phase::Optimizer => Some(self.optimizer),
+            Phase::Optimizer | Phase::Checks => Some(self.optimizer),
             Phase::Elementwise | Phase::Steps => None,
         }
     }
@@ -109,7 +110,7 @@ impl Rates {
                 .join(", ")
         };
         format!(
-            "rates measured now on {} threads: {}-bit FMA {:.1} GFLOP/s; Adam's reads and writes {:.1} GB/s; random 8-byte \
+            "machine rates on {} threads: {}-bit FMA {:.1} GFLOP/s; Adam's reads and writes {:.1} GB/s; random 8-byte \
              reads {}; updates {}; so a corner {:.0} M/s read and {:.0} M/s updated over the {} levels",
             rayon::current_num_threads(),
             self.fma_bits,

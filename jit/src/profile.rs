@@ -22,19 +22,23 @@ pub enum Phase {
     Elementwise,
     /// The optimizer's update of the params.
     Optimizer,
+    /// The training loop's own passes over every param: the checks that the gradients and the updated
+    /// params are finite, and the copy of the params kept to restore them if they are not.
+    Checks,
     /// Whole training steps, as wall time (not summed over threads): what the others are shares of.
     Steps,
 }
 
 impl Phase {
     /// Every phase, in the order of [`Times::nanos`].
-    pub const ALL: [Phase; 7] = [
+    pub const ALL: [Phase; 8] = [
         Phase::GridReads,
         Phase::GridScatters,
         Phase::Products,
         Phase::OuterProducts,
         Phase::Elementwise,
         Phase::Optimizer,
+        Phase::Checks,
         Phase::Steps,
     ];
 
@@ -47,19 +51,20 @@ impl Phase {
             Phase::OuterProducts => "weight gradients",
             Phase::Elementwise => "elementwise",
             Phase::Optimizer => "optimizer",
+            Phase::Checks => "finite checks",
             Phase::Steps => "steps",
         }
     }
 
     /// The unit of the work [`Times::work`] counts for this phase: floating-point operations for the
     /// products (a multiply-add is two), corners read or written for the grids (each `features` floats),
-    /// bytes read and written for the optimizer, sample points for whole steps; nothing (`""`) for the
+    /// bytes read and written for the optimizer and the checks, sample points for whole steps; nothing (`""`) for the
     /// elementwise code, whose work has no single measure.
     pub fn unit(self) -> &'static str {
         match self {
             Phase::GridReads | Phase::GridScatters => "corners",
             Phase::Products | Phase::OuterProducts => "FLOP",
-            Phase::Optimizer => "bytes",
+            Phase::Optimizer | Phase::Checks => "bytes",
             Phase::Steps => "samples",
             Phase::Elementwise => "",
         }
@@ -67,8 +72,8 @@ impl Phase {
 }
 
 static ENABLED: AtomicBool = AtomicBool::new(false);
-static NANOS: [AtomicU64; 7] = [const { AtomicU64::new(0) }; 7];
-static WORK: [AtomicU64; 7] = [const { AtomicU64::new(0) }; 7];
+static NANOS: [AtomicU64; 8] = [const { AtomicU64::new(0) }; 8];
+static WORK: [AtomicU64; 8] = [const { AtomicU64::new(0) }; 8];
 
 /// Turns the accounting on or off (for the whole process).
 pub fn enable(on: bool) {
@@ -98,9 +103,9 @@ pub fn count(phase: Phase, amount: u64) {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Times {
     /// Nanoseconds per phase, in the order of [`Phase::ALL`].
-    pub nanos: [u64; 7],
+    pub nanos: [u64; 8],
     /// Work per phase in its [`Phase::unit`], in the same order.
-    pub work: [u64; 7],
+    pub work: [u64; 8],
 }
 
 impl Times {
@@ -128,8 +133,8 @@ pub fn take() -> Times {
 /// is off.
 pub(crate) struct Laps {
     last: Option<Instant>,
-    nanos: [u64; 7],
-    work: [u64; 7],
+    nanos: [u64; 8],
+    work: [u64; 8],
 }
 
 impl Laps {
@@ -137,8 +142,8 @@ impl Laps {
     pub(crate) fn start() -> Laps {
         Laps {
             last: enabled().then(Instant::now),
-            nanos: [0; 7],
-            work: [0; 7],
+            nanos: [0; 8],
+            work: [0; 8],
         }
     }
 

@@ -20,6 +20,7 @@ use std::time::Instant;
 use nerfjit_dsl::Program;
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_runtime::Schedule;
+use rayon::prelude::*;
 
 use crate::cluster::Reduction;
 use crate::failure::{Failure, Result};
@@ -277,7 +278,7 @@ pub fn train(
     // Bytes each rank sent in the all-reduces, and the steps that sent only the non-zero values.
     let (mut bytes_sent, mut sparse_steps) = (0.0, 0u32);
     // The params before a step, to restore if the step makes one non-finite (kept between steps).
-    let mut before = Vec::with_capacity(params.len());
+    let mut before = Vec::new();
     // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
     let (mut reduce_seconds, mut step_seconds) = (0.0, 0.0);
     // In an MPI job the ranks keep one clock: the mean of their training times, agreed at each all-reduce
@@ -327,7 +328,11 @@ pub fn train(
             loss = sums[0] * scale;
             agreed = Some((sums[1] > 0.0, f64::from(sums[2] * scale)));
         }
-        if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
+        let threads = rayon::current_num_threads() as u32;
+        let checking = Instant::now();
+        let grads_finite = loss.is_finite() && all_finite(&grads);
+        let mut checks = checking.elapsed();
+        if !grads_finite {
             ui.bar.abandon();
             return Err(crate::checkpoint::diverged(
                 program,
@@ -338,18 +343,23 @@ pub fn train(
             ));
         }
         adam.lr = schedule.lr(step);
-        before.clear();
-        before.extend_from_slice(params);
+        let copying = Instant::now();
+        copy_into(&mut before, params);
+        checks += copying.elapsed();
         let update = Instant::now();
         adam.step(params, &grads)?;
         // Adam runs on every thread: its time summed over them, as the kernels' phases are.
-        profile::record(
-            Phase::Optimizer,
-            update.elapsed() * rayon::current_num_threads() as u32,
-        );
+        profile::record(Phase::Optimizer, update.elapsed() * threads);
         // Adam reads the params, gradients and both moments and writes all but the gradients.
         profile::count(Phase::Optimizer, 28 * params.len() as u64);
-        if params.iter().any(|p| !p.is_finite()) {
+        let checking = Instant::now();
+        let params_finite = all_finite(params);
+        checks += checking.elapsed();
+        // The step waits for the checks on every thread; they read the gradients, the params twice, and
+        // write the copy.
+        profile::record(Phase::Checks, checks * threads);
+        profile::count(Phase::Checks, 16 * params.len() as u64);
+        if !params_finite {
             params.copy_from_slice(&before);
             ui.bar.abandon();
             return Err(Failure::Message(format!(
@@ -444,6 +454,24 @@ fn check_same_params(cluster: &dyn crate::cluster::Cluster, params: &[f32], done
         }
         _ => Ok(()),
     }
+}
+
+/// Values a task of the loop's passes over the params takes.
+const PASS_BLOCK: usize = 1 << 16;
+
+/// Whether every value is finite: on every thread, each block without branches so that it vectorizes.
+fn all_finite(values: &[f32]) -> bool {
+    values
+        .par_chunks(PASS_BLOCK)
+        .all(|block| block.iter().fold(true, |all, v| all & v.is_finite()))
+}
+
+/// `copy` becomes a copy of `values`, on every thread.
+fn copy_into(copy: &mut Vec<f32>, values: &[f32]) {
+    copy.resize(values.len(), 0.0);
+    copy.par_chunks_mut(PASS_BLOCK)
+        .zip(values.par_chunks(PASS_BLOCK))
+        .for_each(|(c, v)| c.copy_from_slice(v));
 }
 
 #[cfg(test)]
