@@ -742,8 +742,9 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
     Ok(())
 }
 
-/// W8 with its roofline: each table size's steps, then the machine's rates measured right after them
-/// (for a table of the model's size) and the steps' phases set against them.
+/// W8 with its roofline: for each table size, the machine's rates (for its grid levels' sizes and its
+/// model's) measured before and after the steps, the better of each kept, and the steps' phases set
+/// against them.
 fn w8(reps: usize) -> Result<()> {
     let steps = 200 * reps.max(1) as u32;
     let (name, source) = script::read("examples/instant_lego.sdf")?;

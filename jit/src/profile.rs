@@ -58,8 +58,8 @@ impl Phase {
 
     /// The unit of the work [`Times::work`] counts for this phase: floating-point operations for the
     /// products (a multiply-add is two), corners read or written for the grids (each `features` floats),
-    /// bytes read and written for the optimizer and the checks, sample points for whole steps; nothing (`""`) for the
-    /// elementwise code, whose work has no single measure.
+    /// bytes read and written for the optimizer and the checks, sample points for whole steps; nothing
+    /// (`""`) for the elementwise code, whose work has no single measure.
     pub fn unit(self) -> &'static str {
         match self {
             Phase::GridReads | Phase::GridScatters => "corners",
