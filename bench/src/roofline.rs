@@ -13,8 +13,6 @@
 //! lines and nearby points share cells, so the grid's phases could beat these limits where their points
 //! are coherent (none did in the sittings of docs/BENCHMARKS.md).
 
-use std::time::Instant;
-
 use nerfjit_jit::profile::{Phase, Times};
 
 /// The rates of this machine on all of the pool's threads.
@@ -189,13 +187,9 @@ pub fn table(times: &Times, rates: &Rates, threads: usize) -> String {
 /// Runs `work` on every thread of the pool at once and returns the median wall time of `reps` runs (after
 /// one to warm up).
 fn on_every_thread(reps: usize, work: impl Fn(usize) + Sync) -> f64 {
-    let run = || {
-        let start = Instant::now();
+    crate::time_reps(reps, || {
         rayon::broadcast(|ctx| work(ctx.index()));
-        start.elapsed().as_secs_f64()
-    };
-    run();
-    crate::median((0..reps.max(1)).map(|_| run()).collect())
+    })
 }
 
 /// Iterations of the FMA chains per thread and run.
@@ -203,43 +197,35 @@ const FMA_ITERATIONS: usize = 20_000_000;
 
 /// The FMA rate on all threads and the vector width it used.
 fn fma_peak(reps: usize) -> (f64, u32) {
-    let (bits, lanes_times_chains) = fma_kernel_shape();
+    let (bits, lanes_times_chains, chains) = fma_kernel();
     let threads = rayon::current_num_threads();
     let seconds = on_every_thread(reps, |_| {
-        std::hint::black_box(fma_chains(FMA_ITERATIONS));
+        std::hint::black_box(chains(FMA_ITERATIONS));
     });
     let flops = 2.0 * (threads * FMA_ITERATIONS * lanes_times_chains) as f64;
     (flops / seconds, bits)
 }
 
-/// The vector width [`fma_chains`] uses on this CPU and its lanes × chains.
-fn fma_kernel_shape() -> (u32, usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if is_x86_feature_detected!("avx512f") {
-            return (512, 16 * 16);
-        }
-        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-            return (256, 8 * 12);
-        }
-    }
-    (32, 8)
-}
-
-/// `iterations` rounds of independent multiply-add chains (enough of them to keep two FMA pipes of
-/// latency 4 busy, and few enough to stay in the vector registers); returns a sum so that they are kept.
-fn fma_chains(iterations: usize) -> f32 {
+/// The widest FMA kernel this CPU runs: its vector width in bits, its lanes × chains, and the kernel, which
+/// runs its iterations of independent multiply-add chains (enough of them to keep two FMA pipes of latency
+/// 4 busy, and few enough to stay in the vector registers) and returns a sum so that they are kept.
+fn fma_kernel() -> (u32, usize, fn(usize) -> f32) {
     #[cfg(target_arch = "x86_64")]
     {
         if is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU has AVX-512F.
-            return unsafe { x86::fma512(iterations) };
+            return (512, 16 * 16, |n| unsafe { x86::fma512(n) });
         }
         if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
             // SAFETY: the CPU has AVX2 and FMA.
-            return unsafe { x86::fma256(iterations) };
+            return (256, 8 * 12, |n| unsafe { x86::fma256(n) });
         }
     }
+    (32, 8, fma_scalar)
+}
+
+/// [`fma_kernel`]'s chains on CPUs without vector FMAs: 8 scalar ones.
+fn fma_scalar(iterations: usize) -> f32 {
     let mut acc = [1.0f32; 8];
     for _ in 0..iterations {
         for a in &mut acc {
@@ -342,8 +328,7 @@ fn optimizer_stream(elements: usize, reps: usize) -> f64 {
         vec![0.0f32; elements],
     );
     let chunk = elements.div_ceil(4 * rayon::current_num_threads());
-    let mut run = || {
-        let start = Instant::now();
+    let seconds = crate::time_reps(reps, || {
         p.par_chunks_mut(chunk)
             .zip(g.par_chunks(chunk))
             .zip(m.par_chunks_mut(chunk).zip(v.par_chunks_mut(chunk)))
@@ -355,10 +340,7 @@ fn optimizer_stream(elements: usize, reps: usize) -> f64 {
                 }
             });
         std::hint::black_box((&mut p, &mut m, &mut v));
-        start.elapsed().as_secs_f64()
-    };
-    run();
-    let seconds = crate::median((0..reps.max(1)).map(|_| run()).collect());
+    });
     (28 * elements) as f64 / seconds
 }
 
