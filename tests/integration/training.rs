@@ -203,44 +203,6 @@ fn grid_update_settings_are_checked_where_they_are_written() {
     assert!(ok, "{err}");
 }
 
-/// The JIT and the runtime write only their buffers in a training run: three steps of the box under valgrind's
-/// memcheck report no error. (Valgrind's virtual CPU has no AVX-512: the 128-bit paths run.) CI runs it:
-/// `cargo test --release -p nerfjit-cli --test integration -- --ignored under_valgrind`.
-#[test]
-#[ignore = "needs valgrind and a few minutes; run by .ci/run"]
-fn training_steps_under_valgrind_make_no_memory_errors() {
-    let dir = scratch("valgrind");
-    make_views(&dir);
-    let under_valgrind = |script: &str, summary: &str| {
-        let out = std::process::Command::new("valgrind")
-            .args(["-q", "--error-exitcode=99", "--smc-check=all-non-file"])
-            .arg(env!("CARGO_BIN_EXE_nerfjit"))
-            .args(["run", script])
-            .current_dir(&dir)
-            .output()
-            .expect("valgrind runs");
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(
-            out.status.success(),
-            "valgrind reported errors or the run of {script} failed:\n{stderr}"
-        );
-        assert!(dir.join(summary).exists());
-    };
-    // The box's steps: elementwise kernels.
-    std::fs::write(dir.join("train.sdf"), trainer(3)).unwrap();
-    under_valgrind("train.sdf", "summary.json");
-    // A network's steps: tiled kernels whose backward passes read the arenas their forward passes kept.
-    let net = "param w1: mat<16, 3> = linear_init(seed: 1)\nparam b1: vec<16> = linear_init(fan_in: 3, seed: 2)\n\
-               param w2: mat<4, 16> = linear_init(seed: 3)\n\
-               fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, b1, p)))\n\
-               fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
-               fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
-               train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: 2, batch: 64, lr: 0.01, \
-               summary: \"net.json\" }\n";
-    std::fs::write(dir.join("net.sdf"), net).unwrap();
-    under_valgrind("net.sdf", "net.json");
-}
-
 #[test]
 fn a_point_cloud_of_the_field_lies_on_the_box_with_its_colors() {
     let dir = scratch("points");
