@@ -53,6 +53,10 @@ const BUILD_BATCH: usize = 8192;
 /// Layers of cells probed by one parallel task while building.
 const LAYERS_PER_TASK: usize = 4;
 
+/// Cells per side of the blocks over which a ray finds the stretch it may meet occupied cells in
+/// ([`OccupancyGrid::occupied_stretch`]).
+const BLOCK: usize = 8;
+
 /// The space an occupancy grid's box is in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum GridSpace {
@@ -164,6 +168,10 @@ pub struct OccupancyGrid {
     /// Bit `(z << 2·shift) | (y << shift) | x` is set for an occupied cell x, y, z; the
     /// others, and the last word, past the cells, are 0.
     bits: Vec<u64>,
+    /// Bit `x + y·n + z·n²` of the n³ blocks of [`BLOCK`]³ cells is set if a cell within one cell of
+    /// block (x, y, z) is occupied (the dilation makes [`OccupancyGrid::occupied_stretch`] robust to
+    /// rounding).
+    blocks: Vec<u64>,
 }
 
 impl OccupancyGrid {
@@ -323,7 +331,7 @@ impl OccupancyGrid {
             bits[bit / 64] |= 1 << (bit % 64);
         }
         let center = [0, 1, 2].map(|i| 0.5 * (lo[i] + hi[i]));
-        OccupancyGrid {
+        let mut grid = OccupancyGrid {
             space: GridSpace::Scene,
             lo,
             hi,
@@ -332,7 +340,107 @@ impl OccupancyGrid {
             scale: [0, 1, 2].map(|i| res as f32 / (hi[i] - lo[i])),
             outer: [lo, hi].map(|side| [0, 1, 2].map(|i| side[i] + (side[i] - center[i]) * 2e-4)),
             bits,
+            blocks: Vec::new(),
+        };
+        grid.mark_blocks();
+        grid
+    }
+
+    /// Blocks per axis.
+    fn blocks_per_axis(&self) -> usize {
+        self.resolution.div_ceil(BLOCK)
+    }
+
+    /// Sets `blocks` from the cells' bits.
+    fn mark_blocks(&mut self) {
+        let (res, n) = (self.resolution, self.blocks_per_axis());
+        let mut blocks = vec![0u64; (n * n * n).div_ceil(64)];
+        let row = 1usize << self.shift;
+        for (w, &word) in self.bits.iter().enumerate() {
+            let mut word = word;
+            while word != 0 {
+                let bit = w * 64 + word.trailing_zeros() as usize;
+                word &= word - 1;
+                let (x, y, z) = (bit % row, bit / row % row, bit / (row * row));
+                // The blocks within one cell of the cell: those of its neighbours'.
+                let near = |c: usize| c.saturating_sub(1) / BLOCK..=(c + 1).min(res - 1) / BLOCK;
+                for bz in near(z) {
+                    for by in near(y) {
+                        for bx in near(x) {
+                            let b = bx + n * (by + n * bz);
+                            blocks[b / 64] |= 1 << (b % 64);
+                        }
+                    }
+                }
+            }
         }
+        self.blocks = blocks;
+    }
+
+    /// Whether block (x, y, z) is marked (see `blocks`).
+    fn block(&self, [x, y, z]: [i32; 3]) -> bool {
+        let n = self.blocks_per_axis();
+        let b = x as usize + n * (y as usize + n * z as usize);
+        self.blocks[b / 64] >> (b % 64) & 1 == 1
+    }
+
+    /// The stretch [a, b] of depths within the ray's interval `(t0, t1)` in the box
+    /// ([`OccupancyGrid::ray_interval`]) where the ray `o + t·d` may meet an occupied cell: from where it
+    /// enters the first marked block of [`BLOCK`]³ cells it crosses to where it leaves the last, widened
+    /// by a cell's diagonal; a < b fails if it crosses none. Every depth t of the interval outside the
+    /// stretch has `occupied(o + t·d)` false (the blocks are marked with a cell's dilation, so a rounding
+    /// of the walk cannot lose a cell). A grid in [`GridSpace::Contracted`], where rays are not straight,
+    /// gives the interval unchanged.
+    pub(crate) fn occupied_stretch(&self, o: [f32; 3], d: [f32; 3], (t0, t1): (f32, f32)) -> (f32, f32) {
+        // A miss (or NaN) stays one; a contracted grid has no straight rays to walk.
+        if t0.partial_cmp(&t1).is_none_or(|order| order.is_gt()) || self.space == GridSpace::Contracted {
+            return (t0, t1);
+        }
+        let n = self.blocks_per_axis() as i32;
+        // Blocks per unit length along each axis (the last block may reach past the box: that is empty).
+        let density = self.scale.map(|s| s / BLOCK as f32);
+        let at = |i: usize, t: f32| (o[i] + d[i] * t - self.lo[i]) * density[i];
+        let mut block = [0, 1, 2].map(|i| (at(i, t0).floor() as i32).clamp(0, n - 1));
+        let step = d.map(|d| {
+            if d > 0.0 {
+                1
+            } else if d < 0.0 {
+                -1
+            } else {
+                0
+            }
+        });
+        // Where the ray crosses the next block side along each axis, and the depth between two sides.
+        let side = |i: usize, b: i32| {
+            let plane = self.lo[i] + (b + i32::from(step[i] > 0)) as f32 / density[i];
+            if step[i] == 0 {
+                f32::INFINITY
+            } else {
+                (plane - o[i]) / d[i]
+            }
+        };
+        let mut next = [0, 1, 2].map(|i| side(i, block[i]));
+        let gap = [0, 1, 2].map(|i| (1.0 / (density[i] * d[i])).abs());
+        let (mut first, mut last) = (f32::INFINITY, f32::NEG_INFINITY);
+        let mut t = t0;
+        for _ in 0..3 * n + 3 {
+            let axis = (0..3).fold(0, |best, i| if next[i] < next[best] { i } else { best });
+            let leave = next[axis].min(t1);
+            if self.block(block) {
+                first = first.min(t);
+                last = leave;
+            }
+            block[axis] += step[axis];
+            if leave >= t1 || !(0..n).contains(&block[axis]) {
+                break;
+            }
+            t = leave;
+            next[axis] += gap[axis];
+        }
+        let cell = [0, 1, 2].map(|i| 1.0 / self.scale[i]);
+        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let margin = (cell[0] * cell[0] + cell[1] * cell[1] + cell[2] * cell[2]).sqrt() / length;
+        (first - margin, last + margin)
     }
 
     /// The cells' bits packed 8 to a byte, cell x + y·res + z·res² at bit i % 8 of byte i / 8 (the
@@ -407,6 +515,7 @@ impl OccupancyGrid {
                     }
                 }
             }
+            grid.mark_blocks();
         }
         grid
     }
@@ -771,6 +880,61 @@ mod tests {
             let tolerance = 1e-5 * norm(p).max(1.0).powi(2);
             proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {c:?} {back:?}");
         }
+
+        /// No occupied point of a ray lies outside its occupied stretch: grids of random cells (of sizes
+        /// that are and are not multiples of a block, over boxes that are not cubes), rays from inside and
+        /// outside the box, including ones along an axis or through blocks' edges, each swept densely.
+        #[test]
+        fn occupied_points_lie_in_the_occupied_stretch(
+            resolution in 1usize..40,
+            fill in 0.0f64..0.05,
+            seed in 0u64..1000,
+            origin in proptest::array::uniform3(-3.0f32..3.0),
+            target in proptest::array::uniform3(-1.2f32..1.2),
+            snap in 0usize..4,
+        ) {
+            let bounds = ([-1.0, -0.5, -1.25], [1.0, 0.75, 0.5]);
+            let mut rng = crate::rng::Rng::new(seed);
+            let cells: Vec<bool> = (0..resolution.pow(3)).map(|_| f64::from(rng.next_f32()) < fill).collect();
+            let grid = OccupancyGrid::from_cells(bounds, resolution, |i| cells[i]);
+            // Some rays along an axis, or from a block corner: the walk's ties.
+            let mut d: [f32; 3] = [0, 1, 2].map(|i| target[i] - origin[i]);
+            if snap == 1 {
+                d = [0.0, 0.0, d[2].signum()];
+            }
+            let o = if snap == 2 { [0.0, 0.0, -3.0] } else { origin };
+            let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            proptest::prop_assume!(length > 1e-3);
+            let d = d.map(|x| x / length);
+            let Some((t0, t1)) = grid.ray_interval(o, d) else { return Ok(()) };
+            let (a, b) = grid.occupied_stretch(o, d, (t0, t1));
+            for step in 0..=4000 {
+                let t = t0 + (t1 - t0) * step as f32 / 4000.0;
+                let p = [0, 1, 2].map(|i| o[i] + d[i] * t);
+                proptest::prop_assert!(!grid.occupied(p) || (a <= t && t <= b), "t {t} outside [{a}, {b}] at {p:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn occupied_stretch_spans_the_occupied_cells_a_ray_crosses() {
+        // One occupied cell of 32³ over [-1, 1]³ at x, y in [0, 1/16), z in [0.5, 0.5625).
+        let res = 32;
+        let cell = |i: usize| (i % res, i / res % res, i / (res * res)) == (16, 16, 24);
+        let grid = OccupancyGrid::from_cells(UNIT, res, cell);
+        let (o, d) = ([0.03, 0.03, -3.0], [0.0, 0.0, 1.0]);
+        let (a, b) = grid.occupied_stretch(o, d, grid.ray_interval(o, d).unwrap());
+        // The cell's depths are [3.5, 3.5625]; its block's [3.5, 4.0], and with the cell's dilation the
+        // block before it, [3.0, 3.5), is marked too; a cell's diagonal (0.108) widens the stretch.
+        assert!(a <= 3.5 && b >= 3.5625, "[{a}, {b}]");
+        assert!(
+            a >= 2.85 && b <= 4.15,
+            "the stretch [{a}, {b}] reaches beyond the marked blocks"
+        );
+        // A ray that passes far from the cell's block crosses no marked block: an empty stretch.
+        let (o, d) = ([-0.9, -0.9, -3.0], [0.0, 0.0, 1.0]);
+        let (a, b) = grid.occupied_stretch(o, d, grid.ray_interval(o, d).unwrap());
+        assert!(a > b, "[{a}, {b}]");
     }
 
     #[test]

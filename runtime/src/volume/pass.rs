@@ -5,9 +5,10 @@
 //! A tile is `n` rays (origins and unit directions, loaded into the worker's [`Scratch`]) with
 //! `samples` depths each, shared by all rays or each ray's own ([`Depths`]). [`run`] evaluates the
 //! field at the samples that can contribute and composites them:
-//! - With an [`OccupancyGrid`], rays that miss the grid's box are done without any work; for the
-//!   others, the samples between where the ray enters and leaves the box are looked up in the grid, and
-//!   the occupied ones are packed ray by ray into one dense field call (the other samples are empty
+//! - With an [`OccupancyGrid`], rays that miss the grid's box or cross none of its marked blocks of
+//!   cells are done without any work; for the others, the samples between where the ray enters its
+//!   first marked block and leaves its last ([`OccupancyGrid::occupied_stretch`]) are looked up in the
+//!   grid, and the occupied ones are packed ray by ray into one dense field call (the other samples are empty
 //!   space: all outputs 0, alpha 0) and composited ray by ray.
 //! - Without a grid, the samples go to the field sample-major (sample j of ray k at `j·n + k`) and are
 //!   composited across rays, a loop that vectorizes.
@@ -416,9 +417,9 @@ pub(crate) fn deltas(depths: &[f32]) -> Vec<f32> {
     deltas
 }
 
-/// Drops the rays of the tile that have no sample inside the grid's box (done: the empty ray) and
-/// notes the samples each remaining ray may have inside (`s.spans`); returns the samples where some
-/// ray of the tile may be inside.
+/// Drops the rays of the tile that have no sample in the stretch where they may meet occupied cells
+/// ([`OccupancyGrid::occupied_stretch`]; done: the empty ray) and notes the samples each remaining ray
+/// has there (`s.spans`); returns the samples where some ray of the tile may meet them.
 fn cull_rays(
     pass: &Pass,
     grid: &OccupancyGrid,
@@ -444,7 +445,8 @@ fn cull_rays(
     let mut live = 0;
     for k in 0..n {
         let id = s.ids[k];
-        let span = tile.span(id, t0[k], t1[k]);
+        let (a, b) = grid.occupied_stretch([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]], (t0[k], t1[k]));
+        let span = tile.span(id, a, b);
         if span.start < span.end {
             for v in [&mut *ox, &mut *oy, &mut *oz, &mut *dx, &mut *dy, &mut *dz] {
                 v[live] = v[k];

@@ -14,8 +14,9 @@
 //! With an [`OccupancyGrid`] ([`render_volume_with`]), a sample whose point lies in an empty
 //! cell (or outside the grid's bounds) is not evaluated and gets alpha = 0: it changes
 //! neither the transmittance nor the outputs, whatever its color. Rays that miss the grid's
-//! box (a slab test) write the background without any work; for the others, the samples
-//! between where the ray enters and leaves the box are looked up in the grid, the occupied
+//! box (a slab test), or cross none of its marked blocks of 8³ cells, write the background without
+//! any work; for the others, the samples between where the ray enters its first marked block and
+//! leaves its last are looked up in the grid, the occupied
 //! ones packed ray by ray into one dense field call per tile (or per chunk with early
 //! termination), and each ray composites its own evaluated samples in order. As a grid leaves
 //! few samples of a ray to evaluate, such a tile takes many more rays (up to
