@@ -17,6 +17,7 @@ use nerfjit::settings::block::first_block;
 use nerfjit::settings::schema::Kind;
 use nerfjit_field::JitFn;
 
+mod frames;
 mod quality;
 pub mod roofline;
 
@@ -55,6 +56,9 @@ pub enum Workload {
     /// Quality: each shipped recipe trained on each data set of ../shared/data for `--minutes`, one
     /// after the other; one table of held-out PSNR / SSIM, speed and occupied cells.
     Quality,
+    /// Frames: renders of a trained checkpoint (`--scene CKPT`, e.g. `instant_lego_full.ckpt.safetensors`)
+    /// at 800×800 and 400×400 from its script's camera path, as `nerfjit render` makes them.
+    Frames,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -86,9 +90,9 @@ pub fn run(
     scene: Option<&str>,
     minutes: f64,
 ) -> Result<()> {
-    if scene.is_some() && !matches!(workload, Workload::W7 | Workload::Large) {
+    if scene.is_some() && !matches!(workload, Workload::W7 | Workload::Large | Workload::Frames) {
         return Err(Failure::Message(
-            "'--scene' applies to w7 (the script whose sdf is evaluated at W7's points) and large (the model)"
+            "'--scene' applies to w7 (the script whose sdf is evaluated at W7's points), large (the model) and frames (the checkpoint)"
                 .into(),
         ));
     }
@@ -105,6 +109,7 @@ pub fn run(
         Workload::Large => large(reps, scene.map(Path::new)),
         Workload::Dense => dense(reps, threads),
         Workload::Quality => quality::quality(minutes),
+        Workload::Frames => frames::frames(reps, scene.map(Path::new)),
     }
 }
 

@@ -226,8 +226,8 @@ impl Rendering {
 }
 
 /// The held-out views the first `train` block of `program` (from `source`) validates on, loaded as in
-/// training.
-fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)> {
+/// training, and their description.
+pub fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)> {
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
     let plan = crate::blocks::train::TrainPlan::new(crate::settings::block::first_block(
         program,

@@ -1,0 +1,80 @@
+//! The `frames` workload: renders of a trained checkpoint at 800² (the published tables' resolution) and
+//! 400² (the live viewer's full-size frame), as `nerfjit render` and `eval-views` make them (the
+//! checkpoint's occupancy grid, early termination, the settings its script trains with), from the views
+//! its training holds out (else its script's camera path).
+
+use std::path::Path;
+
+use nerfjit::commands::render_views::{held_out_views, load, script_cameras, ViewArgs};
+use nerfjit::failure::{Failure, Result};
+use nerfjit_field::VolumeFields;
+use nerfjit_jit::KernelCache;
+
+/// Views rendered per repetition, spread over the cameras.
+const VIEWS: usize = 4;
+
+/// Renders up to [`VIEWS`] of the checkpoint's held-out views (else of its `render` block's camera path) at each
+/// size, `reps` times, and prints the median time per frame.
+pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
+    let Some(checkpoint) = checkpoint else {
+        return Err(Failure::Message(
+            "frames renders a trained checkpoint: give --scene CKPT (e.g. instant_lego_full.ckpt.safetensors)"
+                .into(),
+        ));
+    };
+    let source = checkpoint.to_string_lossy();
+    let (program, params) = load(&source)?;
+    let (cameras, described) = match held_out_views(&source, &program) {
+        Ok((views, described)) => (views.cameras, described),
+        Err(_) => {
+            let path = script_cameras(&program)?.ok_or_else(|| {
+                Failure::Message(format!(
+                    "{source}'s script holds no views out and has no render block with a camera"
+                ))
+            })?;
+            (path, "its render path".to_string())
+        }
+    };
+    let count = VIEWS.min(cameras.len());
+    let views: Vec<_> = (0..count).map(|i| &cameras[i * cameras.len() / count]).collect();
+    let args = ViewArgs {
+        source: &source,
+        size: 800,
+        near: None,
+        far: None,
+        samples: None,
+        background: None,
+        importance: None,
+        exact: false,
+    };
+    let rendering = args.resolve(&program);
+    let cache = KernelCache::new();
+    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
+    let settings = rendering.settings(fields.fine.mode);
+    let grid = rendering.occupancy(&source, &fields, &params)?;
+    let occupied = grid.as_ref().map_or("no occupancy grid".to_string(), |g| {
+        format!("{:.1}% of the grid's cells occupied", 100.0 * g.occupancy())
+    });
+    nerfjit::emit(&format!(
+        "frames: {source}, {count} of {described}, {} samples a ray, {occupied}; median of {reps}\n",
+        rendering.samples
+    ));
+    for size in [800, 400] {
+        let mut failed = None;
+        let seconds = crate::time_reps(reps, || {
+            for camera in &views {
+                if let Err(e) = fields.render_with(camera, (size, size), &params, &settings, grid.as_ref()) {
+                    failed = Some(e);
+                }
+            }
+        });
+        if let Some(e) = failed {
+            return Err(e.into());
+        }
+        nerfjit::emit(&format!(
+            "  {size}×{size}: {:8.1} ms a frame\n",
+            1e3 * seconds / count as f64
+        ));
+    }
+    Ok(())
+}
