@@ -1116,7 +1116,17 @@ fn bench_w7_and_large_take_a_given_scene_and_other_workloads_refuse_one() {
     let out = nerfjit(&["bench", "w5", "--scene", torus], None);
     let (_, stderr) = text(&out);
     assert!(
-        !out.status.success() && stderr.contains("'--scene' applies to w7 (") && stderr.contains("and large"),
+        !out.status.success()
+            && stderr.contains("'--scene' applies to w7 (")
+            && stderr.contains("large (the model)")
+            && stderr.contains("frames (the checkpoint)"),
+        "{stderr}"
+    );
+    // `frames` renders a checkpoint: without one it says so.
+    let out = nerfjit(&["bench", "frames"], None);
+    let (_, stderr) = text(&out);
+    assert!(
+        out.status.code() == Some(1) && stderr.contains("give --scene CKPT"),
         "{stderr}"
     );
 
