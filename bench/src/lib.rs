@@ -57,7 +57,8 @@ pub enum Workload {
     /// after the other; one table of held-out PSNR / SSIM, speed and occupied cells.
     Quality,
     /// Frames: renders of a trained checkpoint (`--scene CKPT`, e.g. `instant_lego_full.ckpt.safetensors`)
-    /// at 800×800 and 400×400 from its script's camera path, as `nerfjit render` makes them.
+    /// at 800×800 and 400×400 from the views its training holds out (else its script's camera path), as
+    /// `nerfjit render` makes them.
     Frames,
 }
 
