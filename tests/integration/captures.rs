@@ -9,7 +9,7 @@
 //! matrices K·[R | t] and a scale matrix), independently of nerfjit's loaders, so a convention error in
 //! any would show as a box that is not recovered.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{Mat3, Quat, Vec3};
 
@@ -18,10 +18,8 @@ use crate::common::{run, FIELD};
 const WIDTH: u32 = 48;
 const HEIGHT: u32 = 32;
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("nerfjit-capture-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn scratch(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("capture", name)
 }
 
 /// One camera: eye (looking at the origin, z up), NDC focal and principal point of the course format.

@@ -1,7 +1,7 @@
 //! End-to-end tests of the `nerfjit` binary on scripts the tests write themselves and on the shipped examples.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
 fn nerfjit(args: &[&str], stdin: Option<&str>) -> Output {
@@ -30,10 +30,8 @@ fn text(o: &Output) -> (String, String) {
     )
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("nerfjit-test-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn scratch(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("test", name)
 }
 
 fn write(dir: &Path, file: &str, source: &str) -> String {
@@ -66,7 +64,8 @@ fn check_passes_on_every_example() {
 
 /// `nerfjit check` of a script `source` saved as `name`, which must fail: the script's path and stderr.
 fn check_fails(name: &str, source: &str) -> (String, String) {
-    let path = write(&scratch(name), &format!("{name}.sdf"), source);
+    let dir = scratch(name);
+    let path = write(&dir, &format!("{name}.sdf"), source);
     let out = nerfjit(&["check", &path], None);
     assert!(!out.status.success());
     (path, text(&out).1)
@@ -1142,7 +1141,8 @@ fn bench_w7_and_large_take_a_given_scene_and_other_workloads_refuse_one() {
 #[test]
 fn bench_quality_skips_the_data_sets_that_are_not_there() {
     // Beside a folder with no ../shared/data, every recipe is skipped, and the table is empty.
-    let dir = scratch("quality").join("checkout");
+    let scratch = scratch("quality");
+    let dir = scratch.join("checkout");
     std::fs::create_dir_all(&dir).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
         .args(["bench", "quality", "--minutes", "1"])

@@ -1,8 +1,35 @@
 //! What the integration tests share: running nerfjit in a folder, and a small training scene (four views
 //! of a box rendered by the CLI, and a script that recovers the box from them).
 
+use std::ops::Deref;
 use std::path::Path;
 use std::process::Command;
+
+/// A test's own empty folder in the system's temporary folder, removed with everything in it when the
+/// test ends (also when it fails), so that test runs leave nothing behind.
+pub struct Scratch(tempfile::TempDir);
+
+impl Deref for Scratch {
+    type Target = Path;
+
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+/// A fresh [`Scratch`] folder whose name starts `nerfjit-{kind}-{name}-`.
+pub fn scratch(kind: &str, name: &str) -> Scratch {
+    let dir = tempfile::Builder::new()
+        .prefix(&format!("nerfjit-{kind}-{name}-"))
+        .tempdir();
+    Scratch(dir.expect("a temporary folder"))
+}
 
 /// Runs nerfjit with `args` in `dir`: success, standard output and standard error.
 pub fn run(dir: &Path, args: &[&str]) -> (bool, String, String) {

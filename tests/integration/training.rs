@@ -6,10 +6,8 @@ use std::process::Command;
 
 use crate::common::{make_views, run, trainer_with, FIELD};
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("nerfjit-train-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+fn scratch(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("train", name)
 }
 
 fn trainer(steps: u32) -> String {
@@ -912,5 +910,4 @@ fn a_sweep_runs_every_combination_and_tabulates_their_final_metrics() {
         "{err}"
     );
     assert!(!dir.join("bad").exists(), "no run started");
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -3,7 +3,7 @@
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
@@ -291,10 +291,8 @@ fn an_edit_answers_with_diagnostics_at_the_mistake_or_with_a_new_frame() {
     );
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("nerfjit-view-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn scratch(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("view", name)
 }
 
 #[test]
@@ -347,7 +345,6 @@ fn a_volume_field_renders_color_and_depth_and_bad_requests_are_answered() {
         .as_str()
         .unwrap()
         .contains("not JSON"));
-    std::fs::remove_dir_all(dir).unwrap();
 }
 
 /// Messages up to the first that `stop` accepts (returned last); frames are returned as their headers.
@@ -447,7 +444,6 @@ fn a_training_run_streams_its_progress_and_frames_of_its_params_and_pauses() {
         m["type"] == "progress" && m["record"]["step"].as_u64().unwrap() > last
     });
     drop(viewer);
-    std::fs::remove_dir_all(dir).unwrap();
 }
 
 #[test]
@@ -499,7 +495,6 @@ fn the_export_buttons_get_an_orbit_video_a_mesh_and_a_checkpoint() {
     );
     assert!(ok, "{err}");
     assert!(std::fs::metadata(dir.join("torus.ply")).unwrap().len() > 1000);
-    std::fs::remove_dir_all(dir).unwrap();
     send(&mut socket, export("gltf", 4));
     let error = json_message(&mut socket);
     assert!(
@@ -547,5 +542,4 @@ fn a_checkpoint_is_shown_with_its_trained_params_and_an_edit_that_changes_them_s
         mean_difference(&trained, &initial) > 0.5,
         "trained and initial params differ"
     );
-    std::fs::remove_dir_all(dir).unwrap();
 }

@@ -544,10 +544,14 @@ mod tests {
         }
     }
 
-    fn temp(name: &str) -> std::path::PathBuf {
-        let dir = std::env::temp_dir().join(format!("nerfjit-loop-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir.join("run.ckpt")
+    /// A checkpoint's path in a fresh folder, and the folder (removed when it drops).
+    fn temp(name: &str) -> (tempfile::TempDir, std::path::PathBuf) {
+        let dir = tempfile::Builder::new()
+            .prefix(&format!("nerfjit-loop-{name}-"))
+            .tempdir()
+            .unwrap();
+        let path = dir.path().join("run.ckpt");
+        (dir, path)
     }
 
     #[test]
@@ -585,7 +589,7 @@ mod tests {
     #[test]
     fn a_resumed_run_starts_at_the_checkpoint_and_a_finished_one_takes_no_step() {
         let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
-        let path = temp("resume");
+        let (_folder, path) = temp("resume");
         let mut params = program.param_values.clone();
         let mut first = Quadratic::new(None);
         train(
@@ -638,7 +642,7 @@ mod tests {
     #[test]
     fn a_non_finite_gradient_stops_the_run_and_keeps_the_last_good_checkpoint() {
         let (program, schedule) = (program(), Schedule::Constant { lr: 0.05 });
-        let path = temp("diverge");
+        let (_folder, path) = temp("diverge");
         let mut params = program.param_values.clone();
         let error = train(
             &program,

@@ -399,11 +399,9 @@ mod tests {
     use std::time::{Duration, Instant, SystemTime};
 
     /// A fresh, empty folder for one test.
-    fn temp_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("nerfjit-blender-{}-{name}", std::process::id()));
-        std::fs::remove_dir_all(&dir).ok();
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    fn temp_dir(name: &str) -> tempfile::TempDir {
+        let prefix = format!("nerfjit-blender-{name}-");
+        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
     }
 
     fn request(size: Option<u32>, background: [f32; 3]) -> Request {
@@ -543,7 +541,8 @@ mod tests {
 
     #[test]
     fn rays_of_downscaled_views_go_through_footprint_centers() {
-        let path = synthetic_set(&temp_dir("rays"), 16);
+        let folder = temp_dir("rays");
+        let path = synthetic_set(folder.path(), 16);
         let camera = load_blender_cameras(&path).unwrap().cameras[0];
         for to in [5u32, 8] {
             let scale = 16.0 / to as f32;
@@ -562,7 +561,8 @@ mod tests {
 
     #[test]
     fn synthetic_views_are_composited_and_downscaled() {
-        let path = synthetic_set(&temp_dir("views"), 16);
+        let folder = temp_dir("views");
+        let path = synthetic_set(folder.path(), 16);
         let a = f32::from(COLOR[3]) / 255.0;
         let rgb = |c: usize| f32::from(COLOR[c]) / 255.0;
         for (background, checker) in [([0.0; 3], 0.5), ([1.0; 3], 1.0)] {
@@ -600,8 +600,9 @@ mod tests {
 
     #[test]
     fn second_load_comes_from_the_cache_keyed_by_background() {
-        let dir = temp_dir("cache");
-        let path = synthetic_set(&dir, 16);
+        let dir_scratch = temp_dir("cache");
+        let dir = dir_scratch.path();
+        let path = synthetic_set(dir, 16);
         let cache = dir.join("cache");
         let black = request(Some(5), [0.0; 3]);
         let first = load_views(&path, black, Some(&cache)).unwrap();
@@ -626,8 +627,9 @@ mod tests {
 
     #[test]
     fn stale_or_corrupt_cache_entries_are_decoded_again() {
-        let dir = temp_dir("stale");
-        let path = synthetic_set(&dir, 16);
+        let dir_scratch = temp_dir("stale");
+        let dir = dir_scratch.path();
+        let path = synthetic_set(dir, 16);
         let cache = dir.join("cache");
         let black = request(Some(8), [0.0; 3]);
         let first = load_views(&path, black, Some(&cache)).unwrap();
@@ -667,8 +669,9 @@ mod tests {
 
     #[test]
     fn bad_inputs_give_errors_naming_the_file() {
-        let dir = temp_dir("bad");
-        let path = synthetic_set(&dir, 16);
+        let dir_scratch = temp_dir("bad");
+        let dir = dir_scratch.path();
+        let path = synthetic_set(dir, 16);
         let black = request(Some(8), [0.0; 3]);
         let load = |r: Request| load_views(&path, r, None).unwrap_err().to_string();
         let r1 = dir.join("train/r_1.png");
@@ -719,13 +722,14 @@ mod tests {
 
     #[test]
     fn cache_folder_prefers_the_variable_then_target_then_temp() {
-        let dir = temp_dir("folder");
-        assert_eq!(cache_folder(Some("/x/c".into()), &dir), PathBuf::from("/x/c"));
+        let dir_scratch = temp_dir("folder");
+        let dir = dir_scratch.path();
+        assert_eq!(cache_folder(Some("/x/c".into()), dir), PathBuf::from("/x/c"));
         let temp = std::env::temp_dir().join("nerfjit-cache");
-        assert_eq!(cache_folder(Some("".into()), &dir), temp);
-        assert_eq!(cache_folder(None, &dir), temp);
+        assert_eq!(cache_folder(Some("".into()), dir), temp);
+        assert_eq!(cache_folder(None, dir), temp);
         std::fs::create_dir(dir.join("target")).unwrap();
-        assert_eq!(cache_folder(None, &dir), dir.join("target/nerfjit-cache"));
+        assert_eq!(cache_folder(None, dir), dir.join("target/nerfjit-cache"));
     }
 
     #[test]
@@ -735,13 +739,14 @@ mod tests {
             eprintln!("note: {} not found, skipping", path.display());
             return;
         }
-        let cache = temp_dir("lego");
+        let cache_scratch = temp_dir("lego");
+        let cache = cache_scratch.path();
         let black = request(Some(64), [0.0; 3]);
         let start = Instant::now();
-        let views = load_views(path, black, Some(&cache)).unwrap();
+        let views = load_views(path, black, Some(cache)).unwrap();
         let decoded = start.elapsed();
         let start = Instant::now();
-        let cached = load_views(path, black, Some(&cache)).unwrap();
+        let cached = load_views(path, black, Some(cache)).unwrap();
         let from_cache = start.elapsed();
         eprintln!("lego val at 64×64: first load {decoded:.2?}, cached load {from_cache:.2?}");
         assert_eq!((views.len(), views.width, views.height), (10, 64, 64));
@@ -752,6 +757,5 @@ mod tests {
             let mean = mass(image).iter().sum::<f64>() / (3.0 * 64.0 * 64.0);
             assert!(mean > 0.01, "{mean}");
         }
-        std::fs::remove_dir_all(&cache).ok();
     }
 }

@@ -506,10 +506,9 @@ pub fn default_images_folder(model: &Path) -> Option<PathBuf> {
 mod tests {
     use super::*;
 
-    fn folder(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("nerfjit-colmap-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    fn folder(name: &str) -> tempfile::TempDir {
+        let prefix = format!("nerfjit-colmap-{name}-");
+        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
     }
 
     const CAMERAS: &str =
@@ -625,40 +624,43 @@ mod tests {
 
     #[test]
     fn text_and_binary_models_read_the_same() {
-        let text = folder("text");
-        write_text(&text);
+        let text_scratch = folder("text");
+        let text = text_scratch.path();
+        write_text(text);
         check(
-            &load_colmap(&text, &text.join("imgs")).unwrap(),
+            &load_colmap(text, &text.join("imgs")).unwrap(),
             &text.join("imgs"),
         );
-        let binary = folder("binary");
-        write_binary(&binary);
+        let binary_scratch = folder("binary");
+        let binary = binary_scratch.path();
+        write_binary(binary);
         check(
-            &load_colmap(&binary, &binary.join("imgs")).unwrap(),
+            &load_colmap(binary, &binary.join("imgs")).unwrap(),
             &binary.join("imgs"),
         );
     }
 
     #[test]
     fn bad_models_name_the_file_and_the_problem() {
-        let dir = folder("bad");
-        write_text(&dir);
+        let dir_scratch = folder("bad");
+        let dir = dir_scratch.path();
+        write_text(dir);
         let fisheye = CAMERAS.replace(
             "1 PINHOLE 64 48 70 72 31.5 24.5",
             "1 OPENCV_FISHEYE 64 48 70 72 31.5 24.5 0 0 0 0",
         );
         std::fs::write(dir.join("cameras.txt"), fisheye).unwrap();
-        let e = load_colmap(&dir, &dir).unwrap_err().to_string();
+        let e = load_colmap(dir, dir).unwrap_err().to_string();
         assert!(
             e.contains("cameras.txt: line 2: camera 1 uses OPENCV_FISHEYE; nerfjit reads"),
             "{e}"
         );
         std::fs::write(dir.join("cameras.txt"), CAMERAS).unwrap();
         std::fs::write(dir.join("images.txt"), IMAGES.replace("2 a.png", "9 a.png")).unwrap();
-        let e = load_colmap(&dir, &dir).unwrap_err().to_string();
+        let e = load_colmap(dir, dir).unwrap_err().to_string();
         assert!(e.contains("image 'a.png' names camera 9"), "{e}");
         std::fs::write(dir.join("images.txt"), IMAGES.replace("2 a.png", "2 ../a.png")).unwrap();
-        let e = load_colmap(&dir, &dir).unwrap_err().to_string();
+        let e = load_colmap(dir, dir).unwrap_err().to_string();
         assert!(
             e.contains("must be a relative path inside the image folder"),
             "{e}"
@@ -668,25 +670,27 @@ mod tests {
             IMAGES.replace("0.7071067811865476 1 2", "x 1 2"),
         )
         .unwrap();
-        let e = load_colmap(&dir, &dir).unwrap_err().to_string();
+        let e = load_colmap(dir, dir).unwrap_err().to_string();
         assert!(e.contains("images.txt: line 4: 'x' is not a valid number"), "{e}");
 
-        let bin = folder("badbin");
-        write_binary(&bin);
+        let bin_scratch = folder("badbin");
+        let bin = bin_scratch.path();
+        write_binary(bin);
         let mut bytes = std::fs::read(bin.join("images.bin")).unwrap();
         bytes[..8].copy_from_slice(&u64::MAX.to_le_bytes());
         std::fs::write(bin.join("images.bin"), &bytes).unwrap();
-        let e = load_colmap(&bin, &bin).unwrap_err().to_string();
+        let e = load_colmap(bin, bin).unwrap_err().to_string();
         assert!(
             e.contains("images.bin: declares 18446744073709551615 images"),
             "{e}"
         );
         bytes[..8].copy_from_slice(&2u64.to_le_bytes());
         std::fs::write(bin.join("images.bin"), &bytes[..bytes.len() - 5]).unwrap();
-        let e = load_colmap(&bin, &bin).unwrap_err().to_string();
+        let e = load_colmap(bin, bin).unwrap_err().to_string();
         assert!(e.contains("images.bin: truncated"), "{e}");
-        let empty = folder("empty");
-        let e = load_colmap(&empty, &empty).unwrap_err().to_string();
+        let empty_scratch = folder("empty");
+        let empty = empty_scratch.path();
+        let e = load_colmap(empty, empty).unwrap_err().to_string();
         assert!(e.contains("no COLMAP model here"), "{e}");
     }
 }

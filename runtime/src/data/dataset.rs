@@ -351,10 +351,9 @@ mod tests {
     }
     use std::path::PathBuf;
 
-    fn temp_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("nerfjit-dataset-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    fn temp_dir(name: &str) -> tempfile::TempDir {
+        let prefix = format!("nerfjit-dataset-{name}-");
+        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
     }
 
     fn cameras_json(dir: &Path, images: &[&str], size: &str) -> PathBuf {
@@ -386,12 +385,13 @@ mod tests {
 
     #[test]
     fn npy_and_png_views_load_and_give_pixel_colors() {
-        let dir = temp_dir("ok");
+        let dir_scratch = temp_dir("ok");
+        let dir = dir_scratch.path();
         write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
         // An RGBA PNG: alpha is composited on black.
         let png = image::RgbaImage::from_fn(6, 4, |x, _| image::Rgba([255, 51 * x as u8, 0, 128]));
         png.save(dir.join("b.png")).unwrap();
-        let views = load_box_views(&cameras_json(&dir, &["a.npy", "b.png"], "[4, 6]")).unwrap();
+        let views = load_box_views(&cameras_json(dir, &["a.npy", "b.png"], "[4, 6]")).unwrap();
         assert_eq!(
             (views.len(), views.width, views.height, views.is_empty()),
             (2, 6, 4, false)
@@ -419,10 +419,11 @@ mod tests {
 
     #[test]
     fn missing_and_wrong_size_images_name_the_file() {
-        let dir = temp_dir("bad");
+        let dir_scratch = temp_dir("bad");
+        let dir = dir_scratch.path();
         write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
         write_npy_rgb(&dir.join("small.npy"), &gradient_image(3, 4)).unwrap();
-        let e = load_box_views(&cameras_json(&dir, &["a.npy", "small.npy"], "[4, 6]")).unwrap_err();
+        let e = load_box_views(&cameras_json(dir, &["a.npy", "small.npy"], "[4, 6]")).unwrap_err();
         let small = dir.join("small.npy");
         assert_eq!(
             e.to_string(),
@@ -432,17 +433,17 @@ mod tests {
                 dir.join("cams.json").display()
             )
         );
-        let e = load_box_views(&cameras_json(&dir, &["a.npy", "gone.png"], "[4, 6]")).unwrap_err();
+        let e = load_box_views(&cameras_json(dir, &["a.npy", "gone.png"], "[4, 6]")).unwrap_err();
         assert_eq!(
             e.to_string(),
             format!("cannot read {}: file not found", dir.join("gone.png").display())
         );
-        let e = load_box_views(&cameras_json(&dir, &["gone.npy"], "[4, 6]")).unwrap_err();
+        let e = load_box_views(&cameras_json(dir, &["gone.npy"], "[4, 6]")).unwrap_err();
         assert!(e
             .to_string()
             .starts_with(&format!("cannot read {}", dir.join("gone.npy").display())));
         std::fs::write(dir.join("junk.png"), b"not a png").unwrap();
-        let e = load_box_views(&cameras_json(&dir, &["junk.png"], "[4, 6]")).unwrap_err();
+        let e = load_box_views(&cameras_json(dir, &["junk.png"], "[4, 6]")).unwrap_err();
         assert!(e
             .to_string()
             .starts_with(&format!("{}: invalid PNG", dir.join("junk.png").display())));
@@ -450,7 +451,8 @@ mod tests {
 
     #[test]
     fn a_png_too_large_to_decode_is_refused_before_decoding() {
-        let dir = temp_dir("huge");
+        let dir_scratch = temp_dir("huge");
+        let dir = dir_scratch.path();
         let path = dir.join("huge.png");
         // An 11000² gray image would need 11000² · (1 + 40) bytes, more than a 1 GiB limit: its header,
         // patched from a row of 11000 pixels, is all that is read.
