@@ -395,14 +395,9 @@ impl ByteReader<'_> {
 mod tests {
     use super::*;
     use crate::cameras::rays::RayBatch;
+    use crate::data::scratch_folder;
     use glam::Vec3;
     use std::time::{Duration, Instant, SystemTime};
-
-    /// A fresh, empty folder for one test.
-    fn temp_dir(name: &str) -> tempfile::TempDir {
-        let prefix = format!("nerfjit-blender-{name}-");
-        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
-    }
 
     fn request(size: Option<u32>, background: [f32; 3]) -> Request {
         Request {
@@ -541,7 +536,7 @@ mod tests {
 
     #[test]
     fn rays_of_downscaled_views_go_through_footprint_centers() {
-        let folder = temp_dir("rays");
+        let folder = scratch_folder("blender-rays");
         let path = synthetic_set(folder.path(), 16);
         let camera = load_blender_cameras(&path).unwrap().cameras[0];
         for to in [5u32, 8] {
@@ -561,7 +556,7 @@ mod tests {
 
     #[test]
     fn synthetic_views_are_composited_and_downscaled() {
-        let folder = temp_dir("views");
+        let folder = scratch_folder("blender-views");
         let path = synthetic_set(folder.path(), 16);
         let a = f32::from(COLOR[3]) / 255.0;
         let rgb = |c: usize| f32::from(COLOR[c]) / 255.0;
@@ -600,7 +595,7 @@ mod tests {
 
     #[test]
     fn second_load_comes_from_the_cache_keyed_by_background() {
-        let dir_scratch = temp_dir("cache");
+        let dir_scratch = scratch_folder("blender-cache");
         let dir = dir_scratch.path();
         let path = synthetic_set(dir, 16);
         let cache = dir.join("cache");
@@ -627,7 +622,7 @@ mod tests {
 
     #[test]
     fn stale_or_corrupt_cache_entries_are_decoded_again() {
-        let dir_scratch = temp_dir("stale");
+        let dir_scratch = scratch_folder("blender-stale");
         let dir = dir_scratch.path();
         let path = synthetic_set(dir, 16);
         let cache = dir.join("cache");
@@ -669,7 +664,7 @@ mod tests {
 
     #[test]
     fn bad_inputs_give_errors_naming_the_file() {
-        let dir_scratch = temp_dir("bad");
+        let dir_scratch = scratch_folder("blender-bad");
         let dir = dir_scratch.path();
         let path = synthetic_set(dir, 16);
         let black = request(Some(8), [0.0; 3]);
@@ -722,7 +717,7 @@ mod tests {
 
     #[test]
     fn cache_folder_prefers_the_variable_then_target_then_temp() {
-        let dir_scratch = temp_dir("folder");
+        let dir_scratch = scratch_folder("blender-folder");
         let dir = dir_scratch.path();
         assert_eq!(cache_folder(Some("/x/c".into()), dir), PathBuf::from("/x/c"));
         let temp = std::env::temp_dir().join("nerfjit-cache");
@@ -739,7 +734,7 @@ mod tests {
             eprintln!("note: {} not found, skipping", path.display());
             return;
         }
-        let cache_scratch = temp_dir("lego");
+        let cache_scratch = scratch_folder("blender-lego");
         let cache = cache_scratch.path();
         let black = request(Some(64), [0.0; 3]);
         let start = Instant::now();

@@ -505,11 +505,7 @@ pub fn default_images_folder(model: &Path) -> Option<PathBuf> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn folder(name: &str) -> tempfile::TempDir {
-        let prefix = format!("nerfjit-colmap-{name}-");
-        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
-    }
+    use crate::data::scratch_folder;
 
     const CAMERAS: &str =
         "# Camera list\n1 PINHOLE 64 48 70 72 31.5 24.5\n2 OPENCV 64 48 80 80 32 24 -0.1 0.01 0.001 0.002\n";
@@ -624,14 +620,14 @@ mod tests {
 
     #[test]
     fn text_and_binary_models_read_the_same() {
-        let text_scratch = folder("text");
+        let text_scratch = scratch_folder("colmap-text");
         let text = text_scratch.path();
         write_text(text);
         check(
             &load_colmap(text, &text.join("imgs")).unwrap(),
             &text.join("imgs"),
         );
-        let binary_scratch = folder("binary");
+        let binary_scratch = scratch_folder("colmap-binary");
         let binary = binary_scratch.path();
         write_binary(binary);
         check(
@@ -642,7 +638,7 @@ mod tests {
 
     #[test]
     fn bad_models_name_the_file_and_the_problem() {
-        let dir_scratch = folder("bad");
+        let dir_scratch = scratch_folder("colmap-bad");
         let dir = dir_scratch.path();
         write_text(dir);
         let fisheye = CAMERAS.replace(
@@ -673,7 +669,7 @@ mod tests {
         let e = load_colmap(dir, dir).unwrap_err().to_string();
         assert!(e.contains("images.txt: line 4: 'x' is not a valid number"), "{e}");
 
-        let bin_scratch = folder("badbin");
+        let bin_scratch = scratch_folder("colmap-badbin");
         let bin = bin_scratch.path();
         write_binary(bin);
         let mut bytes = std::fs::read(bin.join("images.bin")).unwrap();
@@ -688,7 +684,7 @@ mod tests {
         std::fs::write(bin.join("images.bin"), &bytes[..bytes.len() - 5]).unwrap();
         let e = load_colmap(bin, bin).unwrap_err().to_string();
         assert!(e.contains("images.bin: truncated"), "{e}");
-        let empty_scratch = folder("empty");
+        let empty_scratch = scratch_folder("colmap-empty");
         let empty = empty_scratch.path();
         let e = load_colmap(empty, empty).unwrap_err().to_string();
         assert!(e.contains("no COLMAP model here"), "{e}");

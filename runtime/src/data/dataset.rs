@@ -239,6 +239,7 @@ impl Views {
 mod tests {
     use super::*;
     use crate::data::npy::write_npy_rgb;
+    use crate::data::scratch_folder;
 
     /// Two pixels of color c and alpha a, composited on `background` as loaders composite them.
     fn composited(background: [f32; 3]) -> Views {
@@ -351,11 +352,6 @@ mod tests {
     }
     use std::path::PathBuf;
 
-    fn temp_dir(name: &str) -> tempfile::TempDir {
-        let prefix = format!("nerfjit-dataset-{name}-");
-        tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
-    }
-
     fn cameras_json(dir: &Path, images: &[&str], size: &str) -> PathBuf {
         let cams: Vec<String> = images
             .iter()
@@ -385,7 +381,7 @@ mod tests {
 
     #[test]
     fn npy_and_png_views_load_and_give_pixel_colors() {
-        let dir_scratch = temp_dir("ok");
+        let dir_scratch = scratch_folder("dataset-ok");
         let dir = dir_scratch.path();
         write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
         // An RGBA PNG: alpha is composited on black.
@@ -419,7 +415,7 @@ mod tests {
 
     #[test]
     fn missing_and_wrong_size_images_name_the_file() {
-        let dir_scratch = temp_dir("bad");
+        let dir_scratch = scratch_folder("dataset-bad");
         let dir = dir_scratch.path();
         write_npy_rgb(&dir.join("a.npy"), &gradient_image(6, 4)).unwrap();
         write_npy_rgb(&dir.join("small.npy"), &gradient_image(3, 4)).unwrap();
@@ -451,7 +447,7 @@ mod tests {
 
     #[test]
     fn a_png_too_large_to_decode_is_refused_before_decoding() {
-        let dir_scratch = temp_dir("huge");
+        let dir_scratch = scratch_folder("dataset-huge");
         let dir = dir_scratch.path();
         let path = dir.join("huge.png");
         // An 11000² gray image would need 11000² · (1 + 40) bytes, more than a 1 GiB limit: its header,

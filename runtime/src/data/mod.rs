@@ -17,3 +17,11 @@ pub mod nerfstudio;
 pub mod npy;
 pub(crate) mod ply;
 pub mod pointcloud;
+
+/// A fresh, empty folder in the system's temporary folder for one test, named `nerfjit-{name}-…`, removed
+/// with everything in it when the returned guard drops (also when the test fails).
+#[cfg(test)]
+pub(crate) fn scratch_folder(name: &str) -> tempfile::TempDir {
+    let prefix = format!("nerfjit-{name}-");
+    tempfile::Builder::new().prefix(&prefix).tempdir().unwrap()
+}
