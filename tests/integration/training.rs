@@ -88,6 +88,15 @@ fn early_termination_still_recovers_the_box_and_a_time_limit_stops_training() {
     assert_eq!(json["steps"].as_u64(), Some(1));
 }
 
+/// Runs `script` (its `STEPS` replaced by `steps`) as `grid.sdf` in `dir`; returns its summary JSON and output.
+fn run_grid_script(dir: &Path, script: &str, steps: &str) -> (serde_json::Value, String) {
+    std::fs::write(dir.join("grid.sdf"), script.replace("STEPS", steps)).unwrap();
+    let (ok, out, err) = run(dir, &["run", "grid.sdf"]);
+    assert!(ok, "{err}");
+    let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
+    (serde_json::from_str(&text).expect("JSON"), format!("{out}{err}"))
+}
+
 #[test]
 fn a_hash_grid_field_learns_the_box_from_its_renders() {
     // No box in the script: a hash encoding and a small network learn the views' colors and opacities.
@@ -101,12 +110,9 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
                   train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: STEPS, batch: 800, lr: 0.01, \
                   summary: \"summary.json\" }\n";
     let psnr = |steps: &str| {
-        std::fs::write(dir.join("grid.sdf"), script.replace("STEPS", steps)).unwrap();
-        let (ok, _, err) = run(&dir, &["run", "grid.sdf"]);
-        assert!(ok, "{err}");
-        let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
-        let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
-        json["final_psnr"].as_f64().expect("a final PSNR")
+        run_grid_script(&dir, script, steps).0["final_psnr"]
+            .as_f64()
+            .expect("a final PSNR")
     };
     let (start, trained) = (psnr("1"), psnr("300"));
     assert!(
@@ -120,13 +126,9 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
         "skip_empty: grid(bounds: 2, resolution: 32, threshold: 0.01), grid_update: ema(decay: 0.9, fraction: 0.25), \
          grid_every: 8, grid_warmup: 20, summary:",
     );
-    std::fs::write(dir.join("grid.sdf"), script.replace("STEPS", "300")).unwrap();
-    let (ok, out, err) = run(&dir, &["run", "grid.sdf"]);
-    assert!(ok, "{err}");
-    let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
-    let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    let (json, output) = run_grid_script(&dir, &script, "300");
     let with_grid = json["final_psnr"].as_f64().expect("a final PSNR");
-    let occupied: Vec<f64> = format!("{out}{err}")
+    let occupied: Vec<f64> = output
         .lines()
         .filter_map(|l| {
             l.split("updated in ")
@@ -141,21 +143,39 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
         .collect();
     assert!(
         !occupied.is_empty() && occupied.iter().all(|&o| o < 60.0),
-        "{err}"
+        "{output}"
     );
     assert!(with_grid > 24.0, "PSNR {with_grid:.2} dB with the running grid");
     // And with instant-ngp's sparse table updates (entries outside the sampled cells keep their moments):
     // learned as well, and not the dense run (the setting reaches the optimizer).
     let sparse = script.replace("lr: 0.01,", "lr: 0.01, optimizer: adam(sparse: true),");
-    std::fs::write(dir.join("grid.sdf"), sparse.replace("STEPS", "300")).unwrap();
-    let (ok, _, err) = run(&dir, &["run", "grid.sdf"]);
-    assert!(ok, "{err}");
-    let text = std::fs::read_to_string(dir.join("summary.json")).expect("summary written");
-    let json: serde_json::Value = serde_json::from_str(&text).expect("JSON");
-    let with_sparse = json["final_psnr"].as_f64().expect("a final PSNR");
+    let with_sparse = run_grid_script(&dir, &sparse, "300").0["final_psnr"]
+        .as_f64()
+        .expect("a final PSNR");
     assert!(
         with_sparse > 24.0 && with_sparse != with_grid,
         "PSNR {with_sparse:.2} dB with sparse updates, {with_grid:.2} without"
+    );
+    // Steps sized in samples: once the grid skips the empty space around the box, a step takes more
+    // rays than the 800 it started with (48 samples each before the grid) and still learns the box.
+    let sized = script.replace("batch: 800,", "batch: 800, batch_samples: 19200,");
+    let (json, output) = run_grid_script(&dir, &sized, "300");
+    let (sized_psnr, rays) = (
+        json["final_psnr"].as_f64().unwrap(),
+        json["rays_per_step"].as_u64().unwrap(),
+    );
+    assert!(
+        sized_psnr > 24.0,
+        "PSNR {sized_psnr:.2} dB with steps of 19,200 samples"
+    );
+    // At most the 40 × 40 pixels of a view: a step's rays are distinct pixels.
+    assert!(
+        rays > 800 && rays <= 1600 && rays % 64 == 0,
+        "{rays} rays a step at the end"
+    );
+    assert!(
+        output.contains(&format!("{rays} rays a step at the end")),
+        "{output}"
     );
 }
 

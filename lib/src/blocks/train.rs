@@ -50,7 +50,10 @@ pub struct TrainPlan {
     steps: u32,
     /// Stop once the steps alone have taken this many seconds (validation and previews excluded).
     time_limit: Option<f64>,
+    /// Rays of the first step (of every step unless `batch_samples` is set).
     batch: usize,
+    /// Steps sized in samples: the ray count adapts so that a step evaluates about this many.
+    batch_samples: Option<usize>,
     schedule: Schedule,
     /// Adam's decay rates and ε.
     optimizer: AdamSettings,
@@ -188,6 +191,7 @@ impl TrainPlan {
                 "{batch} rays × {samples} samples is too many for one step (the limit is {MAX_SAMPLES_PER_STEP} samples)"
             )));
         }
+        let batch_samples = b.whole_or_none("batch_samples")?.map(|n| n as usize);
         let seed = b.whole("seed")?;
         let checkpoint_every = b.whole("checkpoint_every")? as u32;
         let preview_every = b.whole("preview_every")? as u32;
@@ -285,6 +289,7 @@ impl TrainPlan {
             steps,
             time_limit,
             batch,
+            batch_samples,
             schedule,
             optimizer,
             random_views,
@@ -431,6 +436,7 @@ impl TrainPlan {
             eikonal_loss: 0.0,
             history: Vec::new(),
             next_val_time: 0,
+            rays: self.batch,
         };
         let loop_settings = LoopSettings {
             steps: self.steps,
@@ -466,6 +472,7 @@ impl TrainPlan {
                 "seconds": end.wall_seconds,
                 "ms_per_step": ms_per_step,
                 "samples_per_s": samples_per_s,
+                "rays_per_step": objective.rays,
                 "compile_seconds": compile_s,
                 "train_seconds": end.train_seconds,
                 "validation": objective.history,
@@ -475,8 +482,12 @@ impl TrainPlan {
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
         }
         end.stopped(self.checkpoint.as_deref())?;
+        let rays = match self.batch_samples {
+            Some(_) => format!(", {} rays a step at the end", objective.rays),
+            None => String::new(),
+        };
         Ok(format!(
-            "trained {} steps in {:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
+            "trained {} steps in {:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s{rays}, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
             end.trained(),
             end.wall_seconds,
             samples_per_s * 1e-6,
@@ -542,6 +553,8 @@ struct VolumeObjective<'a> {
     history: Vec<serde_json::Value>,
     /// The first of the block's validation times not reached yet.
     next_val_time: usize,
+    /// Rays of the next step (all ranks'): `batch`, or adapted to `batch_samples`.
+    rays: usize,
 }
 
 impl VolumeObjective<'_> {
@@ -678,7 +691,7 @@ impl VolumeObjective<'_> {
             self.psnr,
             val_psnr.map_or(String::new(), |v| format!(" val {v:.2} dB")),
             eikonal.map_or(String::new(), |e| format!(" eikonal {e:.5}")),
-            steps_per_s * self.plan.batch as f64 / 1e3
+            steps_per_s * self.rays as f64 / 1e3
         ));
         Ok(Some(record))
     }
@@ -737,7 +750,7 @@ impl Objective for VolumeObjective<'_> {
         let (rank, ranks) = (crate::cluster::current().rank(), crate::cluster::current().size());
         let (rays, targets) = self.views.random_rays_on(
             view,
-            crate::cluster::part(plan.batch, rank, ranks),
+            crate::cluster::part(self.rays, rank, ranks),
             plan.seed
                 .wrapping_add(u64::from(step))
                 .wrapping_add((rank as u64) << 32),
@@ -761,6 +774,15 @@ impl Objective for VolumeObjective<'_> {
             self.eikonal_loss = eikonal;
         }
         self.psnr = result.psnr;
+        if let Some(target) = plan.batch_samples {
+            // This rank's samples stand for every rank's; a step's rays are distinct pixels of one view.
+            let pixels = self.views.width as usize * self.views.height as usize;
+            let limits = (
+                ranks.max(1),
+                (MAX_SAMPLES_PER_STEP / plan.samples.max(1)).min(pixels),
+            );
+            self.rays = next_ray_count(self.rays, result.samples * ranks, target, limits);
+        }
         Ok(Gradient {
             loss: result.loss,
             grads: result.param_grads,
@@ -786,6 +808,22 @@ impl Objective for VolumeObjective<'_> {
         }
         Ok(())
     }
+}
+
+/// The rays of the next step when steps are sized in samples: the last step's `rays` scaled by
+/// `target / evaluated` (doubled when no sample was evaluated), in multiples of 64 above 64, within
+/// `min..=max`. instant-ngp sizes its steps the same way, so that a step's work stays the same as the
+/// occupancy grid empties.
+fn next_ray_count(rays: usize, evaluated: usize, target: usize, (min, max): (usize, usize)) -> usize {
+    let scaled = match evaluated {
+        0 => rays.saturating_mul(2),
+        _ => (rays as f64 * target as f64 / evaluated as f64).round() as usize,
+    };
+    let rounded = match scaled > 64 {
+        true => scaled.div_ceil(64).saturating_mul(64),
+        false => scaled,
+    };
+    rounded.clamp(min.max(1), max.max(min).max(1))
 }
 
 /// The params of `program` with their values, one per line.
@@ -826,4 +864,36 @@ pub fn params_json(program: &Program, params: &[f32]) -> serde_json::Value {
         })
         .collect();
     serde_json::Value::Object(map)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::next_ray_count;
+
+    #[test]
+    fn ray_counts_scale_to_the_target_in_multiples_of_64() {
+        // 1,024 rays evaluated 4 samples each: 16,384 rays give 65,536.
+        assert_eq!(next_ray_count(1024, 4096, 65536, (1, 1 << 20)), 16384);
+        // 128 samples a ray (before the grid exists): 512 rays.
+        assert_eq!(next_ray_count(1024, 131_072, 65536, (1, 1 << 20)), 512);
+        // Rounded up to a multiple of 64 above 64, kept as it is below.
+        assert_eq!(next_ray_count(1000, 1000, 1001, (1, 1 << 20)), 1024);
+        assert_eq!(next_ray_count(10, 100, 300, (1, 1 << 20)), 30);
+    }
+
+    #[test]
+    fn ray_counts_stay_within_their_limits() {
+        assert_eq!(
+            next_ray_count(1024, 0, 65536, (1, 1 << 20)),
+            2048,
+            "nothing evaluated: doubled"
+        );
+        assert_eq!(next_ray_count(1 << 19, 1, 1 << 26, (1, 1 << 19)), 1 << 19);
+        assert_eq!(next_ray_count(usize::MAX, 0, 1, (2, 100)), 100);
+        assert_eq!(
+            next_ray_count(4, 1 << 20, 256, (2, 100)),
+            2,
+            "never fewer rays than ranks"
+        );
+    }
 }

@@ -461,6 +461,12 @@ pub const TRAIN: BlockSchema = BlockSchema {
         BACKGROUND,
         STEPS,
         BATCH,
+        whole_or_none(
+            "batch_samples",
+            256,
+            1 << 26,
+            "size each step in samples instead of rays, as instant-ngp does: after every step the ray count (from `batch`) is scaled so that the next step evaluates about this many samples, more rays as the occupancy grid and early termination skip more of each",
+        ),
         number("lr", 1e-12, 10.0, 5e-4, "Adam's learning rate"),
         SCHEDULE,
         choice(

@@ -71,7 +71,10 @@ impl DensityEma {
         }
         let n_cells = self.values.len();
         let n = ((fraction as f64 * n_cells as f64).ceil() as usize).min(n_cells);
-        let cells = (0..n).map(|_| rng.below(n_cells as u64) as usize).collect();
+        let mut cells: Vec<usize> = (0..n).map(|_| rng.below(n_cells as u64) as usize).collect();
+        // In the grid's order, so that the points of a field call lie in a slab of cells and share the
+        // encoding's table entries and cache lines (the maximum does not depend on the order).
+        cells.sort_unstable();
         self.values.par_iter_mut().for_each(|v| *v *= decay);
         self.raise(field, cells, rng);
         Ok(())
