@@ -189,11 +189,38 @@ fn a_nerfstudio_capture_with_rectangular_images_and_per_frame_intrinsics_trains(
         r#"{{"camera_model": "OPENCV", "w": {WIDTH}, "h": {HEIGHT}, "k1": 0, "k2": 0, "p1": 0, "p2": 0, "frames": [{}]}}"#,
         frames.join(",\n")
     );
-    std::fs::write(dir.join("transforms.json"), transforms).unwrap();
+    std::fs::write(dir.join("transforms.json"), &transforms).unwrap();
     let (ok, report, err) = run(&dir, &["data", "check", "transforms.json"]);
     assert!(ok, "{err}");
     assert!(report.contains("8 views") && report.contains("48×32"), "{report}");
     train_and_check(&dir, "nerfstudio(\"transforms.json\")", "");
+    // instant-ngp's `aabb_scale` (its scene box of ±1.5 × 4 about the file's origin): `data check` gives
+    // how far it reaches once normalized, and training warns when an occupancy grid outside contracted
+    // space does not hold it.
+    let with_aabb = transforms.replacen('{', r#"{"aabb_scale": 4, "#, 1);
+    std::fs::write(dir.join("transforms_aabb.json"), with_aabb).unwrap();
+    let (ok, report, err) = run(&dir, &["data", "check", "transforms_aabb.json"]);
+    assert!(ok, "{err}");
+    assert!(
+        report.contains("aabb_scale's box normalized: within ±"),
+        "{report}"
+    );
+    let warned = |space: &str| {
+        let script = format!(
+            "param center: vec3 = [0, 0, 0]\nparam sides: vec3 = [1.0, 1.0, 1.0]\n{FIELD}\
+             train {{ data: nerfstudio(\"transforms_aabb.json\"), near: 2, far: 6, samples: 16, steps: 1, \
+             batch: 64, skip_empty: grid(bounds: 1.5, resolution: 16{space}), grid_warmup: 0 }}\n"
+        );
+        std::fs::write(dir.join("aabb.sdf"), script).unwrap();
+        let (ok, out, err) = run(&dir, &["run", "aabb.sdf"]);
+        assert!(ok, "{err}");
+        format!("{out}{err}").contains("transforms_aabb.json's aabb_scale puts its scene within ±")
+    };
+    assert!(warned(""), "no warning for a grid of bounds 1.5");
+    assert!(
+        !warned(", space: contracted"),
+        "a contracted grid covers all of space"
+    );
     // The checkpoint scored on every frame of the capture, at the frames' aspect ratio.
     let (ok, out, err) = run(
         &dir,

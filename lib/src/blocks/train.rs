@@ -8,8 +8,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{
-    load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Rng,
-    Schedule, TrainableModel, Views, VolumeSettings,
+    load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, GridSpace, OccupancyGrid, Quantize,
+    Rng, Schedule, TrainableModel, Views, VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
@@ -378,6 +378,32 @@ impl TrainPlan {
         Ok((views, val_views))
     }
 
+    /// A warning when the data set's `aabb_scale` puts the scene beyond the occupancy grid's box (a grid in
+    /// contracted space covers all of space): samples outside the box are never evaluated.
+    fn aabb_warning(&self) -> Result<Option<String>> {
+        let Some(g) = self
+            .grid
+            .as_ref()
+            .filter(|g| g.grid.space != GridSpace::Contracted)
+        else {
+            return Ok(None);
+        };
+        let Some(extent) = self.data.aabb_extent()? else {
+            return Ok(None);
+        };
+        let (lo, hi) = g.grid.bounds;
+        let covered = lo.iter().all(|&l| l <= -extent) && hi.iter().all(|&h| h >= extent);
+        Ok((!covered).then(|| {
+            format!(
+                "warning: {}'s aabb_scale puts its scene within ±{extent:.2} of the training frame's origin, beyond \
+                 the occupancy grid's box ({lo:?} to {hi:?}): nothing outside the box is sampled, so the scene there \
+                 stays black. For a capture with a background, train with `space: contracted` in `skip_empty` \
+                 (examples/instant_capture.sdf), or widen the grid's bounds",
+                self.data.path.display()
+            )
+        }))
+    }
+
     /// Which views the block holds out, in words (for reports of the protocol scored).
     pub fn held_out_description(&self) -> Option<String> {
         let v = self.validation.as_ref()?;
@@ -400,6 +426,9 @@ impl TrainPlan {
         bars: &dyn ProgressBars,
     ) -> Result<String> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
+        if let Some(line) = self.aabb_warning()? {
+            crate::note(&line);
+        }
         let (views, val_views) = self.load_views()?;
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;

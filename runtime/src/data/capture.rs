@@ -139,6 +139,15 @@ pub struct Capture {
     pub depth_bounds: Option<(f32, f32)>,
 }
 
+/// −1 or +1: bit `axis` of corner `i` of a cube.
+fn sign(i: usize, axis: usize) -> f32 {
+    if (i >> axis) & 1 == 1 {
+        1.0
+    } else {
+        -1.0
+    }
+}
+
 /// The similarity transform [`Capture::normalize`] applied: `x' = scale · (rotation · x − center)`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Normalization {
@@ -150,7 +159,21 @@ pub struct Normalization {
     pub scale: f32,
 }
 
+/// Half the side of instant-ngp's scene box per unit of `aabb_scale`, in the file's units: instant-ngp maps
+/// the file's coordinates by 0.33 and an offset of 0.5 into its unit cube, which then spans ±1.5 about the
+/// file's origin, and `aabb_scale` multiplies that cube.
+pub const AABB_HALF_SIDE: f32 = 1.5;
+
 impl Normalization {
+    /// How far the cube of half-side `half` about the original coordinates' origin reaches along any axis
+    /// once transformed: the largest coordinate of its corners (a box of ± that much holds it).
+    pub fn cube_extent(&self, half: f32) -> f32 {
+        let corners = (0..8).map(|i| half * Vec3::new(sign(i, 0), sign(i, 1), sign(i, 2)));
+        corners
+            .map(|c| self.point(c).abs().max_element())
+            .fold(0.0, f32::max)
+    }
+
     /// The transformed point.
     pub fn point(&self, x: Vec3) -> Vec3 {
         self.scale * (self.rotation * x - self.center)
@@ -493,6 +516,24 @@ fn bilinear(image: &ImageF32, row: f32, col: f32) -> [f32; 3] {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn a_cube_reaches_as_far_as_its_farthest_transformed_corner() {
+        let shifted = Normalization {
+            rotation: Mat3::IDENTITY,
+            center: Vec3::new(1.0, 0.0, 0.0),
+            scale: 2.0,
+        };
+        // x from −1 − 1 to 1 − 1, times 2: −4 to 0.
+        assert_eq!(shifted.cube_extent(1.0), 4.0);
+        let turned = Normalization {
+            rotation: Mat3::from_rotation_z(std::f32::consts::FRAC_PI_4),
+            center: Vec3::ZERO,
+            scale: 1.0,
+        };
+        // A corner (1.5, 1.5, ·) turned by 45° lies at x = 0 and y = 1.5·√2.
+        assert!((turned.cube_extent(1.5) - 1.5 * 2f32.sqrt()).abs() < 1e-5);
+    }
 
     fn look_at(eye: Vec3, up: Vec3) -> Mat4 {
         // OpenGL: −Z looks at the origin.
