@@ -6,7 +6,6 @@
 use std::path::{Path, PathBuf};
 
 use image::ImageDecoder;
-use nerfjit_runtime::data::capture::AABB_HALF_SIDE;
 use nerfjit_runtime::{
     default_images_folder, dtu_cameras_file, is_colmap_model, is_llff, is_nerfstudio, load_blender_cameras,
     load_box_cameras, load_colmap, load_dtu, load_llff, load_nerfstudio, CameraFormat, CameraSet, Capture,
@@ -355,8 +354,7 @@ fn check_capture(source: &Path, kind: &str, mut capture: Capture, normalized: bo
     if let Some((near, far)) = capture.depth_bounds {
         out += &format!("  depth bounds normalized: {near:.3} to {far:.3}\n");
     }
-    if let Some(scale) = capture.aabb_scale {
-        let extent = normalization.cube_extent(AABB_HALF_SIDE * scale);
+    if let Some(extent) = capture.aabb_extent(Some(&normalization)) {
         out += &format!(
             "  aabb_scale's box normalized: within ±{extent:.2} (an occupancy grid outside contracted space needs \
              bounds at least that)\n"

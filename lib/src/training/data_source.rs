@@ -20,7 +20,6 @@ use std::path::{Path, PathBuf};
 
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{budget, Diagnostic};
-use nerfjit_runtime::data::capture::AABB_HALF_SIDE;
 use nerfjit_runtime::{
     default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
     load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
@@ -307,22 +306,21 @@ impl DataSet {
         Ok(Some((capture, data)))
     }
 
-    /// How far instant-ngp's scene box (the cube of half-side [`AABB_HALF_SIDE`] × `aabb_scale` about the
-    /// file's origin) reaches along any axis in the frame training uses, when the data set states an
-    /// `aabb_scale` (nerfstudio's and instant-ngp's `transforms.json`).
+    /// How far instant-ngp's scene box reaches along any axis in the frame training uses, when the data set
+    /// states an `aabb_scale` (nerfstudio's and instant-ngp's `transforms.json`; see [`Capture::aabb_extent`]).
     pub fn aabb_extent(&self) -> Result<Option<f32>> {
         let DataKind::Nerfstudio(data) = &self.kind else {
             return Ok(None);
         };
         let mut capture = load_nerfstudio(&self.path)?;
-        let Some(scale) = capture.aabb_scale else {
+        if capture.aabb_scale.is_none() {
             return Ok(None);
+        }
+        let normalization = match data.normalize {
+            true => Some(capture.normalize()?),
+            false => None,
         };
-        let half = AABB_HALF_SIDE * scale;
-        Ok(Some(match data.normalize {
-            true => capture.normalize()?.cube_extent(half),
-            false => half,
-        }))
+        Ok(capture.aabb_extent(normalization.as_ref()))
     }
 
     /// The same capture read at `downscale` (other data sets unchanged).

@@ -162,7 +162,7 @@ pub struct Normalization {
 /// Half the side of instant-ngp's scene box per unit of `aabb_scale`, in the file's units: instant-ngp maps
 /// the file's coordinates by 0.33 and an offset of 0.5 into its unit cube, which then spans ±1.5 about the
 /// file's origin, and `aabb_scale` multiplies that cube.
-pub const AABB_HALF_SIDE: f32 = 1.5;
+const AABB_HALF_SIDE: f32 = 1.5;
 
 impl Normalization {
     /// How far the cube of half-side `half` about the original coordinates' origin reaches along any axis
@@ -204,6 +204,14 @@ pub struct CaptureRequest {
 }
 
 impl Capture {
+    /// How far instant-ngp's scene box (the cube of half-side 1.5 × `aabb_scale` about the
+    /// file's origin) reaches along any axis once moved by `normalization` (in the file's units without
+    /// one), if the file states an `aabb_scale`.
+    pub fn aabb_extent(&self, normalization: Option<&Normalization>) -> Option<f32> {
+        let half = AABB_HALF_SIDE * self.aabb_scale?;
+        Some(normalization.map_or(half, |n| n.cube_extent(half)))
+    }
+
     /// The capture with its images read from `folder` instead: the files of the same names stored smaller
     /// (mip-NeRF 360's `images_4/` beside `images/`), each camera scaled to its file's size.
     pub fn with_images_in(mut self, folder: &Path) -> Result<Capture> {
