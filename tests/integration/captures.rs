@@ -364,6 +364,27 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
         report.contains("COLMAP") && report.contains("8 views"),
         "{report}"
     );
+    // The scene's depth range from the sparse points, as LLFF's `imgs2poses` finds it: every point lies
+    // within 1.13 of the origin and every camera 4 from it, so its depth in any view is within 4 ± 1.13
+    // (times 2.5 in the model's units), and the views see both sides of the box.
+    let bounds = |prefix: &str| -> (f64, f64) {
+        let line = report
+            .lines()
+            .find_map(|l| l.trim().strip_prefix(prefix))
+            .unwrap_or_else(|| panic!("no '{prefix}': {report}"));
+        let words: Vec<f64> = line.split(' ').filter_map(|w| w.parse().ok()).collect();
+        (words[0], words[1])
+    };
+    let (near, far) = bounds("depth bounds ");
+    assert!(
+        (7.1..10.0).contains(&near) && (10.0..=12.9).contains(&far) && far > 10.0,
+        "{report}"
+    );
+    let (near, far) = bounds("depth bounds normalized: ");
+    assert!(
+        (2.8..4.0).contains(&near) && (4.0..=5.2).contains(&far) && far > 4.0,
+        "{report}"
+    );
     // Views 0 and 4 are held out and scored; training sees the other six.
     // Until step 100 training skips all but the cells near the sparse points (within one cell of 0.25).
     let summary = train_and_check(
@@ -440,6 +461,17 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
         from_images > 30.0 && from_smaller < 10.0,
         "{from_images} dB, then {from_smaller} dB"
     );
+    // Rays that start beyond the nearest content the sparse points give (2.8 or more once normalized) are
+    // warned about; those of `near: 2` above were not.
+    let warning = "depth bounds put the nearest scene content";
+    assert!(!log.contains(warning), "{log}");
+    let script = std::fs::read_to_string(dir.join("train.sdf")).unwrap();
+    let far_start = script
+        .replace("near: 2,", "near: 5.5,")
+        .replace("steps: 300", "steps: 1");
+    std::fs::write(dir.join("far_start.sdf"), far_start).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "far_start.sdf"]);
+    assert!(ok && err.contains(warning) && err.contains("near: 5.5"), "{err}");
 }
 
 /// An unbounded scene: a red ball at the center inside a colored shell 30 units away, seen from 36

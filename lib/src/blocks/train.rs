@@ -404,6 +404,24 @@ impl TrainPlan {
         }))
     }
 
+    /// A warning when the data set's depth bounds put scene content nearer the cameras than the block's
+    /// `near`: the rays start behind it, and it is never trained.
+    fn near_warning(&self) -> Result<Option<String>> {
+        let Some((nearest, _)) = self.data.depth_bounds()? else {
+            return Ok(None);
+        };
+        Ok((self.near > nearest).then(|| {
+            format!(
+                "warning: {}'s depth bounds put the nearest scene content {nearest:.2} from the cameras in the \
+                 training frame, nearer than `near: {}`: the rays start behind it, so it is never sampled. Lower \
+                 `near` (to about {:.2}) unless that content is to be cut away",
+                self.data.path.display(),
+                self.near,
+                0.9 * nearest
+            )
+        }))
+    }
+
     /// Which views the block holds out, in words (for reports of the protocol scored).
     pub fn held_out_description(&self) -> Option<String> {
         let v = self.validation.as_ref()?;
@@ -426,7 +444,7 @@ impl TrainPlan {
         bars: &dyn ProgressBars,
     ) -> Result<String> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
-        if let Some(line) = self.aabb_warning()? {
+        for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
             crate::note(&line);
         }
         let (views, val_views) = self.load_views()?;

@@ -323,6 +323,13 @@ impl DataSet {
         Ok(capture.aabb_extent(normalization.as_ref()))
     }
 
+    /// The scene's nearest and farthest depth from the cameras in the frame training uses, where the data
+    /// set gives them (LLFF's bounds; a COLMAP model's from its sparse points, see
+    /// [`Capture::depth_bounds_from_points`]).
+    pub fn depth_bounds(&self) -> Result<Option<(f32, f32)>> {
+        Ok(self.capture()?.and_then(|(capture, _)| capture.depth_bounds))
+    }
+
     /// The same capture read at `downscale` (other data sets unchanged).
     fn downscaled(&self, downscale: u32) -> DataSet {
         let mut set = self.clone();

@@ -11,7 +11,8 @@
 //! the frame nerfjit's scripts expect (the one of the NeRF-synthetic scenes), as instant-ngp's
 //! `colmap2nerf` does: +Z along the cameras' mean up vector, the origin at the point nearest to
 //! every optical axis (what the cameras look at), and the cameras 4 units from it on average.
-//! Forward-facing captures with known depth bounds (LLFF's) put the origin on the mean optical axis
+//! Forward-facing captures with known depth bounds (LLFF's, or a COLMAP model's from its sparse points:
+//! [`Capture::depth_bounds_from_points`]) put the origin on the mean optical axis
 //! at the scene's nearest depth instead, turned so that the cameras look along +y (the mean camera
 //! near (0, −4, 0)), and their bounds are scaled along.
 
@@ -139,6 +140,42 @@ pub struct Capture {
     pub depth_bounds: Option<(f32, f32)>,
 }
 
+/// The sparse points a view must see for [`Capture::depth_bounds_from_points`] to use its depths.
+pub const MIN_POINTS_PER_VIEW: usize = 10;
+
+/// The 0.1st and 99.9th percentiles of the depths of `points` in front of `camera` that project into
+/// its image, if at least [`MIN_POINTS_PER_VIEW`] do.
+fn view_depth_bounds(camera: &FrameCamera, points: &[Vec3]) -> Option<(f32, f32)> {
+    let to_camera = camera.c2w.inverse();
+    let k = camera.intrinsics;
+    let (width, height) = (camera.width as f32, camera.height as f32);
+    let mut depths: Vec<f32> = points
+        .iter()
+        .filter_map(|&p| {
+            let q = to_camera.transform_point3(p);
+            // OpenGL: the camera looks down −z, +y is up and the image's rows go down.
+            let depth = -q.z;
+            let (u, v) = (k.fx * q.x / depth + k.cx, k.cy - k.fy * q.y / depth);
+            let inside = depth > 0.0 && (0.0..width).contains(&u) && (0.0..height).contains(&v);
+            (inside && depth.is_finite()).then_some(depth)
+        })
+        .collect();
+    if depths.len() < MIN_POINTS_PER_VIEW {
+        return None;
+    }
+    depths.sort_unstable_by(f32::total_cmp);
+    Some((percentile(&depths, 0.1), percentile(&depths, 99.9)))
+}
+
+/// The `q`th percentile (0 to 100) of sorted, non-empty `values`, interpolated linearly between the two
+/// nearest ranks (NumPy's default, which LLFF's `imgs2poses` uses).
+fn percentile(values: &[f32], q: f32) -> f32 {
+    let rank = q / 100.0 * (values.len() - 1) as f32;
+    let (below, t) = (rank.floor() as usize, rank.fract());
+    let above = (below + 1).min(values.len() - 1);
+    values[below] + t * (values[above] - values[below])
+}
+
 /// −1 or +1: bit `axis` of corner `i` of a cube.
 fn sign(i: usize, axis: usize) -> f32 {
     if (i >> axis) & 1 == 1 {
@@ -210,6 +247,23 @@ impl Capture {
     pub fn aabb_extent(&self, normalization: Option<&Normalization>) -> Option<f32> {
         let half = AABB_HALF_SIDE * self.aabb_scale?;
         Some(normalization.map_or(half, |n| n.cube_extent(half)))
+    }
+
+    /// The scene's nearest and farthest depth as LLFF's `imgs2poses` finds them, from the sparse points:
+    /// per view, the 0.1st and 99.9th percentiles of the depths of the points in front of the camera that
+    /// project into its image (points occluded in that view count too: COLMAP's tracks are not read;
+    /// the lens distortion is left out of the projection); then the least of the views' near depths and
+    /// the greatest of their far ones. Views that see fewer than [`MIN_POINTS_PER_VIEW`] points are left
+    /// out; `None` when no view is left.
+    pub fn depth_bounds_from_points(&self) -> Option<(f32, f32)> {
+        let per_view: Vec<(f32, f32)> = self
+            .frames
+            .par_iter()
+            .filter_map(|frame| view_depth_bounds(&frame.camera, &self.points))
+            .collect();
+        let near = per_view.iter().map(|b| b.0).reduce(f32::min)?;
+        let far = per_view.iter().map(|b| b.1).reduce(f32::max)?;
+        Some((near, far))
     }
 
     /// The capture with its images read from `folder` instead: the files of the same names stored smaller
@@ -627,6 +681,38 @@ mod tests {
             }
             prop_assert!(capture.points[0].abs_diff_eq(original.points[0], 2e-3));
         }
+    }
+
+    #[test]
+    fn depth_bounds_are_the_views_percentiles_of_the_points_they_see() {
+        // Points on the −z axis at depths 1 to 1000 from the origin, and three no view counts: behind the
+        // cameras, and in front of the first but outside its image to the right and above.
+        let mut points: Vec<Vec3> = (1..=1000).map(|d| Vec3::new(0.0, 0.0, -(d as f32))).collect();
+        points.extend([
+            Vec3::new(0.0, 0.0, 5.0),
+            Vec3::new(10.0, 0.0, -0.5),
+            Vec3::new(0.0, 0.2, -0.5),
+        ]);
+        let mut further = Mat4::IDENTITY;
+        further.w_axis = Vec3::new(0.0, 0.0, -500.0).extend(1.0);
+        let mut capture = Capture {
+            frames: vec![frame(Mat4::IDENTITY), frame(further)],
+            points,
+            aabb_scale: None,
+            depth_bounds: None,
+        };
+        // The first view sees depths 1 to 1000 (NumPy's percentiles 1.999 and 999.001), the second 1 to
+        // 500 (1.499 and 499.501): the least near depth and the greatest far one.
+        let (near, far) = capture.depth_bounds_from_points().unwrap();
+        assert!(
+            (near - 1.499).abs() < 1e-3 && (far - 999.001).abs() < 1e-2,
+            "{near} {far}"
+        );
+        // A view that sees fewer than MIN_POINTS_PER_VIEW points is left out; with none left, no bounds.
+        capture.points.truncate(MIN_POINTS_PER_VIEW - 1);
+        assert_eq!(capture.depth_bounds_from_points(), None);
+        capture.points.clear();
+        assert_eq!(capture.depth_bounds_from_points(), None);
     }
 
     #[test]

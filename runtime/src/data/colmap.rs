@@ -5,7 +5,8 @@
 //! camera-to-world poses here. Camera models: `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`,
 //! `RADIAL` and `OPENCV`; the fisheye and other models are refused. Frames are sorted by image
 //! name. Counts that a binary file declares are checked against the file's size before they are
-//! trusted.
+//! trusted. The scene's depth bounds come from the sparse points
+//! ([`Capture::depth_bounds_from_points`]).
 
 use std::path::{Path, PathBuf};
 
@@ -111,12 +112,16 @@ pub fn load_colmap(folder: &Path, images: &Path) -> Result<Capture> {
             })
         })
         .collect::<Result<Vec<_>>>()?;
-    Ok(Capture {
+    let mut capture = Capture {
         frames,
         points,
         aabb_scale: None,
         depth_bounds: None,
-    })
+    };
+    // The scene's depth range from the sparse points, as LLFF's `imgs2poses` finds it: a forward-facing
+    // capture is then normalized as LLFF's scenes are.
+    capture.depth_bounds = capture.depth_bounds_from_points();
+    Ok(capture)
 }
 
 /// The OpenGL camera-to-world matrix of a COLMAP world-to-camera pose.
