@@ -22,7 +22,7 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{budget, Diagnostic};
 use nerfjit_runtime::{
     default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
-    load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Views,
+    load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Normalization, Views,
 };
 
 use crate::failure::Result;
@@ -272,6 +272,13 @@ impl DataSet {
     /// The capture of a nerfstudio, COLMAP, LLFF or DTU data set, normalized when asked, and how to
     /// load it.
     fn capture(&self) -> Result<Option<(Capture, CaptureData)>> {
+        Ok(self
+            .normalized_capture()?
+            .map(|(capture, data, _)| (capture, data)))
+    }
+
+    /// [`DataSet::capture`] with the normalization it applied, if it applied one.
+    fn normalized_capture(&self) -> Result<Option<(Capture, CaptureData, Option<Normalization>)>> {
         let (mut capture, data) = match &self.kind {
             DataKind::Nerfstudio(data) => (load_nerfstudio(&self.path)?, *data),
             DataKind::Colmap(data, images) => {
@@ -300,27 +307,21 @@ impl DataSet {
             DataKind::Dtu(data, masks) => (load_dtu(&self.path, *masks)?, *data),
             _ => return Ok(None),
         };
-        if data.normalize {
-            capture.normalize()?;
-        }
-        Ok(Some((capture, data)))
+        let normalization = match data.normalize {
+            true => Some(capture.normalize()?),
+            false => None,
+        };
+        Ok(Some((capture, data, normalization)))
     }
 
     /// How far instant-ngp's scene box reaches along any axis in the frame training uses, when the data set
     /// states an `aabb_scale` (nerfstudio's and instant-ngp's `transforms.json`; see [`Capture::aabb_extent`]).
     pub fn aabb_extent(&self) -> Result<Option<f32>> {
-        let DataKind::Nerfstudio(data) = &self.kind else {
-            return Ok(None);
-        };
-        let mut capture = load_nerfstudio(&self.path)?;
-        if capture.aabb_scale.is_none() {
+        if !matches!(self.kind, DataKind::Nerfstudio(_)) {
             return Ok(None);
         }
-        let normalization = match data.normalize {
-            true => Some(capture.normalize()?),
-            false => None,
-        };
-        Ok(capture.aabb_extent(normalization.as_ref()))
+        let captured = self.normalized_capture()?;
+        Ok(captured.and_then(|(capture, _, normalization)| capture.aabb_extent(normalization.as_ref())))
     }
 
     /// The scene's nearest and farthest depth from the cameras in the frame training uses, where the data
