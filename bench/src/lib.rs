@@ -53,6 +53,10 @@ pub enum Workload {
     /// The dense-layer products alone: GFLOP/s of the 128 × 128 forward product and weight gradient on
     /// tiles of points, on one thread and on all threads.
     Dense,
+    /// The hash-grid encoding alone (16 levels × 2 features, lego's 2^14 and instant-ngp's 2^19 entries a
+    /// level): ns a point of its read and its scatter on one thread, over batches of 128 (a tile of the
+    /// kernels), 1,024 and 8,192 uniformly random points, the levels the outer loop of each batch.
+    Grid,
     /// Quality: each shipped recipe trained on each data set of ../shared/data for `--minutes`, one
     /// after the other; one table of held-out PSNR / SSIM, speed and occupied cells.
     Quality,
@@ -109,6 +113,7 @@ pub fn run(
         Workload::Mesh => mesh(reps),
         Workload::Large => large(reps, scene.map(Path::new)),
         Workload::Dense => dense(reps, threads),
+        Workload::Grid => grid(reps),
         Workload::Quality => quality::quality(minutes),
         Workload::Frames => frames::frames(reps, scene.map(Path::new)),
     }
@@ -688,6 +693,69 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
     run(&format!("bf16 weight gradient (Σ ȳ ⊗ x, {unit})"), &|| {
         grad(Precision::Bf16)
     });
+    Ok(())
+}
+
+fn grid(reps: usize) -> Result<()> {
+    use nerfjit_dsl::ir::{GridRead, GridSpec, V};
+    use nerfjit_jit::grid_encoding::GridPlan;
+    const POINTS: usize = 1 << 18;
+    const FEATURES: usize = 2;
+    const LEVELS: usize = 16;
+    let mut rng = Rng::new(7);
+    let coordinates: Vec<Vec<f32>> = (0..3)
+        .map(|_| (0..POINTS).map(|_| 3.0 * rng.next_f32() - 1.5).collect())
+        .collect();
+    let cotangents: Vec<Vec<f32>> = (0..LEVELS * FEATURES)
+        .map(|j| (0..POINTS).map(|t| 0.1 + 0.01 * ((t + j) % 97) as f32).collect())
+        .collect();
+    for log2_size in [14, 19] {
+        let plan = GridPlan::new(&GridRead {
+            spec: GridSpec {
+                table: 0,
+                levels: LEVELS as u32,
+                features: FEATURES as u32,
+                log2_size,
+                base: 16,
+                finest: 2048,
+                extent: 1.5f32.to_bits(),
+            },
+            p: [V(0), V(1), V(2)],
+            deriv: 0,
+        });
+        let params: Vec<f32> = (0..plan.params_end()).map(|i| 1e-4 * (i % 13) as f32).collect();
+        let mut grads = vec![0.0f32; plan.params_end()];
+        let mut line = format!("grid 2^{log2_size} entries a level, ns a point (1 thread):");
+        for batch in [128, 1024, 8192] {
+            let mut out = vec![vec![0.0f32; batch]; LEVELS * FEATURES];
+            let read = time_reps(reps, || {
+                for start in (0..POINTS).step_by(batch) {
+                    let p = [0, 1, 2].map(|a| coordinates[a][start..].as_ptr());
+                    let columns: Vec<*mut f32> = out.iter_mut().map(|c| c.as_mut_ptr()).collect();
+                    // SAFETY: every point column holds POINTS ≥ start + batch floats, every output column
+                    // batch floats.
+                    unsafe { plan.read(p, &columns, &params, batch) };
+                }
+                std::hint::black_box(&out);
+            });
+            let scatter = time_reps(reps, || {
+                for start in (0..POINTS).step_by(batch) {
+                    let p = [0, 1, 2].map(|a| coordinates[a][start..].as_ptr());
+                    let cot: Vec<*const f32> = cotangents.iter().map(|c| c[start..].as_ptr()).collect();
+                    // SAFETY: every column holds POINTS ≥ start + batch floats.
+                    unsafe { plan.scatter(p, &cot, &mut grads, batch) };
+                }
+                std::hint::black_box(&grads);
+            });
+            let ns = |seconds: f64| seconds * 1e9 / POINTS as f64;
+            line += &format!(
+                " batches of {batch}: read {:.0}, scatter {:.0};",
+                ns(read),
+                ns(scatter)
+            );
+        }
+        nerfjit::emit(&format!("{}\n", line.trim_end_matches(';')));
+    }
     Ok(())
 }
 

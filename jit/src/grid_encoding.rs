@@ -4,7 +4,8 @@
 //! The layout, the hash and the weights are those of [`nerfjit_dsl::grid`] (the interpreter's oracle);
 //! here they run in f32 over the columns of a tile, with the levels' layouts computed once per kernel.
 //! On AVX-512 machines 16 points go through a level at once (the corners hashed in vector registers,
-//! the table read by gathers, the cotangents scattered by gather-add-scatter); on AVX2 machines 8 (the
+//! the table read by gathers, the cotangents scattered by gather-add-scatter, a point's two neighbouring
+//! features moved as one 8-byte element when they are even in number); on AVX2 machines 8 (the
 //! corners and the read in vectors, the scatter point by point), with the corners of levels larger than
 //! the L1 cache computed two blocks ahead and their lines prefetched, so that the reads of a large table
 //! overlap instead of waiting on memory one after the other. The arithmetic is the scalar path's,
@@ -14,7 +15,7 @@ use nerfjit_dsl::grid::Level;
 use nerfjit_dsl::ir::{GridRead, GridSpec};
 
 /// A grid read or scatter prepared for tiles.
-pub(crate) struct GridPlan {
+pub struct GridPlan {
     levels: Vec<Level>,
     table: usize,
     features: usize,
@@ -70,7 +71,7 @@ struct Corners {
 
 impl GridPlan {
     /// The plan of a read (or scatter) of `read`'s grid.
-    pub(crate) fn new(read: &GridRead) -> GridPlan {
+    pub fn new(read: &GridRead) -> GridPlan {
         let spec: GridSpec = read.spec;
         let extent = f32::from_bits(spec.extent);
         let end = spec.table as usize + spec.n_params() as usize;
@@ -90,14 +91,25 @@ impl GridPlan {
     }
 
     /// One past the last param the grid touches.
-    pub(crate) fn params_end(&self) -> usize {
+    pub fn params_end(&self) -> usize {
         self.end
     }
 
     /// The table entries a point reads (or a scatter writes): 8 corners on each level, `features` floats
     /// each.
-    pub(crate) fn corners_per_point(&self) -> u64 {
+    pub fn corners_per_point(&self) -> u64 {
         8 * self.levels.len() as u64
+    }
+
+    /// The pairs of neighbouring features that the AVX-512 paths move as one 8-byte element: all of them
+    /// when the features are even in number, else none.
+    #[cfg(target_arch = "x86_64")]
+    fn feature_pairs(&self) -> usize {
+        if self.features.is_multiple_of(2) {
+            self.features / 2
+        } else {
+            0
+        }
     }
 
     #[inline(always)]
@@ -141,7 +153,7 @@ impl GridPlan {
     /// # Safety
     /// The pointers of `p` must address `count` readable floats and those of `out` (levels × features of
     /// them) `count` writable floats.
-    pub(crate) unsafe fn read(&self, p: [*const f32; 3], out: &[*mut f32], params: &[f32], count: usize) {
+    pub unsafe fn read(&self, p: [*const f32; 3], out: &[*mut f32], params: &[f32], count: usize) {
         assert!(params.len() >= self.end, "the grid's table is outside the params");
         assert_eq!(out.len(), self.levels.len() * self.features);
         // SAFETY (both vector paths): the CPU has their instructions and the indices fit (`Path::available`);
@@ -175,13 +187,7 @@ impl GridPlan {
     ///
     /// # Safety
     /// The pointers of `p` and `cot` must address `count` readable floats.
-    pub(crate) unsafe fn scatter(
-        &self,
-        p: [*const f32; 3],
-        cot: &[*const f32],
-        grads: &mut [f32],
-        count: usize,
-    ) {
+    pub unsafe fn scatter(&self, p: [*const f32; 3], cot: &[*const f32], grads: &mut [f32], count: usize) {
         assert!(
             grads.len() >= self.end,
             "the grid's table is outside the gradients"
@@ -291,29 +297,44 @@ mod avx512 {
         let features = _mm512_set1_epi32(plan.features as i32);
         let first = _mm512_set1_epi32(plan.table as i32);
         let offset = _mm512_set1_epi32(level.offset as i32);
+        // Per axis, the lower and upper vertex's term of the local index: the vertex times the axis's
+        // hash prime (hashed levels, the terms xored) or its stride (dense levels, the terms added). The
+        // upper term is the lower one plus the factor, as (v + 1)·m = v·m + m in wrapping arithmetic: two
+        // products per level instead of two per corner, with the same bits.
+        let factors = match level.hash_mask {
+            Some(_) => [1, 2_654_435_761u32 as i32, 805_459_861],
+            None => {
+                let n = level.res as i32 + 1;
+                [1, n, n.wrapping_mul(n)]
+            }
+        };
+        let term = [0, 1, 2].map(|a| {
+            let m = _mm512_set1_epi32(factors[a]);
+            let low = if a == 0 {
+                lower[a]
+            } else {
+                _mm512_mullo_epi32(lower[a], m)
+            };
+            [low, _mm512_add_epi32(low, m)]
+        });
         let mut corners = Corners16 {
             index: [_mm512_setzero_si512(); 8],
             weight: [zero; 8],
         };
         for k in 0..8usize {
             let bit = |a: usize| k >> a & 1;
-            let v = [0, 1, 2].map(|a| _mm512_add_epi32(lower[a], _mm512_set1_epi32(bit(a) as i32)));
             let local = match level.hash_mask {
-                Some(mask) => {
-                    let h = _mm512_xor_si512(
-                        _mm512_xor_si512(
-                            v[0],
-                            _mm512_mullo_epi32(v[1], _mm512_set1_epi32(2_654_435_761u32 as i32)),
-                        ),
-                        _mm512_mullo_epi32(v[2], _mm512_set1_epi32(805_459_861)),
-                    );
-                    _mm512_and_si512(h, _mm512_set1_epi32(mask as i32))
-                }
-                None => {
-                    let n = _mm512_set1_epi32(level.res as i32 + 1);
-                    let row = _mm512_add_epi32(_mm512_mullo_epi32(v[2], n), v[1]);
-                    _mm512_add_epi32(_mm512_mullo_epi32(row, n), v[0])
-                }
+                Some(mask) => _mm512_and_si512(
+                    _mm512_xor_si512(
+                        _mm512_xor_si512(term[0][bit(0)], term[1][bit(1)]),
+                        term[2][bit(2)],
+                    ),
+                    _mm512_set1_epi32(mask as i32),
+                ),
+                None => _mm512_add_epi32(
+                    _mm512_add_epi32(term[2][bit(2)], term[1][bit(1)]),
+                    term[0][bit(0)],
+                ),
             };
             corners.index[k] = _mm512_add_epi32(
                 first,
@@ -337,7 +358,48 @@ mod avx512 {
         p.map(|c| unsafe { _mm512_maskz_loadu_ps(m, c.add(start)) })
     }
 
-    /// [`GridPlan::read`] on AVX-512.
+    /// Lane indices that spread the weights of points 0–7 (first) and 8–15 (second) over the two lanes of
+    /// each point's pair of features: `[0, 0, 1, 1, …, 7, 7]` and `[8, 8, …, 15, 15]`.
+    #[target_feature(enable = "avx512f")]
+    fn pair_spread() -> [__m512i; 2] {
+        let spread = |first: i32| {
+            let i = |j: i32| first + j / 2;
+            _mm512_setr_epi32(
+                i(0),
+                i(1),
+                i(2),
+                i(3),
+                i(4),
+                i(5),
+                i(6),
+                i(7),
+                i(8),
+                i(9),
+                i(10),
+                i(11),
+                i(12),
+                i(13),
+                i(14),
+                i(15),
+            )
+        };
+        [spread(0), spread(8)]
+    }
+
+    /// The 8 table indices (of a pair's first feature) of points 0–7 (`half` 0) or 8–15 (`half` 1).
+    #[target_feature(enable = "avx512f")]
+    fn half_indices(at: __m512i, half: usize) -> __m256i {
+        if half == 0 {
+            _mm512_castsi512_si256(at)
+        } else {
+            _mm512_extracti64x4_epi64::<1>(at)
+        }
+    }
+
+    /// [`GridPlan::read`] on AVX-512. With an even number of features, a point's two neighbouring features
+    /// come in one 8-byte gather (8 points a gather instead of 16 floats: half the loads), summed in the
+    /// pairs' interleaved order and separated into their columns at the end, with the same operations on
+    /// each value.
     ///
     /// # Safety
     /// As [`GridPlan::read`]'s, with `params.len() ≥ plan.end` and every index below 2^31.
@@ -349,12 +411,51 @@ mod avx512 {
         params: &[f32],
         count: usize,
     ) {
+        let spread = pair_spread();
+        let even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+        let odd = _mm512_add_epi32(even, _mm512_set1_epi32(1));
+        let pairs = plan.feature_pairs();
         for (l, level) in plan.levels.iter().enumerate() {
             for start in (0..count).step_by(LANES) {
                 let m = lanes(start, count);
                 // SAFETY: the caller's columns hold count floats.
                 let corners = corners(plan, level, unsafe { load_points(p, start, m) });
-                for f in 0..plan.features {
+                for pair in 0..pairs {
+                    let shift = _mm512_set1_epi32(2 * pair as i32);
+                    let mut sum = [_mm512_setzero_ps(); 2];
+                    for k in 0..8 {
+                        let at = _mm512_add_epi32(corners.index[k], shift);
+                        for (half, sum) in sum.iter_mut().enumerate() {
+                            // SAFETY: an index + 1 is below plan.end ≤ params.len() (the pair's second
+                            // feature), as in the scalar path.
+                            let value = _mm512_castpd_ps(unsafe {
+                                _mm512_mask_i32gather_pd::<4>(
+                                    _mm512_setzero_pd(),
+                                    (m >> (8 * half)) as __mmask8,
+                                    half_indices(at, half),
+                                    params.as_ptr().cast(),
+                                )
+                            });
+                            let weight = _mm512_permutexvar_ps(spread[half], corners.weight[k]);
+                            *sum = _mm512_add_ps(*sum, _mm512_mul_ps(weight, value));
+                        }
+                    }
+                    let column = l * plan.features + 2 * pair;
+                    // SAFETY: the output columns hold count floats.
+                    unsafe {
+                        _mm512_mask_storeu_ps(
+                            out[column].add(start),
+                            m,
+                            _mm512_permutex2var_ps(sum[0], even, sum[1]),
+                        );
+                        _mm512_mask_storeu_ps(
+                            out[column + 1].add(start),
+                            m,
+                            _mm512_permutex2var_ps(sum[0], odd, sum[1]),
+                        );
+                    }
+                }
+                for f in 2 * pairs..plan.features {
                     let shift = _mm512_set1_epi32(f as i32);
                     let mut sum = _mm512_setzero_ps();
                     for k in 0..8 {
@@ -376,9 +477,12 @@ mod avx512 {
         }
     }
 
-    /// [`GridPlan::scatter`] on AVX-512: the corners 16 points at a time; for each corner and feature the
-    /// 16 sums are one gather, add and scatter when the points' entries are distinct (AVX-512 CD's conflict
-    /// detection), and go point by point when some points share an entry (as in coarse levels).
+    /// [`GridPlan::scatter`] on AVX-512: the corners 16 points at a time; for each corner the sums go
+    /// by one gather, add and scatter when the points' entries are distinct (AVX-512 CD's conflict
+    /// detection), and point by point when some points share an entry (as in coarse levels). With an even
+    /// number of features a point's two neighbouring features go as one 8-byte element (8 points an
+    /// instruction: half the elements to gather and scatter); a point whose pair has one cotangent 0 then
+    /// adds ±0 to that feature, which leaves it as it was.
     ///
     /// # Safety
     /// As [`GridPlan::scatter`]'s, with `grads.len() ≥ plan.end` and every index below 2^31.
@@ -391,6 +495,12 @@ mod avx512 {
         count: usize,
     ) {
         let zero = _mm512_setzero_ps();
+        let spread = pair_spread();
+        let interleave = [
+            _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23),
+            _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31),
+        ];
+        let pairs = plan.feature_pairs();
         let mut index = [0u32; LANES];
         let mut value = [0.0f32; LANES];
         for (l, level) in plan.levels.iter().enumerate() {
@@ -398,7 +508,77 @@ mod avx512 {
                 let m = lanes(start, count);
                 // SAFETY: the caller's columns hold count floats.
                 let corners = corners(plan, level, unsafe { load_points(p, start, m) });
-                for f in 0..plan.features {
+                for pair in 0..pairs {
+                    let column = l * plan.features + 2 * pair;
+                    // SAFETY: as for the points.
+                    let c =
+                        [column, column + 1].map(|j| unsafe { _mm512_maskz_loadu_ps(m, cot[j].add(start)) });
+                    // Points whose two cotangents are 0 add nothing (NaN is kept, as in the scalar path).
+                    let live = m
+                        & (_mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(c[0], zero)
+                            | _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(c[1], zero));
+                    if live == 0 {
+                        continue;
+                    }
+                    // Per half, the points' cotangents as pairs: [c0 of point 0, c1 of point 0, …].
+                    let paired = interleave.map(|i| _mm512_permutex2var_ps(c[0], i, c[1]));
+                    for k in 0..8 {
+                        let at = _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(2 * pair as i32));
+                        for half in 0..2 {
+                            let live = (live >> (8 * half)) as __mmask8;
+                            if live == 0 {
+                                continue;
+                            }
+                            let at = half_indices(at, half);
+                            let add = _mm512_mul_ps(
+                                _mm512_permutexvar_ps(spread[half], corners.weight[k]),
+                                paired[half],
+                            );
+                            // Bit j of lane i: lane j < i has the same entry; only live lanes count.
+                            let shared = _mm512_and_si512(
+                                _mm512_conflict_epi64(_mm512_cvtepu32_epi64(at)),
+                                _mm512_set1_epi64(i64::from(live)),
+                            );
+                            if _mm512_mask_test_epi64_mask(live, shared, shared) == 0 {
+                                // SAFETY: an index + 1 is below plan.end ≤ grads.len() (the pair's second
+                                // feature), as in the scalar path.
+                                unsafe {
+                                    let sum = _mm512_add_ps(
+                                        _mm512_castpd_ps(_mm512_mask_i32gather_pd::<4>(
+                                            _mm512_setzero_pd(),
+                                            live,
+                                            at,
+                                            grads.as_ptr().cast(),
+                                        )),
+                                        add,
+                                    );
+                                    _mm512_mask_i32scatter_pd::<4>(
+                                        grads.as_mut_ptr().cast(),
+                                        live,
+                                        at,
+                                        _mm512_castps_pd(sum),
+                                    );
+                                }
+                                continue;
+                            }
+                            // SAFETY: 8 indices and 16 values into arrays of 16.
+                            unsafe {
+                                _mm256_storeu_si256(index.as_mut_ptr().cast(), at);
+                                _mm512_storeu_ps(value.as_mut_ptr(), add);
+                            }
+                            for lane in (0..8).filter(|&lane| live >> lane & 1 == 1) {
+                                for f in 0..2 {
+                                    // SAFETY: as above.
+                                    unsafe {
+                                        *grads.get_unchecked_mut(index[lane] as usize + f) +=
+                                            value[2 * lane + f]
+                                    };
+                                }
+                            }
+                        }
+                    }
+                }
+                for f in 2 * pairs..plan.features {
                     // SAFETY: as for the points.
                     let c = unsafe { _mm512_maskz_loadu_ps(m, cot[l * plan.features + f].add(start)) };
                     // Points whose cotangent is 0 add nothing (NaN is kept, as in the scalar path).
@@ -738,13 +918,13 @@ mod tests {
 
     use super::{GridPlan, Path};
 
-    /// A grid of dense and hashed levels, its table at param 3.
-    fn read(deriv: u8, extent: f32) -> GridRead {
+    /// A grid of dense and hashed levels with `features` features, its table at param 3.
+    fn read(deriv: u8, extent: f32, features: u32) -> GridRead {
         GridRead {
             spec: GridSpec {
                 table: 3,
                 levels: 5,
-                features: 2,
+                features,
                 log2_size: 9,
                 base: 3,
                 finest: 40,
@@ -768,14 +948,17 @@ mod tests {
 
     proptest! {
         /// The vector paths this machine has (16 points with AVX-512, 8 with AVX2, with and without the
-        /// lookahead) give the scalar path's bits, for reads, their derivatives and scatters, at any count.
+        /// lookahead) give the scalar path's bits, for reads, their derivatives and scatters, at any count
+        /// and number of features (an even number goes in pairs on AVX-512).
         #[test]
         fn vector_and_scalar_paths_agree(
             points in proptest::collection::vec([coordinate(), coordinate(), coordinate()], 0..=128),
             deriv in 0u8..8,
+            features in 1u32..=4,
             seed in any::<u32>(),
         ) {
-            let scalar = GridPlan { path: Path::Scalar, ..GridPlan::new(&read(deriv, 1.0)) };
+            let scalar = GridPlan { path: Path::Scalar, ..GridPlan::new(&read(deriv, 1.0, features)) };
+            let columns_out = 5 * features as usize;
             let count = points.len();
             let columns: Vec<Vec<f32>> = (0..3).map(|a| points.iter().map(|p| p[a]).collect()).collect();
             let p = [0, 1, 2].map(|a| columns[a].as_ptr());
@@ -783,7 +966,7 @@ mod tests {
                 .map(|i| ((i as u32).wrapping_mul(2_654_435_761) ^ seed) as f32 / u32::MAX as f32 - 0.5)
                 .collect();
             let outputs = |plan: &GridPlan| {
-                let mut out = vec![vec![0.0f32; count]; 10];
+                let mut out = vec![vec![0.0f32; count]; columns_out];
                 let pointers: Vec<*mut f32> = out.iter_mut().map(|c| c.as_mut_ptr()).collect();
                 // SAFETY: every column holds count floats.
                 unsafe { plan.read(p, &pointers, &params, count) };
@@ -791,7 +974,7 @@ mod tests {
             };
             let bits = |c: Vec<Vec<f32>>| c.concat().iter().map(|v| v.to_bits()).collect::<Vec<_>>();
 
-            let cotangent: Vec<Vec<f32>> = (0..10)
+            let cotangent: Vec<Vec<f32>> = (0..columns_out)
                 .map(|j| (0..count).map(|t| if (t + j) % 5 == 0 { 0.0 } else { (t * 10 + j) as f32 * 0.01 }).collect())
                 .collect();
             let cot: Vec<*const f32> = cotangent.iter().map(|c| c.as_ptr()).collect();
@@ -805,7 +988,7 @@ mod tests {
             // all near, so `far` is set by hand).
             let paths = Path::available(scalar.params_end()).into_iter().flat_map(|path| [(path, false), (path, true)]);
             for (path, far) in paths {
-                let plan = GridPlan { path, far: vec![far; 5], ..GridPlan::new(&read(deriv, 1.0)) };
+                let plan = GridPlan { path, far: vec![far; 5], ..GridPlan::new(&read(deriv, 1.0, features)) };
                 prop_assert_eq!(bits(outputs(&plan)), bits(outputs(&scalar)), "{:?} far {}", path, far);
                 if path == Path::Avx512 {
                     // The same terms, summed in another order (corner by corner rather than point by

@@ -17,8 +17,9 @@
 //! ```
 #![warn(missing_docs)]
 
-// The dense products (f32 with AVX-512/AVX2, bfloat16 on AMX) are public only with the `bench` feature,
-// for the benchmark workloads of `nerfjit-bench` that time them alone.
+// The dense products (f32 with AVX-512/AVX2, bfloat16 on AMX) and the grid encodings' reads and scatters
+// are public only with the `bench` feature, for the benchmark workloads of `nerfjit-bench` that time them
+// alone.
 #[cfg(feature = "bench")]
 pub mod bf16;
 #[cfg(not(feature = "bench"))]
@@ -29,6 +30,9 @@ mod codegen;
 pub mod gemm;
 #[cfg(not(feature = "bench"))]
 mod gemm;
+#[cfg(feature = "bench")]
+pub mod grid_encoding;
+#[cfg(not(feature = "bench"))]
 mod grid_encoding;
 mod kernel;
 mod marcher;
