@@ -362,28 +362,11 @@ mod avx512 {
     /// each point's pair of features: `[0, 0, 1, 1, …, 7, 7]` and `[8, 8, …, 15, 15]`.
     #[target_feature(enable = "avx512f")]
     fn pair_spread() -> [__m512i; 2] {
-        let spread = |first: i32| {
-            let i = |j: i32| first + j / 2;
-            _mm512_setr_epi32(
-                i(0),
-                i(1),
-                i(2),
-                i(3),
-                i(4),
-                i(5),
-                i(6),
-                i(7),
-                i(8),
-                i(9),
-                i(10),
-                i(11),
-                i(12),
-                i(13),
-                i(14),
-                i(15),
-            )
-        };
-        [spread(0), spread(8)]
+        [0, 8].map(|first| {
+            let lanes: [i32; 16] = std::array::from_fn(|j| first + j as i32 / 2);
+            // SAFETY: 16 i32s are the 64 bytes the load reads.
+            unsafe { _mm512_loadu_si512(lanes.as_ptr().cast()) }
+        })
     }
 
     /// The 8 table indices (of a pair's first feature) of points 0–7 (`half` 0) or 8–15 (`half` 1).
