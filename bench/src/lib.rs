@@ -640,7 +640,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             // SAFETY: every column holds TILE floats; x and y are separate buffers.
             unsafe {
                 match precision {
-                    Precision::F32 => gemm::matmul(&w, &xp, &yp),
+                    Precision::F32 => gemm::matmul(&w, &xp, &yp, TILE),
                     Precision::Bf16 => bf16::matmul(&w_bf16, &xp, &yp, &mut scratch),
                 }
             };

@@ -388,6 +388,10 @@ impl KeptPasses for JitPasses<'_> {
     fn finish(&mut self, param_grads: &mut [f32]) {
         self.0.finish(param_grads);
     }
+
+    fn bytes_per_point(&self) -> usize {
+        self.0.bytes_per_point()
+    }
 }
 
 /// A volume field of a script: `density(p)` or `opacity(p)`, and `color(p)` or `color(p, d)`, compiled

@@ -157,7 +157,7 @@ pub unsafe fn matmul(a: &Bf16Matrix, x: &[*const f32], out: &[*mut f32], scratch
     }
     let rounded: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
     // SAFETY: the rounded columns hold TILE floats each, in a buffer no output overlaps.
-    unsafe { gemm::matmul(&a.rounded, &rounded, out) };
+    unsafe { gemm::matmul(&a.rounded, &rounded, out, TILE) };
 }
 
 /// `g[i·stride + j] += Σ_{t < count} l[i][t] · r[j][t]` as [`gemm::outer`] (stride =

@@ -125,48 +125,52 @@ pub(crate) fn has_avx2_fma() -> bool {
     })
 }
 
-/// `out[i][t] = Σ_k a[i·k_len + k] · x[k][t]` for i < `out.len()`, t < [`TILE`], where k_len = `x.len()`.
+/// `out[i][t] = Σ_k a[i·k_len + k] · x[k][t]` for i < `out.len()` and t < `count` (≤ [`TILE`]), where k_len
+/// = `x.len()`; the points from `count` up to the next multiple of 16 get their products too, the others
+/// are left as they are. Each point's sums are the same whatever `count`.
 ///
 /// # Safety
 /// Every pointer of `x` must address [`TILE`] readable floats and every pointer of `out` [`TILE`]
 /// writable floats that no pointer of `x` overlaps; `a` must hold `out.len() · x.len()` floats.
-pub unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+pub unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32], count: usize) {
     // SAFETY: the best backend runs on this CPU; the buffers are as the caller guarantees.
-    unsafe { matmul_on(Backend::best(), a, x, out) }
+    unsafe { matmul_on(Backend::best(), a, x, out, count) }
 }
 
 /// [`matmul`] on a given backend.
 ///
 /// # Safety
 /// As [`matmul`], and `backend` must be one of [`Backend::available`].
-pub unsafe fn matmul_on(backend: Backend, a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+pub unsafe fn matmul_on(backend: Backend, a: &[f32], x: &[*const f32], out: &[*mut f32], count: usize) {
     assert!(a.len() >= out.len() * x.len(), "matrix smaller than its product");
+    assert!(count <= TILE, "more points than a tile");
+    let count = count.next_multiple_of(16);
     // SAFETY: the backend runs on this CPU and the buffers are as the caller guarantees.
     unsafe {
         match backend {
             #[cfg(target_arch = "x86_64")]
-            Backend::Avx512 => avx512::matmul(a, x, out),
+            Backend::Avx512 => avx512::matmul(a, x, out, count),
             #[cfg(target_arch = "x86_64")]
-            Backend::Avx2 => avx2::matmul(a, x, out),
-            _ => matmul_plain(a, x, out),
+            Backend::Avx2 => avx2::matmul(a, x, out, count),
+            _ => matmul_plain(a, x, out, count),
         }
     }
 }
 
-/// [`matmul`] in plain loops.
+/// [`matmul`] in plain loops, over points `0..count`.
 ///
 /// # Safety
 /// As [`matmul`].
-unsafe fn matmul_plain(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+unsafe fn matmul_plain(a: &[f32], x: &[*const f32], out: &[*mut f32], count: usize) {
     let k_len = x.len();
     for (i, &o) in out.iter().enumerate() {
-        // SAFETY: `o` addresses TILE floats that no input overlaps (caller).
-        let o = unsafe { std::slice::from_raw_parts_mut(o, TILE) };
+        // SAFETY: `o` addresses TILE ≥ count floats that no input overlaps (caller).
+        let o = unsafe { std::slice::from_raw_parts_mut(o, count) };
         o.fill(0.0);
         for (k, &xk) in x.iter().enumerate() {
             let w = a[i * k_len + k];
-            // SAFETY: `xk` addresses TILE floats (caller).
-            let xk = unsafe { std::slice::from_raw_parts(xk, TILE) };
+            // SAFETY: `xk` addresses TILE ≥ count floats (caller).
+            let xk = unsafe { std::slice::from_raw_parts(xk, count) };
             for (ot, xt) in o.iter_mut().zip(xk) {
                 *ot += w * xt;
             }
@@ -277,8 +281,6 @@ pub(crate) mod avx512 {
     use std::arch::x86_64::*;
     use std::ops::Range;
 
-    use super::TILE;
-
     /// Rows of A per register block of the product.
     const MR: usize = 6;
     /// Rows of G per register block of the outer product.
@@ -287,47 +289,71 @@ pub(crate) mod avx512 {
     /// Vectors of 16 points per register block of the product.
     const QV: usize = 4;
 
+    /// Points `0..count` (a multiple of 16) of the product.
     #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
-        let k = x.len();
+    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32], count: usize) {
         // Point blocks outermost: a block's inputs (k × 16·QV floats) stay in L1 for every row block.
-        for t0 in (0..TILE).step_by(16 * QV) {
-            let mut i = 0;
-            // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
-            unsafe {
-                while i + MR <= out.len() {
-                    matmul_block::<MR>(a.as_ptr().add(i * k), x, &out[i..i + MR], t0);
-                    i += MR;
-                }
-                match out.len() - i {
-                    5 => matmul_block::<5>(a.as_ptr().add(i * k), x, &out[i..], t0),
-                    4 => matmul_block::<4>(a.as_ptr().add(i * k), x, &out[i..], t0),
-                    3 => matmul_block::<3>(a.as_ptr().add(i * k), x, &out[i..], t0),
-                    2 => matmul_block::<2>(a.as_ptr().add(i * k), x, &out[i..], t0),
-                    1 => matmul_block::<1>(a.as_ptr().add(i * k), x, &out[i..], t0),
-                    _ => {}
-                }
+        let full = count / (16 * QV) * (16 * QV);
+        // SAFETY (all blocks): as the caller guarantees, with t0 + 16·Q ≤ count ≤ TILE.
+        unsafe {
+            for t0 in (0..full).step_by(16 * QV) {
+                matmul_rows::<QV>(a, x, out, t0);
+            }
+            match (count - full) / 16 {
+                3 => matmul_rows::<3>(a, x, out, full),
+                2 => matmul_rows::<2>(a, x, out, full),
+                1 => matmul_rows::<1>(a, x, out, full),
+                _ => {}
             }
         }
     }
 
-    /// R rows of the product for the 16·QV points from `t0`.
+    /// Every row of the product for the 16·Q points from `t0`.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    unsafe fn matmul_block<const R: usize>(a: *const f32, x: &[*const f32], out: &[*mut f32], t0: usize) {
+    unsafe fn matmul_rows<const Q: usize>(a: &[f32], x: &[*const f32], out: &[*mut f32], t0: usize) {
         let k = x.len();
-        let mut acc = [[_mm512_setzero_ps(); QV]; R];
+        let mut i = 0;
+        // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold t0 + 16·Q ≤ TILE
+        // floats.
+        unsafe {
+            while i + MR <= out.len() {
+                matmul_block::<MR, Q>(a.as_ptr().add(i * k), x, &out[i..i + MR], t0);
+                i += MR;
+            }
+            match out.len() - i {
+                5 => matmul_block::<5, Q>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                4 => matmul_block::<4, Q>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                3 => matmul_block::<3, Q>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                2 => matmul_block::<2, Q>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                1 => matmul_block::<1, Q>(a.as_ptr().add(i * k), x, &out[i..], t0),
+                _ => {}
+            }
+        }
+    }
+
+    /// R rows of the product for the 16·Q points from `t0`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn matmul_block<const R: usize, const Q: usize>(
+        a: *const f32,
+        x: &[*const f32],
+        out: &[*mut f32],
+        t0: usize,
+    ) {
+        let k = x.len();
+        let mut acc = [[_mm512_setzero_ps(); Q]; R];
         for (kk, &xk) in x.iter().enumerate() {
-            // SAFETY: xk addresses TILE floats and t0 + 16·QV ≤ TILE; row r of A has k floats.
+            // SAFETY: xk addresses TILE floats and t0 + 16·Q ≤ TILE; row r of A has k floats.
             unsafe {
                 let p = xk.add(t0);
-                let mut b = [_mm512_setzero_ps(); QV];
+                let mut b = [_mm512_setzero_ps(); Q];
                 for (q, bq) in b.iter_mut().enumerate() {
                     *bq = _mm512_loadu_ps(p.add(16 * q));
                 }
                 for (r, acc_r) in acc.iter_mut().enumerate() {
                     let w = _mm512_set1_ps(*a.add(r * k + kk));
-                    for q in 0..QV {
+                    for q in 0..Q {
                         acc_r[q] = _mm512_fmadd_ps(w, b[q], acc_r[q]);
                     }
                 }
@@ -520,18 +546,17 @@ mod avx2 {
     use std::arch::x86_64::*;
     use std::ops::Range;
 
-    use super::TILE;
-
     /// Rows per register block (of the product's A, and of the outer product's G).
     const MR: usize = 6;
     /// Vectors of 8 floats per register block (16 points of the product, 16 columns of G).
     const NV: usize = 2;
 
+    /// Points `0..count` (a multiple of 16) of the product.
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32]) {
+    pub(super) unsafe fn matmul(a: &[f32], x: &[*const f32], out: &[*mut f32], count: usize) {
         let k = x.len();
         // Point blocks outermost: a block's inputs (k × 16 floats) stay in L1 for every row block.
-        for t0 in (0..TILE).step_by(8 * NV) {
+        for t0 in (0..count).step_by(8 * NV) {
             let mut i = 0;
             // SAFETY (all blocks): rows i.. of A exist (checked by the caller), columns hold TILE floats.
             unsafe {
@@ -722,6 +747,8 @@ mod tests {
             .collect()
     }
 
+    /// On every backend, for every count of points: the plain product at the points up to the next
+    /// multiple of 16, the very bits of the whole tile's product there, the other points untouched.
     #[test]
     fn matmul_matches_a_plain_product() {
         for (m, k) in [
@@ -737,19 +764,39 @@ mod tests {
             let a = column(7, m * k);
             let xs: Vec<Vec<f32>> = (0..k).map(|c| column(c as u32, TILE)).collect();
             for backend in Backend::available() {
-                let mut outs = vec![vec![f32::NAN; TILE]; m];
-                let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
-                let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
-                // SAFETY: every column has TILE floats; outputs are separate buffers; the backend is available.
-                unsafe { matmul_on(backend, &a, &xp, &op) };
+                let product = |count: usize| {
+                    let mut outs = vec![vec![f32::NAN; TILE]; m];
+                    let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
+                    let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
+                    // SAFETY: every column has TILE floats; outputs are separate buffers; the backend is
+                    // available.
+                    unsafe { matmul_on(backend, &a, &xp, &op, count) };
+                    outs
+                };
+                let whole = product(TILE);
                 for i in 0..m {
                     for t in 0..TILE {
                         let want: f64 = (0..k)
                             .map(|c| f64::from(a[i * k + c]) * f64::from(xs[c][t]))
                             .sum();
                         assert!(
-                            (f64::from(outs[i][t]) - want).abs() < 1e-4,
+                            (f64::from(whole[i][t]) - want).abs() < 1e-4,
                             "{backend:?} {m}x{k} at ({i}, {t})"
+                        );
+                    }
+                }
+                for count in [1, 15, 16, 17, 40, 64, 65, 100, 127] {
+                    let part = product(count);
+                    let done = count.next_multiple_of(16);
+                    for i in 0..m {
+                        assert_eq!(
+                            part[i][..done].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                            whole[i][..done].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                            "{backend:?} {m}x{k}, {count} points, row {i}"
+                        );
+                        assert!(
+                            part[i][done..].iter().all(|v| v.is_nan()),
+                            "{backend:?} wrote past {done}"
                         );
                     }
                 }

@@ -511,7 +511,7 @@ impl Kernel {
 }
 
 /// A kernel's forward and backward passes over the same points ([`Kernel::passes`]): [`Passes::forward`]
-/// over a batch of points, then [`Passes::backward`] over the same batch with the cotangents of the
+/// over batches of points, then [`Passes::backward`] over all of them in order with the cotangents of the
 /// outputs, as often as wanted; [`Passes::finish`] adds what the backward passes summed.
 pub struct Passes<'a> {
     kernel: &'a Kernel,
@@ -520,17 +520,19 @@ pub struct Passes<'a> {
 
 impl Passes<'_> {
     /// Evaluates the outputs at points `0..n` of the forward pass's `inputs` and keeps what the backward
-    /// pass needs (about a tile arena per 128 points: call it on a few hundred points at a time so that
-    /// they stay in the cache). Panics if a slice is shorter than the kernel needs.
+    /// pass needs after what the forward passes since the last backward pass kept (a tile arena per 128
+    /// points or fewer of a call, [`Passes::bytes_per_point`] a point: keep a few hundred points at a
+    /// time so that they stay in the cache). Panics if a slice is shorter than the kernel needs.
     pub fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
         let (n_in, n_out) = (self.passes.forward_inputs(), self.kernel.n_outputs);
         check_columns(n, (inputs, n_in), (outputs, n_out));
         self.passes.forward(n, inputs, outputs);
     }
 
-    /// The backward pass at the points of the last [`Passes::forward`] (`n` of them) with the cotangents:
-    /// adds their reductions to `reductions`, some now, the rest at [`Passes::finish`]. Panics if the last
-    /// forward pass was not over `n` points or a slice is shorter than the kernel needs.
+    /// The backward pass at the points of the [`Passes::forward`] calls since the last backward pass (`n`
+    /// of them in all, in the order they were evaluated) with the cotangents: adds their reductions to
+    /// `reductions`, some now, the rest at [`Passes::finish`]. Panics if those forward passes were not
+    /// over `n` points or a slice is shorter than the kernel needs.
     pub fn backward(&mut self, n: usize, cotangents: &[&[f32]], reductions: &mut [f32]) {
         let k = self.kernel;
         let expected = k.n_inputs - self.passes.forward_inputs();
@@ -550,6 +552,11 @@ impl Passes<'_> {
             k.n_reductions
         );
         self.passes.backward(n, cotangents, reductions);
+    }
+
+    /// The memory the forward passes keep per point, in bytes.
+    pub fn bytes_per_point(&self) -> usize {
+        self.passes.bytes_per_point()
     }
 
     /// Adds the sums the backward passes keep until the end to `reductions`.

@@ -105,15 +105,19 @@ pub trait BatchVjp: Sync {
 }
 
 /// A field's forward pass that keeps what its backward pass needs, and that backward pass
-/// ([`BatchVjp::kept_passes`]): [`KeptPasses::forward`] on a batch of points, then
-/// [`KeptPasses::backward`] on the same batch with the cotangents of the outputs, as often as wanted;
-/// [`KeptPasses::finish`] adds what the backward passes held back.
+/// ([`BatchVjp::kept_passes`]): [`KeptPasses::forward`] on batches of points, then
+/// [`KeptPasses::backward`] on all of them in order with the cotangents of the outputs, as often as
+/// wanted; [`KeptPasses::finish`] adds what the backward passes held back.
 pub trait KeptPasses: Send {
-    /// Evaluates points 0..n (as [`BatchFn::eval`]) and keeps what the backward pass needs.
+    /// Evaluates points 0..n (as [`BatchFn::eval`]) and keeps what the backward pass needs, after what the
+    /// forward passes since the last backward pass kept.
     fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]);
-    /// Adds Σ_points Σ_k `cotangents[k][p]`·∂out_k(p)/∂θ over the `n` points of the last forward pass to
-    /// `param_grads`, some of it now and the rest at [`KeptPasses::finish`].
+    /// Adds Σ_points Σ_k `cotangents[k][p]`·∂out_k(p)/∂θ over the `n` points of the forward passes since the
+    /// last backward pass (in the order they were evaluated) to `param_grads`, some of it now and the rest
+    /// at [`KeptPasses::finish`].
     fn backward(&mut self, n: usize, cotangents: &[&[f32]], param_grads: &mut [f32]);
+    /// About the memory the forward pass keeps per point, in bytes.
+    fn bytes_per_point(&self) -> usize;
     /// Adds what the backward passes held back to `param_grads`.
     fn finish(&mut self, param_grads: &mut [f32]);
 }

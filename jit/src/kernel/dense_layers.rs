@@ -626,9 +626,9 @@ pub(crate) struct Workspace<'a> {
     grads: Vec<Vec<f32>>,
     scratch: Vec<f32>,
     bf16_scratch: Bf16Scratch,
-    /// The arenas, `n_slots · COLUMN` floats each, from the first cache line of `buffer` on.
-    buffer: Vec<f32>,
-    arenas: usize,
+    /// The arenas, `n_slots · COLUMN` floats each from the first cache line of their buffer on, each
+    /// buffer its own allocation so that arenas stay in place when more are made.
+    arenas: Vec<Vec<f32>>,
 }
 
 impl<'a> Workspace<'a> {
@@ -649,20 +649,17 @@ impl<'a> Workspace<'a> {
                 .collect(),
             scratch: Vec::new(),
             bf16_scratch: Bf16Scratch::default(),
-            buffer: Vec::new(),
-            arenas: 0,
+            arenas: Vec::new(),
         }
     }
 
-    /// Makes room for `count` arenas, their constants and params filled in (what they held is lost
-    /// when they grow).
+    /// Makes room for `count` arenas, their constants and params filled in (the arenas made before keep
+    /// what they hold).
     fn reserve_arenas(&mut self, count: usize) {
-        if count <= self.arenas {
-            return;
-        }
         let size = self.plan.n_slots * COLUMN;
-        let all = gemm::line_aligned(&mut self.buffer, count * size);
-        for arena in all.chunks_exact_mut(size) {
+        while self.arenas.len() < count {
+            let mut buffer = Vec::new();
+            let arena = gemm::line_aligned(&mut buffer, size);
             for &(slot, fill) in &self.plan.fills {
                 let value = match fill {
                     Fill::Const(c) => c,
@@ -670,14 +667,14 @@ impl<'a> Workspace<'a> {
                 };
                 arena[slot * COLUMN..slot * COLUMN + TILE].fill(value);
             }
+            self.arenas.push(buffer);
         }
-        self.arenas = count;
     }
 
     /// The start of arena `k` (< the arenas reserved).
     fn arena(&mut self, k: usize) -> *mut f32 {
         let size = self.plan.n_slots * COLUMN;
-        gemm::line_aligned(&mut self.buffer, self.arenas * size)[k * size..].as_mut_ptr()
+        gemm::line_aligned(&mut self.arenas[k], size).as_mut_ptr()
     }
 
     /// The forward pass of the tile of points `start..start + count` in `arena`: loads their `inputs`,
@@ -749,7 +746,7 @@ impl<'a> Workspace<'a> {
                 // slots no input of the same product uses (its inputs precede it).
                 unsafe {
                     match m {
-                        Matrix::F32(m) => gemm::matmul(m, &x, &out),
+                        Matrix::F32(m) => gemm::matmul(m, &x, &out, count),
                         Matrix::Bf16(m) => bf16::matmul(m, &x, &out, &mut self.bf16_scratch),
                     }
                 };
@@ -842,15 +839,15 @@ impl<'a> Workspace<'a> {
 }
 
 /// The forward and the backward pass of a kernel compiled with a split ([`Options::split`]) run
-/// separately over the same points: the forward pass keeps each tile's arena, the backward pass goes on
-/// in it after the caller has computed the cotangents from the outputs, so nothing is recomputed.
+/// separately over the same points: the forward passes keep each tile's arena, the backward pass goes on
+/// in them after the caller has computed the cotangents from the outputs, so nothing is recomputed.
 pub(crate) struct Passes<'a> {
     plan: &'a Tiled,
     params: &'a [f32],
     /// Made by the first forward pass.
     workspace: Option<Workspace<'a>>,
-    /// The points of the last forward pass.
-    kept: Option<usize>,
+    /// The points in each arena the forward passes since the last backward pass filled, in order.
+    kept: Vec<usize>,
 }
 
 impl<'a> Passes<'a> {
@@ -860,54 +857,61 @@ impl<'a> Passes<'a> {
             plan,
             params,
             workspace: None,
-            kept: None,
+            kept: Vec::new(),
         }
     }
 
     /// The forward pass over points `0..n` (sizes checked by the caller): writes the outputs, keeps a tile
-    /// arena per [`TILE`] points.
+    /// arena per [`TILE`] points after those of the forward passes before it.
     pub(crate) fn forward(&mut self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
         let plan = self.plan;
         let w = self
             .workspace
             .get_or_insert_with(|| Workspace::new(plan, self.params, Arc::new(plan.prepare(self.params))));
-        w.reserve_arenas(n.div_ceil(TILE).max(1));
+        let first = self.kept.len();
+        w.reserve_arenas(first + n.div_ceil(TILE));
         let mut laps = Laps::start();
         for (t, start) in (0..n).step_by(TILE).enumerate() {
             let count = TILE.min(n - start);
-            let arena = w.arena(t);
-            // SAFETY: arena t exists; sizes were checked by the caller.
+            let arena = w.arena(first + t);
+            // SAFETY: arena first + t exists; sizes were checked by the caller.
             unsafe { w.forward_tile(arena, (start, count), inputs, outputs, &mut laps) };
+            self.kept.push(count);
         }
         laps.lap(Phase::Elementwise);
         laps.finish();
-        self.kept = Some(n);
     }
 
-    /// The backward pass over the points of the last forward pass, `0..n`, with their `cotangents`; adds
-    /// grid scatters to `reductions` now and the rest at [`Passes::finish`].
+    /// The backward pass over the points of the forward passes since the last backward pass, `0..n` in
+    /// their order, with their `cotangents`; adds grid scatters to `reductions` now and the rest at
+    /// [`Passes::finish`].
     ///
     /// # Panics
-    /// If the last forward pass was not over `n` points.
+    /// If those forward passes were not over `n` points in all.
     pub(crate) fn backward(&mut self, n: usize, cotangents: &[&[f32]], reductions: &mut [f32]) {
         assert_eq!(
-            self.kept.take(),
-            Some(n),
-            "a backward pass runs over the points of the forward pass"
+            self.kept.iter().sum::<usize>(),
+            n,
+            "a backward pass runs over the points of the forward passes"
         );
-        let w = self
-            .workspace
-            .as_mut()
-            .expect("the forward pass made the workspace");
+        let Some(w) = self.workspace.as_mut() else {
+            return;
+        };
         let mut laps = Laps::start();
-        for (t, start) in (0..n).step_by(TILE).enumerate() {
-            let count = TILE.min(n - start);
+        let mut start = 0;
+        for (t, count) in self.kept.drain(..).enumerate() {
             let arena = w.arena(t);
-            // SAFETY: the forward pass reserved arena t; sizes were checked by the caller.
+            // SAFETY: a forward pass filled arena t with `count` points; sizes were checked by the caller.
             unsafe { w.backward_tile(arena, (start, count), cotangents, reductions, &mut laps) };
+            start += count;
         }
         laps.lap(Phase::Elementwise);
         laps.finish();
+    }
+
+    /// The bytes the forward passes keep per point: a tile arena's over its [`TILE`] points.
+    pub(crate) fn bytes_per_point(&self) -> usize {
+        self.plan.n_slots * COLUMN * std::mem::size_of::<f32>() / TILE
     }
 
     /// Adds what the backward passes summed so far (segment reductions, outer products) to `reductions`.

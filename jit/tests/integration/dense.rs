@@ -104,7 +104,8 @@ proptest! {
     }
 
     /// The training kernel split into a forward pass that keeps its values and a backward pass over them,
-    /// called on batches of any size: the outputs and reductions of the interpreter, and for one batch
+    /// called on batches of any size, each batch's backward pass after its forward pass or one backward
+    /// pass after all the forward passes: the outputs and reductions of the interpreter, and for one batch
     /// the very bits of the unsplit kernel, which recomputes nothing differently.
     #[test]
     fn split_passes_match_the_unsplit_kernel_and_the_interpreter(
@@ -113,6 +114,7 @@ proptest! {
         seed in any::<u64>(),
         relu in any::<bool>(),
         bf16 in any::<bool>(),
+        one_backward in any::<bool>(),
     ) {
         let p = network(&widths, if relu { "relu" } else { "tanh" });
         let params = p.param_values_f64();
@@ -133,8 +135,14 @@ proptest! {
             let cots: Vec<&[f32]> = cols[3..].iter().map(|c| &c[start..start + b]).collect();
             let mut out: Vec<&mut [f32]> = outs.iter_mut().map(|o| &mut o[start..start + b]).collect();
             passes.forward(b, &ins, &mut out);
-            passes.backward(b, &cots, &mut reductions);
+            if !one_backward {
+                passes.backward(b, &cots, &mut reductions);
+            }
             start += b;
+        }
+        if one_backward {
+            let cots: Vec<&[f32]> = cols[3..].iter().map(|c| &c[..n]).collect();
+            passes.backward(n, &cots, &mut reductions);
         }
         passes.finish(&mut reductions);
         let per_point: Vec<Vec<f32>> = (0..n).map(|i| outs.iter().map(|o| o[i]).collect()).collect();

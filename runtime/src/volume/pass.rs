@@ -306,7 +306,8 @@ fn samples_before(depths: &[f32], t: f32, inclusive: bool) -> usize {
 
 /// Runs `pass` over the tile's rays loaded in `s` ([`Scratch::load_rays`]) at `depths`: gives each
 /// ray's composite or the samples (see [`Output`]). With [`Output::Samples`], returns the indices
-/// (sample-major, increasing) of the samples evaluated, or `None` if all were.
+/// (sample-major) of the samples evaluated in the order the field evaluated them, or `None` if all
+/// were (in the order of their indices).
 pub(crate) fn run(pass: &Pass, depths: Depths, s: &mut Scratch, output: Output) -> Option<Vec<usize>> {
     let own_depths = std::mem::take(&mut s.depths);
     let (mut inputs, mut outputs) = (std::mem::take(&mut s.inputs), std::mem::take(&mut s.outputs));
@@ -406,7 +407,6 @@ fn run_tile(pass: &Pass, depths: Source, s: &mut Scratch, mut output: Sink) -> O
     if !keep_samples || all_evaluated {
         return None;
     }
-    index.sort_unstable();
     Some(index)
 }
 
@@ -756,7 +756,7 @@ pub(crate) fn backward(
 }
 
 /// The entries `index` of each column.
-fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
+pub(crate) fn gather(columns: &[&[f32]], index: &[usize]) -> Vec<Vec<f32>> {
     columns
         .iter()
         .map(|c| index.iter().map(|&i| c[i]).collect())

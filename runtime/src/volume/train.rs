@@ -35,6 +35,11 @@ pub const CHUNK_POINTS: usize = 32768;
 /// points, 5–8% longer with 512 and 1,024, and 1.6× as long with the 8,192 of recomputing passes.
 pub const KEPT_TILE_POINTS: usize = 128;
 
+/// The memory a tile's kept passes may hold at most, where a grid or early termination has the field
+/// called several times a tile (on tiles of [`VolumeSettings::rays_per_tile`] rays, whose samples the
+/// grid mostly skips): past it, say for wide networks, the backward pass recomputes the forward pass.
+pub const KEPT_TILE_BYTES: usize = 32 << 20;
+
 /// Gradient accumulators of a step at most (its parallel tasks).
 pub const ACCUMULATORS: usize = 4;
 
@@ -116,8 +121,7 @@ struct Job<'a> {
     fixed_depths: Option<(Vec<f32>, Vec<f32>)>,
     /// ∂loss/∂color = scale·(color − target).
     scale: f32,
-    /// Whether the passes evaluate every sample and the fields' backward passes read the values their
-    /// forward passes kept.
+    /// Whether the fields' backward passes read the values their forward passes kept.
     keep: bool,
 }
 
@@ -273,18 +277,26 @@ fn run_pass(
     let cotangents: [&[f32]; 4] = [&g_raw[..len], &g_r[..len], &g_g[..len], &g_b[..len]];
     let samples = evaluated.as_ref().map_or(len, Vec::len);
     if let Some(kept) = kept {
-        debug_assert!(evaluated.is_none(), "kept passes evaluate every sample");
-        kept.backward(len, &cotangents, grads);
+        // The kept values are those of the evaluated samples, in the order of evaluation.
+        match &evaluated {
+            None => kept.backward(len, &cotangents, grads),
+            Some(index) => {
+                let cotangents = pass::gather(&cotangents, index);
+                let cotangents: Vec<&[f32]> = cotangents.iter().map(Vec::as_slice).collect();
+                kept.backward(index.len(), &cotangents, grads);
+            }
+        }
         return (squared_error, samples);
     }
-    let backward = match (compositor.early_termination, evaluated) {
-        // Samples past a ray's end have all-zero cotangents: leaving them out is exact.
-        (Some(_), Some(index)) => {
-            let nonzero = |&i: &usize| cotangents.iter().any(|c| c[i] != 0.0);
-            Some(index.into_iter().filter(nonzero).collect())
+    let backward = evaluated.map(|mut index| {
+        // In order, for the cache; samples past a ray's end have all-zero cotangents: leaving them out
+        // is exact.
+        index.sort_unstable();
+        if compositor.early_termination.is_some() {
+            index.retain(|&i| cotangents.iter().any(|c| c[i] != 0.0));
         }
-        (_, index) => index,
-    };
+        index
+    });
     pass::backward(vjp, &inputs, backward.as_deref(), &cotangents, grads);
     (squared_error, samples)
 }
@@ -355,14 +367,19 @@ pub fn volume_step_with(
         };
         (f, fine_settings)
     });
-    // Passes that evaluate every sample in one call can keep the forward pass's values for the backward
-    // pass, on tiles small enough that they stay in the cache.
-    let keep = !options.recompute_forward
-        && options.grid.is_none()
-        && settings.early_termination.is_none()
-        && vjp.kept_passes().is_some();
-    let tile = if keep {
-        let samples = fine.as_ref().map_or(settings.samples, |(_, f)| f.samples);
+    // The backward pass reads the values the forward pass kept where the fields keep them: passes that
+    // evaluate every sample in one call on tiles small enough that they stay in the cache; passes that
+    // call the field several times a tile (skipping samples, stopping rays) on the usual tiles, if what
+    // they could keep fits KEPT_TILE_BYTES.
+    let samples = fine.as_ref().map_or(settings.samples, |(_, f)| f.samples);
+    let one_call = options.grid.is_none() && settings.early_termination.is_none();
+    let fits = |vjp: &dyn BatchVjp| {
+        vjp.kept_passes().is_some_and(|kept| {
+            one_call || settings.rays_per_tile() * samples * kept.bytes_per_point() <= KEPT_TILE_BYTES
+        })
+    };
+    let keep = !options.recompute_forward && fits(vjp) && fine.as_ref().is_none_or(|(f, _)| fits(f.vjp));
+    let tile = if keep && one_call {
         (KEPT_TILE_POINTS / samples).clamp(1, 1024)
     } else {
         settings.rays_per_tile()
@@ -571,8 +588,10 @@ mod tests {
             self.blob
                 .forwards
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            self.points = (0..n).map(|i| std::array::from_fn(|k| inputs[k][i])).collect();
-            for (i, p) in self.points.iter().enumerate() {
+            let first = self.points.len();
+            self.points
+                .extend((0..n).map(|i| std::array::from_fn::<f32, 6, _>(|k| inputs[k][i])));
+            for (i, p) in self.points[first..].iter().enumerate() {
                 for (o, v) in outputs.iter_mut().zip(blob_value(&self.blob.theta, p)) {
                     o[i] = v;
                 }
@@ -580,10 +599,13 @@ mod tests {
         }
         fn backward(&mut self, n: usize, cotangents: &[&[f32]], _grads: &mut [f32]) {
             assert_eq!(n, self.points.len());
-            for (i, p) in self.points.iter().enumerate() {
+            for (i, p) in self.points.drain(..).enumerate() {
                 let c: Vec<f32> = cotangents.iter().map(|c| c[i]).collect();
-                blob_vjp(&self.blob.theta, p, &c, &mut self.held);
+                blob_vjp(&self.blob.theta, &p, &c, &mut self.held);
             }
+        }
+        fn bytes_per_point(&self) -> usize {
+            24
         }
         fn finish(&mut self, grads: &mut [f32]) {
             for (g, h) in grads.iter_mut().zip(&mut self.held) {
@@ -594,7 +616,8 @@ mod tests {
 
     /// Steps whose backward passes read what the forward passes kept give the steps that recompute
     /// them, with and without hierarchical sampling, jittered (the same depths on tiles of other sizes)
-    /// or not; they run only where every sample is evaluated.
+    /// or not, with an occupancy grid and early termination (several forward passes a tile, then one
+    /// backward pass) or without.
     #[test]
     fn kept_passes_give_the_step_of_recomputing_ones() {
         let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
@@ -610,16 +633,26 @@ mod tests {
             vjp: &kept,
             importance: 32,
         };
-        for (settings, hierarchical, jitter) in [
-            (blob_settings(None), false, false),
-            (blob_settings(None), true, true),
-            (blob_settings(None), false, true),
-            (blob_settings(Some(1e-3)), false, false),
+        // Empty beyond 1.2 of the blob's center.
+        let cut = ClosureFn::new(3, 4, move |p, out| {
+            let q = [p[0] - theta[1], p[1] - theta[2], p[2] - theta[3]];
+            let far = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] > 1.44;
+            out.copy_from_slice(&[if far { 0.0 } else { 1.0 }, 0.0, 0.0, 0.0]);
+        });
+        let grid = OccupancyGrid::build(&cut, ([-1.5; 3], [1.5; 3]), 32, Mode::Density, 0.5).unwrap();
+        for (settings, hierarchical, jitter, grid) in [
+            (blob_settings(None), false, false, None),
+            (blob_settings(None), true, true, None),
+            (blob_settings(None), false, true, None),
+            (blob_settings(Some(1e-3)), false, false, None),
+            (blob_settings(Some(1e-3)), false, true, Some(&grid)),
+            (blob_settings(None), true, false, Some(&grid)),
+            (blob_settings(Some(1e-3)), true, true, Some(&grid)),
         ] {
             let run = |recompute_forward: bool| {
                 let options = StepOptions {
                     fine: hierarchical.then_some(&fine),
-                    grid: None,
+                    grid,
                     recompute_forward,
                 };
                 let before = kept.forwards.load(std::sync::atomic::Ordering::Relaxed);
@@ -635,17 +668,17 @@ mod tests {
             let (recomputed, none) = run(true);
             let (keeping, forwards) = run(false);
             assert_eq!(none, 0);
-            let exact = settings.early_termination.is_none();
-            assert_eq!(
-                forwards > 0,
-                exact,
-                "kept passes run where every sample is evaluated"
-            );
-            if exact {
+            let one_call = settings.early_termination.is_none() && grid.is_none();
+            let passes = if hierarchical { 2 } else { 1 };
+            if one_call {
                 // One forward pass per ray (128 points a tile) and pass.
-                let passes = if hierarchical { 2 } else { 1 };
                 assert_eq!(forwards, passes * rays.len());
+            } else {
+                // At least one a tile of rays_per_tile rays.
+                let tiles = rays.len().div_ceil(settings.rays_per_tile());
+                assert!(forwards >= passes * tiles, "{forwards} forward passes");
             }
+            assert_eq!(keeping.samples, recomputed.samples);
             assert!((keeping.loss - recomputed.loss).abs() <= 1e-6 * recomputed.loss);
             let scale = recomputed.param_grads.iter().fold(0.0f32, |m, g| m.max(g.abs()));
             for (a, b) in keeping.param_grads.iter().zip(&recomputed.param_grads) {
