@@ -36,8 +36,8 @@ pub const CHUNK_POINTS: usize = 32768;
 pub const KEPT_TILE_POINTS: usize = 128;
 
 /// The memory a tile's kept passes may hold at most, where a grid or early termination has the field
-/// called several times a tile (on tiles of [`VolumeSettings::rays_per_tile`] rays, whose samples the
-/// grid mostly skips): past it, say for wide networks, the backward pass recomputes the forward pass.
+/// called several times a tile (on the usual tiles of about 8,192 samples, most of which the grid
+/// skips): past it, say for wide networks, the backward pass recomputes the forward pass.
 pub const KEPT_TILE_BYTES: usize = 32 << 20;
 
 /// Gradient accumulators of a step at most (its parallel tasks).
