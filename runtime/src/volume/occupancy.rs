@@ -35,6 +35,8 @@
 //! point is looked up at its contracted coordinates. Such a grid is built from the field read at the
 //! uncontracted points ([`Uncontracted`]): the cells far out stand for ever larger regions of space.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -610,49 +612,53 @@ impl OccupancyGrid {
         self.bits[index / 64] >> (index % 64) & 1 == 1
     }
 
-    /// Packs the points (x, y, z)[i] in occupied cells to the front of `x`, `y`, `z`, and for
-    /// each of them `first + i` to the front of `index`; returns their number. `cells` is
-    /// scratch space; all slices have the same length.
-    pub(crate) fn pack_occupied(
+    /// Walks the samples `samples` of the ray `o + t·d` (sample j at depth `depth(j)`) and writes the
+    /// first of them in occupied cells, at most `index.len()`: their points to `x`, `y`, `z` and their
+    /// sample indices to `index`. Returns how many it wrote and the sample after the last one it
+    /// looked at (the start of the samples left).
+    pub(crate) fn next_occupied(
         &self,
+        (o, d): ([f32; 3], [f32; 3]),
+        samples: Range<usize>,
+        depth: impl Fn(usize) -> f32,
         [x, y, z]: [&mut [f32]; 3],
         index: &mut [u32],
-        first: u32,
-        cells: &mut [u32],
-    ) -> usize {
-        let n = x.len();
-        let (y, z, index, cells) = (&mut y[..n], &mut z[..n], &mut index[..n], &mut cells[..n]);
-        // The space's branch outside the loops, so that each of them vectorizes.
-        let cells_of = |bit_index: &dyn Fn(f32, f32, f32) -> u32, cells: &mut [u32]| {
-            for (((cell, x), y), z) in cells.iter_mut().zip(&*x).zip(&*y).zip(&*z) {
-                *cell = bit_index(*x, *y, *z);
-            }
-        };
+    ) -> (usize, usize) {
+        // The space's branch outside the walk.
         match self.space {
-            GridSpace::Scene => cells_of(&|x, y, z| self.box_bit_index(x, y, z), cells),
-            GridSpace::Contracted => cells_of(
-                &|x, y, z| {
-                    let [x, y, z] = contract([x, y, z]);
-                    self.box_bit_index(x, y, z)
-                },
-                cells,
-            ),
+            GridSpace::Scene => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
+                self.box_bit_index(p[0], p[1], p[2])
+            }),
+            GridSpace::Contracted => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
+                let [x, y, z] = contract(p);
+                self.box_bit_index(x, y, z)
+            }),
         }
-        if cells.iter().all(|&cell| self.bit(cell)) {
-            for (i, index) in index.iter_mut().enumerate() {
-                *index = first + i as u32;
+    }
+
+    /// [`OccupancyGrid::next_occupied`] with each point's bit from `bit_index`.
+    #[inline(always)]
+    fn walk(
+        &self,
+        (o, d): ([f32; 3], [f32; 3]),
+        samples: Range<usize>,
+        depth: impl Fn(usize) -> f32,
+        [x, y, z]: [&mut [f32]; 3],
+        index: &mut [u32],
+        bit_index: impl Fn([f32; 3]) -> u32,
+    ) -> (usize, usize) {
+        let (want, mut found, mut j) = (index.len(), 0, samples.start);
+        while j < samples.end && found < want {
+            let t = depth(j);
+            let p = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
+            if self.bit(bit_index(p)) {
+                (x[found], y[found], z[found]) = (p[0], p[1], p[2]);
+                index[found] = j as u32;
+                found += 1;
             }
-            return n;
+            j += 1;
         }
-        // Every point is written at `packed`, which only advances past occupied ones (and
-        // never past the point being read): no branches.
-        let mut packed = 0;
-        for (i, &cell) in cells.iter().enumerate() {
-            (x[packed], y[packed], z[packed]) = (x[i], y[i], z[i]);
-            index[packed] = first + i as u32;
-            packed += usize::from(self.bit(cell));
-        }
-        packed
+        (found, j)
     }
 
     /// The depths [t0, t1] (t0 may be negative) where the ray `o + t·d` is inside the bounds
@@ -961,12 +967,20 @@ mod tests {
             grid.ray_interval([0.0; 3], [1.0, 0.0, 0.0]),
             Some((f32::NEG_INFINITY, f32::INFINITY))
         );
-        // Packing points agrees with the lookup of each.
-        let points = [[10.0f32, 0.0, 0.0], [0.0; 3], [9.0, 2.0, 0.0], [-10.0, 0.0, 0.0]];
-        let [mut x, mut y, mut z] = [0, 1, 2].map(|k| points.iter().map(|p| p[k]).collect::<Vec<f32>>());
-        let (mut index, mut cells) = (vec![0u32; 4], vec![0u32; 4]);
-        let n = grid.pack_occupied([&mut x, &mut y, &mut z], &mut index, 10, &mut cells);
-        assert_eq!(&index[..n], &[10, 12]);
+        // A ray's walk agrees with the lookup of each of its points (along x from −10 in steps of 1,
+        // those in cells the ball touches) and stops at the wanted count.
+        let ([mut x, mut y, mut z], mut index) = ([[0.0f32; 4]; 3], [0u32; 4]);
+        let ray = ([-12.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+        let all: Vec<u32> = (2..30u32)
+            .filter(|&j| grid.occupied([j as f32 - 12.0, 0.0, 0.0]))
+            .collect();
+        assert!(all.len() > 4 && all[0] > 2, "{all:?}");
+        let (n, next) = grid.next_occupied(ray, 2..30, |j| j as f32, [&mut x, &mut y, &mut z], &mut index);
+        assert_eq!((n, next, &index[..]), (4, all[3] as usize + 1, &all[..4]));
+        assert_eq!(x, [0, 1, 2, 3].map(|i| all[i] as f32 - 12.0));
+        let ([mut x, mut y, mut z], mut index) = ([[0.0f32; 32]; 3], [0u32; 32]);
+        let (n, next) = grid.next_occupied(ray, next..30, |j| j as f32, [&mut x, &mut y, &mut z], &mut index);
+        assert_eq!((n, next, &index[..n]), (all.len() - 4, 30, &all[4..]));
         // The same cells in the scene's space are a box of side 4 at the origin, which holds nothing there.
         let scene = grid.clone().in_space(GridSpace::Scene);
         assert!(!scene.occupied([10.0, 0.0, 0.0]));

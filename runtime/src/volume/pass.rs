@@ -12,9 +12,12 @@
 //!   space: all outputs 0, alpha 0) and composited ray by ray.
 //! - Without a grid, the samples go to the field sample-major (sample j of ray k at `j·n + k`) and are
 //!   composited across rays, a loop that vectorizes.
-//! - With early termination, the samples go [`CHUNK_SAMPLES`] depths at a time ([`PACKED_CHUNK_SAMPLES`]
-//!   with a grid): the rays whose transmittance fell below the threshold are done, and the next field
-//!   call sees the live rays only (compaction). Every sample the compositor counts is evaluated.
+//! - With early termination, the samples go [`CHUNK_SAMPLES`] depths at a time; with a grid, each field
+//!   call takes every live ray's next occupied samples, one each while more than
+//!   [`PACKED_CALL_POINTS`] rays are live and more (up to [`PACKED_CHUNK_SAMPLES`]) as they stop, so
+//!   that few samples past where a ray stops are evaluated. The rays whose transmittance fell below
+//!   the threshold (or, with a grid, that have no samples left) are done, and the next field call sees
+//!   the live rays only (compaction). Every sample the compositor counts is evaluated.
 //!
 //! What a pass gives ([`Sink`]) is either each ray's composite (renders) or the field's inputs and
 //! outputs at every sample of the tile, sample-major, zero where the field was not evaluated, with the
@@ -35,7 +38,7 @@ use crate::volume::composite::{
 };
 use crate::volume::importance;
 use crate::volume::occupancy::OccupancyGrid;
-use crate::volume::settings::{VolumeSettings, CHUNK_SAMPLES, PACKED_CHUNK_SAMPLES};
+use crate::volume::settings::{VolumeSettings, CHUNK_SAMPLES, PACKED_CALL_POINTS, PACKED_CHUNK_SAMPLES};
 
 /// Per-worker buffers of the volume pass, grown on demand and reused across tiles, frames and steps.
 #[derive(Debug, Default)]
@@ -67,13 +70,12 @@ pub(crate) struct Scratch {
     call_depths: [Vec<f32>; 2],
     /// Sample index of each packed (occupied) sample (with a grid).
     samples: Vec<u32>,
-    /// Grid cells of the samples of one ray (with a grid).
-    cells: Vec<u32>,
     /// End of the packed samples of each ray (with a grid).
     ends: Vec<u32>,
     /// Depths where each ray enters and leaves the grid's box (with a grid).
     intervals: [Vec<f32>; 2],
-    /// Samples `first..end` of each ray that may be inside the grid (with a grid).
+    /// Samples `first..end` of each ray that may be inside the grid and that no field call took yet
+    /// (with a grid).
     spans: Vec<[u32; 2]>,
 }
 
@@ -350,26 +352,20 @@ fn run_tile(pass: &Pass, depths: Source, s: &mut Scratch, mut output: Sink) -> O
             }
         }
     }
-    let mut index = Vec::new();
-    // Without a grid, every sample is evaluated unless rays stop before the last depths.
-    let mut all_evaluated = pass.grid.is_none();
-    let mut rows = 0..m;
-    if let Some(grid) = pass.grid {
-        rows = cull_rays(pass, grid, &tile, s, &mut output);
-        grow(&mut s.samples, chunk * n_tile);
-        grow(&mut s.cells, chunk * n_tile);
-    }
-    let mut n = s.ids.len();
-    s.lanes.reset(n);
     // Without rays to report, the composite only tells which rays stop.
     let composite = !keep_samples || c.early_termination.is_some();
-    for first in rows.clone().step_by(chunk) {
-        if n == 0 {
-            break;
-        }
-        let rows = first..(first + chunk).min(rows.end);
-        match pass.grid {
-            None => {
+    let mut index = Vec::new();
+    let mut n = s.ids.len();
+    match pass.grid {
+        None => {
+            s.lanes.reset(n);
+            // Every sample is evaluated unless rays stop before the last depths.
+            let mut all_evaluated = true;
+            for first in (0..m).step_by(chunk) {
+                if n == 0 {
+                    break;
+                }
+                let rows = first..(first + chunk).min(m);
                 let direct = n == n_tile;
                 dense_call(pass, &tile, rows.clone(), s, &mut output, composite);
                 if keep_samples {
@@ -383,20 +379,39 @@ fn run_tile(pass: &Pass, depths: Source, s: &mut Scratch, mut output: Sink) -> O
                         );
                     }
                 }
+                if c.early_termination.is_some() {
+                    n = compact(c, s, false, &mut output);
+                    all_evaluated &= n == n_tile || rows.end == m;
+                }
             }
-            Some(grid) => packed_call(
-                pass,
-                grid,
-                &tile,
-                rows.clone(),
-                s,
-                &mut output,
-                (composite, &mut index),
-            ),
+            if keep_samples && all_evaluated {
+                return None;
+            }
         }
-        if c.early_termination.is_some() {
-            n = compact(c, s, pass.grid.is_some(), &mut output);
-            all_evaluated &= n == n_tile || rows.end == m;
+        Some(grid) => {
+            cull_rays(pass, grid, &tile, s, &mut output);
+            grow(&mut s.samples, chunk * n_tile);
+            n = s.ids.len();
+            s.lanes.reset(n);
+            // Each round takes the next occupied samples of every live ray, as many as keep the
+            // field call near PACKED_CALL_POINTS points (all of them without early termination);
+            // rays that stopped or have no samples left are done.
+            while n > 0 {
+                let per_ray = match c.early_termination {
+                    Some(_) => (PACKED_CALL_POINTS / n).clamp(1, chunk),
+                    None => chunk,
+                };
+                packed_call(
+                    pass,
+                    grid,
+                    &tile,
+                    per_ray,
+                    s,
+                    &mut output,
+                    (composite, &mut index),
+                );
+                n = compact(c, s, true, &mut output);
+            }
         }
     }
     if let Sink::Rays(rays) = &mut output {
@@ -404,10 +419,7 @@ fn run_tile(pass: &Pass, depths: Source, s: &mut Scratch, mut output: Sink) -> O
             rays.write(s.ids[k], s.lanes.output(c, k));
         }
     }
-    if !keep_samples || all_evaluated {
-        return None;
-    }
-    Some(index)
+    keep_samples.then_some(index)
 }
 
 /// The δ of each of `depths`: the gap to the next one, [`LAST_DELTA`] for the last.
@@ -419,14 +431,8 @@ pub(crate) fn deltas(depths: &[f32]) -> Vec<f32> {
 
 /// Drops the rays of the tile that have no sample in the stretch where they may meet occupied cells
 /// ([`OccupancyGrid::occupied_stretch`]; done: the empty ray) and notes the samples each remaining ray
-/// has there (`s.spans`); returns the samples where some ray of the tile may meet them.
-fn cull_rays(
-    pass: &Pass,
-    grid: &OccupancyGrid,
-    tile: &TileDepths,
-    s: &mut Scratch,
-    output: &mut Sink,
-) -> Range<usize> {
+/// has there (`s.spans`).
+fn cull_rays(pass: &Pass, grid: &OccupancyGrid, tile: &TileDepths, s: &mut Scratch, output: &mut Sink) {
     let n = s.ids.len();
     grow(&mut s.spans, n);
     for v in &mut s.intervals {
@@ -441,7 +447,6 @@ fn cull_rays(
         t0,
         t1,
     );
-    let (mut lo, mut hi) = (usize::MAX, 0);
     let mut live = 0;
     for k in 0..n {
         let id = s.ids[k];
@@ -453,14 +458,12 @@ fn cull_rays(
             }
             s.ids[live] = id;
             s.spans[live] = [span.start as u32, span.end as u32];
-            (lo, hi) = (lo.min(span.start), hi.max(span.end));
             live += 1;
         } else if let Sink::Rays(rays) = output {
             rays.write(id, pass.compositor.empty_ray());
         }
     }
     s.ids.truncate(live);
-    lo.min(hi)..hi
 }
 
 /// Evaluates the field at the samples `rows` of the tile's live rays, sample-major, and composites
@@ -584,15 +587,15 @@ fn dense_call(
     }
 }
 
-/// Evaluates the field at the samples `rows` of the tile's live rays where the grid is occupied (only
-/// those in the rays' spans can be), packed ray by ray into one call, and composites them ray by ray
-/// (if `composite`; the skipped samples have alpha 0, which changes nothing) or keeps them
-/// ([`Sink::Samples`], their indices added to `index`).
+/// Evaluates the field at the next `per_ray` occupied samples of each of the tile's live rays (only
+/// those in the rays' spans can be; each ray's span starts past what earlier calls took), packed ray
+/// by ray into one call, and composites them ray by ray (if `composite`; the skipped samples have
+/// alpha 0, which changes nothing) or keeps them ([`Sink::Samples`], their indices added to `index`).
 fn packed_call(
     pass: &Pass,
     grid: &OccupancyGrid,
     tile: &TileDepths,
-    rows: Range<usize>,
+    per_ray: usize,
     s: &mut Scratch,
     output: &mut Sink,
     (composite, index): (bool, &mut Vec<usize>),
@@ -607,7 +610,6 @@ fn packed_call(
         call_inputs,
         call_outputs,
         samples,
-        cells,
         ends,
         lanes,
         ..
@@ -615,38 +617,38 @@ fn packed_call(
     let [x, y, z, vx, vy, vz] = call_inputs;
     let mut packed = 0;
     ends.clear();
-    // Ray by ray, the points of the rows in its span, of which the grid keeps the occupied;
-    // the packed samples of ray k end at ends[k].
+    // Ray by ray, the next occupied samples from the start of its span, at most `per_ray`; the
+    // packed samples of ray k end at ends[k], and its span starts after the last sample looked at.
     for k in 0..n {
-        let [a, b] = spans[k];
-        let (a, b) = ((a as usize).max(rows.start), (b as usize).min(rows.end));
-        if a < b {
-            let end = packed + b - a;
-            let (x, y, z) = (&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]);
-            let (o, d) = ([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]]);
-            let mut point =
-                |i: usize, t: f32| (x[i], y[i], z[i]) = (o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t);
-            match tile.depths {
-                Source::Shared(SharedDepths { t, .. }) => {
-                    t[a..b].iter().enumerate().for_each(|(i, &t)| point(i, t))
-                }
-                Source::PerRay(_) => {
-                    let column = tile.column(ids[k]);
-                    (a..b).enumerate().for_each(|(i, j)| point(i, column.at(j)));
-                }
-            }
-            let here = grid.pack_occupied(
-                [x, y, z],
+        let [a, b] = spans[k].map(|i| i as usize);
+        let (o, d) = ([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]]);
+        let first_packed = packed;
+        let end = packed + per_ray;
+        let (found, next) = match tile.depths {
+            Source::Shared(SharedDepths { t, .. }) => grid.next_occupied(
+                (o, d),
+                a..b,
+                |j| t[j],
+                [&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]],
                 &mut samples[packed..end],
-                a as u32,
-                &mut cells[..b - a],
-            );
-            if n_inputs == 6 {
-                vx[packed..packed + here].fill(dx[k]);
-                vy[packed..packed + here].fill(dy[k]);
-                vz[packed..packed + here].fill(dz[k]);
+            ),
+            Source::PerRay(_) => {
+                let column = tile.column(ids[k]);
+                grid.next_occupied(
+                    (o, d),
+                    a..b,
+                    |j| column.at(j),
+                    [&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]],
+                    &mut samples[packed..end],
+                )
             }
-            packed += here;
+        };
+        packed += found;
+        spans[k][0] = next as u32;
+        if n_inputs == 6 {
+            vx[first_packed..packed].fill(dx[k]);
+            vy[first_packed..packed].fill(dy[k]);
+            vz[first_packed..packed].fill(dz[k]);
         }
         ends.push(packed as u32);
     }
@@ -709,14 +711,16 @@ fn slices<'a, const N: usize>(
     out
 }
 
-/// Compaction: the rays that have stopped are done; the others move to the front, so that the next
-/// field call sees live rays only. Returns the number of live rays.
+/// Compaction: the rays that have stopped (or, with `spans`, have no samples left in their span) are
+/// done; the others move to the front, so that the next field call sees live rays only. Returns the
+/// number of live rays.
 fn compact(c: &Compositor, s: &mut Scratch, spans: bool, output: &mut Sink) -> usize {
     let n = s.ids.len();
     let mut live = 0;
     for k in 0..n {
         let id = s.ids[k];
-        if s.lanes.is_live(c, k) {
+        let samples_left = !spans || s.spans[k][0] < s.spans[k][1];
+        if samples_left && s.lanes.is_live(c, k) {
             s.lanes.move_ray(k, live);
             s.ids[live] = id;
             for v in s.origins.iter_mut().chain(&mut s.directions) {
@@ -936,6 +940,95 @@ mod tests {
     /// Under early termination, a pass that keeps its samples lists exactly the samples it evaluated:
     /// none past the chunk where every ray stopped, and all of them (`None`) only when nothing stopped
     /// before the last depths.
+    #[test]
+    fn rounds_of_few_samples_a_ray_give_the_exact_composite() {
+        // More rays than PACKED_CALL_POINTS in one tile: the first rounds take one occupied sample a
+        // ray, later ones more as rays stop; the composites are the exact ones, bit for bit, and
+        // no ray is evaluated past the round in which it stopped.
+        let camera = Camera::look_at(
+            Vec3::new(0.3, -0.2, -3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec2::splat(1.3),
+            Vec2::ZERO,
+        )
+        .unwrap();
+        let rays = RayBatch::full_image(&camera, 128, 80).unwrap();
+        let n = rays.len();
+        assert!(n > 2 * PACKED_CALL_POINTS);
+        let evaluated = std::sync::atomic::AtomicUsize::new(0);
+        let field = ClosureFn::new(6, 4, |p, out| {
+            evaluated.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            out.copy_from_slice(&ball(p, 0.5))
+        });
+        let grid = OccupancyGrid::build(&field, ([-1.5; 3], [1.5; 3]), 24, Mode::Density, 0.0).unwrap();
+        let m = 64;
+        let mut depths = vec![0.0; m];
+        crate::volume::sampler::linspace(1.5, 4.5, &mut depths);
+        let deltas = deltas(&depths);
+        let shared = SharedDepths {
+            t: &depths,
+            delta: &deltas,
+        };
+        for stop in [1e-1, 1e-4] {
+            let c = Compositor {
+                mode: Mode::Density,
+                background: Some([0.2, 0.3, 0.4]),
+                early_termination: Some(stop),
+            };
+            let pass = Pass {
+                field: &field,
+                compositor: c,
+                grid: Some(&grid),
+                samples: m,
+            };
+            let mut s = Scratch::default();
+            s.reserve(n * m, n);
+            s.load_rays(&rays, 0, n);
+            let (mut rgb, mut depth, mut opacity) = (vec![[0.0; 3]; n], vec![0.0; n], vec![0.0; n]);
+            evaluated.store(0, std::sync::atomic::Ordering::Relaxed);
+            let out = RayOutputs {
+                rgb: &mut rgb,
+                depth: &mut depth,
+                opacity: &mut opacity,
+            };
+            run(&pass, Depths::Shared(shared), &mut s, Output::Rays(out));
+            let evaluated = evaluated.load(std::sync::atomic::Ordering::Relaxed);
+            // The samples the exact composite counts: occupied, and before the ray stopped.
+            let mut counted = 0;
+            for k in 0..n {
+                let (o, d) = (
+                    [rays.ox[k], rays.oy[k], rays.oz[k]],
+                    [rays.dx[k], rays.dy[k], rays.dz[k]],
+                );
+                let e = composite(&c, o, d, &depths, 0.5, Some(&grid));
+                assert_eq!(
+                    (rgb[k], depth[k], opacity[k]),
+                    (e.rgb, e.depth, e.opacity),
+                    "ray {k}"
+                );
+                let mut trans = 1.0f32;
+                for (j, &t) in depths.iter().enumerate() {
+                    let p = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
+                    if trans < stop {
+                        break;
+                    }
+                    if grid.occupied(p) {
+                        counted += 1;
+                        trans *= (-ball(&[p[0], p[1], p[2], d[0], d[1], d[2]], 0.5)[0] * deltas[j]).exp();
+                    }
+                }
+            }
+            // A ray evaluates at most PACKED_CHUNK_SAMPLES − 1 samples past where it stops, and only
+            // in the rounds with fewer than PACKED_CALL_POINTS / 2 rays live, which take more than one.
+            let slack = (PACKED_CHUNK_SAMPLES - 1) * PACKED_CALL_POINTS / 2;
+            assert!(
+                counted <= evaluated && evaluated <= counted + slack,
+                "stop {stop}: {evaluated} evaluated, {counted} counted"
+            );
+        }
+    }
+
     #[test]
     fn kept_samples_list_what_was_evaluated_when_rays_stop() {
         let camera = Camera::look_at(

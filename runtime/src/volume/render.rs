@@ -17,12 +17,12 @@
 //! box (a slab test), or cross none of its marked blocks of 8³ cells, write the background without
 //! any work; for the others, the samples between where the ray enters its first marked block and
 //! leaves its last are looked up in the grid, the occupied
-//! ones packed ray by ray into one dense field call per tile (or per chunk with early
+//! ones packed ray by ray into one dense field call per tile (or per round with early
 //! termination), and each ray composites its own evaluated samples in order. As a grid leaves
 //! few samples of a ray to evaluate, such a tile takes many more rays (up to
-//! [`PACKED_TILE_RAYS`]) so that the field calls stay large, and early termination goes
-//! [`PACKED_CHUNK_SAMPLES`] samples at a time, so that few samples past a ray's end are
-//! evaluated. Evaluated samples are at exactly the points and depths of the exact render and
+//! [`PACKED_TILE_RAYS`]) so that the field calls stay large, and with early termination each
+//! call takes each live ray's next one to [`PACKED_CHUNK_SAMPLES`] occupied samples, so that few
+//! samples past a ray's end are evaluated. Evaluated samples are at exactly the points and depths of the exact render and
 //! composited with the same operations, so the result is, bit for bit, the exact render of the
 //! field with its first output set to 0 in the empty cells (given finite colors): the two renders
 //! differ only by what the skipped samples would have added. Note the course's last δ of

@@ -15,8 +15,14 @@ pub const CHUNK_SAMPLES: usize = 16;
 /// enough for eight a thread).
 pub const PACKED_TILE_RAYS: usize = 16384;
 
-/// Sample rows per field call when early termination is on and a grid skips samples.
+/// Occupied samples a live ray gives a field call at most when early termination is on and a grid
+/// skips samples.
 pub const PACKED_CHUNK_SAMPLES: usize = 8;
+
+/// With early termination and a grid, each field call takes about this many points: every live ray
+/// its next `PACKED_CALL_POINTS / live` occupied samples (1 to [`PACKED_CHUNK_SAMPLES`]), so that few
+/// are evaluated past where a ray stops while the calls stay large.
+pub const PACKED_CALL_POINTS: usize = 4096;
 
 /// Parameters of volume rendering and training.
 #[derive(Debug, Clone, Copy, PartialEq)]
