@@ -398,6 +398,24 @@ impl OccupancyGrid {
         if t0.partial_cmp(&t1).is_none_or(|order| order.is_gt()) || self.space == GridSpace::Contracted {
             return (t0, t1);
         }
+        // From the near end to the first marked block, then from the far end back to the last, so
+        // that neither walk crosses what lies between them.
+        let (first, last) = match self.first_marked_block(o, d, (t0, t1)) {
+            Some(first) => {
+                let back = self.first_marked_block(o, d.map(|v| -v), (-t1, -first));
+                (first, back.map_or(t1, |t| -t))
+            }
+            None => (f32::INFINITY, f32::NEG_INFINITY),
+        };
+        let cell = [0, 1, 2].map(|i| 1.0 / self.scale[i]);
+        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let margin = (cell[0] * cell[0] + cell[1] * cell[1] + cell[2] * cell[2]).sqrt() / length;
+        (first - margin, last + margin)
+    }
+
+    /// Where the ray `o + t·d`, walked from t0 to t1 (t0 ≤ t1), enters the first marked block of
+    /// [`BLOCK`]³ cells it crosses (t0 if it starts in one); `None` if it crosses none.
+    fn first_marked_block(&self, o: [f32; 3], d: [f32; 3], (t0, t1): (f32, f32)) -> Option<f32> {
         let n = self.blocks_per_axis() as i32;
         // Blocks per unit length along each axis (the last block may reach past the box: that is empty).
         let density = self.scale.map(|s| s / BLOCK as f32);
@@ -423,26 +441,21 @@ impl OccupancyGrid {
         };
         let mut next = [0, 1, 2].map(|i| side(i, block[i]));
         let gap = [0, 1, 2].map(|i| (1.0 / (density[i] * d[i])).abs());
-        let (mut first, mut last) = (f32::INFINITY, f32::NEG_INFINITY);
         let mut t = t0;
         for _ in 0..3 * n + 3 {
+            if self.block(block) {
+                return Some(t);
+            }
             let axis = (0..3).fold(0, |best, i| if next[i] < next[best] { i } else { best });
             let leave = next[axis].min(t1);
-            if self.block(block) {
-                first = first.min(t);
-                last = leave;
-            }
             block[axis] += step[axis];
             if leave >= t1 || !(0..n).contains(&block[axis]) {
-                break;
+                return None;
             }
             t = leave;
             next[axis] += gap[axis];
         }
-        let cell = [0, 1, 2].map(|i| 1.0 / self.scale[i]);
-        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        let margin = (cell[0] * cell[0] + cell[1] * cell[1] + cell[2] * cell[2]).sqrt() / length;
-        (first - margin, last + margin)
+        None
     }
 
     /// The cells' bits packed 8 to a byte, cell x + y·res + z·res² at bit i % 8 of byte i / 8 (the
