@@ -664,11 +664,11 @@ impl OccupancyGrid {
         while j < samples.end && found < want {
             let t = depth(j);
             let p = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
-            if self.bit(bit_index(p)) {
-                (x[found], y[found], z[found]) = (p[0], p[1], p[2]);
-                index[found] = j as u32;
-                found += 1;
-            }
+            // Written at `found` either way (there is room: found < want), kept only if occupied:
+            // no branch to mispredict.
+            (x[found], y[found], z[found]) = (p[0], p[1], p[2]);
+            index[found] = j as u32;
+            found += usize::from(self.bit(bit_index(p)));
             j += 1;
         }
         (found, j)
