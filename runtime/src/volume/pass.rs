@@ -624,25 +624,14 @@ fn packed_call(
         let (o, d) = ([ox[k], oy[k], oz[k]], [dx[k], dy[k], dz[k]]);
         let first_packed = packed;
         let end = packed + per_ray;
-        let (found, next) = match tile.depths {
-            Source::Shared(SharedDepths { t, .. }) => grid.next_occupied(
-                (o, d),
-                a..b,
-                |j| t[j],
-                [&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]],
-                &mut samples[packed..end],
-            ),
-            Source::PerRay(_) => {
-                let column = tile.column(ids[k]);
-                grid.next_occupied(
-                    (o, d),
-                    a..b,
-                    |j| column.at(j),
-                    [&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]],
-                    &mut samples[packed..end],
-                )
-            }
-        };
+        let column = tile.column(ids[k]);
+        let (found, next) = grid.next_occupied(
+            (o, d),
+            a..b,
+            |j| column.at(j),
+            [&mut x[packed..end], &mut y[packed..end], &mut z[packed..end]],
+            &mut samples[packed..end],
+        );
         packed += found;
         spans[k][0] = next as u32;
         if n_inputs == 6 {
