@@ -658,6 +658,7 @@ impl BoundFields<'_> {
                 .as_ref()
                 .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
             recompute_forward: false,
+            appearance: None,
         }
     }
 }

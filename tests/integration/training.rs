@@ -741,6 +741,60 @@ fn checkpoints_are_safetensors_by_default_with_a_tensor_per_param() {
 }
 
 #[test]
+fn colour_transforms_are_learnt_per_view_kept_in_the_checkpoint_and_resumed() {
+    let dir = scratch("appearance");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer_with(20, ", appearance: true")).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    // One transform a view (the four views of cams.json), moved from the identity by the steps.
+    let header = safetensors_header(&dir.join("train.ckpt.safetensors"));
+    assert_eq!(header["appearance"]["dtype"], "F32");
+    assert_eq!(header["appearance"]["shape"], serde_json::json!([4, 37]));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    let transforms = summary["appearance"]
+        .as_array()
+        .expect("the transforms in the summary");
+    assert_eq!(transforms.len(), 4);
+    let identity = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0];
+    let moved = transforms.iter().any(|t| {
+        t.as_array()
+            .unwrap()
+            .iter()
+            .zip(identity)
+            .any(|(v, i)| (v.as_f64().unwrap() - i).abs() > 1e-3)
+    });
+    assert!(moved, "{transforms:?}");
+    // A resumed run reads them back (a checkpoint with them is whole: renders read it too).
+    std::fs::write(dir.join("train.sdf"), trainer_with(30, ", appearance: true")).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+    assert!(ok && out.contains("trained 10 steps"), "{out}{err}");
+    let (ok, _, err) = run(
+        &dir,
+        &[
+            "render",
+            "train.ckpt.safetensors",
+            "--path",
+            "orbit(radius: 3, frames: 2, up: y)",
+            "--size",
+            "8",
+            "--out",
+            "frames",
+        ],
+    );
+    assert!(ok, "{err}");
+    // A JSON checkpoint cannot keep them: refused, not lost.
+    std::fs::write(
+        dir.join("json.sdf"),
+        trainer_with(5, ", appearance: true, checkpoint: \"t.ckpt.json\""),
+    )
+    .unwrap();
+    let (ok, _, err) = run(&dir, &["run", "json.sdf"]);
+    assert!(!ok && err.contains("cannot keep the colour transforms"), "{err}");
+}
+
+#[test]
 fn an_mlp_is_saved_as_pytorch_linear_layers() {
     let dir = scratch("mlp-tensors");
     std::fs::write(

@@ -146,7 +146,14 @@ fn checkpoint(scene: &Scene, stem: &str, step: u32) -> Result<File> {
     let scratch = Scratch::new("ckpt.safetensors");
     let params = scene.params();
     let fresh = nerfjit_runtime::Adam::new(params.len(), 0.0);
-    nerfjit::checkpoint::write(&scratch.0, scene.program(), step, params, &fresh, None)?;
+    nerfjit::checkpoint::write(
+        &scratch.0,
+        scene.program(),
+        step,
+        params,
+        &fresh,
+        Default::default(),
+    )?;
     Ok(File {
         name: format!("{stem}.ckpt.safetensors"),
         mime: "application/octet-stream",

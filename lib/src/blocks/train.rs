@@ -18,6 +18,7 @@ use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
 pub use crate::settings::values::AdamSettings;
 use crate::settings::values::{grid_seed, grid_update, minutes_list, optimizer, schedule, GridUpdate};
+use crate::training::appearance::Appearance;
 use crate::training::data_source::{data_path, data_set, DataKind, DataSet};
 use crate::training::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
@@ -60,6 +61,8 @@ pub struct TrainPlan {
     random_views: bool,
     /// Each step composites its rays and their targets on a random color (`random_background`).
     random_background: bool,
+    /// A colour transform per training view, learnt with the field (`appearance`).
+    appearance: bool,
     jitter: bool,
     seed: u64,
     checkpoint: Option<PathBuf>,
@@ -217,6 +220,7 @@ impl TrainPlan {
         let random_views = b.choice("views")?.as_deref() == Some("random");
         let jitter = b.flag("jitter")?;
         let random_background = b.flag("random_background")?;
+        let appearance = b.flag("appearance")?;
         let checkpoint = b.output("checkpoint")?;
         let log = b.output("log")?;
         let tensorboard = b.output("tensorboard")?;
@@ -277,6 +281,17 @@ impl TrainPlan {
             seed: grid_seeding,
         });
         let early_termination = b.number("early_termination")? as f32;
+        if appearance
+            && checkpoint
+                .as_ref()
+                .is_some_and(|c| c.extension().is_some_and(|e| e == "json"))
+        {
+            return Err(b.block_error(
+                "a JSON checkpoint cannot keep the colour transforms of appearance: true; name the checkpoint \
+                 *.safetensors"
+                    .into(),
+            ));
+        }
         b.finish()?;
         Ok(TrainPlan {
             early_termination: (early_termination > 0.0).then_some(early_termination),
@@ -294,6 +309,7 @@ impl TrainPlan {
             optimizer,
             random_views,
             random_background,
+            appearance,
             jitter,
             seed,
             checkpoint,
@@ -484,6 +500,9 @@ impl TrainPlan {
             history: Vec::new(),
             next_val_time: 0,
             rays: self.batch,
+            appearance: self
+                .appearance
+                .then(|| Appearance::new(views.len(), self.optimizer)),
         };
         let loop_settings = LoopSettings {
             steps: self.steps,
@@ -524,6 +543,7 @@ impl TrainPlan {
                 "train_seconds": end.train_seconds,
                 "validation": objective.history,
                 "occupied_cells": objective.grid.as_ref().map(OccupancyGrid::occupancy),
+                "appearance": objective.appearance.as_ref().map(Appearance::summary),
                 "params": params_json(program, params),
             });
             crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
@@ -602,6 +622,8 @@ struct VolumeObjective<'a> {
     next_val_time: usize,
     /// Rays of the next step (all ranks'): `batch`, or adapted to `batch_samples`.
     rays: usize,
+    /// The training views' colour transforms (`appearance: true`).
+    appearance: Option<Appearance>,
 }
 
 impl VolumeObjective<'_> {
@@ -749,7 +771,18 @@ impl Objective for VolumeObjective<'_> {
         self.grid.as_ref()
     }
 
+    fn appearance(&self) -> Option<Vec<f32>> {
+        self.appearance.as_ref().map(Appearance::state)
+    }
+
     fn start(&mut self, first: u32, _params: &[f32], ui: &Ui) -> Result<()> {
+        // A resumed run goes on with the colour transforms its checkpoint kept.
+        if let (Some(appearance), Some(path), true) = (&mut self.appearance, &self.plan.checkpoint, first > 0)
+        {
+            if let Some(state) = crate::checkpoint::saved_appearance(path)? {
+                *appearance = Appearance::from_state(self.views.len(), &state, self.plan.optimizer)?;
+            }
+        }
         let Some(
             g @ TrainingGrid {
                 seed: Some(dilation), ..
@@ -807,9 +840,20 @@ impl Objective for VolumeObjective<'_> {
         let fields = self.fields.bind(params);
         let model = TrainableModel {
             recompute_forward: plan.recompute_forward,
+            appearance: self.appearance.as_ref().map(|a| a.of(view)),
             ..fields.trainable()
         };
         let mut result = model.step((&rays, &targets), &settings, self.grid.as_ref(), jitter)?;
+        if let (Some(appearance), Some(mut grads)) = (&mut self.appearance, result.appearance_grads) {
+            // The ranks' mean, as for the field's params: every rank takes the same step.
+            if ranks > 1 {
+                crate::cluster::current().all_reduce_sum(&mut grads);
+                grads.iter_mut().for_each(|g| *g /= ranks as f32);
+            }
+            if grads.iter().all(|g| g.is_finite()) {
+                appearance.step(view, grads, plan.schedule.lr(step))?;
+            }
+        }
         if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {
             let reg = &e.regularizers;
             let points = match &self.grid {

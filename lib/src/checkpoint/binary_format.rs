@@ -8,7 +8,9 @@
 //! bits packed 8 to a byte, x fastest) with its box (`occupancy_bounds`, JSON `[lo, hi]`) and
 //! `occupancy_resolution` in the metadata (and `occupancy_space: contracted` for a grid over contracted
 //! coordinates), so that renders and scores of the checkpoint skip exactly the cells the run's validation
-//! skipped.
+//! skipped. A run with `appearance: true` keeps its training views' colour transforms and their Adam
+//! states in the tensor `appearance` (`f32`, `[views, 37]`: each view's 12 values, then its Adam state
+//! `[steps, m…, v…]`).
 
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -20,8 +22,9 @@ use nerfjit_dsl::{Program, Type};
 use nerfjit_runtime::{Adam, GridSpace, OccupancyGrid};
 use safetensors::tensor::{Dtype, SafeTensors, View};
 
-use super::{Saved, Script};
+use super::{Kept, Saved, Script};
 use crate::failure::{Failure, Result};
+use crate::training::appearance::VIEW_STATE;
 
 /// The format's name in the metadata.
 const FORMAT: &str = "nerfjit-checkpoint-2";
@@ -113,17 +116,21 @@ impl View for Tensor<'_> {
 /// The name of the occupancy grid's tensor.
 const OCCUPANCY: &str = "occupancy";
 
+/// The name of the colour transforms' tensor.
+const APPEARANCE: &str = "appearance";
+
 /// Writes the checkpoint of `program` to `path`, atomically (the safetensors writer fills a temporary file
-/// beside it, then renames it into place), readable by all like the run's other outputs; with the
-/// occupancy grid the run renders with, if it has one.
+/// beside it, then renames it into place), readable by all like the run's other outputs; with what
+/// the run keeps: the occupancy grid it renders with and its colour transforms, if it has them.
 pub fn write(
     path: &Path,
     program: &Program,
     step: u32,
     params: &[f32],
     adam: &Adam,
-    occupancy: Option<&OccupancyGrid>,
+    kept: Kept,
 ) -> Result<()> {
+    let occupancy = kept.occupancy;
     let script = Script::of(program);
     let mut metadata = HashMap::from([
         ("format".to_string(), FORMAT.to_string()),
@@ -163,6 +170,13 @@ pub fn write(
             bytes,
         };
         tensors.push((OCCUPANCY.to_string(), tensor));
+    }
+    if let Some(state) = &kept.appearance {
+        let tensor = Tensor::Floats {
+            shape: vec![state.len() / VIEW_STATE, VIEW_STATE],
+            values: state,
+        };
+        tensors.push((APPEARANCE.to_string(), tensor));
     }
     let fail =
         |e: &dyn std::fmt::Display| Failure::Message(format!("cannot write '{}': {e}", path.display()));
@@ -232,7 +246,23 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         }
         None => 0,
     };
-    let data_len = 3 * 4 * program.n_params() as u64 + occupancy_len;
+    let appearance_len = match header.get(APPEARANCE) {
+        Some(entry) => {
+            let shape: Option<Vec<u64>> = entry["shape"]
+                .as_array()
+                .map(|s| s.iter().filter_map(|x| x.as_u64()).collect());
+            match shape.as_deref() {
+                Some(&[views, n]) if n == VIEW_STATE as u64 && entry["dtype"] == "F32" => 4 * views * n,
+                _ => {
+                    return Err(bad(&format!(
+                        "its tensor '{APPEARANCE}' is not F32 [views, {VIEW_STATE}]"
+                    )))
+                }
+            }
+        }
+        None => 0,
+    };
+    let data_len = 3 * 4 * program.n_params() as u64 + occupancy_len + appearance_len;
     if file_len != 8 + header_len + data_len {
         return Err(bad(&format!(
             "it holds {} bytes of values but its script's params and Adam's moments need {data_len}: \
@@ -277,9 +307,9 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
     Ok((program, saved))
 }
 
-/// The occupancy grid a binary checkpoint keeps (see the [module docs](self)), if it keeps one: read from
-/// its header and that tensor alone.
-pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
+/// The header of a binary checkpoint and the bytes of its tensor `name`, if it has one: read from the
+/// header and that tensor alone.
+fn read_tensor(path: &Path, name: &str) -> Result<Option<(serde_json::Value, Vec<u8>)>> {
     let bad = |why: String| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
     let mut file = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
     let file_len = file.metadata().map_err(|e| bad(e.to_string()))?.len();
@@ -293,7 +323,32 @@ pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
     file.read_exact(&mut header).map_err(|e| bad(e.to_string()))?;
     let header: serde_json::Value =
         serde_json::from_slice(&header).map_err(|e| bad(format!("its header is not JSON ({e})")))?;
-    let Some(entry) = header.get(OCCUPANCY) else {
+    let Some(entry) = header.get(name) else {
+        return Ok(None);
+    };
+    let offsets: Option<Vec<u64>> = entry["data_offsets"]
+        .as_array()
+        .map(|o| o.iter().filter_map(|x| x.as_u64()).collect());
+    let Some(&[start, end]) = offsets.as_deref() else {
+        return Err(bad(format!("its tensor '{name}' lacks its data offsets")));
+    };
+    let begin = 8 + header_len + start;
+    if !(start <= end && begin + (end - start) <= file_len) {
+        return Err(bad(format!(
+            "its tensor '{name}''s offsets {start}..{end} are out of the file"
+        )));
+    }
+    std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(begin)).map_err(|e| bad(e.to_string()))?;
+    let mut bytes = vec![0u8; (end - start) as usize];
+    file.read_exact(&mut bytes).map_err(|e| bad(e.to_string()))?;
+    Ok(Some((header, bytes)))
+}
+
+/// The occupancy grid a binary checkpoint keeps (see the [module docs](self)), if it keeps one: read from
+/// its header and that tensor alone.
+pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
+    let bad = |why: String| Failure::Message(format!("checkpoint '{}' is not usable: {why}", path.display()));
+    let Some((header, bytes)) = read_tensor(path, OCCUPANCY)? else {
         return Ok(None);
     };
     let meta = &header["__metadata__"];
@@ -301,27 +356,9 @@ pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
         .as_str()
         .and_then(|b| serde_json::from_str(b).ok());
     let resolution: Option<usize> = meta["occupancy_resolution"].as_str().and_then(|r| r.parse().ok());
-    let offsets: Option<Vec<u64>> = entry["data_offsets"]
-        .as_array()
-        .map(|o| o.iter().filter_map(|x| x.as_u64()).collect());
-    let (Some([lo, hi]), Some(resolution), Some([start, end])) = (
-        bounds,
-        resolution,
-        offsets.as_deref().map(|o| [o[0], o[o.len() - 1]]),
-    ) else {
-        return Err(bad(
-            "its occupancy grid lacks its bounds, resolution or data offsets".into(),
-        ));
+    let (Some([lo, hi]), Some(resolution)) = (bounds, resolution) else {
+        return Err(bad("its occupancy grid lacks its bounds or resolution".into()));
     };
-    let begin = 8 + header_len + start;
-    if !(start <= end && begin + (end - start) <= file_len) {
-        return Err(bad(format!(
-            "its occupancy grid's offsets {start}..{end} are out of the file"
-        )));
-    }
-    std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(begin)).map_err(|e| bad(e.to_string()))?;
-    let mut bytes = vec![0u8; (end - start) as usize];
-    file.read_exact(&mut bytes).map_err(|e| bad(e.to_string()))?;
     let space = match meta.get("occupancy_space") {
         None => GridSpace::Scene,
         Some(name) => name.as_str().and_then(GridSpace::named).ok_or_else(|| {
@@ -333,4 +370,23 @@ pub fn read_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
     let grid = OccupancyGrid::from_packed_cells((lo, hi), resolution, &bytes)
         .map_err(|e| bad(format!("its occupancy grid: {e}")))?;
     Ok(Some(grid.in_space(space)))
+}
+
+/// The state of the colour transforms a binary checkpoint keeps (see the [module docs](self)), if it keeps
+/// them: [`VIEW_STATE`] floats a view.
+pub fn read_appearance(path: &Path) -> Result<Option<Vec<f32>>> {
+    let Some((_, bytes)) = read_tensor(path, APPEARANCE)? else {
+        return Ok(None);
+    };
+    let state: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    if !bytes.len().is_multiple_of(4 * VIEW_STATE) || !state.iter().all(|x| x.is_finite()) {
+        return Err(Failure::Message(format!(
+            "checkpoint '{}' is not usable: its tensor '{APPEARANCE}' is not {VIEW_STATE} finite floats a view",
+            path.display()
+        )));
+    }
+    Ok(Some(state))
 }

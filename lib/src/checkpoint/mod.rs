@@ -84,24 +84,41 @@ fn is_json(path: &Path) -> bool {
     path.extension().is_some_and(|e| e == "json")
 }
 
+/// What a run keeps in its checkpoint besides its params and Adam's state.
+#[derive(Default)]
+pub struct Kept<'a> {
+    /// The occupancy grid the run renders with.
+    pub occupancy: Option<&'a OccupancyGrid>,
+    /// The state of the training views' colour transforms ([`crate::training::appearance`]).
+    pub appearance: Option<Vec<f32>>,
+}
+
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render`, `mesh` and `eval-views`
-/// can use the checkpoint alone) and the run's occupancy grid (binary checkpoints only), in the format its
-/// name asks for.
+/// can use the checkpoint alone) and what the run keeps (binary checkpoints only: a JSON checkpoint of a
+/// run with colour transforms is refused, since resuming from it would lose them), in the format its name
+/// asks for.
 pub fn write(
     path: &Path,
     program: &Program,
     step: u32,
     params: &[f32],
     adam: &Adam,
-    occupancy: Option<&OccupancyGrid>,
+    kept: Kept,
 ) -> Result<()> {
     if is_json(path) {
+        if kept.appearance.is_some() {
+            return Err(Failure::Message(format!(
+                "'{}': a JSON checkpoint cannot keep the colour transforms of appearance: true; name the \
+                 checkpoint *.safetensors",
+                path.display()
+            )));
+        }
         write_atomic(
             path,
             &json_format::encode(&Script::of(program), step, params, adam),
         )
     } else {
-        binary_format::write(path, program, step, params, adam, occupancy)
+        binary_format::write(path, program, step, params, adam, kept)
     }
 }
 
@@ -112,6 +129,14 @@ pub fn saved_occupancy(path: &Path) -> Result<Option<OccupancyGrid>> {
         return Ok(None);
     }
     binary_format::read_occupancy(path)
+}
+
+/// The state of the colour transforms a binary checkpoint keeps, if it keeps them.
+pub fn saved_appearance(path: &Path) -> Result<Option<Vec<f32>>> {
+    if is_json(path) {
+        return Ok(None);
+    }
+    binary_format::read_appearance(path)
 }
 
 /// The script a checkpoint was written by, and its params: the program is compiled again from the source

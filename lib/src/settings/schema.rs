@@ -480,6 +480,10 @@ pub const TRAIN: BlockSchema = BlockSchema {
             "random_background",
             "each step composites its rays and their targets on a random color (images with alpha or masks)",
         ),
+        flag(
+            "appearance",
+            "a colour transform per training view learnt with the field (exposure, white balance); renders use none",
+        ),
         SEED,
         CHECKPOINT,
         CHECKPOINT_EVERY,

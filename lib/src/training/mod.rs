@@ -1,6 +1,7 @@
-//! Training: the one loop every objective runs, the data it fits, the regularizers, validation on
+//! Training: the one loop every objective runs, the data it fits, the per-view colour transforms, the regularizers, validation on
 //! held-out views, and the logs it writes (metrics JSON lines, TensorBoard events).
 
+pub mod appearance;
 pub mod data_source;
 pub mod metrics_log;
 pub mod regularizers;

@@ -144,6 +144,12 @@ pub trait Objective {
     fn occupancy(&self) -> Option<&nerfjit_runtime::OccupancyGrid> {
         None
     }
+
+    /// The state of the training views' colour transforms, if the objective learns them, kept in
+    /// checkpoints (see [`crate::training::appearance`]).
+    fn appearance(&self) -> Option<Vec<f32>> {
+        None
+    }
 }
 
 /// How a run ended.
@@ -406,7 +412,11 @@ pub fn train(
         ui.bar.set_position(u64::from(finished.done));
         if let Some(path) = settings.checkpoint.filter(|_| root) {
             if finished.done.is_multiple_of(settings.checkpoint_every) || progress.last {
-                crate::checkpoint::write(path, program, finished.done, params, &adam, objective.occupancy())?;
+                let kept = crate::checkpoint::Kept {
+                    occupancy: objective.occupancy(),
+                    appearance: objective.appearance(),
+                };
+                crate::checkpoint::write(path, program, finished.done, params, &adam, kept)?;
             }
         }
         if ranks > 1 && progress.last {

@@ -1,9 +1,10 @@
 //! Volume rendering: depths along rays ([`sampler`], [`importance`]), occupancy grids for skipping empty
 //! space ([`occupancy`], [`occupancy_ema`]), the compositor and its backward pass ([`composite`]), the
 //! volume pass of a tile of rays with depths of their own (`pass`) that the training step ([`train`]) and
-//! hierarchical rendering ([`hierarchical`]) run, and rendering with depths shared by all rays
+//! hierarchical rendering ([`hierarchical`]) run, with per-view colour transforms ([`appearance`]), and rendering with depths shared by all rays
 //! ([`render`]); [`model`] chooses between plain and hierarchical rendering and training; plus [`transmittance`] through piecewise-constant media, the course's first exercise.
 
+pub mod appearance;
 pub mod composite;
 pub mod hierarchical;
 pub mod importance;

@@ -7,6 +7,7 @@ use crate::cameras::rays::RayBatch;
 use crate::error::Result;
 use crate::field::{BatchFn, BatchVjp};
 use crate::rng::Rng;
+use crate::volume::appearance::ColorTransform;
 use crate::volume::hierarchical::{render_hierarchical, CoarseFine};
 use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::render::{render_volume_with, VolumeFrame, VolumeSettings};
@@ -56,6 +57,8 @@ pub struct TrainableModel<'a> {
     /// Recompute the forward pass in the backward pass even where the fields could keep its values
     /// ([`StepOptions::recompute_forward`]).
     pub recompute_forward: bool,
+    /// The colour transform of the view the step's rays come from ([`StepOptions::appearance`]).
+    pub appearance: Option<ColorTransform>,
 }
 
 impl TrainableModel<'_> {
@@ -76,6 +79,7 @@ impl TrainableModel<'_> {
                     fine: None,
                     grid,
                     recompute_forward: self.recompute_forward,
+                    appearance: self.appearance,
                 };
                 volume_step_with(rays, targets, field, vjp, settings, options, jitter)
             }
@@ -89,6 +93,7 @@ impl TrainableModel<'_> {
                     fine: Some(&fine),
                     grid,
                     recompute_forward: self.recompute_forward,
+                    appearance: self.appearance,
                 };
                 volume_step_with(rays, targets, coarse, coarse_vjp, settings, options, jitter)
             }

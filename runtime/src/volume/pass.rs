@@ -1167,6 +1167,7 @@ mod tests {
                     field: (&fine, &no_vjp),
                     coarse: None,
                     recompute_forward: false,
+                    appearance: None,
                 };
                 let step = plain.step((&rays, &targets), &settings, grid, None).unwrap();
                 assert!(
@@ -1179,6 +1180,7 @@ mod tests {
                     field: (&fine, &no_vjp),
                     coarse: Some((&coarse, &no_vjp, importance)),
                     recompute_forward: false,
+                    appearance: None,
                 };
                 let step = hierarchical
                     .step((&rays, &targets), &settings, grid, None)

@@ -20,6 +20,7 @@ use crate::error::{Error, Result};
 use crate::field::{check_vjp_arity, BatchFn, BatchVjp, KeptForward, KeptPasses};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
+use crate::volume::appearance::{ColorTransform, TRANSFORM_VALUES};
 use crate::volume::composite::{RayOutput, SharedDepths};
 use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, Scratch};
@@ -81,6 +82,8 @@ pub struct StepResult {
     pub param_grads: Vec<f32>,
     /// Samples the field was evaluated at (both passes; skipped samples not counted).
     pub samples: usize,
+    /// ∂loss/∂values of the step's colour transform ([`StepOptions::appearance`]), if it had one.
+    pub appearance_grads: Option<[f32; TRANSFORM_VALUES]>,
 }
 
 /// The fine pass of hierarchical sampling: a second field evaluated at the coarse depths plus
@@ -105,6 +108,9 @@ pub struct StepOptions<'a> {
     /// Recompute the fields' forward pass in their backward pass even where they could keep its values
     /// (see [`volume_step_with`]), to compare.
     pub recompute_forward: bool,
+    /// The colour transform of the view the rays come from ([`crate::volume::appearance`]): the rays'
+    /// colours are mapped by it before they are compared with the targets, and its gradient is returned.
+    pub appearance: Option<ColorTransform>,
 }
 
 /// What every tile of a step needs to know.
@@ -123,6 +129,8 @@ struct Job<'a> {
     scale: f32,
     /// Whether the fields' backward passes read the values their forward passes kept.
     keep: bool,
+    /// The view's colour transform, if it has one.
+    appearance: Option<ColorTransform>,
 }
 
 /// The kept passes ([`BatchVjp::kept_passes`]) of a task's coarse (or only) and fine field, if used.
@@ -138,6 +146,8 @@ struct TileTotals {
     squared_error: [f64; 2],
     /// Samples evaluated.
     samples: usize,
+    /// ∂loss/∂values of the colour transform (both passes).
+    appearance_grads: [f64; TRANSFORM_VALUES],
 }
 
 impl std::ops::AddAssign for TileTotals {
@@ -145,6 +155,9 @@ impl std::ops::AddAssign for TileTotals {
         self.squared_error[0] += other.squared_error[0];
         self.squared_error[1] += other.squared_error[1];
         self.samples += other.samples;
+        for (sum, g) in self.appearance_grads.iter_mut().zip(other.appearance_grads) {
+            *sum += g;
+        }
     }
 }
 
@@ -185,18 +198,20 @@ fn train_tile(
         .fixed_depths
         .as_ref()
         .map(|(t, delta)| SharedDepths { t, delta });
+    let mut appearance_grads = [0.0; TRANSFORM_VALUES];
     let (coarse, coarse_samples) = run_pass(
         job,
         (job.field, job.vjp, shared),
         job.settings,
         s,
         (first, n),
-        (grads, kept.coarse.as_deref_mut()),
+        (grads, kept.coarse.as_deref_mut(), &mut appearance_grads),
     );
     let Some((fine, fine_settings)) = &job.fine else {
         return TileTotals {
             squared_error: [coarse, 0.0],
             samples: coarse_samples,
+            appearance_grads,
         };
     };
     let jitter = job.fixed_depths.is_none().then_some(rngs.as_mut_slice());
@@ -207,11 +222,12 @@ fn train_tile(
         fine_settings,
         s,
         (first, n),
-        (grads, kept.fine.as_deref_mut()),
+        (grads, kept.fine.as_deref_mut(), &mut appearance_grads),
     );
     TileTotals {
         squared_error: [coarse, fine_error],
         samples: coarse_samples + fine_samples,
+        appearance_grads,
     }
 }
 
@@ -219,14 +235,18 @@ fn train_tile(
 /// `shared_depths` on every ray, when given), composites, and adds the gradient of the MSE through
 /// `vjp` to `grads`; returns the summed squared error and the number of samples evaluated. With `kept`
 /// passes (a pass that evaluates every sample in one call), the forward pass is theirs and the backward
-/// pass goes on from what it kept.
+/// pass goes on from what it kept. With the view's colour transform, adds its gradient to `appearance_grads`.
 fn run_pass(
     job: &Job,
     (field, vjp, shared_depths): (&dyn BatchFn, &dyn BatchVjp, Option<SharedDepths>),
     settings: &VolumeSettings,
     s: &mut Scratch,
     (first, n): (usize, usize),
-    (grads, kept): (&mut [f32], Option<&mut (dyn KeptPasses + '_)>),
+    (grads, kept, appearance_grads): (
+        &mut [f32],
+        Option<&mut (dyn KeptPasses + '_)>,
+        &mut [f64; TRANSFORM_VALUES],
+    ),
 ) -> (f64, usize) {
     let len = n * settings.samples;
     let kept = kept.map(|k| KeptForward::new(k, field.n_inputs(), field.n_outputs()));
@@ -266,11 +286,17 @@ fn run_pass(
         ],
         |k, out| {
             let target = job.targets[first + k];
-            let error = [0, 1, 2].map(|c| out.rgb[c] - target[c]);
+            let background = settings.background.unwrap_or([0.0; 3]);
+            let predicted = job.appearance.map_or(out.rgb, |t| t.apply(out, background));
+            let error = [0, 1, 2].map(|c| predicted[c] - target[c]);
             squared_error += error.iter().map(|e| f64::from(e * e)).sum::<f64>();
-            RayOutput {
-                rgb: error.map(|e| job.scale * e),
-                ..RayOutput::default()
+            let g = error.map(|e| job.scale * e);
+            match &job.appearance {
+                Some(t) => t.backward(out, background, g, appearance_grads),
+                None => RayOutput {
+                    rgb: g,
+                    ..RayOutput::default()
+                },
             }
         },
     );
@@ -406,6 +432,7 @@ pub fn volume_step_with(
         fixed_depths,
         scale: 2.0 / (3.0 * rays.len() as f32),
         keep,
+        appearance: options.appearance,
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
@@ -472,6 +499,9 @@ pub fn volume_step_with(
         coarse_loss,
         param_grads,
         samples: totals.samples,
+        appearance_grads: options
+            .appearance
+            .map(|_| totals.appearance_grads.map(|g| g as f32)),
     })
 }
 
@@ -654,6 +684,7 @@ mod tests {
                     fine: hierarchical.then_some(&fine),
                     grid,
                     recompute_forward,
+                    appearance: None,
                 };
                 let before = kept.forwards.load(std::sync::atomic::Ordering::Relaxed);
                 let mut rng = Rng::new(3);
@@ -720,6 +751,72 @@ mod tests {
                     "{mode:?} θ{i}: {got} vs {fd}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn a_colour_transform_maps_the_prediction_and_its_gradients_match_finite_differences() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        let transform = ColorTransform([0.8, 0.1, 0.0, -0.05, 1.2, 0.1, 0.0, 0.2, 0.9, 0.05, -0.1, 0.02]);
+        let settings = VolumeSettings {
+            samples: 1000,
+            ..blob_settings(None)
+        };
+        let run = |theta: &[f32; 7], appearance: Option<ColorTransform>| {
+            let (t2, t3) = (theta.to_vec(), theta.to_vec());
+            let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&t2, p)));
+            let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&t3, p, c, g));
+            let rays = rays();
+            let options = StepOptions {
+                appearance,
+                ..StepOptions::default()
+            };
+            volume_step_with(
+                &rays,
+                &targets(rays.len()),
+                &field,
+                &vjp,
+                &settings,
+                options,
+                None,
+            )
+            .unwrap()
+        };
+        // The identity is the plain step, bit for bit.
+        let (plain, identity) = (run(&theta, None), run(&theta, Some(ColorTransform::IDENTITY)));
+        assert_eq!(
+            (plain.loss, &plain.param_grads),
+            (identity.loss, &identity.param_grads)
+        );
+        assert_eq!(plain.appearance_grads, None);
+        let result = run(&theta, Some(transform));
+        assert!(
+            (result.loss - plain.loss).abs() > 1e-4 * plain.loss,
+            "the transform changed nothing"
+        );
+        let grads = result.appearance_grads.unwrap();
+        for (k, got) in grads.iter().enumerate() {
+            let h = 1e-2;
+            let (mut plus, mut minus) = (transform, transform);
+            plus.0[k] += h;
+            minus.0[k] -= h;
+            let fd = (run(&theta, Some(plus)).loss - run(&theta, Some(minus)).loss) / (2.0 * h);
+            assert!(
+                (got - fd).abs() <= 2e-3 * fd.abs().max(1e-2),
+                "value {k}: {got} vs {fd}"
+            );
+        }
+        for i in 0..7 {
+            let h = 0.01 * theta[i].abs().max(0.1);
+            let (mut plus, mut minus) = (theta, theta);
+            plus[i] += h;
+            minus[i] -= h;
+            let fd = (run(&plus, Some(transform)).loss - run(&minus, Some(transform)).loss) / (2.0 * h);
+            let got = result.param_grads[i];
+            assert!(
+                (got - fd).abs() <= 2e-3 * fd.abs().max(1e-2),
+                "θ{i}: {got} vs {fd}"
+            );
         }
     }
 
