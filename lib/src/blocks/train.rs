@@ -281,11 +281,7 @@ impl TrainPlan {
             seed: grid_seeding,
         });
         let early_termination = b.number("early_termination")? as f32;
-        if appearance
-            && checkpoint
-                .as_ref()
-                .is_some_and(|c| c.extension().is_some_and(|e| e == "json"))
-        {
+        if appearance && checkpoint.as_deref().is_some_and(crate::checkpoint::is_json) {
             return Err(b.block_error(
                 "a JSON checkpoint cannot keep the colour transforms of appearance: true; name the checkpoint \
                  *.safetensors"

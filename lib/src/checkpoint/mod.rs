@@ -80,7 +80,7 @@ pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
 }
 
 /// Whether `path` names a JSON checkpoint.
-fn is_json(path: &Path) -> bool {
+pub fn is_json(path: &Path) -> bool {
     path.extension().is_some_and(|e| e == "json")
 }
 
@@ -94,9 +94,8 @@ pub struct Kept<'a> {
 }
 
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render`, `mesh` and `eval-views`
-/// can use the checkpoint alone) and what the run keeps (binary checkpoints only: a JSON checkpoint of a
-/// run with colour transforms is refused, since resuming from it would lose them), in the format its name
-/// asks for.
+/// can use the checkpoint alone) and what the run keeps (binary checkpoints only: a `train` block with
+/// colour transforms refuses a JSON checkpoint, see [`is_json`]), in the format its name asks for.
 pub fn write(
     path: &Path,
     program: &Program,
@@ -106,13 +105,6 @@ pub fn write(
     kept: Kept,
 ) -> Result<()> {
     if is_json(path) {
-        if kept.appearance.is_some() {
-            return Err(Failure::Message(format!(
-                "'{}': a JSON checkpoint cannot keep the colour transforms of appearance: true; name the \
-                 checkpoint *.safetensors",
-                path.display()
-            )));
-        }
         write_atomic(
             path,
             &json_format::encode(&Script::of(program), step, params, adam),
