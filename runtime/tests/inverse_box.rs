@@ -207,7 +207,7 @@ fn recover(start: &[f32], truth: &[f32], tolerance: f32, step: impl Fn(&[f32]) -
     let mut last = first.clone();
     for i in 0..steps {
         last = step(&theta);
-        adam.lr = schedule.lr(i);
+        adam.lr = schedule.lr(i, 0.0);
         adam.step(&mut theta, &last.param_grads).unwrap();
     }
     let error = theta

@@ -550,8 +550,9 @@ impl TrainPlan {
             None => String::new(),
         };
         Ok(format!(
-            "trained {} steps in {:.1} s ({ms_per_step:.2} ms/step, {:.2} M samples/s{rays}, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
+            "trained {} steps in {:.1} s of training, {:.1} s in all ({ms_per_step:.2} ms/step, {:.2} M samples/s{rays}, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
             end.trained(),
+            end.train_seconds,
             end.wall_seconds,
             samples_per_s * 1e-6,
             describe_params(program, params)
@@ -808,7 +809,7 @@ impl Objective for VolumeObjective<'_> {
         self.update_grid(step, params, ui)
     }
 
-    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient> {
         let plan = self.plan;
         let view = if plan.random_views {
             self.step_rng.below(self.views.len() as u64) as usize
@@ -847,7 +848,7 @@ impl Objective for VolumeObjective<'_> {
                 grads.iter_mut().for_each(|g| *g /= ranks as f32);
             }
             if grads.iter().all(|g| g.is_finite()) {
-                appearance.step(view, grads, plan.schedule.lr(step))?;
+                appearance.step(view, grads, lr)?;
             }
         }
         if let (Some(e), Some(k)) = (&plan.eikonal, self.regularizers) {

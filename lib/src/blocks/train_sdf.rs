@@ -419,7 +419,7 @@ struct SdfObjective<'a> {
 }
 
 impl Objective for SdfObjective<'_> {
-    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+    fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient> {
         let (plan, k, threads) = (self.plan, self.kernels, self.threads);
         let mut grads = vec![0.0f32; params.len()];
         self.terms = if step < plan.pretrain_steps {

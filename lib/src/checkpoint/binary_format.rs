@@ -3,7 +3,8 @@
 //! in its shape (`f32` as a scalar, `vec<n>` as `[n]`, `mat<r, c>` as `[r, c]` row-major, an `mlp`'s layer
 //! `l` as `NAME.l.weight` `[out, in]` and `NAME.l.bias` `[out]` like PyTorch's `nn.Linear`, a grid's table
 //! flat); Adam's moments are `adam.m.NAME…` and `adam.v.NAME…`. The metadata holds the format, the step,
-//! Adam's step count and the script (name, source and `--set` overrides). A run that skips empty space
+//! Adam's step count, the fraction of its run the training had done (`run_fraction`, where a schedule
+//! over the run resumes) and the script (name, source and `--set` overrides). A run that skips empty space
 //! also keeps its occupancy grid as it last rendered with it: the tensor `occupancy` (`u8`, the cells'
 //! bits packed 8 to a byte, x fastest) with its box (`occupancy_bounds`, JSON `[lo, hi]`) and
 //! `occupancy_resolution` in the metadata (and `occupancy_space: contracted` for a grid over contracted
@@ -119,6 +120,9 @@ const OCCUPANCY: &str = "occupancy";
 /// The name of the colour transforms' tensor.
 const APPEARANCE: &str = "appearance";
 
+/// The metadata key of the fraction of its run the training had done.
+const RUN_FRACTION: &str = "run_fraction";
+
 /// Writes the checkpoint of `program` to `path`, atomically (the safetensors writer fills a temporary file
 /// beside it, then renames it into place), readable by all like the run's other outputs; with what
 /// the run keeps: the occupancy grid it renders with and its colour transforms, if it has them.
@@ -153,6 +157,9 @@ pub fn write(
             };
             tensors.push((format!("{prefix}{}", e.name), tensor));
         }
+    }
+    if let Some(fraction) = kept.run_fraction {
+        metadata.insert(RUN_FRACTION.to_string(), fraction.to_string());
     }
     let packed = occupancy.map(|grid| grid.packed_cells());
     if let (Some(grid), Some(bytes)) = (occupancy, &packed) {
@@ -227,6 +234,15 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
             .map_err(|_| bad(&format!("its '{key}' is not a step count")))
     };
     let (step, adam_steps) = (count("step")?, count("adam_steps")?);
+    let run_fraction = match header["__metadata__"].get(RUN_FRACTION) {
+        None => None,
+        Some(f) => Some(
+            f.as_str()
+                .and_then(|f| f.parse::<f64>().ok())
+                .filter(|f| (0.0..=1.0).contains(f))
+                .ok_or_else(|| bad(&format!("its '{RUN_FRACTION}' is not a number from 0 to 1")))?,
+        ),
+    };
     let overrides: Vec<String> = serde_json::from_str(meta("script_overrides")?)
         .map_err(|_| bad("its 'script_overrides' is not a list of strings"))?;
     let script = Script {
@@ -303,6 +319,7 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
         step,
         params,
         adam,
+        run_fraction,
     };
     Ok((program, saved))
 }

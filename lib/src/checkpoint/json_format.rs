@@ -6,16 +6,19 @@ use nerfjit_runtime::Adam;
 use super::{Saved, Script};
 use crate::failure::Result;
 
-/// The checkpoint as JSON text.
-pub fn encode(script: &Script, step: u32, params: &[f32], adam: &Adam) -> String {
-    serde_json::json!({
+/// The checkpoint as JSON text (`run_fraction` only where known).
+pub fn encode(script: &Script, step: u32, params: &[f32], adam: &Adam, run_fraction: Option<f64>) -> String {
+    let mut json = serde_json::json!({
         "format": "nerfjit-checkpoint-1",
         "script": { "name": script.name, "source": script.source, "overrides": script.overrides },
         "step": step,
         "params": params,
         "adam": adam.state(),
-    })
-    .to_string()
+    });
+    if let Some(fraction) = run_fraction {
+        json["run_fraction"] = fraction.into();
+    }
+    json.to_string()
 }
 
 /// Reads a JSON checkpoint's text; `bad` words an error about it.
@@ -57,6 +60,14 @@ pub fn decode(text: &str, bad: &dyn Fn(&str) -> crate::failure::Failure) -> Resu
     let params = floats("params")?;
     let state = floats("adam")?;
     let adam = Adam::from_state(params.len(), 0.0, &state).map_err(|e| bad(&e.to_string()))?;
+    let run_fraction = match json.get("run_fraction") {
+        None => None,
+        Some(f) => Some(
+            f.as_f64()
+                .filter(|f| (0.0..=1.0).contains(f))
+                .ok_or_else(|| bad("its 'run_fraction' is not a number from 0 to 1"))?,
+        ),
+    };
     Ok(Saved {
         script: Script {
             name: name.to_string(),
@@ -66,5 +77,6 @@ pub fn decode(text: &str, bad: &dyn Fn(&str) -> crate::failure::Failure) -> Resu
         step,
         params,
         adam,
+        run_fraction,
     })
 }

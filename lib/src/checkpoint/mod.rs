@@ -69,6 +69,8 @@ pub struct Saved {
     pub params: Vec<f32>,
     /// The optimizer (its learning rate is set by the schedule when training resumes).
     pub adam: Adam,
+    /// The fraction of its run the training had done, if the checkpoint says (see [`Kept::run_fraction`]).
+    pub run_fraction: Option<f64>,
 }
 
 /// Writes `text` to `path` atomically.
@@ -91,6 +93,9 @@ pub struct Kept<'a> {
     pub occupancy: Option<&'a OccupancyGrid>,
     /// The state of the training views' colour transforms ([`crate::training::appearance`]).
     pub appearance: Option<Vec<f32>>,
+    /// The fraction of its run the training has done (of its steps or of its time limit, whichever is
+    /// further): where a schedule over the run resumes.
+    pub run_fraction: Option<f64>,
 }
 
 /// Saves a checkpoint, with the script it belongs to (so that `nerfjit render`, `mesh` and `eval-views`
@@ -107,7 +112,7 @@ pub fn write(
     if is_json(path) {
         write_atomic(
             path,
-            &json_format::encode(&Script::of(program), step, params, adam),
+            &json_format::encode(&Script::of(program), step, params, adam, kept.run_fraction),
         )
     } else {
         binary_format::write(path, program, step, params, adam, kept)
@@ -161,22 +166,30 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     Ok((program, saved))
 }
 
-/// Where training starts: params, optimizer and step from `checkpoint` when resuming and it exists
-/// (refused if a script with other params wrote it), else fresh Adam at `lr` from step 0 (params
-/// untouched); either way with the decay rates and ε of `settings`. Says on standard error what it
-/// resumed, or that there was nothing to resume.
+/// Where training starts: params, optimizer, step and fraction of the run done from `checkpoint` when
+/// resuming and it exists (refused if a script with other params wrote it; a checkpoint that does not
+/// say its fraction is taken to be `default_fraction(step)` through its run), else fresh Adam at `lr`
+/// from step 0 (params untouched); either way with the decay rates and ε of `settings`. Says on standard
+/// error what it resumed, or that there was nothing to resume.
 pub fn resume_or_start(
     program: &Program,
     checkpoint: Option<&Path>,
     resume: bool,
     params: &mut Vec<f32>,
     settings: AdamSettings,
-    lr: impl Fn(u32) -> f32,
-) -> Result<(Adam, u32)> {
+    lr: impl Fn(u32, f64) -> f32,
+    default_fraction: impl Fn(u32) -> f64,
+) -> Result<Start> {
     let n = params.len();
     let what = || format!("training {n} params (values, gradients and Adam's two moments)");
     budget::check(what, budget::bytes_of(n as u64, 16))?;
-    let fresh = || Ok((configured(Adam::new(n, lr(0)), settings, program), 0));
+    let fresh = || {
+        Ok(Start {
+            adam: configured(Adam::new(n, lr(0, 0.0)), settings, program),
+            step: 0,
+            run_fraction: 0.0,
+        })
+    };
     let path = match checkpoint {
         Some(path) if resume && path.exists() => path,
         Some(path) if resume => {
@@ -205,13 +218,28 @@ pub fn resume_or_start(
     }
     *params = saved.params;
     let mut adam = saved.adam;
-    adam.lr = lr(saved.step);
+    let run_fraction = saved.run_fraction.unwrap_or_else(|| default_fraction(saved.step));
+    adam.lr = lr(saved.step, run_fraction);
     crate::note(&format!(
         "resuming from {} at step {}",
         path.display(),
         saved.step
     ));
-    Ok((configured(adam, settings, program), saved.step))
+    Ok(Start {
+        adam: configured(adam, settings, program),
+        step: saved.step,
+        run_fraction,
+    })
+}
+
+/// Where a training run starts (see [`resume_or_start`]).
+pub struct Start {
+    /// Adam, its moments and learning rate.
+    pub adam: Adam,
+    /// The first step to take.
+    pub step: u32,
+    /// The fraction of the run already done.
+    pub run_fraction: f64,
 }
 
 /// Each param of `program` as `name: type`.

@@ -998,6 +998,25 @@ mod tests {
     }
 
     #[test]
+    fn a_schedule_decays_every_so_many_steps_or_over_the_run_but_not_both() {
+        let block = |schedule: &str| {
+            settings_of(&format!(
+                "fn sdf(p: vec3) -> f32 = length(p) - 1\ntrain sdf {{ data: points(\"a.npz\"), schedule: {schedule} }}"
+            ))
+        };
+        assert!(check(&block("exponential(gamma: 0.01, over: run)")).is_ok());
+        assert!(check(&block("exponential(gamma: 0.1, every: 100)")).is_ok());
+        for (bad, says) in [
+            ("exponential(gamma: 0.1, every: 100, over: run)", "not both"),
+            ("exponential(gamma: 0.1, over: epoch)", "'epoch'"),
+            ("exponential(over: run)", "needs the argument 'gamma'"),
+        ] {
+            let errors = check(&block(bad)).map_or_else(|e| e, |_| panic!("{bad} passed"));
+            assert!(errors[0].message.contains(says), "{bad}: {}", errors[0].message);
+        }
+    }
+
+    #[test]
     fn grammars_are_checked_without_files() {
         let settings = settings_of(
             "fn sdf(p: vec3) -> f32 = length(p) - 1\n\

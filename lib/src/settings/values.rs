@@ -230,9 +230,13 @@ pub fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagno
     })
 }
 
-/// The `schedule` setting: `constant` (the default), `exponential(gamma: 0.1, every: 1000)` or
-/// `step(factor: 0.8, every: 50)`, starting from the rate `lr`.
+/// The `schedule` setting: `constant` (the default), `exponential(gamma: 0.1, every: 1000)`,
+/// `exponential(gamma: 0.01, over: run)` (by `gamma` over the whole run, see
+/// [`Schedule::ExponentialOverRun`]) or `step(factor: 0.8, every: 50)`, starting from the rate `lr`.
 pub fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
+    const FORMS: &str =
+        "write constant, exponential(gamma: 0.1, every: 1000), exponential(gamma: 0.01, over: run) or \
+         step(factor: 0.8, every: 50)";
     let Some(v) = v else {
         return Ok(Schedule::Constant { lr });
     };
@@ -243,12 +247,24 @@ pub fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Di
     }
     let Value::Call(name, _) = &v.value else {
         return Err(
-            Diagnostic::new(v.span, format!("expected a schedule, found {}", v.describe())).with_hint(
-                "write constant, exponential(gamma: 0.1, every: 1000) or step(factor: 0.8, every: 50)",
-            ),
+            Diagnostic::new(v.span, format!("expected a schedule, found {}", v.describe())).with_hint(FORMS),
         );
     };
-    let a = CallArgs::new(&v, &["gamma", "factor", "every"])?;
+    let a = CallArgs::new(&v, &["gamma", "factor", "every", "over"])?;
+    if name == "exponential" && a.raw("over").is_some() {
+        if a.raw("every").is_some() {
+            return Err(Diagnostic::new(
+                v.span,
+                "an exponential schedule decays 'every' so many steps or 'over' the run, not both",
+            )
+            .with_hint(FORMS));
+        }
+        a.choice("over", &["run"], "run")?;
+        return Ok(Schedule::ExponentialOverRun {
+            lr,
+            gamma: a.number("gamma", None)? as f32,
+        });
+    }
     let every = a.number("every", None)?;
     if every < 1.0 || every.fract() != 0.0 {
         return Err(Diagnostic::new(
@@ -267,8 +283,7 @@ pub fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Di
             factor: a.number("factor", None)? as f32,
             every: every as u32,
         }),
-        other => Err(Diagnostic::new(v.span, format!("unknown schedule '{other}'"))
-            .with_hint("use constant, exponential(gamma, every) or step(factor, every)")),
+        other => Err(Diagnostic::new(v.span, format!("unknown schedule '{other}'")).with_hint(FORMS)),
     }
 }
 

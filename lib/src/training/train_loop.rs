@@ -131,8 +131,9 @@ pub trait Objective {
         Ok(())
     }
 
-    /// The loss of step `step` at `params` and its gradient.
-    fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient>;
+    /// The loss of step `step` at `params` and its gradient; `lr` is the step's learning rate, for what
+    /// the objective trains itself beside the params.
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient>;
 
     /// Takes back a step's gradient buffer once the params are updated (to reuse it).
     fn recycle(&mut self, _grads: Vec<f32>) {}
@@ -225,14 +226,28 @@ pub fn train(
     objective: &mut dyn Objective,
 ) -> Result<Finished> {
     let schedule = settings.schedule;
-    let (mut adam, first) = crate::checkpoint::resume_or_start(
+    let step_fraction = |step: u32| f64::from(step) / f64::from(settings.steps.max(1));
+    let crate::checkpoint::Start {
+        mut adam,
+        step: first,
+        run_fraction: resumed_fraction,
+    } = crate::checkpoint::resume_or_start(
         program,
         settings.checkpoint,
         settings.resume,
         params,
         settings.optimizer,
-        |k| schedule.lr(k),
+        |k, fraction| schedule.lr(k, fraction),
+        step_fraction,
     )?;
+    // The fraction of the run done before a step: of its steps or of its time limit, whichever is further
+    // (a resumed run's time limit covers what its checkpoint had left).
+    let run_fraction = |step: u32, train_seconds: f64| {
+        let timed = settings.time_limit.map_or(0.0, |limit| {
+            resumed_fraction + (1.0 - resumed_fraction) * train_seconds / limit.max(1e-9)
+        });
+        step_fraction(step).max(timed).min(1.0)
+    };
     let mut finished = Finished {
         first,
         done: first,
@@ -294,11 +309,12 @@ pub fn train(
     for step in first..settings.steps {
         let step_start = Instant::now();
         objective.before_step(step, params, &ui)?;
+        let lr = schedule.lr(step, run_fraction(step, finished.train_seconds));
         let Gradient {
             mut loss,
             mut grads,
             samples,
-        } = objective.gradient(step, params)?;
+        } = objective.gradient(step, lr, params)?;
         // Data parallel: every rank takes the mean of the ranks' gradients, losses and clocks, and stops when
         // any rank is interrupted, so that the params stay the same on every rank.
         let mut agreed = None;
@@ -348,7 +364,7 @@ pub fn train(
                 settings.checkpoint,
             ));
         }
-        adam.lr = schedule.lr(step);
+        adam.lr = lr;
         let copying = Instant::now();
         copy_into(&mut before, params);
         checks += copying.elapsed();
@@ -415,6 +431,7 @@ pub fn train(
                 let kept = crate::checkpoint::Kept {
                     occupancy: objective.occupancy(),
                     appearance: objective.appearance(),
+                    run_fraction: Some(run_fraction(finished.done, finished.train_seconds)),
                 };
                 crate::checkpoint::write(path, program, finished.done, params, &adam, kept)?;
             }
@@ -518,7 +535,7 @@ mod tests {
             Ok(())
         }
 
-        fn gradient(&mut self, step: u32, params: &[f32]) -> Result<Gradient> {
+        fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient> {
             let diff: Vec<f32> = params.iter().zip(self.target).map(|(p, t)| p - t).collect();
             let mut grads: Vec<f32> = diff.iter().map(|d| 2.0 * d).collect();
             if self.poison == Some(step) {
@@ -680,6 +697,71 @@ mod tests {
         .unwrap();
         assert_eq!((end.first, end.trained()), (5, 1));
         std::fs::remove_dir_all(path.parent().unwrap()).unwrap();
+    }
+
+    #[test]
+    fn a_schedule_over_the_run_decays_by_its_gamma_and_resumes_at_the_fraction_its_checkpoint_kept() {
+        let program = program();
+        let schedule = Schedule::ExponentialOverRun { lr: 0.1, gamma: 0.01 };
+        let close = |a: f32, b: f64| (f64::from(a) - b).abs() <= 1e-4 * b;
+        // Without a time limit the fraction done is the steps'.
+        let mut objective = Quadratic::new(None);
+        let mut params = program.param_values.clone();
+        train(
+            &program,
+            &mut params,
+            &settings(20, &schedule, None),
+            &mut objective,
+        )
+        .unwrap();
+        for (k, p) in objective.seen.iter().enumerate() {
+            let expected = 0.1 * 0.01f64.powf(k as f64 / 20.0);
+            assert!(close(p.lr, expected), "step {k}: {} against {expected}", p.lr);
+        }
+        let folder = tempfile::Builder::new()
+            .prefix("nerfjit-loop-fraction-")
+            .tempdir()
+            .unwrap();
+        for name in ["run.ckpt.safetensors", "run.json"] {
+            let path = folder.path().join(name);
+            // A checkpoint at step 2 of a timed run that had taken half its time.
+            let kept = crate::checkpoint::Kept {
+                run_fraction: Some(0.5),
+                ..Default::default()
+            };
+            let adam = nerfjit_runtime::Adam::new(3, 0.0);
+            crate::checkpoint::write(&path, &program, 2, &program.param_values, &adam, kept).unwrap();
+            // Resumed under a time limit (its steps take a negligible share of it): on from half way.
+            let timed = |steps| LoopSettings {
+                time_limit: Some(1e6),
+                ..settings(steps, &schedule, Some(&path))
+            };
+            let mut objective = Quadratic::new(None);
+            let mut params = program.param_values.clone();
+            train(&program, &mut params, &timed(20), &mut objective).unwrap();
+            assert_eq!(objective.started_at, Some(2), "{name}");
+            assert!(
+                close(objective.seen[0].lr, 0.01),
+                "{name}: {}",
+                objective.seen[0].lr
+            );
+            // Its last checkpoint says the run was done: resumed for more steps, the rate stays at the end's.
+            let mut objective = Quadratic::new(None);
+            train(&program, &mut params, &timed(30), &mut objective).unwrap();
+            assert_eq!(objective.started_at, Some(20), "{name}");
+            assert!(objective.seen.iter().all(|p| close(p.lr, 0.001)), "{name}");
+            // Without a time limit the steps' fraction rules (20 of 40).
+            let mut objective = Quadratic::new(None);
+            train(
+                &program,
+                &mut params,
+                &settings(40, &schedule, Some(&path)),
+                &mut objective,
+            )
+            .unwrap();
+            assert_eq!(objective.started_at, Some(30), "{name}");
+            assert!(close(objective.seen[0].lr, 0.1 * 0.01f64.powf(0.75)), "{name}");
+        }
     }
 
     #[test]

@@ -204,7 +204,7 @@ impl Update {
     }
 }
 
-/// A learning rate as a function of the step number (from 0).
+/// A learning rate as a function of the step number (from 0) or of the fraction of the run done.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Schedule {
     /// Always `lr`.
@@ -220,6 +220,14 @@ pub enum Schedule {
         gamma: f32,
         /// Steps over which the rate is multiplied by `gamma` (> 0).
         steps_per_decay: u32,
+    },
+    /// `lr·gamma^f`, `f` the fraction of the run done (0 at its start, 1 at its end): the rate reaches
+    /// `lr·gamma` as the run ends, however many steps the machine takes in a time limit.
+    ExponentialOverRun {
+        /// The learning rate at the run's start.
+        lr: f32,
+        /// Factor over the whole run.
+        gamma: f32,
     },
     /// `lr·factor^⌊step / every⌋`, in steps.
     Step {
@@ -242,6 +250,7 @@ impl Schedule {
                 gamma,
                 steps_per_decay,
             } => (lr, gamma, steps_per_decay),
+            Schedule::ExponentialOverRun { lr, gamma } => (lr, gamma, 1),
             Schedule::Step { lr, factor, every } => (lr, factor, every),
         };
         let positive = |x: f32| x.is_finite() && x > 0.0;
@@ -253,8 +262,9 @@ impl Schedule {
         Ok(())
     }
 
-    /// The learning rate at `step`.
-    pub fn lr(&self, step: u32) -> f32 {
+    /// The learning rate at `step`, `fraction` of the run being done (clamped to [0, 1]; only
+    /// [`Schedule::ExponentialOverRun`] reads it).
+    pub fn lr(&self, step: u32, fraction: f64) -> f32 {
         match *self {
             Schedule::Constant { lr } => lr,
             Schedule::Exponential {
@@ -262,6 +272,7 @@ impl Schedule {
                 gamma,
                 steps_per_decay,
             } => lr * gamma.powf(step as f32 / steps_per_decay as f32),
+            Schedule::ExponentialOverRun { lr, gamma } => lr * gamma.powf(fraction.clamp(0.0, 1.0) as f32),
             Schedule::Step { lr, factor, every } => lr * factor.powi((step / every.max(1)) as i32),
         }
     }
@@ -375,7 +386,7 @@ mod tests {
         };
         for step in 0..3000 {
             let g: Vec<f32> = (0..3).map(|i| 2.0 * c[i] * (p[i] - t[i])).collect();
-            adam.lr = schedule.lr(step);
+            adam.lr = schedule.lr(step, 0.0);
             adam.step(&mut p, &g).unwrap();
         }
         for i in 0..3 {
@@ -409,22 +420,28 @@ mod tests {
     fn schedules_give_their_rates() {
         let close = |a: f32, b: f32| (a - b).abs() <= 1e-6 * b.abs();
         let c = Schedule::Constant { lr: 5e-4 };
-        assert_eq!((c.lr(0), c.lr(100_000)), (5e-4, 5e-4));
+        assert_eq!((c.lr(0, 0.0), c.lr(100_000, 1.0)), (5e-4, 5e-4));
         let e = Schedule::Exponential {
             lr: 0.1,
             gamma: 0.5,
             steps_per_decay: 100,
         };
-        assert!(close(e.lr(0), 0.1) && close(e.lr(100), 0.05) && close(e.lr(300), 0.0125));
-        assert!(close(e.lr(50), 0.1 * 0.5f32.sqrt()));
+        assert!(close(e.lr(0, 0.5), 0.1) && close(e.lr(100, 0.0), 0.05) && close(e.lr(300, 1.0), 0.0125));
+        assert!(close(e.lr(50, 0.9), 0.1 * 0.5f32.sqrt()));
+        let r = Schedule::ExponentialOverRun { lr: 0.1, gamma: 0.01 };
+        assert!(close(r.lr(7, 0.0), 0.1) && close(r.lr(0, 0.5), 0.01) && close(r.lr(0, 1.0), 0.001));
+        assert!(
+            close(r.lr(0, -3.0), 0.1) && close(r.lr(0, 7.0), 0.001),
+            "clamped to the run"
+        );
         let s = Schedule::Step {
             lr: 1.0,
             factor: 0.1,
             every: 10,
         };
-        assert_eq!((s.lr(0), s.lr(9)), (1.0, 1.0));
-        assert!(close(s.lr(10), 0.1) && close(s.lr(19), 0.1) && close(s.lr(25), 0.01));
-        for good in [c, e, s] {
+        assert_eq!((s.lr(0, 0.0), s.lr(9, 0.0)), (1.0, 1.0));
+        assert!(close(s.lr(10, 0.0), 0.1) && close(s.lr(19, 0.0), 0.1) && close(s.lr(25, 0.0), 0.01));
+        for good in [c, e, r, s] {
             assert!(good.check().is_ok());
         }
         let bad = [
