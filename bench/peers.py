@@ -34,13 +34,13 @@ NERFJIT = os.path.join(ROOT, "target", "release", "nerfjit")
 FIGURES = {
     "W1": [("torus frame", "ms", r"^\s+([0-9.]+) ms/frame")],
     "W2": [("box volume frame (exact)", "ms", r"^\s+([0-9.]+) ms/frame")],
-    "W3": [("box training step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step")],
+    "W3": [("box training step", "ms", r"trained \d+ steps in [^(]*\(([0-9.]+) ms/step")],
     "W4": [
-        ("NeRF training step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step"),
+        ("NeRF training step", "ms", r"trained \d+ steps in [^(]*\(([0-9.]+) ms/step"),
         ("NeRF render one 128² view", "s", r"([0-9.]+) s/view"),
     ],
     "W5": [("neural SDF step", "ms", r"\(([0-9.]+) ms/step")],
-    "W6": [("VolSDF step", "ms", r"trained \d+ steps in [0-9.]+ s \(([0-9.]+) ms/step")],
+    "W6": [("VolSDF step", "ms", r"trained \d+ steps in [^(]*\(([0-9.]+) ms/step")],
     "W7": [
         ("distance, 2 threads", "ns/point", r"distance\s+2 threads:\s+([0-9.]+) ns/point"),
         ("distance + gradient, 2 threads", "ns/point", r"distance\+gradient\s+2 threads:\s+([0-9.]+) ns/point"),
