@@ -9,8 +9,8 @@ nerfjit / peer (< 1: nerfjit faster).
     python3 bench/peers.py [--workloads W1,W2,W3,W4,W5,W6,W7] [--peers jax,drjit,fidget] [--bench ../shared/bench]
                            [--bf16]
 
---bf16 also runs nerfjit's networks (W4, W5, W6) with `--products bf16` (bfloat16 operands, f32 sums; on AMX
-where the CPU has it) and adds their rows beside the f32 ones.
+--bf16 also runs nerfjit's networks (W4, W5, W6) with `--products bf16` (bfloat16 operands, f32 sums; on AMX or
+AVX-512 BF16 where the CPU has them) and adds their rows beside the f32 ones.
 
 W3 to W6 need ../shared/data (nerfjit's and JAX's runs read the course's box images, lego and the bunny).
 

@@ -133,8 +133,8 @@ enum Command {
         /// Repetitions; the median is reported.
         #[arg(long, default_value_t = 9)]
         reps: usize,
-        /// The arithmetic of the networks' products in W4, W5 and W6: f32, or bf16 (bfloat16 operands,
-        /// f32 sums; on AMX where the CPU has it).
+        /// The arithmetic of the networks' products in W4, W5, W6 and W8: f32, or bf16 (bfloat16
+        /// operands, f32 sums; on AMX or AVX-512 BF16 where the CPU has them).
         #[arg(long, default_value = "f32", value_parser = ["f32", "bf16"])]
         products: String,
         /// W7: the script whose `fn sdf(p: vec3) -> f32` is evaluated at W7's random points, in place of

@@ -84,7 +84,7 @@ fn time_reps(reps: usize, mut f: impl FnMut()) -> f64 {
     )
 }
 
-/// Runs a workload and prints its figures; the networks of W4, W5 and W6 multiply in `products`; W7
+/// Runs a workload and prints its figures; the networks of W4, W5, W6 and W8 multiply in `products`; W7
 /// evaluates the `sdf` of `scene` when given (the 20-primitive scene otherwise), `large` imports the
 /// model `scene` names (the generated city otherwise), and `quality` trains each recipe for `minutes`.
 pub fn run(
@@ -109,7 +109,7 @@ pub fn run(
         Workload::W4 => w4(reps, products),
         Workload::W5 => w5(reps, products),
         Workload::W6 => w6(reps, products),
-        Workload::W8 => w8(reps),
+        Workload::W8 => w8(reps, products),
         Workload::Mesh => mesh(reps),
         Workload::Large => large(reps, scene.map(Path::new)),
         Workload::Dense => dense(reps, threads),
@@ -641,7 +641,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
             unsafe {
                 match precision {
                     Precision::F32 => gemm::matmul(&w, &xp, &yp, TILE),
-                    Precision::Bf16 => bf16::matmul(&w_bf16, &xp, &yp, &mut scratch),
+                    Precision::Bf16 => bf16::matmul(&w_bf16, &xp, &yp, TILE, &mut scratch),
                 }
             };
             std::hint::black_box(&mut y);
@@ -680,11 +680,7 @@ fn dense(reps: usize, threads: Option<usize>) -> Result<()> {
                 + "\n"),
         );
     };
-    let unit = if bf16::uses_amx() {
-        "AMX"
-    } else {
-        "rounded, f32 products"
-    };
+    let unit = bf16::Unit::best().name();
     run("forward product (W·x)", &|| product(Precision::F32));
     run(&format!("bf16 product (W·x, {unit})"), &|| {
         product(Precision::Bf16)
@@ -819,12 +815,15 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
 /// W8 with its roofline: for each table size, the machine's rates (for its grid levels' sizes and its
 /// model's) measured before and after the steps, the better of each kept, and the steps' phases set
 /// against them.
-fn w8(reps: usize) -> Result<()> {
+fn w8(reps: usize, products: Precision) -> Result<()> {
     let steps = 200 * reps.max(1) as u32;
     let (name, source) = script::read("examples/instant_lego.sdf")?;
     for (label, table, batch) in [("the example's", 14, 1024), ("instant-ngp's", 19, 4096)] {
         let source = source.replace("log2_size: 14", &format!("log2_size: {table}"));
-        let overrides = [format!("train.batch={batch}")];
+        let overrides = [
+            format!("train.batch={batch}"),
+            products_override("train", products),
+        ];
         let program = nerfjit_dsl::compile_with(&name, &source, &overrides).map_err(Failure::Script)?;
         let plan = nerfjit::blocks::train::TrainPlan::new(first_block(&program, Kind::Train, "examples")?)?;
         let mut params = program.param_values.clone();
@@ -841,15 +840,15 @@ fn w8(reps: usize) -> Result<()> {
             })
             .collect();
         // The machine's rates before and after the steps, the better of each kept.
-        let before = roofline::Rates::measure(&levels, params.len(), 5);
+        let before = roofline::Rates::measure(&levels, params.len(), 5, products);
         profile::take();
         profile::enable(true);
         let summary = plan.run_steps(&program, &mut params, steps);
         profile::enable(false);
         let times = profile::take();
-        let rates = roofline::Rates::measure(&levels, params.len(), 5).best(&before);
+        let rates = roofline::Rates::measure(&levels, params.len(), 5, products).best(&before);
         nerfjit::emit(&format!(
-            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50): {}\n  {}\n{}\n",
+            "W8 instant_lego, {label} table (2^{table} entries per hashed level), {steps} steps of {batch} rays × 128 samples (occupancy grid from step 50, {products:?} products): {}\n  {}\n{}\n",
             summary?,
             rates.describe(),
             roofline::table(&times, &rates, rayon::current_num_threads()),

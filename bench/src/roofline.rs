@@ -2,7 +2,8 @@
 //! sitting as the step (the machine's speed varies from day to day), and the step's phases set against it.
 //!
 //! The limits are the rates of the simplest loops that do a phase's kind of work on every thread at once:
-//! - the products: independent fused multiply-adds in vector registers;
+//! - the products: independent fused multiply-adds in vector registers, or for bfloat16 products on AVX-512
+//!   BF16, independent dot products of pairs (`vdpbf16ps`, 32 multiply-adds an instruction);
 //! - the grid's reads and scatters: reads and read-modify-writes of 8-byte entries at random places of a
 //!   table of each grid level's size (in L1, L2, L3 or memory); a point reads 8 corners on every level, so
 //!   a corner's time is the mean over the levels of one random access's time at that level's size;
@@ -13,7 +14,9 @@
 //! lines and nearby points share cells, so the grid's phases could beat these limits where their points
 //! are coherent (none did in the sittings of docs/BENCHMARKS.md).
 
+use nerfjit_jit::bf16;
 use nerfjit_jit::profile::{Phase, Times};
+use nerfjit_jit::Precision;
 
 /// The rates of this machine on all of the pool's threads.
 #[derive(Clone, Debug)]
@@ -22,6 +25,12 @@ pub struct Rates {
     pub fma: f64,
     /// The vector width of [`Rates::fma`] in bits.
     pub fma_bits: u32,
+    /// The rate of the step's products, in FLOP/s: [`Rates::fma`] for f32 products, the dot products of
+    /// pairs for bfloat16 ones on AVX-512 BF16; none for bfloat16 on other units (AMX's tiles have no loop
+    /// here, and rounded operands run at the FMA rate with extra work).
+    pub products: Option<f64>,
+    /// The name of [`Rates::products`]'s instructions.
+    pub products_unit: &'static str,
     /// Per size of grid level (bytes): reads of 8-byte entries at random places of a table of that size,
     /// per second.
     pub random_reads: Vec<(usize, f64)>,
@@ -37,10 +46,16 @@ pub struct Rates {
 }
 
 impl Rates {
-    /// Measures the rates (medians of `reps`) for grid levels of `level_bytes` each and a model of
-    /// `params` floats; takes a few seconds.
-    pub fn measure(level_bytes: &[usize], params: usize, reps: usize) -> Rates {
+    /// Measures the rates (medians of `reps`) for grid levels of `level_bytes` each, a model of `params`
+    /// floats and products in `precision`; takes a few seconds.
+    pub fn measure(level_bytes: &[usize], params: usize, reps: usize, precision: Precision) -> Rates {
         let (fma, fma_bits) = fma_peak(reps);
+        let (products, products_unit) = match (precision, bf16::Unit::best()) {
+            (Precision::F32, _) => (Some(fma), "FMA"),
+            #[cfg(target_arch = "x86_64")]
+            (Precision::Bf16, bf16::Unit::Avx512Bf16) => (Some(dot_peak(reps)), "bf16 dot products"),
+            (Precision::Bf16, unit) => (None, unit.name()),
+        };
         let mut sizes = level_bytes.to_vec();
         sizes.sort_unstable();
         sizes.dedup();
@@ -53,6 +68,8 @@ impl Rates {
         Rates {
             fma,
             fma_bits,
+            products,
+            products_unit,
             random_reads: random(false),
             random_updates: random(true),
             optimizer: optimizer_stream(params, reps),
@@ -71,6 +88,7 @@ impl Rates {
         };
         Rates {
             fma: self.fma.max(other.fma),
+            products: self.products.zip(other.products).map(|(a, b)| a.max(b)),
             random_reads: best_of(self.random_reads, &other.random_reads),
             random_updates: best_of(self.random_updates, &other.random_updates),
             optimizer: self.optimizer.max(other.optimizer),
@@ -90,7 +108,7 @@ impl Rates {
     /// whole steps).
     pub fn of(&self, phase: Phase) -> Option<f64> {
         match phase {
-            Phase::Products | Phase::OuterProducts => Some(self.fma),
+            Phase::Products | Phase::OuterProducts => self.products,
             Phase::GridReads => Some(self.corners(&self.random_reads)),
             Phase::GridScatters => Some(self.corners(&self.random_updates)),
             Phase::Optimizer | Phase::Checks => Some(self.optimizer),
@@ -107,8 +125,15 @@ impl Rates {
                 .collect::<Vec<_>>()
                 .join(", ")
         };
+        let products = match self.products {
+            Some(rate) if self.products_unit != "FMA" => {
+                format!("; {} {:.1} GFLOP/s", self.products_unit, rate * 1e-9)
+            }
+            Some(_) => String::new(),
+            None => format!("; products on {} (no limit measured)", self.products_unit),
+        };
         format!(
-            "machine rates on {} threads: {}-bit FMA {:.1} GFLOP/s; Adam's reads and writes {:.1} GB/s; random 8-byte \
+            "machine rates on {} threads: {}-bit FMA {:.1} GFLOP/s{products}; Adam's reads and writes {:.1} GB/s; random 8-byte \
              reads {}; updates {}; so a corner {:.0} M/s read and {:.0} M/s updated over the {} levels",
             rayon::current_num_threads(),
             self.fma_bits,
@@ -206,6 +231,21 @@ fn fma_peak(reps: usize) -> (f64, u32) {
     (flops / seconds, bits)
 }
 
+/// Iterations of the dot-product chains per thread and run.
+const DOT_ITERATIONS: usize = 10_000_000;
+
+/// The rate of AVX-512 BF16's dot products of pairs on all threads, in FLOP/s (32 multiply-adds an
+/// instruction).
+#[cfg(target_arch = "x86_64")]
+fn dot_peak(reps: usize) -> f64 {
+    let threads = rayon::current_num_threads();
+    let seconds = on_every_thread(reps, |_| {
+        // SAFETY: only called where bf16::Unit::best() is AVX-512 BF16, which the CPU then has.
+        std::hint::black_box(unsafe { x86::dot512(DOT_ITERATIONS) });
+    });
+    2.0 * (threads * DOT_ITERATIONS * 16 * 32) as f64 / seconds
+}
+
 /// The widest FMA kernel this CPU runs: its vector width in bits, its lanes × chains, and the kernel, which
 /// runs its iterations of independent multiply-add chains (enough of them to keep two FMA pipes of latency
 /// 4 busy, and few enough to stay in the vector registers) and returns a sum so that they are kept.
@@ -247,6 +287,26 @@ mod x86 {
         for _ in 0..iterations {
             for x in &mut acc {
                 *x = _mm512_fmadd_ps(*x, a, b);
+            }
+        }
+        let sum = acc.iter().fold(_mm512_setzero_ps(), |s, &x| _mm512_add_ps(s, x));
+        _mm512_reduce_add_ps(sum)
+    }
+
+    /// 16 chains of AVX-512 BF16 dot products of pairs, as [`fma512`]'s.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn dot512(iterations: usize) -> f32 {
+        // SAFETY (both): 64 bytes of plain bits either way.
+        let (a, b) = unsafe {
+            (
+                std::mem::transmute::<__m512, __m512bh>(_mm512_set1_ps(0.999_999)),
+                std::mem::transmute::<__m512, __m512bh>(_mm512_set1_ps(1e-7)),
+            )
+        };
+        let mut acc = [_mm512_set1_ps(1.0); 16];
+        for _ in 0..iterations {
+            for x in &mut acc {
+                *x = _mm512_dpbf16_ps(*x, a, b);
             }
         }
         let sum = acc.iter().fold(_mm512_setzero_ps(), |s, &x| _mm512_add_ps(s, x));
@@ -362,6 +422,8 @@ mod tests {
         let rates = Rates {
             fma: 1e12,
             fma_bits: 256,
+            products: Some(1e12),
+            products_unit: "FMA",
             random_reads: vec![(1024, 1e9), (4096, 0.5e9)],
             random_updates: vec![(1024, 1e9), (4096, 1e9)],
             optimizer: 1e10,

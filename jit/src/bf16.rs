@@ -2,11 +2,12 @@
 //! [`Precision::Bf16`]: [`matmul`] (forward and backward products) and [`outer`] (weight gradients).
 //!
 //! Both operands are rounded to bfloat16 (8 significant bits, to nearest, ties to even) and their products
-//! summed in f32, as mixed-precision training on GPUs does. Where the CPU has AMX (Intel's tile matrix unit,
-//! `amx-tile` and `amx-bf16`, from Sapphire Rapids on) and the kernel grants the process its tile state,
-//! the products run on the tile unit (3.5–4× the f32 micro-kernels' rate on 128-wide layers); elsewhere the rounded operands
-//! go through the f32 [`gemm::matmul`], which gives the same numbers up to the order of the sums (a product
-//! of two bfloat16 values is exact in f32).
+//! summed in f32, as mixed-precision training on GPUs does. The products run on the fastest [`Unit`] the
+//! CPU has: AMX's tile unit (Intel's, from Sapphire Rapids on, once the kernel grants the process its
+//! tile state: 3.5–4× the f32 micro-kernels' rate on 128-wide layers), AVX-512 BF16's dot products of
+//! pairs (Cooper Lake, Zen 4 and later: twice that rate), or else the rounded operands through the f32
+//! [`gemm::matmul`]. All give the same numbers up to the order of the sums (a product of two bfloat16
+//! values is exact in f32), but for subnormal operands and sums, which AMX and AVX-512 BF16 take as 0.
 
 use crate::gemm::{self, TILE};
 
@@ -56,59 +57,110 @@ pub fn round_bf16(x: f32) -> f32 {
     f32::from_bits(u32::from(bf16_bits(x)) << 16)
 }
 
-/// Whether products run on AMX tiles (checked, and the tile state requested, once).
-pub fn uses_amx() -> bool {
-    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
-    {
-        amx::available()
+/// The unit that runs bfloat16 products on this CPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Unit {
+    /// AMX tiles (Intel, from Sapphire Rapids on), once Linux grants the process their state: 3.5–4×
+    /// the f32 micro-kernels' rate on 128-wide layers.
+    Amx,
+    /// AVX-512 BF16's dot products of pairs (`vdpbf16ps`: Intel from Cooper Lake on, AMD from Zen 4 on):
+    /// 32 products an instruction where an f32 FMA makes 16, twice the f32 micro-kernels' rate.
+    Avx512Bf16,
+    /// The f32 micro-kernels on operands rounded to bfloat16 (any CPU): the same numbers at f32's rate.
+    Rounded,
+}
+
+impl Unit {
+    /// The fastest unit this CPU has (checked once).
+    pub fn best() -> Unit {
+        Unit::available()[0]
     }
-    #[cfg(not(all(target_arch = "x86_64", target_os = "linux")))]
-    {
-        false
+
+    /// Every unit this CPU runs, fastest first.
+    pub fn available() -> Vec<Unit> {
+        let mut all = Vec::new();
+        #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+        if amx::available() {
+            all.push(Unit::Amx);
+        }
+        #[cfg(target_arch = "x86_64")]
+        if dot::available() {
+            all.push(Unit::Avx512Bf16);
+        }
+        all.push(Unit::Rounded);
+        all
+    }
+
+    /// A short name for reports (the benchmarks').
+    #[cfg(feature = "bench")]
+    pub fn name(self) -> &'static str {
+        match self {
+            Unit::Amx => "AMX",
+            Unit::Avx512Bf16 => "AVX-512 BF16",
+            Unit::Rounded => "rounded, f32 products",
+        }
     }
 }
 
-/// A matrix prepared for bfloat16 products: in AMX's tile layout where AMX runs them, else rounded in place.
+/// A matrix prepared for bfloat16 products on one [`Unit`], in that unit's layout.
 pub struct Bf16Matrix {
     rows: usize,
     cols: usize,
-    /// Row-major, every entry rounded to bfloat16 (without AMX).
-    rounded: Vec<f32>,
+    layout: Layout,
+}
+
+/// The entries of a [`Bf16Matrix`] as its unit reads them.
+enum Layout {
+    /// Row-major, every entry rounded to bfloat16 (for [`Unit::Rounded`]).
+    Rounded(Vec<f32>),
     /// Blocks of 16 rows × 32 columns, each row-major, blocks ordered by row block then column block,
-    /// zero-padded (with AMX).
-    tiles: Vec<u16>,
+    /// zero-padded (for [`Unit::Amx`]).
+    Tiles(Vec<u16>),
+    /// Row-major pairs of neighbouring columns, (a[i][2c], a[i][2c + 1]) in one 32-bit word (the first in
+    /// the low half), the last pair zero-padded (for [`Unit::Avx512Bf16`]).
+    Pairs(Vec<u32>),
 }
 
 impl Bf16Matrix {
-    /// The row-major `rows × cols` matrix `a`, rounded to bfloat16.
+    /// The row-major `rows × cols` matrix `a`, rounded to bfloat16, for [`Unit::best`].
     pub fn new(a: &[f32], rows: usize, cols: usize) -> Bf16Matrix {
+        Bf16Matrix::on(Unit::best(), a, rows, cols)
+    }
+
+    /// [`Bf16Matrix::new`] for `unit`, which must be one of [`Unit::available`] (the products run on the
+    /// unit of the matrix's layout).
+    fn on(unit: Unit, a: &[f32], rows: usize, cols: usize) -> Bf16Matrix {
         assert!(a.len() >= rows * cols, "matrix smaller than its shape");
         let a = &a[..rows * cols];
-        if !uses_amx() {
-            return Bf16Matrix {
-                rows,
-                cols,
-                rounded: a.iter().map(|&v| round_bf16(v)).collect(),
-                tiles: Vec::new(),
-            };
-        }
-        let col_blocks = cols.div_ceil(32);
-        let mut tiles = vec![0u16; rows.div_ceil(16) * col_blocks * 512];
-        for (i, row) in a.chunks_exact(cols.max(1)).enumerate().take(rows) {
-            // Row i's 32 columns of block b are 32 consecutive values of block (i / 16, b).
-            for (b, part) in row.chunks(32).enumerate() {
-                let at = ((i / 16) * col_blocks + b) * 512 + (i % 16) * 32;
-                for (t, &v) in tiles[at..at + part.len()].iter_mut().zip(part) {
-                    *t = bf16_bits(v);
+        let layout = match unit {
+            Unit::Rounded => Layout::Rounded(a.iter().map(|&v| round_bf16(v)).collect()),
+            Unit::Amx => {
+                let col_blocks = cols.div_ceil(32);
+                let mut tiles = vec![0u16; rows.div_ceil(16) * col_blocks * 512];
+                for (i, row) in a.chunks_exact(cols.max(1)).enumerate().take(rows) {
+                    // Row i's 32 columns of block b are 32 consecutive values of block (i / 16, b).
+                    for (b, part) in row.chunks(32).enumerate() {
+                        let at = ((i / 16) * col_blocks + b) * 512 + (i % 16) * 32;
+                        for (t, &v) in tiles[at..at + part.len()].iter_mut().zip(part) {
+                            *t = bf16_bits(v);
+                        }
+                    }
                 }
+                Layout::Tiles(tiles)
             }
-        }
-        Bf16Matrix {
-            rows,
-            cols,
-            rounded: Vec::new(),
-            tiles,
-        }
+            Unit::Avx512Bf16 => {
+                let word = |i: usize, c: usize| match a.get(i * cols + c).filter(|_| c < cols) {
+                    Some(&v) => u32::from(bf16_bits(v)),
+                    None => 0,
+                };
+                let pairs = (0..rows)
+                    .flat_map(|i| (0..cols.div_ceil(2)).map(move |c| (i, c)))
+                    .map(|(i, c)| word(i, 2 * c) | word(i, 2 * c + 1) << 16)
+                    .collect();
+                Layout::Pairs(pairs)
+            }
+        };
+        Bf16Matrix { rows, cols, layout }
     }
 }
 
@@ -120,9 +172,9 @@ struct Line([u32; 16]);
 /// Buffers reused from one product to the next.
 #[derive(Default)]
 pub struct Bf16Scratch {
-    /// The input columns rounded (without AMX).
+    /// The input columns rounded (without AMX or AVX-512 BF16).
     columns: Vec<f32>,
-    /// The input columns as pairs of bfloat16 rows (with AMX).
+    /// The input columns as pairs of bfloat16 rows.
     pairs: Vec<Line>,
     /// Four tiles of results.
     results: Vec<Line>,
@@ -134,38 +186,68 @@ pub struct Bf16Scratch {
     transposed: Vec<f32>,
 }
 
-/// `out[i][t] = Σ_k a[i][k] · x[k][t]` for t < [`TILE`], with both operands rounded to bfloat16 and the
-/// sum in f32.
+/// `out[i][t] = Σ_k a[i][k] · x[k][t]` for t < `count` (rounded up to 16; AMX computes every point of the
+/// tile), with both operands rounded to bfloat16 and the sum in f32, on the unit `a` was prepared for.
 ///
 /// # Safety
 /// Every pointer of `x` must address [`TILE`] readable floats and every pointer of `out` [`TILE`]
 /// writable floats that no pointer of `x` overlaps.
-pub unsafe fn matmul(a: &Bf16Matrix, x: &[*const f32], out: &[*mut f32], scratch: &mut Bf16Scratch) {
+pub unsafe fn matmul(
+    a: &Bf16Matrix,
+    x: &[*const f32],
+    out: &[*mut f32],
+    count: usize,
+    scratch: &mut Bf16Scratch,
+) {
     assert!(a.cols == x.len() && a.rows == out.len(), "product shapes differ");
-    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
-    if !a.tiles.is_empty() {
+    assert!(count <= TILE, "more points than a tile");
+    match &a.layout {
+        #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
         // SAFETY: AMX and AVX-512F run (the tiles exist only then); the buffers are as the caller guarantees.
-        unsafe { amx::matmul(a, x, out, scratch) };
-        return;
+        Layout::Tiles(tiles) => unsafe { amx::matmul(a, tiles, x, out, scratch) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: AVX-512 BF16 runs (the pairs exist only then); the buffers are as the caller guarantees.
+        Layout::Pairs(pairs) => unsafe { dot::matmul(pairs, x, out, count, scratch) },
+        Layout::Rounded(rounded) => {
+            let columns = &mut scratch.columns;
+            columns.clear();
+            for &xk in x {
+                // SAFETY: xk addresses TILE floats (caller).
+                let xk = unsafe { std::slice::from_raw_parts(xk, TILE) };
+                columns.extend(xk.iter().map(|&v| round_bf16(v)));
+            }
+            let rounded_x: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
+            // SAFETY: the rounded columns hold TILE floats each, in a buffer no output overlaps.
+            unsafe { gemm::matmul(rounded, &rounded_x, out, count) };
+        }
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("a layout for a unit this CPU lacks"),
     }
-    let columns = &mut scratch.columns;
-    columns.clear();
-    for &xk in x {
-        // SAFETY: xk addresses TILE floats (caller).
-        let xk = unsafe { std::slice::from_raw_parts(xk, TILE) };
-        columns.extend(xk.iter().map(|&v| round_bf16(v)));
-    }
-    let rounded: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
-    // SAFETY: the rounded columns hold TILE floats each, in a buffer no output overlaps.
-    unsafe { gemm::matmul(&a.rounded, &rounded, out, TILE) };
 }
 
 /// `g[i·stride + j] += Σ_{t < count} l[i][t] · r[j][t]` as [`gemm::outer`] (stride =
-/// [`gemm::padded`]`(r.len())`), with both operands rounded to bfloat16 and the sums in f32.
+/// [`gemm::padded`]`(r.len())`), with both operands rounded to bfloat16 and the sums in f32, on
+/// [`Unit::best`].
 ///
 /// # Safety
 /// Every pointer of `l` and `r` must address `count` readable floats.
 pub unsafe fn outer(
+    l: &[*const f32],
+    r: &[*const f32],
+    count: usize,
+    g: &mut [f32],
+    scratch: &mut Bf16Scratch,
+) {
+    // SAFETY: the best unit runs on this CPU; the buffers are as the caller guarantees.
+    unsafe { outer_on(Unit::best(), l, r, count, g, scratch) }
+}
+
+/// [`outer`] on a given unit.
+///
+/// # Safety
+/// As [`outer`], and `unit` must be one of [`Unit::available`].
+unsafe fn outer_on(
+    unit: Unit,
     l: &[*const f32],
     r: &[*const f32],
     count: usize,
@@ -177,24 +259,413 @@ pub unsafe fn outer(
         g.len() >= l.len() * gemm::padded(r.len()),
         "gradient buffer too small"
     );
-    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
-    if uses_amx() {
-        // SAFETY: AMX and AVX-512F run; the buffers are as the caller guarantees and checked above.
-        unsafe { amx::outer(l, r, count, g, scratch) };
-        return;
+    match unit {
+        #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+        // SAFETY: AMX and AVX-512F run (caller); the buffers are as the caller guarantees and checked above.
+        Unit::Amx => unsafe { amx::outer(l, r, count, g, scratch) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: AVX-512 BF16 runs (caller); the buffers are as above.
+        Unit::Avx512Bf16 => unsafe { dot::outer(l, r, count, g, scratch) },
+        _ => {
+            let columns = &mut scratch.columns;
+            columns.clear();
+            for &c in l.iter().chain(r) {
+                // SAFETY: c addresses `count` floats (caller).
+                let c = unsafe { std::slice::from_raw_parts(c, count) };
+                columns.extend(c.iter().map(|&v| round_bf16(v)));
+                columns.resize(columns.len() + TILE - count, 0.0);
+            }
+            let rounded: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
+            let (left, right) = rounded.split_at(l.len());
+            // SAFETY: the rounded columns hold TILE ≥ count floats each.
+            unsafe { gemm::outer(left, right, count, g, &mut scratch.transposed) };
+        }
     }
-    let columns = &mut scratch.columns;
-    columns.clear();
-    for &c in l.iter().chain(r) {
-        // SAFETY: c addresses `count` floats (caller).
-        let c = unsafe { std::slice::from_raw_parts(c, count) };
-        columns.extend(c.iter().map(|&v| round_bf16(v)));
-        columns.resize(columns.len() + TILE - count, 0.0);
+}
+
+/// The packing of operands into pairs of bfloat16 values, one 32-bit word a pair (the first value in the
+/// low half), as AMX's and AVX-512 BF16's dot products of pairs read them. The values are rounded by
+/// AVX-512 BF16's conversion (to nearest, ties to even, NaN kept; subnormals to 0, which both units' dot
+/// products would take as 0 anyway), which every CPU with AMX also has.
+#[cfg(target_arch = "x86_64")]
+mod pack {
+    use std::arch::x86_64::*;
+
+    use super::Line;
+    use crate::gemm::avx512::transpose16;
+    use crate::gemm::TILE;
+
+    /// The bfloat16 values of `low` (first) and `high` (then), 16 each, in one vector.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    fn both(low: __m512, high: __m512) -> __m512i {
+        // SAFETY: both are 64 bytes of plain bits.
+        unsafe { std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(high, low)) }
     }
-    let rounded: Vec<*const f32> = columns.chunks_exact(TILE).map(|c| c.as_ptr()).collect();
-    let (left, right) = rounded.split_at(l.len());
-    // SAFETY: the rounded columns hold TILE ≥ count floats each.
-    unsafe { gemm::outer(left, right, count, g, &mut scratch.transposed) };
+
+    /// Points 16·q.. of column k (zero if there is no such column).
+    ///
+    /// # Safety
+    /// Column k, if any, addresses at least 16·q + 16 floats.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn column(x: &[*const f32], k: usize, q: usize) -> __m512 {
+        match x.get(k) {
+            // SAFETY: as the caller guarantees.
+            Some(&p) => unsafe { _mm512_loadu_ps(p.add(16 * q)) },
+            None => _mm512_setzero_ps(),
+        }
+    }
+
+    /// The input columns in pairs of rows: line r·TILE/16 + q holds, for the points 16·q.. of the tile, the
+    /// pairs (x[2r][t], x[2r + 1][t]) for r < `rows` and q < `lines`; missing columns are zero.
+    ///
+    /// # Safety
+    /// Every pointer of `x` addresses TILE readable floats; `pairs` holds rows · TILE / 16 lines;
+    /// `lines` ≤ TILE / 16.
+    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+    pub(super) unsafe fn pack_pairs(x: &[*const f32], rows: usize, lines: usize, pairs: &mut [Line]) {
+        // Word t of the result takes halves t and 16 + t of the two rows' values.
+        let order: [u16; 32] = std::array::from_fn(|h| (h / 2 + 16 * (h % 2)) as u16);
+        // SAFETY: 32 u16s are the 64 bytes the load reads.
+        let interleave = unsafe { _mm512_loadu_si512(order.as_ptr().cast()) };
+        for r in 0..rows {
+            for q in 0..lines {
+                // SAFETY: x's pointers address TILE floats (caller) and 16·q + 16 ≤ TILE.
+                let values = unsafe { both(column(x, 2 * r, q), column(x, 2 * r + 1, q)) };
+                let word = _mm512_permutexvar_epi16(interleave, values);
+                // SAFETY: the line exists (caller) and is 64-byte aligned.
+                unsafe { _mm512_store_si512(pairs[r * (TILE / 16) + q].0.as_mut_ptr().cast(), word) };
+            }
+        }
+    }
+
+    /// The bfloat16 of the 32 points 32·b.. of a column of `count` floats (zero from `count` on), packed
+    /// in order: 16 words, each the pair of points (2p, 2p + 1).
+    ///
+    /// # Safety
+    /// `c` addresses `count` readable floats.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    unsafe fn point_pairs(c: *const f32, count: usize, b: usize) -> __m512i {
+        let half = |h: usize| {
+            let from = 32 * b + 16 * h;
+            let n = count.saturating_sub(from).min(16);
+            let mask = ((1u32 << n) - 1) as u16;
+            // SAFETY: the mask reads only points below `count` (caller).
+            unsafe { _mm512_maskz_loadu_ps(mask, c.add(from.min(count))) }
+        };
+        both(half(0), half(1))
+    }
+
+    /// The outer product's left operand: row i's points 32·b.. in line i·`point_blocks` + b, as pairs of
+    /// points (zero from `count` on); rows padded with zeros to a multiple of 16.
+    ///
+    /// # Safety
+    /// Every pointer of `l` addresses `count` readable floats; `point_blocks` = ⌈count / 32⌉.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn point_rows(
+        l: &[*const f32],
+        count: usize,
+        point_blocks: usize,
+        left: &mut Vec<Line>,
+    ) {
+        left.clear();
+        left.resize(l.len().div_ceil(16) * 16 * point_blocks, Line::default());
+        for (i, &c) in l.iter().enumerate() {
+            for b in 0..point_blocks {
+                // SAFETY: c addresses `count` floats (caller); the line exists and is aligned.
+                unsafe {
+                    _mm512_store_si512(
+                        left[i * point_blocks + b].0.as_mut_ptr().cast(),
+                        point_pairs(c, count, b),
+                    )
+                };
+            }
+        }
+    }
+
+    /// The outer product's right operand transposed: for column block jb and point block b, 16 lines, line
+    /// (jb·`point_blocks` + b)·16 + p holding the pairs of points (32·b + 2p, 32·b + 2p + 1) of the block's
+    /// 16 columns (missing columns and points zero).
+    ///
+    /// # Safety
+    /// Every pointer of `r` addresses `count` readable floats; `point_blocks` = ⌈count / 32⌉.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn transposed_pairs(
+        r: &[*const f32],
+        count: usize,
+        col_blocks: usize,
+        point_blocks: usize,
+        right: &mut Vec<Line>,
+    ) {
+        right.clear();
+        right.resize(col_blocks * point_blocks * 16, Line::default());
+        for jb in 0..col_blocks {
+            for b in 0..point_blocks {
+                let words: [__m512; 16] = std::array::from_fn(|q| match r.get(16 * jb + q) {
+                    // SAFETY: c addresses `count` floats (caller).
+                    Some(&c) => _mm512_castsi512_ps(unsafe { point_pairs(c, count, b) }),
+                    None => _mm512_setzero_ps(),
+                });
+                for (p, v) in transpose16(words).iter().enumerate() {
+                    let line = &mut right[(jb * point_blocks + b) * 16 + p];
+                    // SAFETY: the line exists and is aligned.
+                    unsafe { _mm512_store_ps(line.0.as_mut_ptr().cast(), *v) };
+                }
+            }
+        }
+    }
+}
+
+/// The products on AVX-512 BF16: `vdpbf16ps` adds to each of 16 f32 lanes the products of a pair of
+/// bfloat16 values with another pair, so the register blocks of [`gemm`]'s f32 micro-kernels (6 rows × 64
+/// points for the product, 6 rows × 64 columns for the weight gradient) take two terms of their sums an
+/// instruction. The input columns are packed in pairs of rows (the product) or of points (the weight
+/// gradient) as AMX's operands are.
+#[cfg(target_arch = "x86_64")]
+mod dot {
+    use std::arch::x86_64::*;
+    use std::sync::OnceLock;
+
+    use super::pack::{pack_pairs, point_rows, transposed_pairs};
+    use super::{Bf16Scratch, Line};
+    use crate::gemm::{has_avx512, padded, TILE};
+
+    /// Rows of a register block.
+    const ROWS: usize = 6;
+    /// Vectors of 16 points (the product) or columns (the weight gradient) of a register block.
+    const VECTORS: usize = 4;
+
+    /// Whether this CPU has AVX-512F, BW and BF16 (checked once).
+    pub(super) fn available() -> bool {
+        static OK: OnceLock<bool> = OnceLock::new();
+        *OK.get_or_init(|| {
+            has_avx512()
+                && std::arch::is_x86_feature_detected!("avx512bw")
+                && std::arch::is_x86_feature_detected!("avx512bf16")
+        })
+    }
+
+    /// A vector's 32 bfloat16 values, as `vdpbf16ps` takes them.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn pairs(v: __m512i) -> __m512bh {
+        // SAFETY: both are 64 bytes of plain bits.
+        unsafe { std::mem::transmute::<__m512i, __m512bh>(v) }
+    }
+
+    /// See [`super::matmul`]; `a` holds the matrix's rows as pairs of columns.
+    ///
+    /// # Safety
+    /// As [`super::matmul`]; [`available`] is true; `a` holds out.len() · ⌈x.len() / 2⌉ words.
+    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+    pub(super) unsafe fn matmul(
+        a: &[u32],
+        x: &[*const f32],
+        out: &[*mut f32],
+        count: usize,
+        scratch: &mut Bf16Scratch,
+    ) {
+        let k = x.len().div_ceil(2);
+        let lines = count.div_ceil(16);
+        scratch.pairs.clear();
+        scratch.pairs.resize(k * TILE / 16, Line::default());
+        // SAFETY: x is as the caller guarantees; pairs holds k · TILE / 16 lines; lines ≤ TILE / 16.
+        unsafe { pack_pairs(x, k, lines, &mut scratch.pairs) };
+        let x = scratch.pairs.as_ptr().cast::<u32>();
+        let full = lines / VECTORS * VECTORS;
+        // SAFETY (every call): rows of `a` exist for every output, the packed pairs for k rows of TILE
+        // points, and t0 + 16·Q ≤ 16·lines ≤ TILE.
+        unsafe {
+            for q in (0..full).step_by(VECTORS) {
+                matmul_rows::<VECTORS>(a, k, x, out, 16 * q);
+            }
+            match lines - full {
+                3 => matmul_rows::<3>(a, k, x, out, 16 * full),
+                2 => matmul_rows::<2>(a, k, x, out, 16 * full),
+                1 => matmul_rows::<1>(a, k, x, out, 16 * full),
+                _ => {}
+            }
+        }
+    }
+
+    /// Every row of the product for the 16·Q points from `t0`.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    unsafe fn matmul_rows<const Q: usize>(a: &[u32], k: usize, x: *const u32, out: &[*mut f32], t0: usize) {
+        let mut i = 0;
+        // SAFETY (every block): as for `matmul`.
+        unsafe {
+            while i + ROWS <= out.len() {
+                matmul_block::<ROWS, Q>(a.as_ptr().add(i * k), k, x, &out[i..i + ROWS], t0);
+                i += ROWS;
+            }
+            let a = a.as_ptr().add(i * k);
+            match out.len() - i {
+                5 => matmul_block::<5, Q>(a, k, x, &out[i..], t0),
+                4 => matmul_block::<4, Q>(a, k, x, &out[i..], t0),
+                3 => matmul_block::<3, Q>(a, k, x, &out[i..], t0),
+                2 => matmul_block::<2, Q>(a, k, x, &out[i..], t0),
+                1 => matmul_block::<1, Q>(a, k, x, &out[i..], t0),
+                _ => {}
+            }
+        }
+    }
+
+    /// R rows of the product (their pairs of columns from `a`, `k` a row) for the 16·Q points from `t0`.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    unsafe fn matmul_block<const R: usize, const Q: usize>(
+        a: *const u32,
+        k: usize,
+        x: *const u32,
+        out: &[*mut f32],
+        t0: usize,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); Q]; R];
+        for kk in 0..k {
+            // SAFETY: pair row kk holds TILE words, and t0 + 16·Q ≤ TILE; each of the R rows of `a` holds k
+            // words.
+            unsafe {
+                let p = x.add(kk * TILE + t0);
+                let b: [__m512bh; Q] =
+                    std::array::from_fn(|q| pairs(_mm512_load_si512(p.add(16 * q).cast())));
+                for (r, acc_r) in acc.iter_mut().enumerate() {
+                    let w = pairs(_mm512_set1_epi32(*a.add(r * k + kk) as i32));
+                    for q in 0..Q {
+                        acc_r[q] = _mm512_dpbf16_ps(acc_r[q], w, b[q]);
+                    }
+                }
+            }
+        }
+        for (r, acc_r) in acc.iter().enumerate() {
+            for (q, v) in acc_r.iter().enumerate() {
+                // SAFETY: out[r] addresses TILE writable floats.
+                unsafe { _mm512_storeu_ps(out[r].add(t0 + 16 * q), *v) };
+            }
+        }
+    }
+
+    /// See [`super::outer`].
+    ///
+    /// # Safety
+    /// As [`super::outer`], whose checks passed; [`available`] is true.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn outer(
+        l: &[*const f32],
+        r: &[*const f32],
+        count: usize,
+        g: &mut [f32],
+        scratch: &mut Bf16Scratch,
+    ) {
+        let stride = padded(r.len());
+        let (col_blocks, point_blocks) = (stride / 16, count.div_ceil(32));
+        if l.is_empty() || col_blocks == 0 || point_blocks == 0 {
+            return;
+        }
+        // SAFETY: the columns address `count` floats (caller).
+        unsafe {
+            point_rows(l, count, point_blocks, &mut scratch.left);
+            transposed_pairs(r, count, col_blocks, point_blocks, &mut scratch.right);
+        }
+        let operands = Operands {
+            left: scratch.left.as_ptr().cast(),
+            right: scratch.right.as_ptr().cast(),
+            point_blocks,
+            count,
+            g: g.as_mut_ptr(),
+            stride,
+        };
+        for i in (0..l.len()).step_by(ROWS) {
+            for jb in (0..col_blocks).step_by(VECTORS) {
+                let vectors = (col_blocks - jb).min(VECTORS);
+                // SAFETY: rows i.. of G and its column blocks jb.. exist (checked by the caller); the
+                // packed operands hold them.
+                unsafe {
+                    match (l.len() - i).min(ROWS) {
+                        6 => operands.block_rows::<6>(i, jb, vectors),
+                        5 => operands.block_rows::<5>(i, jb, vectors),
+                        4 => operands.block_rows::<4>(i, jb, vectors),
+                        3 => operands.block_rows::<3>(i, jb, vectors),
+                        2 => operands.block_rows::<2>(i, jb, vectors),
+                        _ => operands.block_rows::<1>(i, jb, vectors),
+                    }
+                }
+            }
+        }
+    }
+
+    /// The packed operands and the accumulator of one weight gradient.
+    struct Operands {
+        /// Row i's pairs of points 32·b.. in the 16 words from (i·point_blocks + b)·16.
+        left: *const u32,
+        /// The pairs of points (32·b + 2p, 32·b + 2p + 1) of column block jb in line
+        /// (jb·point_blocks + b)·16 + p.
+        right: *const Line,
+        point_blocks: usize,
+        count: usize,
+        g: *mut f32,
+        stride: usize,
+    }
+
+    impl Operands {
+        /// The block of R rows from `i` and `vectors` column blocks from `jb`.
+        ///
+        /// # Safety
+        /// As [`Operands::block`].
+        #[target_feature(enable = "avx512f,avx512bf16")]
+        #[inline]
+        unsafe fn block_rows<const R: usize>(&self, i: usize, jb: usize, vectors: usize) {
+            // SAFETY: passed on.
+            unsafe {
+                match vectors {
+                    4 => self.block::<R, 4>(i, jb),
+                    3 => self.block::<R, 3>(i, jb),
+                    2 => self.block::<R, 2>(i, jb),
+                    _ => self.block::<R, 1>(i, jb),
+                }
+            }
+        }
+
+        /// `G[i.. i + R][16·jb.. 16·(jb + V)] +=` the sums over the points, in registers.
+        ///
+        /// # Safety
+        /// Rows i..i + R and column blocks jb..jb + V are inside G and the packed operands.
+        #[target_feature(enable = "avx512f,avx512bf16")]
+        #[inline]
+        unsafe fn block<const R: usize, const V: usize>(&self, i: usize, jb: usize) {
+            let at = |r: usize, v: usize| self.g.wrapping_add((i + r) * self.stride + 16 * (jb + v));
+            // SAFETY: G's rows hold `stride` ≥ 16·(jb + V) floats (caller).
+            let mut acc: [[__m512; V]; R] =
+                std::array::from_fn(|r| std::array::from_fn(|v| unsafe { _mm512_loadu_ps(at(r, v)) }));
+            for b in 0..self.point_blocks {
+                // Pairs of points past the last valid one are zero: skip them.
+                let used = (self.count - 32 * b).div_ceil(2).min(16);
+                for p in 0..used {
+                    // SAFETY: the lines and words exist (caller).
+                    unsafe {
+                        let line = |v: usize| self.right.add(((jb + v) * self.point_blocks + b) * 16 + p);
+                        let columns: [__m512bh; V] =
+                            std::array::from_fn(|v| pairs(_mm512_load_si512(line(v).cast())));
+                        for (r, acc_r) in acc.iter_mut().enumerate() {
+                            let word = *self.left.add(((i + r) * self.point_blocks + b) * 16 + p);
+                            let w = pairs(_mm512_set1_epi32(word as i32));
+                            for v in 0..V {
+                                acc_r[v] = _mm512_dpbf16_ps(acc_r[v], w, columns[v]);
+                            }
+                        }
+                    }
+                }
+            }
+            for (r, acc_r) in acc.iter().enumerate() {
+                for (v, sum) in acc_r.iter().enumerate() {
+                    // SAFETY: as for the loads.
+                    unsafe { _mm512_storeu_ps(at(r, v), *sum) };
+                }
+            }
+        }
+    }
 }
 
 #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
@@ -203,9 +674,9 @@ mod amx {
     use std::arch::x86_64::*;
     use std::sync::OnceLock;
 
+    use super::pack::{pack_pairs, point_rows, transposed_pairs};
     use super::{Bf16Matrix, Bf16Scratch, Line};
-    use crate::gemm::avx512::transpose16;
-    use crate::gemm::{has_avx512, padded, TILE};
+    use crate::gemm::{padded, TILE};
 
     // The tile registers live from one `asm!` block to the next: nothing between them calls a function
     // (the ABI leaves tiles to the caller to save), and each product configures the tiles on entry and
@@ -236,13 +707,13 @@ mod amx {
     /// The extended state component of AMX's tile data.
     const XFEATURE_XTILEDATA: libc::c_long = 18;
 
-    /// Whether this CPU has AMX with bfloat16 and AVX-512F, and Linux granted this process the tile
-    /// state (asked once).
+    /// Whether this CPU has AMX with bfloat16 and AVX-512 (F, BW and BF16, for the operands' packing),
+    /// and Linux granted this process the tile state (asked once).
     pub(super) fn available() -> bool {
         static OK: OnceLock<bool> = OnceLock::new();
         *OK.get_or_init(|| {
             // CPUID leaf 7 exists on every x86-64 CPU that has AVX-512F.
-            let has_amx = has_avx512() && {
+            let has_amx = super::dot::available() && {
                 let leaf = __cpuid_count(7, 0);
                 leaf.edx & (1 << 22) != 0 && leaf.edx & (1 << 24) != 0
             };
@@ -251,40 +722,6 @@ mod amx {
                 && unsafe { libc::syscall(libc::SYS_arch_prctl, ARCH_REQ_XCOMP_PERM, XFEATURE_XTILEDATA) }
                     == 0
         })
-    }
-
-    /// Each lane's bfloat16 (to nearest, ties to even; NaN kept quiet) in its low 16 bits, as `bf16_bits`.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    fn bf16_lanes(v: __m512) -> __m512i {
-        let b = _mm512_castps_si512(v);
-        let high = _mm512_srli_epi32::<16>(b);
-        let bias = _mm512_add_epi32(
-            _mm512_and_si512(high, _mm512_set1_epi32(1)),
-            _mm512_set1_epi32(0x7fff),
-        );
-        let rounded = _mm512_srli_epi32::<16>(_mm512_add_epi32(b, bias));
-        let nan = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(v, v);
-        _mm512_mask_blend_epi32(nan, rounded, _mm512_or_si512(high, _mm512_set1_epi32(0x40)))
-    }
-
-    /// The input columns as AMX's second operand: row r (of `rows`) holds, for each of the TILE points, the
-    /// bfloat16 pair (x[2r][t], x[2r + 1][t]) in one 32-bit word; missing columns are zero.
-    ///
-    /// # Safety
-    /// Every pointer of `x` addresses TILE readable floats; `pairs` holds rows · TILE / 16 lines.
-    #[target_feature(enable = "avx512f")]
-    unsafe fn pack_pairs(x: &[*const f32], rows: usize, pairs: &mut [Line]) {
-        let lines = TILE / 16;
-        for r in 0..rows {
-            for q in 0..lines {
-                // SAFETY: x's pointers address TILE floats (caller) and 16·q + 16 ≤ TILE.
-                let (low, high) = unsafe { (column_lanes(x, 2 * r, q), column_lanes(x, 2 * r + 1, q)) };
-                let word = _mm512_or_si512(low, _mm512_slli_epi32::<16>(high));
-                // SAFETY: the line exists (caller) and is 64-byte aligned.
-                unsafe { _mm512_store_si512(pairs[r * lines + q].0.as_mut_ptr().cast(), word) };
-            }
-        }
     }
 
     /// One step of a 2 × 2 block of results: tiles 0–3 (results (0, 0), (0, 1), (1, 0), (1, 1)) add the
@@ -317,27 +754,14 @@ mod amx {
         }
     }
 
-    /// The bfloat16 of points 16·q.. of column k (zero if there is no such column), as [`bf16_lanes`].
-    ///
-    /// # Safety
-    /// Column k, if any, addresses at least 16·q + 16 floats.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    unsafe fn column_lanes(x: &[*const f32], k: usize, q: usize) -> __m512i {
-        match x.get(k) {
-            // SAFETY: as the caller guarantees.
-            Some(&p) => bf16_lanes(unsafe { _mm512_loadu_ps(p.add(16 * q)) }),
-            None => _mm512_setzero_si512(),
-        }
-    }
-
     /// See [`super::matmul`].
     ///
     /// # Safety
     /// As [`super::matmul`]; [`available`] is true and `a` has its tiles.
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
     pub(super) unsafe fn matmul(
         a: &Bf16Matrix,
+        tiles: &[u16],
         x: &[*const f32],
         out: &[*mut f32],
         scratch: &mut Bf16Scratch,
@@ -349,8 +773,8 @@ mod amx {
         scratch.results.clear();
         scratch.results.resize(64, Line::default());
         // SAFETY: x is as the caller guarantees; pairs was sized for col_blocks · 16 rows.
-        unsafe { pack_pairs(x, col_blocks * 16, &mut scratch.pairs) };
-        let tiles = a.tiles.as_ptr();
+        unsafe { pack_pairs(x, col_blocks * 16, lines, &mut scratch.pairs) };
+        let tiles = tiles.as_ptr();
         let pairs = scratch.pairs.as_ptr().cast::<u32>();
         let results = scratch.results.as_mut_ptr().cast::<f32>();
         // Strides in bytes: a matrix block's row is 32 bfloat16, an input row TILE pairs, a result row 16 f32.
@@ -423,30 +847,11 @@ mod amx {
         }
     }
 
-    /// The bfloat16 of the 32 points 32·b.. of a column of `count` floats (zero from `count` on), packed
-    /// in order: 16 words, each the pair of points (2p, 2p + 1).
-    ///
-    /// # Safety
-    /// `c` addresses `count` readable floats.
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    unsafe fn point_pairs(c: *const f32, count: usize, b: usize) -> __m512i {
-        let half = |h: usize| {
-            let from = 32 * b + 16 * h;
-            let n = count.saturating_sub(from).min(16);
-            let mask = ((1u32 << n) - 1) as u16;
-            // SAFETY: the mask reads only points below `count` (caller).
-            let v = unsafe { _mm512_maskz_loadu_ps(mask, c.add(from.min(count))) };
-            _mm512_cvtepi32_epi16(bf16_lanes(v))
-        };
-        _mm512_inserti64x4::<1>(_mm512_castsi256_si512(half(0)), half(1))
-    }
-
     /// See [`super::outer`].
     ///
     /// # Safety
     /// As [`super::outer`], whose checks passed; [`available`] is true.
-    #[target_feature(enable = "avx512f")]
+    #[target_feature(enable = "avx512f,avx512bf16")]
     pub(super) unsafe fn outer(
         l: &[*const f32],
         r: &[*const f32],
@@ -459,40 +864,10 @@ mod amx {
         if row_blocks == 0 || col_blocks == 0 || point_blocks == 0 {
             return;
         }
-        // The left operand: row i's points 32·b.. in line i·point_blocks + b (rows past l.len() zero).
-        let left = &mut scratch.left;
-        left.clear();
-        left.resize(row_blocks * 16 * point_blocks, Line::default());
-        for (i, &c) in l.iter().enumerate() {
-            for b in 0..point_blocks {
-                // SAFETY: c addresses `count` floats (caller); the line exists and is aligned.
-                unsafe {
-                    _mm512_store_si512(
-                        left[i * point_blocks + b].0.as_mut_ptr().cast(),
-                        point_pairs(c, count, b),
-                    )
-                };
-            }
-        }
-        // The right operand: for column block jb and point block b, 16 lines: line p holds the pairs of
-        // points (32·b + 2p, 32·b + 2p + 1) of the block's 16 columns (missing columns zero).
-        let right = &mut scratch.right;
-        right.clear();
-        right.resize(col_blocks * point_blocks * 16, Line::default());
-        for jb in 0..col_blocks {
-            for b in 0..point_blocks {
-                let words: [__m512; 16] = std::array::from_fn(|q| match r.get(16 * jb + q) {
-                    // SAFETY: c addresses `count` floats (caller).
-                    Some(&c) => _mm512_castsi512_ps(unsafe { point_pairs(c, count, b) }),
-                    None => _mm512_setzero_ps(),
-                });
-                for (p, v) in transpose16(words).iter().enumerate() {
-                    let line = &mut right[(jb * point_blocks + b) * 16 + p];
-                    // SAFETY: the line exists and is aligned.
-                    unsafe { _mm512_store_ps(line.0.as_mut_ptr().cast(), *v) };
-                }
-            }
-        }
+        // SAFETY: l's columns address `count` floats (caller).
+        unsafe { point_rows(l, count, point_blocks, &mut scratch.left) };
+        // SAFETY: r's columns address `count` floats (caller).
+        unsafe { transposed_pairs(r, count, col_blocks, point_blocks, &mut scratch.right) };
         // The accumulator in whole blocks of 16 rows: g itself, or a padded copy.
         let whole = l.len().is_multiple_of(16);
         if !whole {
@@ -638,59 +1013,66 @@ mod tests {
             .collect()
     }
 
-    /// On AMX and on the portable path alike: the sums of the products of the rounded operands, to f32's
-    /// accuracy (a wrongly rounded operand would be off by ~1/256 of its term).
+    /// On every unit of this CPU: the sums of the products of the rounded operands over the points asked
+    /// for, to f32's accuracy (a wrongly rounded operand would be off by ~1/256 of its term).
     #[test]
     fn matmul_sums_the_products_of_rounded_operands() {
         let mut scratch = Bf16Scratch::default();
-        for (m, k) in [
-            (1, 1),
-            (3, 5),
-            (16, 32),
-            (17, 33),
-            (40, 100),
-            (128, 128),
-            (256, 63),
-            (5, 0),
-            (0, 7),
-        ] {
+        for (unit, (m, k), count) in Unit::available().into_iter().flat_map(|unit| {
+            [
+                (1, 1),
+                (3, 5),
+                (16, 32),
+                (17, 33),
+                (40, 100),
+                (128, 128),
+                (256, 63),
+                (5, 0),
+                (0, 7),
+            ]
+            .into_iter()
+            .flat_map(move |shape| [TILE, 80, 17].map(|count| (unit, shape, count)))
+        }) {
             let a = values(7, m * k);
             let xs: Vec<Vec<f32>> = (0..k).map(|c| values(c as u32 + 11, TILE)).collect();
-            let matrix = Bf16Matrix::new(&a, m, k);
+            let matrix = Bf16Matrix::on(unit, &a, m, k);
             let mut outs = vec![vec![f32::NAN; TILE]; m];
             let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
             let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
             // SAFETY: every column holds TILE floats; the outputs are separate buffers.
-            unsafe { matmul(&matrix, &xp, &op, &mut scratch) };
+            unsafe { matmul(&matrix, &xp, &op, count, &mut scratch) };
             for (i, row) in outs.iter().enumerate() {
-                for (t, &got) in row.iter().enumerate() {
+                for (t, &got) in row.iter().enumerate().take(count) {
                     let terms =
                         (0..k).map(|c| f64::from(round_bf16(a[i * k + c])) * f64::from(round_bf16(xs[c][t])));
                     let (want, size) = terms.fold((0.0, 0.0), |(s, z), v| (s + v, z + v.abs()));
                     assert!(
                         (f64::from(got) - want).abs() <= 1e-6 * (size + 1.0),
-                        "amx {} {m}x{k} at ({i}, {t}): {got} vs {want}",
-                        uses_amx()
+                        "{unit:?} {m}x{k} ({count} points) at ({i}, {t}): {got} vs {want}"
                     );
                 }
             }
         }
     }
 
-    /// On AMX and on the portable path alike: the outer product adds the sums over the valid points of
-    /// the products of the rounded operands.
+    /// On every unit of this CPU: the outer product adds the sums over the valid points of the products of
+    /// the rounded operands.
     #[test]
     fn outer_adds_the_products_of_rounded_operands_over_the_valid_points() {
         let mut scratch = Bf16Scratch::default();
-        for (m, n, count) in [
-            (1, 1, 1),
-            (3, 5, 7),
-            (16, 16, 32),
-            (17, 40, 100),
-            (64, 128, 128),
-            (33, 3, 128),
-            (6, 9, 0),
-        ] {
+        for (unit, (m, n, count)) in Unit::available().into_iter().flat_map(|unit| {
+            [
+                (1, 1, 1),
+                (3, 5, 7),
+                (16, 16, 32),
+                (17, 40, 100),
+                (64, 128, 128),
+                (33, 3, 128),
+                (6, 9, 0),
+                (7, 70, 45),
+            ]
+            .map(|shape| (unit, shape))
+        }) {
             let ls: Vec<Vec<f32>> = (0..m).map(|c| values(c as u32 + 100, TILE)).collect();
             let rs: Vec<Vec<f32>> = (0..n).map(|c| values(c as u32 + 300, TILE)).collect();
             let stride = gemm::padded(n);
@@ -699,7 +1081,7 @@ mod tests {
             let lp: Vec<*const f32> = ls.iter().map(|c| c.as_ptr()).collect();
             let rp: Vec<*const f32> = rs.iter().map(|c| c.as_ptr()).collect();
             // SAFETY: every column holds TILE ≥ count floats.
-            unsafe { outer(&lp, &rp, count, &mut g, &mut scratch) };
+            unsafe { outer_on(unit, &lp, &rp, count, &mut g, &mut scratch) };
             for i in 0..m {
                 for j in 0..n {
                     let terms =
@@ -711,8 +1093,7 @@ mod tests {
                     );
                     assert!(
                         (got - want).abs() <= 1e-6 * (size + 2.0),
-                        "amx {} {m}x{n}x{count} at ({i}, {j}): {got} vs {want}",
-                        uses_amx()
+                        "{unit:?} {m}x{n}x{count} at ({i}, {j}): {got} vs {want}"
                     );
                 }
             }
@@ -721,17 +1102,23 @@ mod tests {
 
     #[test]
     fn a_nan_operand_gives_nan() {
-        let a = values(3, 2 * 40);
-        let mut xs: Vec<Vec<f32>> = (0..40).map(|c| values(c as u32, TILE)).collect();
-        xs[37][5] = f32::NAN;
-        let mut outs = vec![vec![0.0; TILE]; 2];
-        let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
-        let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
-        // SAFETY: every column holds TILE floats; the outputs are separate buffers.
-        unsafe { matmul(&Bf16Matrix::new(&a, 2, 40), &xp, &op, &mut Bf16Scratch::default()) };
-        for row in &outs {
-            assert!(row[5].is_nan());
-            assert!(row.iter().enumerate().all(|(t, v)| t == 5 || v.is_finite()));
+        for unit in Unit::available() {
+            let a = values(3, 2 * 40);
+            let mut xs: Vec<Vec<f32>> = (0..40).map(|c| values(c as u32, TILE)).collect();
+            xs[37][5] = f32::NAN;
+            let mut outs = vec![vec![0.0; TILE]; 2];
+            let xp: Vec<*const f32> = xs.iter().map(|c| c.as_ptr()).collect();
+            let op: Vec<*mut f32> = outs.iter_mut().map(|c| c.as_mut_ptr()).collect();
+            let matrix = Bf16Matrix::on(unit, &a, 2, 40);
+            // SAFETY: every column holds TILE floats; the outputs are separate buffers.
+            unsafe { matmul(&matrix, &xp, &op, TILE, &mut Bf16Scratch::default()) };
+            for row in &outs {
+                assert!(row[5].is_nan(), "{unit:?}");
+                assert!(
+                    row.iter().enumerate().all(|(t, v)| t == 5 || v.is_finite()),
+                    "{unit:?}"
+                );
+            }
         }
     }
 }

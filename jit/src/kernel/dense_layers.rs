@@ -747,7 +747,7 @@ impl<'a> Workspace<'a> {
                 unsafe {
                     match m {
                         Matrix::F32(m) => gemm::matmul(m, &x, &out, count),
-                        Matrix::Bf16(m) => bf16::matmul(m, &x, &out, &mut self.bf16_scratch),
+                        Matrix::Bf16(m) => bf16::matmul(m, &x, &out, count, &mut self.bf16_scratch),
                     }
                 };
                 laps.count(Phase::Products, 2 * (p.out.len() * p.x.len() * count) as u64);
