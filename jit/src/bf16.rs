@@ -9,6 +9,8 @@
 //! [`gemm::matmul`]. All give the same numbers up to the order of the sums (a product of two bfloat16
 //! values is exact in f32), but for subnormal operands and sums, which AMX and AVX-512 BF16 take as 0.
 
+use std::sync::OnceLock;
+
 use crate::gemm::{self, TILE};
 
 /// The arithmetic of dense products.
@@ -73,7 +75,8 @@ pub enum Unit {
 impl Unit {
     /// The fastest unit this CPU has (checked once).
     pub fn best() -> Unit {
-        Unit::available()[0]
+        static BEST: OnceLock<Unit> = OnceLock::new();
+        *BEST.get_or_init(|| Unit::available()[0])
     }
 
     /// Every unit this CPU runs, fastest first.
@@ -370,8 +373,12 @@ mod pack {
         point_blocks: usize,
         left: &mut Vec<Line>,
     ) {
-        left.clear();
-        left.resize(l.len().div_ceil(16) * 16 * point_blocks, Line::default());
+        // Every row's lines are written below; only the padding rows are cleared.
+        let lines = l.len().div_ceil(16) * 16 * point_blocks;
+        if left.len() < lines {
+            left.resize(lines, Line::default());
+        }
+        left[l.len() * point_blocks..lines].fill(Line::default());
         for (i, &c) in l.iter().enumerate() {
             for b in 0..point_blocks {
                 // SAFETY: c addresses `count` floats (caller); the line exists and is aligned.
@@ -399,8 +406,11 @@ mod pack {
         point_blocks: usize,
         right: &mut Vec<Line>,
     ) {
-        right.clear();
-        right.resize(col_blocks * point_blocks * 16, Line::default());
+        // Every line is written below.
+        let lines = col_blocks * point_blocks * 16;
+        if right.len() < lines {
+            right.resize(lines, Line::default());
+        }
         for jb in 0..col_blocks {
             for b in 0..point_blocks {
                 let words: [__m512; 16] = std::array::from_fn(|q| match r.get(16 * jb + q) {
@@ -469,8 +479,10 @@ mod dot {
     ) {
         let k = x.len().div_ceil(2);
         let lines = count.div_ceil(16);
-        scratch.pairs.clear();
-        scratch.pairs.resize(k * TILE / 16, Line::default());
+        // The lines the kernel reads are written by the packing: no need to clear them.
+        if scratch.pairs.len() < k * TILE / 16 {
+            scratch.pairs.resize(k * TILE / 16, Line::default());
+        }
         // SAFETY: x is as the caller guarantees; pairs holds k · TILE / 16 lines; lines ≤ TILE / 16.
         unsafe { pack_pairs(x, k, lines, &mut scratch.pairs) };
         let x = scratch.pairs.as_ptr().cast::<u32>();
