@@ -167,7 +167,7 @@ impl Bf16Matrix {
     }
 }
 
-/// 64 bytes, aligned as a cache line: the unit of the buffers AMX loads and stores.
+/// 64 bytes, aligned as a cache line: the unit of the packed operands AMX and AVX-512 BF16 load.
 #[derive(Clone, Copy, Default)]
 #[repr(C, align(64))]
 struct Line([u32; 16]);
