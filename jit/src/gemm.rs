@@ -45,21 +45,6 @@ pub(crate) fn has_avx512() -> bool {
     })
 }
 
-/// Whether this CPU runs AVX-512 with its conflict-detection extension (checked once).
-pub(crate) fn has_avx512_cd() -> bool {
-    static HAS: OnceLock<bool> = OnceLock::new();
-    *HAS.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        {
-            has_avx512() && std::arch::is_x86_feature_detected!("avx512cd")
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            false
-        }
-    })
-}
-
 /// `len` floats of `buffer` (resized, its old values kept or zeroed) starting on a 64-byte cache line.
 pub(crate) fn line_aligned(buffer: &mut Vec<f32>, len: usize) -> &mut [f32] {
     buffer.resize(len + 16, 0.0);
