@@ -25,12 +25,8 @@ pub struct Rates {
     pub fma: f64,
     /// The vector width of [`Rates::fma`] in bits.
     pub fma_bits: u32,
-    /// The rate of the step's products, in FLOP/s: [`Rates::fma`] for f32 products, the dot products of
-    /// pairs for bfloat16 ones on AVX-512 BF16; none for bfloat16 on other units (AMX's tiles have no loop
-    /// here, and rounded operands run at the FMA rate with extra work).
-    pub products: Option<f64>,
-    /// The name of [`Rates::products`]'s instructions.
-    pub products_unit: &'static str,
+    /// What limits the step's products.
+    pub products: ProductsRate,
     /// Per size of grid level (bytes): reads of 8-byte entries at random places of a table of that size,
     /// per second.
     pub random_reads: Vec<(usize, f64)>,
@@ -45,16 +41,31 @@ pub struct Rates {
     pub level_bytes: Vec<usize>,
 }
 
+/// The rate of the step's products.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ProductsRate {
+    /// f32 products: [`Rates::fma`].
+    Fma,
+    /// bfloat16 products on a unit with a loop of its own here (the dot products of pairs on AVX-512
+    /// BF16): its name and its rate in FLOP/s.
+    Measured(&'static str, f64),
+    /// bfloat16 products on a unit with no limit measured (AMX's tiles have no loop here, and rounded
+    /// operands run at the FMA rate with extra work): its name.
+    Unmeasured(&'static str),
+}
+
 impl Rates {
     /// Measures the rates (medians of `reps`) for grid levels of `level_bytes` each, a model of `params`
     /// floats and products in `precision`; takes a few seconds.
     pub fn measure(level_bytes: &[usize], params: usize, reps: usize, precision: Precision) -> Rates {
         let (fma, fma_bits) = fma_peak(reps);
-        let (products, products_unit) = match (precision, bf16::Unit::best()) {
-            (Precision::F32, _) => (Some(fma), "FMA"),
+        let products = match (precision, bf16::Unit::best()) {
+            (Precision::F32, _) => ProductsRate::Fma,
             #[cfg(target_arch = "x86_64")]
-            (Precision::Bf16, bf16::Unit::Avx512Bf16) => (Some(dot_peak(reps)), "bf16 dot products"),
-            (Precision::Bf16, unit) => (None, unit.name()),
+            (Precision::Bf16, bf16::Unit::Avx512Bf16) => {
+                ProductsRate::Measured("bf16 dot products", dot_peak(reps))
+            }
+            (Precision::Bf16, unit) => ProductsRate::Unmeasured(unit.name()),
         };
         let mut sizes = level_bytes.to_vec();
         sizes.sort_unstable();
@@ -69,7 +80,6 @@ impl Rates {
             fma,
             fma_bits,
             products,
-            products_unit,
             random_reads: random(false),
             random_updates: random(true),
             optimizer: optimizer_stream(params, reps),
@@ -88,7 +98,12 @@ impl Rates {
         };
         Rates {
             fma: self.fma.max(other.fma),
-            products: self.products.zip(other.products).map(|(a, b)| a.max(b)),
+            products: match (self.products, other.products) {
+                (ProductsRate::Measured(unit, a), ProductsRate::Measured(_, b)) => {
+                    ProductsRate::Measured(unit, a.max(b))
+                }
+                (products, _) => products,
+            },
             random_reads: best_of(self.random_reads, &other.random_reads),
             random_updates: best_of(self.random_updates, &other.random_updates),
             optimizer: self.optimizer.max(other.optimizer),
@@ -108,7 +123,11 @@ impl Rates {
     /// whole steps).
     pub fn of(&self, phase: Phase) -> Option<f64> {
         match phase {
-            Phase::Products | Phase::OuterProducts => self.products,
+            Phase::Products | Phase::OuterProducts => match self.products {
+                ProductsRate::Fma => Some(self.fma),
+                ProductsRate::Measured(_, rate) => Some(rate),
+                ProductsRate::Unmeasured(_) => None,
+            },
             Phase::GridReads => Some(self.corners(&self.random_reads)),
             Phase::GridScatters => Some(self.corners(&self.random_updates)),
             Phase::Optimizer | Phase::Checks => Some(self.optimizer),
@@ -126,11 +145,9 @@ impl Rates {
                 .join(", ")
         };
         let products = match self.products {
-            Some(rate) if self.products_unit != "FMA" => {
-                format!("; {} {:.1} GFLOP/s", self.products_unit, rate * 1e-9)
-            }
-            Some(_) => String::new(),
-            None => format!("; products on {} (no limit measured)", self.products_unit),
+            ProductsRate::Fma => String::new(),
+            ProductsRate::Measured(unit, rate) => format!("; {unit} {:.1} GFLOP/s", rate * 1e-9),
+            ProductsRate::Unmeasured(unit) => format!("; products on {unit} (no limit measured)"),
         };
         format!(
             "machine rates on {} threads: {}-bit FMA {:.1} GFLOP/s{products}; Adam's reads and writes {:.1} GB/s; random 8-byte \
@@ -422,8 +439,7 @@ mod tests {
         let rates = Rates {
             fma: 1e12,
             fma_bits: 256,
-            products: Some(1e12),
-            products_unit: "FMA",
+            products: ProductsRate::Fma,
             random_reads: vec![(1024, 1e9), (4096, 0.5e9)],
             random_updates: vec![(1024, 1e9), (4096, 1e9)],
             optimizer: 1e10,
