@@ -294,9 +294,9 @@ unsafe fn outer_on(
 mod pack {
     use std::arch::x86_64::*;
 
-    use super::Line;
+    use super::{Bf16Scratch, Line};
     use crate::gemm::avx512::transpose16;
-    use crate::gemm::TILE;
+    use crate::gemm::{padded, TILE};
 
     /// The bfloat16 values of `low` (first) and `high` (then), 16 each, in one vector.
     #[target_feature(enable = "avx512f,avx512bf16")]
@@ -361,18 +361,51 @@ mod pack {
         both(half(0), half(1))
     }
 
+    /// The weight gradient's blocks: its columns padded to `stride` (a multiple of 16), `col_blocks` of 16
+    /// columns and `point_blocks` of 32 points.
+    pub(super) struct OuterBlocks {
+        pub stride: usize,
+        pub col_blocks: usize,
+        pub point_blocks: usize,
+    }
+
+    /// Packs both operands of the weight gradient into `scratch` (`left`: [`point_rows`] of `l`; `right`:
+    /// [`transposed_pairs`] of `r`) and gives its blocks; none when it sums nothing (no rows, columns or
+    /// points).
+    ///
+    /// # Safety
+    /// Every pointer of `l` and `r` addresses `count` readable floats.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub(super) unsafe fn outer_operands(
+        l: &[*const f32],
+        r: &[*const f32],
+        count: usize,
+        scratch: &mut Bf16Scratch,
+    ) -> Option<OuterBlocks> {
+        let stride = padded(r.len());
+        let (col_blocks, point_blocks) = (stride / 16, count.div_ceil(32));
+        if l.is_empty() || col_blocks == 0 || point_blocks == 0 {
+            return None;
+        }
+        // SAFETY: the columns address `count` floats (caller).
+        unsafe {
+            point_rows(l, count, point_blocks, &mut scratch.left);
+            transposed_pairs(r, count, col_blocks, point_blocks, &mut scratch.right);
+        }
+        Some(OuterBlocks {
+            stride,
+            col_blocks,
+            point_blocks,
+        })
+    }
+
     /// The outer product's left operand: row i's points 32·b.. in line i·`point_blocks` + b, as pairs of
     /// points (zero from `count` on); rows padded with zeros to a multiple of 16.
     ///
     /// # Safety
     /// Every pointer of `l` addresses `count` readable floats; `point_blocks` = ⌈count / 32⌉.
     #[target_feature(enable = "avx512f,avx512bf16")]
-    pub(super) unsafe fn point_rows(
-        l: &[*const f32],
-        count: usize,
-        point_blocks: usize,
-        left: &mut Vec<Line>,
-    ) {
+    unsafe fn point_rows(l: &[*const f32], count: usize, point_blocks: usize, left: &mut Vec<Line>) {
         // Every row's lines are written below; only the padding rows are cleared.
         let lines = l.len().div_ceil(16) * 16 * point_blocks;
         if left.len() < lines {
@@ -399,7 +432,7 @@ mod pack {
     /// # Safety
     /// Every pointer of `r` addresses `count` readable floats; `point_blocks` = ⌈count / 32⌉.
     #[target_feature(enable = "avx512f,avx512bf16")]
-    pub(super) unsafe fn transposed_pairs(
+    unsafe fn transposed_pairs(
         r: &[*const f32],
         count: usize,
         col_blocks: usize,
@@ -438,9 +471,9 @@ mod dot {
     use std::arch::x86_64::*;
     use std::sync::OnceLock;
 
-    use super::pack::{pack_pairs, point_rows, transposed_pairs};
+    use super::pack::{outer_operands, pack_pairs, OuterBlocks};
     use super::{Bf16Scratch, Line};
-    use crate::gemm::{has_avx512, padded, TILE};
+    use crate::gemm::{has_avx512, TILE};
 
     /// Rows of a register block.
     const ROWS: usize = 6;
@@ -571,16 +604,15 @@ mod dot {
         g: &mut [f32],
         scratch: &mut Bf16Scratch,
     ) {
-        let stride = padded(r.len());
-        let (col_blocks, point_blocks) = (stride / 16, count.div_ceil(32));
-        if l.is_empty() || col_blocks == 0 || point_blocks == 0 {
-            return;
-        }
         // SAFETY: the columns address `count` floats (caller).
-        unsafe {
-            point_rows(l, count, point_blocks, &mut scratch.left);
-            transposed_pairs(r, count, col_blocks, point_blocks, &mut scratch.right);
-        }
+        let Some(OuterBlocks {
+            stride,
+            col_blocks,
+            point_blocks,
+        }) = (unsafe { outer_operands(l, r, count, scratch) })
+        else {
+            return;
+        };
         let operands = Operands {
             left: scratch.left.as_ptr().cast(),
             right: scratch.right.as_ptr().cast(),
@@ -686,9 +718,9 @@ mod amx {
     use std::arch::x86_64::*;
     use std::sync::OnceLock;
 
-    use super::pack::{pack_pairs, point_rows, transposed_pairs};
+    use super::pack::{outer_operands, pack_pairs, OuterBlocks};
     use super::{Bf16Matrix, Bf16Scratch, Line};
-    use crate::gemm::{padded, TILE};
+    use crate::gemm::TILE;
 
     // The tile registers live from one `asm!` block to the next: nothing between them calls a function
     // (the ABI leaves tiles to the caller to save), and each product configures the tiles on entry and
@@ -871,15 +903,16 @@ mod amx {
         g: &mut [f32],
         scratch: &mut Bf16Scratch,
     ) {
-        let stride = padded(r.len());
-        let (row_blocks, col_blocks, point_blocks) = (l.len().div_ceil(16), stride / 16, count.div_ceil(32));
-        if row_blocks == 0 || col_blocks == 0 || point_blocks == 0 {
+        // SAFETY: the columns address `count` floats (caller).
+        let Some(OuterBlocks {
+            stride,
+            col_blocks,
+            point_blocks,
+        }) = (unsafe { outer_operands(l, r, count, scratch) })
+        else {
             return;
-        }
-        // SAFETY: l's columns address `count` floats (caller).
-        unsafe { point_rows(l, count, point_blocks, &mut scratch.left) };
-        // SAFETY: r's columns address `count` floats (caller).
-        unsafe { transposed_pairs(r, count, col_blocks, point_blocks, &mut scratch.right) };
+        };
+        let row_blocks = l.len().div_ceil(16);
         // The accumulator in whole blocks of 16 rows: g itself, or a padded copy.
         let whole = l.len().is_multiple_of(16);
         if !whole {
