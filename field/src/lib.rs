@@ -501,10 +501,10 @@ impl VolumeField {
             params,
             cache,
         };
-        // Interval bounds hold over boxes of the scene: a contracted grid's cells are probed.
+        // Interval bounds hold over boxes of the scene: a warped grid's cells are probed.
         let bounds_of = match space {
             GridSpace::Scene => compiler.bounds(name, &[Type::Vec(3)], &Type::F32)?,
-            GridSpace::Contracted => None,
+            GridSpace::Contracted | GridSpace::Ndc => None,
         };
         let built = match bounds_of {
             Some(bounds_of) => {
@@ -659,6 +659,7 @@ impl BoundFields<'_> {
                 .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
             recompute_forward: false,
             appearance: None,
+            distortion: 0.0,
         }
     }
 }

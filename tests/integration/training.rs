@@ -48,6 +48,25 @@ fn recovers_a_box_from_its_own_renders_and_resumes() {
     assert_eq!(assert_recovered(&dir), 200);
 }
 
+#[test]
+fn the_distortion_loss_is_logged_and_the_box_is_still_recovered() {
+    let dir = scratch("distortion");
+    make_views(&dir);
+    let extra = ", distortion: 0.01, log: \"metrics.jsonl\"";
+    std::fs::write(dir.join("train.sdf"), trainer_with(500, extra)).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    assert_recovered(&dir);
+    let log = std::fs::read_to_string(dir.join("metrics.jsonl")).unwrap();
+    let last = log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .rfind(|r| r.get("loss").is_some())
+        .expect("a step's record");
+    let distortion = last["distortion"].as_f64().expect("a distortion column");
+    assert!(distortion > 0.0 && distortion.is_finite(), "{last}");
+}
+
 /// Checks that the summary holds the true box to within 0.02; returns the step training resumed from.
 fn assert_recovered(dir: &Path) -> u64 {
     let (center, sides, resumed) = learned(dir);

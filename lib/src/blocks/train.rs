@@ -25,13 +25,14 @@ use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progr
 use nerfjit_field::{VolumeField, VolumeFields};
 
 /// The columns of a volume training run's metrics log.
-const LOG_COLUMNS: &[&str] = &[
+pub(crate) const LOG_COLUMNS: &[&str] = &[
     "step",
     "train_seconds",
     "lr",
     "loss",
     "psnr",
     "eikonal",
+    "distortion",
     "val_psnr",
     "val_ssim",
 ];
@@ -63,6 +64,8 @@ pub struct TrainPlan {
     random_background: bool,
     /// A colour transform per training view, learnt with the field (`appearance`).
     appearance: bool,
+    /// The weight of the distortion loss (`distortion`; 0: none).
+    distortion: f32,
     jitter: bool,
     seed: u64,
     checkpoint: Option<PathBuf>,
@@ -247,6 +250,7 @@ impl TrainPlan {
         let importance = b.whole("importance")? as usize;
         let products = b.products()?;
         let recompute_forward = b.flag("recompute_forward")?;
+        let distortion = b.number("distortion")? as f32;
         let skip_empty = match b.take("skip_empty") {
             None => None,
             Some(v) => crate::settings::values::skip_empty(&v).map_err(|d| b.error(d))?,
@@ -306,6 +310,7 @@ impl TrainPlan {
             random_views,
             random_background,
             appearance,
+            distortion,
             jitter,
             seed,
             checkpoint,
@@ -391,13 +396,10 @@ impl TrainPlan {
     }
 
     /// A warning when the data set's `aabb_scale` puts the scene beyond the occupancy grid's box (a grid in
-    /// contracted space covers all of space): samples outside the box are never evaluated.
+    /// contracted or NDC space covers all of space or the frustum): samples outside the box are never
+    /// evaluated.
     fn aabb_warning(&self) -> Result<Option<String>> {
-        let Some(g) = self
-            .grid
-            .as_ref()
-            .filter(|g| g.grid.space != GridSpace::Contracted)
-        else {
+        let Some(g) = self.grid.as_ref().filter(|g| g.grid.space == GridSpace::Scene) else {
             return Ok(None);
         };
         let Some(extent) = self.data.aabb_extent()? else {
@@ -493,6 +495,7 @@ impl TrainPlan {
             ema_rng: Rng::new(self.seed ^ 0x0cc0),
             psnr: f32::NAN,
             eikonal_loss: 0.0,
+            distortion_loss: 0.0,
             history: Vec::new(),
             next_val_time: 0,
             rays: self.batch,
@@ -613,6 +616,8 @@ struct VolumeObjective<'a> {
     /// The last step's training PSNR and eikonal term.
     psnr: f32,
     eikonal_loss: f32,
+    /// The last step's distortion loss (its weighted part of the loss).
+    distortion_loss: f32,
     /// Every validation's scores, for the summary.
     history: Vec<serde_json::Value>,
     /// The first of the block's validation times not reached yet.
@@ -721,7 +726,17 @@ impl VolumeObjective<'_> {
             "val_masked_psnr": means.masked_psnr,
         }));
         let (step, seconds) = (Some(f64::from(p.done)), Some(p.train_seconds));
-        ui.record(&[step, seconds, None, None, None, None, Some(psnr), Some(ssim)])
+        ui.record(&[
+            step,
+            seconds,
+            None,
+            None,
+            None,
+            None,
+            None,
+            Some(psnr),
+            Some(ssim),
+        ])
     }
 
     /// The progress record of `p`'s step (every 10th step and the last), logged and shown on the bar.
@@ -741,6 +756,7 @@ impl VolumeObjective<'_> {
             .eikonal
             .is_some()
             .then_some(f64::from(self.eikonal_loss));
+        let distortion = (self.plan.distortion > 0.0).then_some(f64::from(self.distortion_loss));
         ui.record(&[
             Some(f64::from(p.done)),
             Some(p.train_seconds),
@@ -748,6 +764,7 @@ impl VolumeObjective<'_> {
             Some(f64::from(p.loss)),
             Some(f64::from(self.psnr)),
             eikonal,
+            distortion,
             None,
             None,
         ])?;
@@ -838,6 +855,7 @@ impl Objective for VolumeObjective<'_> {
         let model = TrainableModel {
             recompute_forward: plan.recompute_forward,
             appearance: self.appearance.as_ref().map(|a| a.of(view)),
+            distortion: plan.distortion,
             ..fields.trainable()
         };
         let mut result = model.step((&rays, &targets), &settings, self.grid.as_ref(), jitter)?;
@@ -862,6 +880,7 @@ impl Objective for VolumeObjective<'_> {
             self.eikonal_loss = eikonal;
         }
         self.psnr = result.psnr;
+        self.distortion_loss = result.distortion_loss;
         if let Some(target) = plan.batch_samples {
             // This rank's samples stand for every rank's; a step's rays are distinct pixels of one view.
             let pixels = self.views.width as usize * self.views.height as usize;

@@ -289,10 +289,10 @@ const SPACING: Setting = value(
 );
 const SKIP_EMPTY: Setting = value(
     "skip_empty",
-    "grid(bounds, resolution, threshold, space: scene or contracted) or none",
+    "grid(bounds, resolution, threshold, space: scene, contracted or ndc) or none",
     Some(check_skip_empty),
     "an occupancy grid: samples in its empty cells are skipped (space: contracted puts its box in contract(p)'s \
-     coordinates, covering all of space)",
+     coordinates, covering all of space; space: ndc in a forward-facing capture's normalized device coordinates)",
 );
 const EARLY_TERMINATION: Setting = number(
     "early_termination",
@@ -483,6 +483,13 @@ pub const TRAIN: BlockSchema = BlockSchema {
         flag(
             "appearance",
             "a colour transform per training view learnt with the field (exposure, white balance); renders use none",
+        ),
+        number(
+            "distortion",
+            0.0,
+            1e3,
+            0.0,
+            "the weight of mip-NeRF 360's distortion loss on each ray's weights, against fog and floaters (0: off)",
         ),
         SEED,
         CHECKPOINT,

@@ -53,7 +53,8 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
         return Ok(None);
     }
     let a = CallArgs::new(v, &["bounds", "resolution", "threshold", "space"])?;
-    let space = GridSpace::named(&a.choice("space", &["scene", "contracted"], "scene")?).unwrap_or_default();
+    let space =
+        GridSpace::named(&a.choice("space", &["scene", "contracted", "ndc"], "scene")?).unwrap_or_default();
     let bounds = match a.raw("bounds") {
         None => {
             return Err(Diagnostic::new(v.span, "'grid' needs 'bounds'").with_hint("write grid(bounds: 1.5)"))

@@ -16,8 +16,12 @@
 //! after the last live sample, S ← alphaᵢvᵢ + (1 − alphaᵢ)S going backwards), the loss is
 //! S₀ and ∂L/∂alphaᵢ = Tᵢ(vᵢ − Sᵢ₊₁), ∂L/∂cᵢ = wᵢ·g_color, ∂L/∂σᵢ = δᵢ(1 − alphaᵢ)·∂L/∂alphaᵢ:
 //! one backward sweep per ray, no division by 1 − alpha.
+//!
+//! The same sweep takes any loss of the weights: with ∂L/∂wᵢ added to vᵢ it back-propagates that
+//! loss too, as training does with mip-NeRF 360's distortion loss ([`Distortion`]).
 
 use crate::error::{Error, Result};
+use crate::volume::sampler::DepthSpacing;
 
 /// δ of the last sample of a ray, as in the course (and NeRF).
 pub const LAST_DELTA: f32 = 1e10;
@@ -51,6 +55,26 @@ pub struct RayOutput {
     pub depth: f32,
     /// Opacity Σ wᵢ.
     pub opacity: f32,
+}
+
+/// mip-NeRF 360's distortion loss on a ray's compositing weights, added to a training step's loss:
+/// with each sample's interval [sᵢ, sᵢ₊₁] in normalized ray distance s (0 at `near`, 1 at `far`, as
+/// the spacing spreads the samples: [`DepthSpacing::fraction`]; the last sample's interval ends at
+/// `far`) and mᵢ its midpoint,
+/// L = Σᵢ Σⱼ wᵢwⱼ|mᵢ − mⱼ| + ⅓ Σᵢ wᵢ²(sᵢ₊₁ − sᵢ).
+/// It is small when a ray's weight gathers in one short stretch and large when it is spread along the
+/// ray (fog, floaters). Its gradient joins the colour loss's in the compositor's one sweep back:
+/// ∂L/∂wᵢ = 2 Σⱼ wⱼ|mᵢ − mⱼ| + ⅔ wᵢ(sᵢ₊₁ − sᵢ) is added to the sample's value vᵢ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Distortion {
+    /// What each ray's L is multiplied by in the loss.
+    pub weight: f32,
+    /// Where s is 0.
+    pub near: f32,
+    /// Where s is 1.
+    pub far: f32,
+    /// How the samples are spread between near and far.
+    pub spacing: DepthSpacing,
 }
 
 /// The samples of one ray: depths, the field's first output (density or opacity) and colors.
@@ -273,11 +297,13 @@ impl Compositor {
 
 /// One sample of every ray in the sweep back of [`Lanes::forward_backward`]: depths `t` and
 /// colors, the rays' cotangents (color, depth, opacity) and suffix values; `g_*` hold T,
-/// alpha, 1 − alpha and δ on entry and the gradients on exit. Every slice is a parameter of
-/// its own, which tells the compiler that they do not overlap, so the loop vectorizes.
+/// alpha, 1 − alpha and δ on entry and the gradients on exit; with `EXTRA`, `extra` holds a
+/// further ∂L/∂w of each sample (the distortion loss's). Every slice is a parameter of its own,
+/// which tells the compiler that they do not overlap, so the loop vectorizes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn backward_row<const DENSITY: bool>(
+fn backward_row<const DENSITY: bool, const EXTRA: bool>(
+    extra: &[f32],
     t: &[f32],
     r: &[f32],
     g: &[f32],
@@ -297,7 +323,10 @@ fn backward_row<const DENSITY: bool>(
     for k in 0..n {
         let (trans, alpha, keep, delta) = (g_raw[k], g_r[k], g_g[k], g_b[k]);
         let w = trans * alpha;
-        let value = gc_r[k] * r[k] + gc_g[k] * g[k] + gc_b[k] * b[k] + gd[k] * t[k] + go[k];
+        let mut value = gc_r[k] * r[k] + gc_g[k] * g[k] + gc_b[k] * b[k] + gd[k] * t[k] + go[k];
+        if EXTRA {
+            value += extra[k];
+        }
         let d_alpha = trans * (value - suffix[k]);
         suffix[k] = alpha * value + keep * suffix[k];
         g_raw[k] = if DENSITY { d_alpha * delta * keep } else { d_alpha };
@@ -391,6 +420,75 @@ pub(crate) struct Lanes {
     rgb: [Vec<f32>; 3],
     depth: Vec<f32>,
     opacity: Vec<f32>,
+    /// The distortion loss's buffers in [`Lanes::forward_backward`], when it has one.
+    distortion: DistortionScratch,
+}
+
+/// What [`distortion_values`] works in: per sample (sample-major) the normalized distance s and
+/// ∂L/∂w; per ray the weights' sum and their sum times the intervals' midpoints, over the whole ray
+/// and over the samples before the current one.
+#[derive(Debug, Default)]
+struct DistortionScratch {
+    fraction: Vec<f32>,
+    values: Vec<f32>,
+    totals: [Vec<f32>; 2],
+    before: [Vec<f32>; 2],
+}
+
+/// Fills `scratch.values` with each sample's ∂L/∂w of the distortion loss `d` (times its weight) of `n`
+/// rays whose samples have depths `t` and, from the forward pass, transmittances `trans` (0 past a
+/// ray's stop) and alphas `alpha`, all sample-major. Returns the rays' summed loss (times its weight).
+fn distortion_values(
+    d: &Distortion,
+    n: usize,
+    t: &[f32],
+    (trans, alpha): (&[f32], &[f32]),
+    scratch: &mut DistortionScratch,
+) -> f64 {
+    let len = t.len();
+    let rows = len / n;
+    let DistortionScratch {
+        fraction,
+        values,
+        totals: [total_w, total_wm],
+        before: [before_w, before_wm],
+    } = scratch;
+    fraction.clear();
+    fraction.extend(t.iter().map(|&t| d.spacing.fraction(d.near, d.far, t)));
+    values.resize(len, 0.0);
+    for v in [&mut *total_w, total_wm, before_w, before_wm] {
+        v.clear();
+        v.resize(n, 0.0);
+    }
+    // Sample i's weight, interval midpoint and length.
+    let sample = |i: usize, j: usize| {
+        let (start, end) = (fraction[i], if j + 1 < rows { fraction[i + n] } else { 1.0 });
+        (trans[i] * alpha[i], 0.5 * (start + end), end - start)
+    };
+    for j in 0..rows {
+        for k in 0..n {
+            let (w, m, _) = sample(j * n + k, j);
+            total_w[k] += w;
+            total_wm[k] += w * m;
+        }
+    }
+    let mut loss = 0.0f32;
+    for j in 0..rows {
+        for k in 0..n {
+            let i = j * n + k;
+            let (w, m, length) = sample(i, j);
+            let (w_after, wm_after) = (total_w[k] - before_w[k] - w, total_wm[k] - before_wm[k] - w * m);
+            // Σⱼ wⱼ|m − mⱼ| over the ray's other samples, and over the earlier ones only (each pair of
+            // samples appears twice in L).
+            let earlier = m * before_w[k] - before_wm[k];
+            let pull = earlier + wm_after - m * w_after;
+            values[i] = d.weight * (2.0 * pull + 2.0 / 3.0 * w * length);
+            loss += w * (2.0 * earlier + w * length / 3.0);
+            before_w[k] += w;
+            before_wm[k] += w * m;
+        }
+    }
+    f64::from(d.weight) * f64::from(loss)
 }
 
 impl Lanes {
@@ -439,6 +537,7 @@ impl Lanes {
             rgb: [acc_r, acc_g, acc_b],
             depth,
             opacity,
+            ..
         } = self;
         // Slices of length n, so that the loop below has no bounds checks and vectorizes.
         let (transmittance, depth, opacity) = (&mut transmittance[..n], &mut depth[..n], &mut opacity[..n]);
@@ -565,6 +664,7 @@ impl Lanes {
             rgb: [acc_r, acc_g, acc_b],
             depth,
             opacity,
+            ..
         } = self;
         let (transmittance, depth, opacity) = (&mut transmittance[..n], &mut depth[..n], &mut opacity[..n]);
         let (acc_r, acc_g, acc_b) = (&mut acc_r[..n], &mut acc_g[..n], &mut acc_b[..n]);
@@ -595,8 +695,10 @@ impl Lanes {
     /// propagates: `t` holds every sample's depth, sample-major like `raw` and `rgb`;
     /// `cotangent(k, &ray)` gives the cotangents of ray `k` given its result; the gradients
     /// of every sample go to `grads` (∂σ or ∂a, then ∂r, ∂g, ∂b), sample-major. The result
-    /// is that of [`Compositor::forward_backward`] on each ray. Leaves the accumulators
-    /// undefined.
+    /// is that of [`Compositor::forward_backward`] on each ray. With `distortion`, the gradients
+    /// are those of the loss plus its distortion loss (see [`Distortion`]), and the rays' summed
+    /// distortion loss is returned (0 without). Leaves the accumulators undefined.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward_backward(
         &mut self,
         c: &Compositor,
@@ -604,28 +706,41 @@ impl Lanes {
         raw: &[f32],
         rgb: [&[f32]; 3],
         grads: [&mut [f32]; 4],
+        distortion: Option<&Distortion>,
         cotangent: impl FnMut(usize, &RayOutput) -> RayOutput,
-    ) {
-        match c.mode {
-            Mode::Density => self.forward_backward_with::<true>(c, t, raw, rgb, grads, cotangent),
-            Mode::Opacity => self.forward_backward_with::<false>(c, t, raw, rgb, grads, cotangent),
+    ) -> f64 {
+        match (c.mode, distortion.is_some()) {
+            (Mode::Density, false) => {
+                self.forward_backward_with::<true, false>(c, t, raw, rgb, grads, distortion, cotangent)
+            }
+            (Mode::Density, true) => {
+                self.forward_backward_with::<true, true>(c, t, raw, rgb, grads, distortion, cotangent)
+            }
+            (Mode::Opacity, false) => {
+                self.forward_backward_with::<false, false>(c, t, raw, rgb, grads, distortion, cotangent)
+            }
+            (Mode::Opacity, true) => {
+                self.forward_backward_with::<false, true>(c, t, raw, rgb, grads, distortion, cotangent)
+            }
         }
     }
 
     #[inline(always)]
-    fn forward_backward_with<const DENSITY: bool>(
+    #[allow(clippy::too_many_arguments)]
+    fn forward_backward_with<const DENSITY: bool, const DISTORTION: bool>(
         &mut self,
         c: &Compositor,
         t: &[f32],
         raw: &[f32],
         [r, g, b]: [&[f32]; 3],
         [g_raw, g_r, g_g, g_b]: [&mut [f32]; 4],
+        distortion: Option<&Distortion>,
         mut cotangent: impl FnMut(usize, &RayOutput) -> RayOutput,
-    ) {
+    ) -> f64 {
         let alpha_of = if DENSITY { density_alpha } else { opacity_alpha };
         let n = self.transmittance.len();
         if n == 0 {
-            return;
+            return 0.0;
         }
         let rows = t.len() / n;
         let threshold = c.threshold();
@@ -647,6 +762,7 @@ impl Lanes {
             rgb: [acc_r, acc_g, acc_b],
             depth,
             opacity,
+            distortion: distortion_scratch,
         } = self;
         for j in 0..rows {
             let row = j * n..(j + 1) * n;
@@ -679,6 +795,14 @@ impl Lanes {
                 transmittance[k] = trans * keep;
             }
         }
+        let distortion_loss = match distortion.filter(|_| DISTORTION) {
+            Some(d) => {
+                let forward = (&g_raw[..rows * n], &g_r[..rows * n]);
+                distortion_values(d, n, &t[..rows * n], forward, distortion_scratch)
+            }
+            None => 0.0,
+        };
+        let extra = &distortion_scratch.values;
         // Cotangents replace the accumulators, the suffix values S the transmittances.
         let background = c.background.unwrap_or([0.0; 3]);
         for k in 0..n {
@@ -700,9 +824,13 @@ impl Lanes {
             let row = j * n..(j + 1) * n;
             let (t, r, g, b) = (&t[row.clone()], &r[row.clone()], &g[row.clone()], &b[row.clone()]);
             let (g_raw, g_r) = (&mut g_raw[row.clone()], &mut g_r[row.clone()]);
-            let (g_g, g_b) = (&mut g_g[row.clone()], &mut g_b[row]);
-            backward_row::<DENSITY>(t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b);
+            let (g_g, g_b) = (&mut g_g[row.clone()], &mut g_b[row.clone()]);
+            let extra = if DISTORTION { &extra[row] } else { &[] };
+            backward_row::<DENSITY, DISTORTION>(
+                extra, t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b,
+            );
         }
+        distortion_loss
     }
 
     /// Whether ray `k` is still live (its transmittance is not below the threshold).
@@ -1056,7 +1184,7 @@ mod tests {
             let mut grads = [vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k]];
             let [g0, g1, g2, g3] = &mut grads;
             let mut outputs = vec![RayOutput::default(); k];
-            lanes.forward_backward(&c, &t, &raw, [&r, &g, &b], [g0, g1, g2, g3], |ray, out| {
+            lanes.forward_backward(&c, &t, &raw, [&r, &g, &b], [g0, g1, g2, g3], None, |ray, out| {
                 outputs[ray] = *out;
                 cot(ray)
             });
@@ -1074,6 +1202,151 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// mip-NeRF 360's distortion loss of the first `stop` samples of a ray in f64, times `d.weight`.
+    fn reference_distortion(c: &Compositor, d: &Distortion, ray: &Ray, stop: usize) -> f64 {
+        let n = ray.t.len();
+        let mut trans = 1.0;
+        let mut w = vec![0.0; n];
+        for (i, w) in w.iter_mut().enumerate().take(stop) {
+            let a = match c.mode {
+                Mode::Density => {
+                    let delta = ray.t.get(i + 1).map_or(LAST_DELTA as f64, |next| next - ray.t[i]);
+                    1.0 - (-ray.raw[i] * delta).exp()
+                }
+                Mode::Opacity => ray.raw[i],
+            };
+            *w = trans * a;
+            trans *= 1.0 - a;
+        }
+        let s: Vec<f64> = (0..=n)
+            .map(|i| {
+                ray.t
+                    .get(i)
+                    .map_or(1.0, |&t| f64::from(d.spacing.fraction(d.near, d.far, t as f32)))
+            })
+            .collect();
+        let mid = |i: usize| 0.5 * (s[i] + s[i + 1]);
+        let mut loss = 0.0;
+        for i in 0..n {
+            for j in 0..n {
+                loss += w[i] * w[j] * (mid(i) - mid(j)).abs();
+            }
+            loss += w[i] * w[i] * (s[i + 1] - s[i]) / 3.0;
+        }
+        f64::from(d.weight) * loss
+    }
+
+    fn distortions() -> impl Strategy<Value = Distortion> {
+        (0.01f32..2.0, prop::bool::ANY).prop_map(|(weight, disparity)| Distortion {
+            weight,
+            near: 0.0,
+            far: 12.0,
+            spacing: if disparity {
+                DepthSpacing::LinDisp { split: 1.0 }
+            } else {
+                DepthSpacing::Linear
+            },
+        })
+    }
+
+    proptest! {
+        /// Two rays composited together with a distortion loss: each ray's gradients are those of its
+        /// colour loss plus its distortion loss, by central differences of the f64 references.
+        #[test]
+        fn distortion_gradient_matches_finite_differences(
+            c in compositors(Mode::Density).prop_flat_map(|c| {
+                prop_oneof![Just(c), Just(Compositor { mode: Mode::Opacity, ..c })]
+            }),
+            ray in rays(Mode::Opacity),
+            d in distortions(),
+            cot in cotangents(),
+        ) {
+            let second = Ray { raw: ray.raw.iter().rev().map(|v| 0.5 * v).collect(), ..ray.clone() };
+            let both = [&ray, &second];
+            let n = ray.t.len();
+            let sample_major = |f: &dyn Fn(&Ray, usize) -> f64| -> Vec<f32> {
+                (0..n).flat_map(|j| both.map(|r| f(r, j) as f32)).collect()
+            };
+            let t = sample_major(&|r, j| r.t[j]);
+            let raw = sample_major(&|r, j| r.raw[j]);
+            let [red, green, blue] = [0, 1, 2].map(|k| sample_major(&|r, j| r.rgb[k][j]));
+            let cot32 = RayOutput {
+                rgb: [cot[0] as f32, cot[1] as f32, cot[2] as f32],
+                depth: cot[3] as f32,
+                opacity: cot[4] as f32,
+            };
+            let mut lanes = Lanes::default();
+            lanes.reset(2);
+            let mut grads = [vec![7.0; 2 * n], vec![7.0; 2 * n], vec![7.0; 2 * n], vec![7.0; 2 * n]];
+            let [g0, g1, g2, g3] = &mut grads;
+            let got_loss =
+                lanes.forward_backward(&c, &t, &raw, [&red, &green, &blue], [g0, g1, g2, g3], Some(&d), |_, _| cot32);
+            let want_loss: f64 = both.iter().map(|r| reference_distortion(&c, &d, r, live_samples(&c, r))).sum();
+            prop_assert!((got_loss - want_loss).abs() <= 1e-4 * (1.0 + want_loss), "loss {got_loss} vs {want_loss}");
+            for (k, ray) in both.into_iter().enumerate() {
+                let stop = live_samples(&c, ray);
+                let loss = |r: &Ray| {
+                    let colour: f64 = reference(&c, r, stop).iter().zip(cot).map(|(o, g)| o * g).sum();
+                    colour + reference_distortion(&c, &d, r, stop)
+                };
+                let h = 1e-6;
+                for i in 0..n {
+                    let (mut plus, mut minus) = (ray.clone(), ray.clone());
+                    plus.raw[i] += h;
+                    minus.raw[i] -= h;
+                    let want = (loss(&plus) - loss(&minus)) / (2.0 * h);
+                    let got = f64::from(grads[0][i * 2 + k]);
+                    prop_assert!((got - want).abs() <= 2e-3 * (1.0 + want.abs()), "ray {k}, d/draw {i}: {got} vs {want}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn distortion_of_two_samples_by_hand() {
+        // Opacities 0.5 and 1 at s = 0 and 0.5 (linear spacing on [0, 1]): weights 0.5 and 0.5, midpoints
+        // 0.25 and 0.75, intervals of 0.5. L = 2·0.25·0.5 + ⅓(0.25·0.5 + 0.25·0.5) = 1/4 + 1/12 = 1/3.
+        let c = Compositor {
+            mode: Mode::Opacity,
+            background: None,
+            early_termination: None,
+        };
+        let d = Distortion {
+            weight: 1.0,
+            near: 0.0,
+            far: 1.0,
+            spacing: DepthSpacing::Linear,
+        };
+        let ray = Ray {
+            t: vec![0.0, 0.5],
+            raw: vec![0.5, 1.0],
+            rgb: [vec![0.0; 2], vec![0.0; 2], vec![0.0; 2]],
+        };
+        assert!((reference_distortion(&c, &d, &ray, 2) - 1.0 / 3.0).abs() < 1e-12);
+        // ∂L/∂w = 2·0.5·0.5 + ⅔·0.5·0.5 = 2/3 for both; ∂L/∂a₀ = T₀(v₀ − S₁) with S₁ = a₁v₁ = 2/3: 0;
+        // ∂L/∂a₁ = T₁·v₁ = 1/3.
+        let mut lanes = Lanes::default();
+        lanes.reset(1);
+        let zeros = [0.0f32; 2];
+        let mut grads = [vec![0.0; 2], vec![0.0; 2], vec![0.0; 2], vec![0.0; 2]];
+        let [g0, g1, g2, g3] = &mut grads;
+        let loss = lanes.forward_backward(
+            &c,
+            &[0.0, 0.5],
+            &[0.5, 1.0],
+            [&zeros, &zeros, &zeros],
+            [g0, g1, g2, g3],
+            Some(&d),
+            |_, _| RayOutput::default(),
+        );
+        assert!((loss - 1.0 / 3.0).abs() < 1e-6, "{loss}");
+        assert!(
+            grads[0][0].abs() < 1e-6 && (grads[0][1] - 1.0 / 3.0).abs() < 1e-6,
+            "{:?}",
+            grads[0]
+        );
     }
 
     #[test]

@@ -59,6 +59,8 @@ pub struct TrainableModel<'a> {
     pub recompute_forward: bool,
     /// The colour transform of the view the step's rays come from ([`StepOptions::appearance`]).
     pub appearance: Option<ColorTransform>,
+    /// The weight of the distortion loss ([`StepOptions::distortion`]; 0: none).
+    pub distortion: f32,
 }
 
 impl TrainableModel<'_> {
@@ -80,6 +82,7 @@ impl TrainableModel<'_> {
                     grid,
                     recompute_forward: self.recompute_forward,
                     appearance: self.appearance,
+                    distortion: self.distortion,
                 };
                 volume_step_with(rays, targets, field, vjp, settings, options, jitter)
             }
@@ -94,6 +97,7 @@ impl TrainableModel<'_> {
                     grid,
                     recompute_forward: self.recompute_forward,
                     appearance: self.appearance,
+                    distortion: self.distortion,
                 };
                 volume_step_with(rays, targets, coarse, coarse_vjp, settings, options, jitter)
             }

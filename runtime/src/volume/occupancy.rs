@@ -33,7 +33,11 @@
 //! grids do for unbounded captures: its box is in the coordinates of mip-NeRF 360's contraction
 //! ([`contract`]: the identity inside the unit ball, all of space inside the ball of radius 2), and a
 //! point is looked up at its contracted coordinates. Such a grid is built from the field read at the
-//! uncontracted points ([`Uncontracted`]): the cells far out stand for ever larger regions of space.
+//! uncontracted points ([`Unwarped`]): the cells far out stand for ever larger regions of space.
+//!
+//! A grid in [`GridSpace::Ndc`] covers the frustum of a forward-facing capture out to infinity, in NeRF's
+//! normalized device coordinates of the mean camera as `llff(...)` places it ([`ndc`]): its cells are
+//! small near the cameras and ever deeper far from them, as the capture's detail is.
 
 use std::ops::Range;
 
@@ -67,6 +71,10 @@ pub enum GridSpace {
     Scene,
     /// The coordinates of [`contract`]: a box of [−2, 2]³ covers all of space.
     Contracted,
+    /// The normalized device coordinates of a forward-facing capture ([`ndc`]): a box of [−1, 1]³ covers
+    /// its cameras' frustum from depth 4 (the nearest content, once `llff(...)` has normalized it) to
+    /// infinity.
+    Ndc,
 }
 
 impl GridSpace {
@@ -75,24 +83,37 @@ impl GridSpace {
         match name {
             "scene" => Some(GridSpace::Scene),
             "contracted" => Some(GridSpace::Contracted),
+            "ndc" => Some(GridSpace::Ndc),
             _ => None,
         }
     }
 
-    /// Calls `f` with `field` as a grid in this space reads it: at the uncontracted points of its
-    /// cells for a grid in [`GridSpace::Contracted`] ([`Uncontracted`]).
+    /// Calls `f` with `field` as a grid in this space reads it: at the scene points of its cells
+    /// ([`Unwarped`]) for a grid in another space than the scene's.
     pub fn with_field<R>(self, field: &dyn BatchFn, f: impl FnOnce(&dyn BatchFn) -> R) -> R {
         match self {
             GridSpace::Scene => f(field),
-            GridSpace::Contracted => f(&Uncontracted(field)),
+            space => f(&Unwarped { space, field }),
         }
     }
 
     /// `p` in the coordinates of a grid in this space.
+    #[inline(always)]
     pub fn point(self, p: [f32; 3]) -> [f32; 3] {
         match self {
             GridSpace::Scene => p,
             GridSpace::Contracted => contract(p),
+            GridSpace::Ndc => ndc(p),
+        }
+    }
+
+    /// The scene point of `c` in this space's coordinates (the inverse of [`GridSpace::point`], up to
+    /// its clamps: [`uncontract`], [`unndc`]).
+    pub fn scene_point(self, c: [f32; 3]) -> [f32; 3] {
+        match self {
+            GridSpace::Scene => c,
+            GridSpace::Contracted => uncontract(c),
+            GridSpace::Ndc => unndc(c),
         }
     }
 
@@ -101,8 +122,32 @@ impl GridSpace {
         match self {
             GridSpace::Scene => "scene",
             GridSpace::Contracted => "contracted",
+            GridSpace::Ndc => "ndc",
         }
     }
+}
+
+/// NeRF's normalized device coordinates of a forward-facing capture as `llff(...)` normalizes it (the
+/// cameras looking along +y from about (0, −4, 0), z up), as `examples/instant_llff.sdf` warps space for
+/// its hash grid: with d = max(y + 4, 1) the depth from the mean camera, (x/d, z/d, 8/d − 1). Depths 4 to
+/// infinity take the third coordinate from 1 to −1.
+#[inline(always)]
+pub fn ndc([x, y, z]: [f32; 3]) -> [f32; 3] {
+    let d = y + 4.0;
+    let d = if d > 1.0 { d } else { 1.0 };
+    [x / d, z / d, 8.0 / d - 1.0]
+}
+
+/// The inverse of [`ndc`] for depths from 1 to 1000 (points nearer or farther are taken at those depths).
+#[inline(always)]
+pub fn unndc([u, v, w]: [f32; 3]) -> [f32; 3] {
+    // w + 1 at or below 8/1000 (and NaN) stands for the far end.
+    let d = if w + 1.0 > 8e-3 {
+        (8.0 / (w + 1.0)).clamp(1.0, 1000.0)
+    } else {
+        1000.0
+    };
+    [u * d, d - 4.0, v * d]
 }
 
 /// mip-NeRF 360's scene contraction, as the scripts' `contract(p)` has it: `p` inside the unit ball,
@@ -126,30 +171,36 @@ pub fn uncontract([x, y, z]: [f32; 3]) -> [f32; 3] {
     [x * s, y * s, z * s]
 }
 
-/// A function of a position read at the uncontracted point of its (contracted) input: what a grid in
-/// [`GridSpace::Contracted`] is built from. Further inputs (a view direction) pass unchanged.
-pub struct Uncontracted<'a>(pub &'a dyn BatchFn);
+/// A function of a position read at the scene point of its input in `space`'s coordinates
+/// ([`GridSpace::scene_point`]): what a grid in that space is built from. Further inputs (a view
+/// direction) pass unchanged.
+pub struct Unwarped<'a> {
+    /// The space of the inputs.
+    pub space: GridSpace,
+    /// The function of scene points.
+    pub field: &'a dyn BatchFn,
+}
 
-impl BatchFn for Uncontracted<'_> {
+impl BatchFn for Unwarped<'_> {
     fn n_inputs(&self) -> usize {
-        self.0.n_inputs()
+        self.field.n_inputs()
     }
 
     fn n_outputs(&self) -> usize {
-        self.0.n_outputs()
+        self.field.n_outputs()
     }
 
     fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
         let mut points = vec![vec![0.0f32; n]; 3];
         for i in 0..n {
-            let p = uncontract([inputs[0][i], inputs[1][i], inputs[2][i]]);
+            let p = self.space.scene_point([inputs[0][i], inputs[1][i], inputs[2][i]]);
             for (column, value) in points.iter_mut().zip(p) {
                 column[i] = value;
             }
         }
         let mut columns: Vec<&[f32]> = points.iter().map(Vec::as_slice).collect();
         columns.extend_from_slice(&inputs[3..]);
-        self.0.eval(n, &columns, outputs);
+        self.field.eval(n, &columns, outputs);
     }
 }
 
@@ -391,11 +442,11 @@ impl OccupancyGrid {
     /// enters the first marked block of [`BLOCK`]³ cells it crosses to where it leaves the last, widened
     /// by a cell's diagonal; a < b fails if it crosses none. Every depth t of the interval outside the
     /// stretch has `occupied(o + t·d)` false (the blocks are marked with a cell's dilation, so a rounding
-    /// of the walk cannot lose a cell). A grid in [`GridSpace::Contracted`], where rays are not straight,
-    /// gives the interval unchanged.
+    /// of the walk cannot lose a cell). A grid in another space than the scene's, where a ray's depths are
+    /// not those of a straight line through the cells, gives the interval unchanged.
     pub(crate) fn occupied_stretch(&self, o: [f32; 3], d: [f32; 3], (t0, t1): (f32, f32)) -> (f32, f32) {
-        // A miss (or NaN) stays one; a contracted grid has no straight rays to walk.
-        if t0.partial_cmp(&t1).is_none_or(|order| order.is_gt()) || self.space == GridSpace::Contracted {
+        // A miss (or NaN) stays one; a warped grid has no straight rays to walk.
+        if t0.partial_cmp(&t1).is_none_or(|order| order.is_gt()) || self.space != GridSpace::Scene {
             return (t0, t1);
         }
         // From the near end to the first marked block, then from the far end back to the last, so
@@ -497,9 +548,9 @@ impl OccupancyGrid {
         }))
     }
 
-    /// The same cells in `space`: a grid built over contracted coordinates (from [`Uncontracted`]) is
-    /// one in [`GridSpace::Contracted`], whose cells wholly outside the ball of radius 2 are cleared (no
-    /// contracted point lies there).
+    /// The same cells in `space`: a grid built over a space's coordinates (from [`Unwarped`]) is one in
+    /// that space; in [`GridSpace::Contracted`] the cells wholly outside the ball of radius 2 are cleared
+    /// (no contracted point lies there).
     pub fn in_space(self, space: GridSpace) -> OccupancyGrid {
         let mut grid = OccupancyGrid { space, ..self };
         if space == GridSpace::Contracted {
@@ -588,6 +639,10 @@ impl OccupancyGrid {
                 let [x, y, z] = contract([x, y, z]);
                 self.box_bit_index(x, y, z)
             }
+            GridSpace::Ndc => {
+                let [x, y, z] = ndc([x, y, z]);
+                self.box_bit_index(x, y, z)
+            }
         }
     }
 
@@ -646,6 +701,10 @@ impl OccupancyGrid {
                 let [x, y, z] = contract(p);
                 self.box_bit_index(x, y, z)
             }),
+            GridSpace::Ndc => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
+                let [x, y, z] = ndc(p);
+                self.box_bit_index(x, y, z)
+            }),
         }
     }
 
@@ -676,8 +735,8 @@ impl OccupancyGrid {
 
     /// The depths [t0, t1] (t0 may be negative) where the ray `o + t·d` is inside the bounds
     /// widened by a tiny margin, or `None` if it misses them: every point of the ray that
-    /// [`OccupancyGrid::occupied`] may accept is in that interval (the whole ray for a grid in
-    /// [`GridSpace::Contracted`]).
+    /// [`OccupancyGrid::occupied`] may accept is in that interval (the whole ray for a grid in another
+    /// space than the scene's).
     pub fn ray_interval(&self, o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
         let (t0, t1) = self.interval(o, d);
         (t0 <= t1).then_some((t0, t1))
@@ -706,7 +765,7 @@ impl OccupancyGrid {
     #[inline(always)]
     fn interval(&self, o: [f32; 3], d: [f32; 3]) -> (f32, f32) {
         let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
-        if self.space == GridSpace::Contracted {
+        if self.space != GridSpace::Scene {
             return (t0, t1);
         }
         for i in 0..3 {
@@ -900,6 +959,20 @@ mod tests {
             proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {c:?} {back:?}");
         }
 
+        /// NDC maps the frustum from depth 1 to 1000 (the third coordinate from 7 to −0.992), and its
+        /// inverse takes it back.
+        #[test]
+        fn ndc_round_trips(x in -1.0f32..1.0, depth in 1.0f32..1000.0, z in -1.0f32..1.0) {
+            let p = [x * depth, depth - 4.0, z * depth];
+            let c = ndc(p);
+            proptest::prop_assert!((c[0] - x).abs() <= 1e-5 && (c[1] - z).abs() <= 1e-5);
+            proptest::prop_assert!(c[2] > -1.0 && c[2] <= 7.0);
+            let back = unndc(c);
+            // The inverse loses precision as the depth grows: d = 8/(w + 1).
+            let tolerance = 1e-5 * depth * depth;
+            proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {c:?} {back:?}");
+        }
+
         /// No occupied point of a ray lies outside its occupied stretch: grids of random cells (of sizes
         /// that are and are not multiples of a block, over boxes that are not cubes), rays from inside and
         /// outside the box, including ones along an axis or through blocks' edges, each swept densely.
@@ -957,6 +1030,49 @@ mod tests {
     }
 
     #[test]
+    fn an_ndc_grid_covers_the_frustum_to_infinity() {
+        // A ball of radius 2 at depth 20 in front of the mean camera at (0, −4, 0), and nothing else: in
+        // an NDC grid over [−1, 1]³ it lies in the cells of the third coordinate from 8/22 − 1 to 8/18 − 1.
+        let field = ClosureFn::new(3, 4, |p, out| {
+            let d2 = p[0] * p[0] + (p[1] - 16.0).powi(2) + p[2] * p[2];
+            out.fill(0.0);
+            out[0] = if d2 < 4.0 { 1.0 } else { 0.0 };
+        });
+        let unwarped = Unwarped {
+            space: GridSpace::Ndc,
+            field: &field,
+        };
+        let grid = OccupancyGrid::build(&unwarped, UNIT, 64, Mode::Density, 0.5)
+            .unwrap()
+            .in_space(GridSpace::Ndc);
+        assert_eq!(grid.space(), GridSpace::Ndc);
+        assert!(grid.occupied([0.0, 16.0, 0.0]) && grid.occupied([1.0, 15.0, -1.0]));
+        assert!(
+            !grid.occupied([0.0, 6.0, 0.0])
+                && !grid.occupied([0.0, 100.0, 0.0])
+                && !grid.occupied([8.0, 16.0, 0.0])
+        );
+        assert!(grid.occupancy() < 0.01, "{}", grid.occupancy());
+        // Rays are never clipped by its box, and a ray's walk agrees with the lookup of each of its points
+        // (from the camera along +y in steps of 1).
+        let ray = ([0.0, -4.0, 0.0], [0.0, 1.0, 0.0]);
+        assert_eq!(
+            grid.ray_interval(ray.0, ray.1),
+            Some((f32::NEG_INFINITY, f32::INFINITY))
+        );
+        let all: Vec<u32> = (0..60u32)
+            .filter(|&j| grid.occupied([0.0, j as f32 - 4.0, 0.0]))
+            .collect();
+        assert!(
+            all.len() >= 3 && all[0] >= 15 && *all.last().unwrap() <= 26,
+            "{all:?}"
+        );
+        let ([mut x, mut y, mut z], mut index) = ([[0.0f32; 64]; 3], [0u32; 64]);
+        let (n, next) = grid.next_occupied(ray, 0..60, |j| j as f32, [&mut x, &mut y, &mut z], &mut index);
+        assert_eq!((n, next, &index[..n]), (all.len(), 60, &all[..]));
+    }
+
+    #[test]
     fn a_contracted_grid_covers_all_of_space() {
         // A ball of radius 3 ten units out along x, and nothing else: in a contracted grid over
         // [−2, 2]³ it lies in the cells of x from 2 − 1/7 to 2 − 1/13.
@@ -966,7 +1082,11 @@ mod tests {
             out[0] = if d2 < 9.0 { 1.0 } else { 0.0 };
         });
         let box2 = ([-2.0; 3], [2.0; 3]);
-        let grid = OccupancyGrid::build(&Uncontracted(&field), box2, 32, Mode::Density, 0.5)
+        let unwarped = Unwarped {
+            space: GridSpace::Contracted,
+            field: &field,
+        };
+        let grid = OccupancyGrid::build(&unwarped, box2, 32, Mode::Density, 0.5)
             .unwrap()
             .in_space(GridSpace::Contracted);
         assert_eq!(grid.space(), GridSpace::Contracted);

@@ -1168,6 +1168,7 @@ mod tests {
                     coarse: None,
                     recompute_forward: false,
                     appearance: None,
+                    distortion: 0.0,
                 };
                 let step = plain.step((&rays, &targets), &settings, grid, None).unwrap();
                 assert!(
@@ -1181,6 +1182,7 @@ mod tests {
                     coarse: Some((&coarse, &no_vjp, importance)),
                     recompute_forward: false,
                     appearance: None,
+                    distortion: 0.0,
                 };
                 let step = hierarchical
                     .step((&rays, &targets), &settings, grid, None)

@@ -77,6 +77,29 @@ impl DepthSpacing {
         depth.clamp(near, far)
     }
 
+    /// Where depth `t` lies in [near, far] as the spacing spreads samples: 0 at near, 1 at far, and
+    /// evenly spaced samples at evenly spaced values (the inverse of [`DepthSpacing::warp`], divided
+    /// by far − near); mip-NeRF 360's normalized ray distance for the distortion loss.
+    pub fn fraction(self, near: f32, far: f32, t: f32) -> f32 {
+        let t = t.clamp(near, far);
+        let linear = |from: f32, to: f32| (t - from) / (to - from);
+        // The inverse of the disparity interpolation (1 − v)/from + v/far.
+        let disparity = |from: f32| (1.0 / from - 1.0 / t) / (1.0 / from - 1.0 / far);
+        let u = match self {
+            DepthSpacing::LinDisp { split } if split < far => {
+                if split <= near {
+                    disparity(near)
+                } else if t <= split {
+                    0.5 * linear(near, split)
+                } else {
+                    0.5 + 0.5 * disparity(split)
+                }
+            }
+            _ => linear(near, far),
+        };
+        u.clamp(0.0, 1.0)
+    }
+
     /// [`DepthSpacing::warp`] applied to every depth of `depths`.
     pub fn warp_all(self, near: f32, far: f32, depths: &mut [f32]) {
         if self != DepthSpacing::Linear {
@@ -327,6 +350,24 @@ mod tests {
             proptest::prop_assert!((t[0] - near).abs() <= 1e-5 * far && (t[n - 1] - far).abs() <= 1e-4 * far);
             for w in t.windows(2) {
                 proptest::prop_assert!(w[0] <= w[1], "{t:?}");
+            }
+        }
+
+        #[test]
+        fn fraction_inverts_the_warp(
+            near in 0.01f32..3.0,
+            length in 0.1f32..1000.0,
+            split_at in -0.5f32..1.5,
+            u in 0.0f32..1.0,
+        ) {
+            let far = near + length;
+            for spacing in [DepthSpacing::Linear, DepthSpacing::LinDisp { split: near + split_at * length }] {
+                proptest::prop_assume!(spacing.check(near, far).is_ok());
+                let t = spacing.warp(near, far, near + u * length);
+                let back = spacing.fraction(near, far, t);
+                // The warp's f32 rounding of a depth near far is amplified where disparity spacing is coarse.
+                let tolerance = 1e-4 + 2e-6 * far / near;
+                proptest::prop_assert!((back - u).abs() <= tolerance, "{spacing:?}: {u} -> {t} -> {back}");
             }
         }
     }

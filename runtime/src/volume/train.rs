@@ -21,7 +21,7 @@ use crate::field::{check_vjp_arity, BatchFn, BatchVjp, KeptForward, KeptPasses};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
 use crate::volume::appearance::{ColorTransform, TRANSFORM_VALUES};
-use crate::volume::composite::{RayOutput, SharedDepths};
+use crate::volume::composite::{Distortion, RayOutput, SharedDepths};
 use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, Scratch};
 use crate::volume::render::{check_field, VolumeSettings};
@@ -84,6 +84,9 @@ pub struct StepResult {
     pub samples: usize,
     /// ∂loss/∂values of the step's colour transform ([`StepOptions::appearance`]), if it had one.
     pub appearance_grads: Option<[f32; TRANSFORM_VALUES]>,
+    /// The distortion loss's part of the step's loss ([`StepOptions::distortion`]; 0 without): its
+    /// weight times the mean over the rays (both passes'), whose gradient `param_grads` includes.
+    pub distortion_loss: f32,
 }
 
 /// The fine pass of hierarchical sampling: a second field evaluated at the coarse depths plus
@@ -111,6 +114,9 @@ pub struct StepOptions<'a> {
     /// The colour transform of the view the rays come from ([`crate::volume::appearance`]): the rays'
     /// colours are mapped by it before they are compared with the targets, and its gradient is returned.
     pub appearance: Option<ColorTransform>,
+    /// The weight of mip-NeRF 360's distortion loss ([`Distortion`]) in the step's loss: the mean over
+    /// the rays of their distortion loss times this is added to the colour MSE (0: none).
+    pub distortion: f32,
 }
 
 /// What every tile of a step needs to know.
@@ -131,6 +137,8 @@ struct Job<'a> {
     keep: bool,
     /// The view's colour transform, if it has one.
     appearance: Option<ColorTransform>,
+    /// The distortion loss, its weight divided by the rays, if the step has one.
+    distortion: Option<Distortion>,
 }
 
 /// The kept passes ([`BatchVjp::kept_passes`]) of a task's coarse (or only) and fine field, if used.
@@ -144,6 +152,8 @@ struct Kept<'a> {
 struct TileTotals {
     /// Summed squared error of the coarse pass, then of the fine pass if there is one.
     squared_error: [f64; 2],
+    /// Summed distortion loss of both passes, times its weight over the rays.
+    distortion: f64,
     /// Samples evaluated.
     samples: usize,
     /// ∂loss/∂values of the colour transform (both passes).
@@ -154,6 +164,7 @@ impl std::ops::AddAssign for TileTotals {
     fn add_assign(&mut self, other: TileTotals) {
         self.squared_error[0] += other.squared_error[0];
         self.squared_error[1] += other.squared_error[1];
+        self.distortion += other.distortion;
         self.samples += other.samples;
         for (sum, g) in self.appearance_grads.iter_mut().zip(other.appearance_grads) {
             *sum += g;
@@ -199,7 +210,7 @@ fn train_tile(
         .as_ref()
         .map(|(t, delta)| SharedDepths { t, delta });
     let mut appearance_grads = [0.0; TRANSFORM_VALUES];
-    let (coarse, coarse_samples) = run_pass(
+    let (coarse, coarse_distortion, coarse_samples) = run_pass(
         job,
         (job.field, job.vjp, shared),
         job.settings,
@@ -210,13 +221,14 @@ fn train_tile(
     let Some((fine, fine_settings)) = &job.fine else {
         return TileTotals {
             squared_error: [coarse, 0.0],
+            distortion: coarse_distortion,
             samples: coarse_samples,
             appearance_grads,
         };
     };
     let jitter = job.fixed_depths.is_none().then_some(rngs.as_mut_slice());
     pass::draw_fine_depths(job.settings, fine.importance, s, n, jitter);
-    let (fine_error, fine_samples) = run_pass(
+    let (fine_error, fine_distortion, fine_samples) = run_pass(
         job,
         (fine.field, fine.vjp, None),
         fine_settings,
@@ -226,6 +238,7 @@ fn train_tile(
     );
     TileTotals {
         squared_error: [coarse, fine_error],
+        distortion: coarse_distortion + fine_distortion,
         samples: coarse_samples + fine_samples,
         appearance_grads,
     }
@@ -233,7 +246,8 @@ fn train_tile(
 
 /// Evaluates `field` at the depths in `s.depths` of rays `first..first + n` (the same as
 /// `shared_depths` on every ray, when given), composites, and adds the gradient of the MSE through
-/// `vjp` to `grads`; returns the summed squared error and the number of samples evaluated. With `kept`
+/// `vjp` to `grads`; returns the summed squared error, the distortion loss (summed, times the job's
+/// weight) and the number of samples evaluated. With `kept`
 /// passes (a pass that evaluates every sample in one call), the forward pass is theirs and the backward
 /// pass goes on from what it kept. With the view's colour transform, adds its gradient to `appearance_grads`.
 fn run_pass(
@@ -247,7 +261,7 @@ fn run_pass(
         Option<&mut (dyn KeptPasses + '_)>,
         &mut [f64; TRANSFORM_VALUES],
     ),
-) -> (f64, usize) {
+) -> (f64, f64, usize) {
     let len = n * settings.samples;
     let kept = kept.map(|k| KeptForward::new(k, field.n_inputs(), field.n_outputs()));
     let pass = Pass {
@@ -273,7 +287,7 @@ fn run_pass(
     let compositor = settings.compositor();
     let mut squared_error = 0.0f64;
     lanes.reset(n);
-    lanes.forward_backward(
+    let distortion = lanes.forward_backward(
         &compositor,
         depths,
         &raw[..len],
@@ -284,6 +298,7 @@ fn run_pass(
             &mut g_g[..len],
             &mut g_b[..len],
         ],
+        job.distortion.as_ref(),
         |k, out| {
             let target = job.targets[first + k];
             let background = settings.background.unwrap_or([0.0; 3]);
@@ -312,7 +327,7 @@ fn run_pass(
                 kept.backward(index.len(), &cotangents, grads);
             }
         }
-        return (squared_error, samples);
+        return (squared_error, distortion, samples);
     }
     let backward = evaluated.map(|mut index| {
         // In order, for the cache; samples past a ray's end have all-zero cotangents: leaving them out
@@ -324,7 +339,7 @@ fn run_pass(
         index
     });
     pass::backward(vjp, &inputs, backward.as_deref(), &cotangents, grads);
-    (squared_error, samples)
+    (squared_error, distortion, samples)
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
@@ -433,6 +448,12 @@ pub fn volume_step_with(
         scale: 2.0 / (3.0 * rays.len() as f32),
         keep,
         appearance: options.appearance,
+        distortion: (options.distortion > 0.0).then(|| Distortion {
+            weight: options.distortion / rays.len() as f32,
+            near: settings.near,
+            far: settings.far,
+            spacing: settings.spacing,
+        }),
     };
     let tiles_per_chunk = (CHUNK_POINTS / (tile * settings.samples)).max(1);
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
@@ -499,6 +520,7 @@ pub fn volume_step_with(
         coarse_loss,
         param_grads,
         samples: totals.samples,
+        distortion_loss: totals.distortion as f32,
         appearance_grads: options
             .appearance
             .map(|_| totals.appearance_grads.map(|g| g as f32)),
@@ -511,6 +533,7 @@ mod tests {
     use crate::cameras::camera::Camera;
     use crate::field::{ClosureFn, ClosureVjp};
     use crate::volume::composite::Mode;
+    use crate::volume::sampler::DepthSpacing;
     use glam::{Vec2, Vec3};
 
     /// A Gaussian blob e = exp(−|p − c|²) around c = (θ₁, θ₂, θ₃) of density (or opacity)
@@ -572,6 +595,15 @@ mod tests {
         let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&theta3, p, c, g));
         let rays = rays();
         volume_step(&rays, &targets(rays.len()), &field, &vjp, settings, jitter).unwrap()
+    }
+
+    /// A step of the blob with `options`, without jitter.
+    fn step_with(theta: &[f32], settings: &VolumeSettings, options: StepOptions) -> StepResult {
+        let (t2, t3) = (theta.to_vec(), theta.to_vec());
+        let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&t2, p)));
+        let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&t3, p, c, g));
+        let rays = rays();
+        volume_step_with(&rays, &targets(rays.len()), &field, &vjp, settings, options, None).unwrap()
     }
 
     /// The blob's backward pass with kept passes: the forward pass keeps the points, the backward pass
@@ -685,6 +717,7 @@ mod tests {
                     grid,
                     recompute_forward,
                     appearance: None,
+                    distortion: 0.0,
                 };
                 let before = kept.forwards.load(std::sync::atomic::Ordering::Relaxed);
                 let mut rng = Rng::new(3);
@@ -755,6 +788,48 @@ mod tests {
     }
 
     #[test]
+    fn the_distortion_loss_joins_the_step_and_its_gradients_match_finite_differences() {
+        let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
+        for spacing in [DepthSpacing::Linear, DepthSpacing::LinDisp { split: 2.0 }] {
+            let settings = VolumeSettings {
+                samples: 200,
+                spacing,
+                ..blob_settings(None)
+            };
+            let run = |theta: &[f32; 7], distortion: f32| {
+                let options = StepOptions {
+                    distortion,
+                    ..StepOptions::default()
+                };
+                let step = step_with(theta, &settings, options);
+                (step.loss + step.distortion_loss, step)
+            };
+            let (_, plain) = run(&theta, 0.0);
+            let (total, with) = run(&theta, 0.5);
+            assert_eq!(plain.distortion_loss, 0.0);
+            assert_eq!(with.loss, plain.loss, "the colour loss is the same");
+            assert!(
+                with.distortion_loss > 1e-3 * total,
+                "{spacing:?}: {}",
+                with.distortion_loss
+            );
+            assert_ne!(with.param_grads, plain.param_grads);
+            for i in 0..7 {
+                let h = 0.01 * theta[i].abs().max(0.1);
+                let (mut plus, mut minus) = (theta, theta);
+                plus[i] += h;
+                minus[i] -= h;
+                let fd = (run(&plus, 0.5).0 - run(&minus, 0.5).0) / (2.0 * h);
+                let got = with.param_grads[i];
+                assert!(
+                    (got - fd).abs() <= 2e-3 * fd.abs().max(1e-2),
+                    "{spacing:?} θ{i}: {got} vs {fd}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn a_colour_transform_maps_the_prediction_and_its_gradients_match_finite_differences() {
         let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
         let transform = ColorTransform([0.8, 0.1, 0.0, -0.05, 1.2, 0.1, 0.0, 0.2, 0.9, 0.05, -0.1, 0.02]);
@@ -763,24 +838,11 @@ mod tests {
             ..blob_settings(None)
         };
         let run = |theta: &[f32; 7], appearance: Option<ColorTransform>| {
-            let (t2, t3) = (theta.to_vec(), theta.to_vec());
-            let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&t2, p)));
-            let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&t3, p, c, g));
-            let rays = rays();
             let options = StepOptions {
                 appearance,
                 ..StepOptions::default()
             };
-            volume_step_with(
-                &rays,
-                &targets(rays.len()),
-                &field,
-                &vjp,
-                &settings,
-                options,
-                None,
-            )
-            .unwrap()
+            step_with(theta, &settings, options)
         };
         // The identity is the plain step, bit for bit.
         let (plain, identity) = (run(&theta, None), run(&theta, Some(ColorTransform::IDENTITY)));
