@@ -709,25 +709,17 @@ impl Lanes {
         distortion: Option<&Distortion>,
         cotangent: impl FnMut(usize, &RayOutput) -> RayOutput,
     ) -> f64 {
-        match (c.mode, distortion.is_some()) {
-            (Mode::Density, false) => {
-                self.forward_backward_with::<true, false>(c, t, raw, rgb, grads, distortion, cotangent)
-            }
-            (Mode::Density, true) => {
-                self.forward_backward_with::<true, true>(c, t, raw, rgb, grads, distortion, cotangent)
-            }
-            (Mode::Opacity, false) => {
-                self.forward_backward_with::<false, false>(c, t, raw, rgb, grads, distortion, cotangent)
-            }
-            (Mode::Opacity, true) => {
-                self.forward_backward_with::<false, true>(c, t, raw, rgb, grads, distortion, cotangent)
+        match c.mode {
+            Mode::Density => self.forward_backward_with::<true>(c, t, raw, rgb, grads, distortion, cotangent),
+            Mode::Opacity => {
+                self.forward_backward_with::<false>(c, t, raw, rgb, grads, distortion, cotangent)
             }
         }
     }
 
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn forward_backward_with<const DENSITY: bool, const DISTORTION: bool>(
+    fn forward_backward_with<const DENSITY: bool>(
         &mut self,
         c: &Compositor,
         t: &[f32],
@@ -795,7 +787,7 @@ impl Lanes {
                 transmittance[k] = trans * keep;
             }
         }
-        let distortion_loss = match distortion.filter(|_| DISTORTION) {
+        let distortion_loss = match distortion {
             Some(d) => {
                 let forward = (&g_raw[..rows * n], &g_r[..rows * n]);
                 distortion_values(d, n, &t[..rows * n], forward, distortion_scratch)
@@ -825,10 +817,31 @@ impl Lanes {
             let (t, r, g, b) = (&t[row.clone()], &r[row.clone()], &g[row.clone()], &b[row.clone()]);
             let (g_raw, g_r) = (&mut g_raw[row.clone()], &mut g_r[row.clone()]);
             let (g_g, g_b) = (&mut g_g[row.clone()], &mut g_b[row.clone()]);
-            let extra = if DISTORTION { &extra[row] } else { &[] };
-            backward_row::<DENSITY, DISTORTION>(
-                extra, t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b,
-            );
+            // The branch is a row's, not a sample's: each arm's loop vectorizes.
+            if distortion.is_some() {
+                let extra = &extra[row];
+                backward_row::<DENSITY, true>(
+                    extra, t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b,
+                );
+            } else {
+                backward_row::<DENSITY, false>(
+                    &[],
+                    t,
+                    r,
+                    g,
+                    b,
+                    gc_r,
+                    gc_g,
+                    gc_b,
+                    gd,
+                    go,
+                    suffix,
+                    g_raw,
+                    g_r,
+                    g_g,
+                    g_b,
+                );
+            }
         }
         distortion_loss
     }
