@@ -297,14 +297,19 @@ impl Extender<'_> {
             let (lo, hi) = if k < 0.0 { (hi, lo) } else { (lo, hi) };
             return self.clamp(lo, hi);
         }
-        // a · [1/hi, 1/lo] where b keeps one sign; the whole range where it may be 0.
-        let (zero, one) = (self.g.constant(0.0), self.g.constant(1.0));
+        // The extremes of the four corners' quotients where b keeps one sign; the whole range where it may
+        // be 0. The quotients, not a times b's reciprocal: rounded division is monotone in each argument,
+        // so every rounded quotient in the box lies between the corners', where a · (1 / b) rounds twice
+        // and can miss the quotient itself (x / x is 1, x · (1 / x) may be 1 - 2^-24).
+        let zero = self.g.constant(0.0);
         let positive = self.push(Op::Lt(zero, blo));
         let negative = self.push(Op::Lt(bhi, zero));
         let one_sign = self.push(Op::Add(positive, negative));
-        let (rlo, rhi) = (self.push(Op::Div(one, bhi)), self.push(Op::Div(one, blo)));
-        let (rlo, rhi) = self.clamp(rlo, rhi);
-        let (lo, hi) = self.mul((alo, ahi), (rlo, rhi));
+        let quotients =
+            [(alo, blo), (alo, bhi), (ahi, blo), (ahi, bhi)].map(|(x, y)| self.push(Op::Div(x, y)));
+        let lo = self.fold(Op::Min, &quotients);
+        let hi = self.fold(Op::Max, &quotients);
+        let (lo, hi) = self.clamp(lo, hi);
         let (neg, pos) = self.whole();
         (
             self.push(Op::Select(one_sign, lo, neg)),

@@ -335,6 +335,25 @@ fn the_floor_of_the_whole_range_stays_in_the_range() {
     assert_eq!(b, [-BOUND, BOUND]);
 }
 
+/// Division bounds are the corners' quotients, not a times b's reciprocal, which rounds twice: a value
+/// divided by itself is exactly 1, and so are its bounds (a · (1 / a) is 1 - 2^-53 for this a in f64).
+#[test]
+fn a_value_divided_by_itself_is_bounded_by_one() {
+    let mut g = Graph::new();
+    let x = g.input(0);
+    let q = g.push(Op::Div(x, x));
+    g.outputs.push(q);
+    g.n_inputs = 1;
+    let bounds = extend(&g);
+    let a = 0.4954064184852829_f64;
+    assert_ne!(
+        a * (1.0 / a),
+        1.0,
+        "this value no longer shows the double rounding"
+    );
+    assert_eq!(eval_point(&bounds, &[a, a], &[]).outputs, vec![1.0, 1.0]);
+}
+
 /// Division by an interval that contains 0 is unbounded; by one that does not, it is bounded.
 #[test]
 fn division_by_a_range_through_zero_is_the_whole_range() {
