@@ -39,9 +39,9 @@ pub enum Workload {
     /// W6: training steps of the course's VolSDF on lego (needs ../shared/data/lego).
     W6,
     /// W8: hash-grid training steps of `instant_lego.sdf` (needs ../shared/data/lego): its recipe (2^14
-    /// entries per hashed level, 1024 rays × 128 samples a step, the occupancy grid from step 50), and instant-ngp's
-    /// table of 2^19 entries with 4096 rays a step; each with its roofline (the step's phases against the
-    /// machine's FMA, random-access and memory rates, measured in the same sitting).
+    /// entries per hashed level, 1024 rays × 128 samples a step, the occupancy grid from step 50), and
+    /// instant-ngp's table of 2^19 entries with 4096 rays a step; each with its roofline (the step's phases
+    /// against the machine's FMA, random-access and memory rates, measured in the same sitting).
     W8,
     /// Marching cubes of W7's 20-primitive scene at 512³ over [-4, 4]³: every grid point evaluated, and only
     /// the blocks that interval bounds leave near the surface (the same mesh, checked).

@@ -818,30 +818,15 @@ impl Lanes {
             let (g_raw, g_r) = (&mut g_raw[row.clone()], &mut g_r[row.clone()]);
             let (g_g, g_b) = (&mut g_g[row.clone()], &mut g_b[row.clone()]);
             // The branch is a row's, not a sample's: each arm's loop vectorizes.
-            if distortion.is_some() {
-                let extra = &extra[row];
-                backward_row::<DENSITY, true>(
-                    extra, t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b,
-                );
+            let extra: &[f32] = if distortion.is_some() { &extra[row] } else { &[] };
+            let row_sweep = if distortion.is_some() {
+                backward_row::<DENSITY, true>
             } else {
-                backward_row::<DENSITY, false>(
-                    &[],
-                    t,
-                    r,
-                    g,
-                    b,
-                    gc_r,
-                    gc_g,
-                    gc_b,
-                    gd,
-                    go,
-                    suffix,
-                    g_raw,
-                    g_r,
-                    g_g,
-                    g_b,
-                );
-            }
+                backward_row::<DENSITY, false>
+            };
+            row_sweep(
+                extra, t, r, g, b, gc_r, gc_g, gc_b, gd, go, suffix, g_raw, g_r, g_g, g_b,
+            );
         }
         distortion_loss
     }
