@@ -49,6 +49,27 @@ fn recovers_a_box_from_its_own_renders_and_resumes() {
 }
 
 #[test]
+fn steps_whose_rays_come_from_every_view_recover_the_box() {
+    let dir = scratch("views-all");
+    make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer_with(500, ", views: all")).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    assert_recovered(&dir);
+    // Colour transforms are learnt a view a step: refused with rays from every view.
+    std::fs::write(
+        dir.join("both.sdf"),
+        trainer_with(5, ", views: all, appearance: true"),
+    )
+    .unwrap();
+    let (ok, _, err) = run(&dir, &["run", "both.sdf"]);
+    assert!(
+        !ok && err.contains("views: all draws each ray from any view"),
+        "{err}"
+    );
+}
+
+#[test]
 fn the_distortion_loss_is_logged_and_the_box_is_still_recovered() {
     let dir = scratch("distortion");
     make_views(&dir);

@@ -59,7 +59,8 @@ pub struct TrainPlan {
     schedule: Schedule,
     /// Adam's decay rates and ε.
     optimizer: AdamSettings,
-    random_views: bool,
+    /// Which views each step's rays come from (`views`).
+    views: ViewChoice,
     /// Each step composites its rays and their targets on a random color (`random_background`).
     random_background: bool,
     /// A colour transform per training view, learnt with the field (`appearance`).
@@ -220,7 +221,11 @@ impl TrainPlan {
         let background = b.triple("background")?;
         let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
         let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
-        let random_views = b.choice("views")?.as_deref() == Some("random");
+        let views = match b.choice("views")?.as_deref() {
+            Some("random") => ViewChoice::Random,
+            Some("all") => ViewChoice::All,
+            _ => ViewChoice::Cycle,
+        };
         let jitter = b.flag("jitter")?;
         let random_background = b.flag("random_background")?;
         let appearance = b.flag("appearance")?;
@@ -285,6 +290,13 @@ impl TrainPlan {
             seed: grid_seeding,
         });
         let early_termination = b.number("early_termination")? as f32;
+        if appearance && views == ViewChoice::All {
+            return Err(b.block_error(
+                "appearance: true learns a colour transform per view from steps whose rays come from one view; \
+                 views: all draws each ray from any view: choose views: random or cycle"
+                    .into(),
+            ));
+        }
         if appearance && checkpoint.as_deref().is_some_and(crate::checkpoint::is_json) {
             return Err(b.block_error(
                 "a JSON checkpoint cannot keep the colour transforms of appearance: true; name the checkpoint \
@@ -307,7 +319,7 @@ impl TrainPlan {
             batch_samples,
             schedule,
             optimizer,
-            random_views,
+            views,
             random_background,
             appearance,
             distortion,
@@ -828,10 +840,9 @@ impl Objective for VolumeObjective<'_> {
 
     fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient> {
         let plan = self.plan;
-        let view = if plan.random_views {
-            self.step_rng.below(self.views.len() as u64) as usize
-        } else {
-            step as usize % self.views.len()
+        let view = match plan.views {
+            ViewChoice::Random => self.step_rng.below(self.views.len() as u64) as usize,
+            ViewChoice::Cycle | ViewChoice::All => step as usize % self.views.len(),
         };
         let settings = match plan.random_background {
             true => VolumeSettings {
@@ -842,14 +853,18 @@ impl Objective for VolumeObjective<'_> {
         };
         // Each rank of an MPI job draws its own part of the step's rays.
         let (rank, ranks) = (crate::cluster::current().rank(), crate::cluster::current().size());
-        let (rays, targets) = self.views.random_rays_on(
-            view,
+        let (count, seed) = (
             crate::cluster::part(self.rays, rank, ranks),
             plan.seed
                 .wrapping_add(u64::from(step))
                 .wrapping_add((rank as u64) << 32),
-            settings.background,
-        )?;
+        );
+        let (rays, targets) = match plan.views {
+            ViewChoice::All => self.views.random_rays_across(count, seed, settings.background)?,
+            _ => self
+                .views
+                .random_rays_on(view, count, seed, settings.background)?,
+        };
         let jitter = if plan.jitter { Some(&mut self.rng) } else { None };
         let fields = self.fields.bind(params);
         let model = TrainableModel {
@@ -882,7 +897,8 @@ impl Objective for VolumeObjective<'_> {
         self.psnr = result.psnr;
         self.distortion_loss = result.distortion_loss;
         if let Some(target) = plan.batch_samples {
-            // This rank's samples stand for every rank's; a step's rays are distinct pixels of one view.
+            // This rank's samples stand for every rank's; at most a view's pixels a step (the distinct
+            // pixels of one view, unless `views: all`).
             let pixels = self.views.width as usize * self.views.height as usize;
             let limits = (
                 ranks.max(1),
@@ -915,6 +931,17 @@ impl Objective for VolumeObjective<'_> {
         }
         Ok(())
     }
+}
+
+/// Where a step's rays come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ViewChoice {
+    /// One view, the views in turn.
+    Cycle,
+    /// One view drawn at random.
+    Random,
+    /// Each ray from a view and pixel drawn at random among all (instant-ngp's and nerfstudio's batches).
+    All,
 }
 
 /// The rays of the next step when steps are sized in samples: the last step's `rays` scaled by

@@ -471,9 +471,9 @@ pub const TRAIN: BlockSchema = BlockSchema {
         SCHEDULE,
         choice(
             "views",
-            &["cycle", "random"],
+            &["cycle", "random", "all"],
             Some("cycle"),
-            "which view each step's rays come from",
+            "which view each step's rays come from: one in turn, one at random, or each ray from any view",
         ),
         flag("jitter", "stratified jitter of the depths inside their bins"),
         flag(

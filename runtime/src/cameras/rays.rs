@@ -28,7 +28,7 @@ pub struct RayBatch {
 
 impl RayBatch {
     /// An empty batch with room for `n` rays.
-    fn with_capacity(n: usize) -> Self {
+    pub(crate) fn with_capacity(n: usize) -> Self {
         let v = || Vec::with_capacity(n);
         RayBatch {
             ox: v(),
@@ -40,7 +40,8 @@ impl RayBatch {
         }
     }
 
-    fn push(&mut self, origin: Vec3, direction: Vec3) {
+    /// Appends the ray from `origin` along `direction`.
+    pub(crate) fn push(&mut self, origin: Vec3, direction: Vec3) {
         self.ox.push(origin.x);
         self.oy.push(origin.y);
         self.oz.push(origin.z);

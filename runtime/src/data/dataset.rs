@@ -8,6 +8,7 @@ use crate::cameras::rays::RayBatch;
 use crate::data::decode::decode_checked;
 use crate::data::npy::{read_npy_rgb, ImageF32};
 use crate::error::{Error, Result};
+use crate::rng::Rng;
 
 /// Cameras and their images, all of one size.
 #[derive(Debug, Clone)]
@@ -164,6 +165,39 @@ impl Views {
         Ok((rays, colors))
     }
 
+    /// The rays of `count` pixels drawn uniformly at random from all the views' pixels (a view and a
+    /// pixel of it per ray, independently, seeded by `seed`), as instant-ngp and nerfstudio draw a
+    /// step's rays, with their colors composited as [`Views::random_rays_on`] composites them.
+    pub fn random_rays_across(
+        &self,
+        count: usize,
+        seed: u64,
+        background: Option<[f32; 3]>,
+    ) -> Result<(RayBatch, Vec<[f32; 3]>)> {
+        let pixels = self.width as usize * self.height as usize;
+        if self.is_empty() || pixels == 0 {
+            return Err(Error::Invalid("there are no views to draw rays from".into()));
+        }
+        let mut rng = Rng::new(seed);
+        let mut rays = RayBatch::with_capacity(count);
+        let mut colors = Vec::with_capacity(count);
+        let width = self.width as usize;
+        for _ in 0..count {
+            let view = rng.below(self.len() as u64) as usize;
+            let p = rng.below(pixels as u64) as usize;
+            let (o, d) =
+                self.cameras[view].ray((p / width) as u32, (p % width) as u32, self.width, self.height);
+            rays.push(o, d);
+            let c = self.images[view].pixels[p];
+            let alpha = self.alpha.as_ref().map(|a| a[view][p]);
+            colors.push(match (alpha, background) {
+                (Some(a), Some(bg)) => std::array::from_fn(|k| c[k] + (1.0 - a) * bg[k]),
+                _ => c,
+            });
+        }
+        Ok((rays, colors))
+    }
+
     /// The views composited on `background` where they keep their alpha (which they then no longer
     /// keep); as they are otherwise.
     pub fn on_background(self, background: [f32; 3]) -> Views {
@@ -290,6 +324,64 @@ mod tests {
                 "{got:?} {want:?}"
             );
         }
+    }
+
+    #[test]
+    fn rays_across_the_views_are_the_rays_and_colors_of_the_pixels_they_draw() {
+        // Three 4×3 views from different places, each pixel's color naming its view and pixel.
+        let (width, height) = (4u32, 3u32);
+        let cameras: Vec<Camera> = (0..3)
+            .map(|v| {
+                let eye = glam::Vec3::new(v as f32 - 1.0, 0.5, -3.0);
+                Camera::look_at(
+                    eye,
+                    glam::Vec3::ZERO,
+                    glam::Vec3::Y,
+                    glam::Vec2::ONE,
+                    glam::Vec2::ZERO,
+                )
+                .unwrap()
+            })
+            .collect();
+        let image = |v: usize| ImageF32 {
+            width,
+            height,
+            pixels: (0..12).map(|p| [v as f32, p as f32, 0.5]).collect(),
+        };
+        let views = Views {
+            cameras: cameras.clone(),
+            images: (0..3).map(image).collect(),
+            width,
+            height,
+            alpha: Some((0..3).map(|_| vec![0.25; 12]).collect()),
+            masks: None,
+        };
+        let background = [1.0, 2.0, 4.0];
+        let (rays, colors) = views.random_rays_across(600, 9, Some(background)).unwrap();
+        assert_eq!((rays.len(), colors.len()), (600, 600));
+        let mut seen = [0usize; 3];
+        for (i, c) in colors.iter().enumerate() {
+            // Premultiplied color plus (1 - alpha) of the background: 0.75, 1.5 and 3 added.
+            let (v, p) = ((c[0] - 0.75).round() as usize, (c[1] - 1.5).round() as usize);
+            assert!((c[2] - 3.5).abs() < 1e-6, "{c:?}");
+            let (o, d) = cameras[v].ray(p as u32 / width, p as u32 % width, width, height);
+            let got = (
+                [rays.ox[i], rays.oy[i], rays.oz[i]],
+                [rays.dx[i], rays.dy[i], rays.dz[i]],
+            );
+            assert_eq!(
+                got,
+                (o.to_array(), d.to_array()),
+                "ray {i} of view {v}, pixel {p}"
+            );
+            seen[v] += 1;
+        }
+        // Every view is drawn, each about a third of the time.
+        assert!(seen.iter().all(|&n| (150..250).contains(&n)), "{seen:?}");
+        assert_eq!(
+            views.random_rays_across(600, 9, Some(background)).unwrap().1,
+            colors
+        );
     }
 
     #[test]
