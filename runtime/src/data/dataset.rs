@@ -144,25 +144,27 @@ impl Views {
         seed: u64,
         background: Option<[f32; 3]>,
     ) -> Result<(RayBatch, Vec<[f32; 3]>)> {
-        let (Some(camera), Some(image)) = (self.cameras.get(view), self.images.get(view)) else {
+        let (Some(camera), Some(_)) = (self.cameras.get(view), self.images.get(view)) else {
             return Err(Error::Invalid(format!(
                 "view {view} does not exist: there are {} views",
                 self.len()
             )));
         };
         let (rays, pixels) = RayBatch::random_pixels(camera, self.width, self.height, count, seed)?;
-        let alpha = self.alpha.as_ref().and_then(|a| a.get(view));
-        let colors = match (alpha, background) {
-            (Some(alpha), Some(bg)) => pixels
-                .iter()
-                .map(|&p| {
-                    let (c, t) = (image.pixels[p], 1.0 - alpha[p]);
-                    [c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2]]
-                })
-                .collect(),
-            _ => pixels.iter().map(|&p| image.pixels[p]).collect(),
-        };
+        let colors = pixels
+            .iter()
+            .map(|&p| self.color_on(view, p, background))
+            .collect();
         Ok((rays, colors))
+    }
+
+    /// The color of pixel `p` of view `view`, composited on `background` where the views keep their alpha.
+    fn color_on(&self, view: usize, p: usize, background: Option<[f32; 3]>) -> [f32; 3] {
+        let c = self.images[view].pixels[p];
+        match (self.alpha.as_ref().and_then(|a| a.get(view)), background) {
+            (Some(alpha), Some(bg)) => std::array::from_fn(|k| c[k] + (1.0 - alpha[p]) * bg[k]),
+            _ => c,
+        }
     }
 
     /// The rays of `count` pixels drawn uniformly at random from all the views' pixels (a view and a
@@ -188,12 +190,7 @@ impl Views {
             let (o, d) =
                 self.cameras[view].ray((p / width) as u32, (p % width) as u32, self.width, self.height);
             rays.push(o, d);
-            let c = self.images[view].pixels[p];
-            let alpha = self.alpha.as_ref().map(|a| a[view][p]);
-            colors.push(match (alpha, background) {
-                (Some(a), Some(bg)) => std::array::from_fn(|k| c[k] + (1.0 - a) * bg[k]),
-                _ => c,
-            });
+            colors.push(self.color_on(view, p, background));
         }
         Ok((rays, colors))
     }
