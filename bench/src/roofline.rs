@@ -130,7 +130,7 @@ impl Rates {
             },
             Phase::GridReads => Some(self.corners(&self.random_reads)),
             Phase::GridScatters => Some(self.corners(&self.random_updates)),
-            Phase::Optimizer | Phase::Checks => Some(self.optimizer),
+            Phase::Optimizer => Some(self.optimizer),
             Phase::Elementwise | Phase::Steps => None,
         }
     }

@@ -22,23 +22,19 @@ pub enum Phase {
     Elementwise,
     /// The optimizer's update of the params.
     Optimizer,
-    /// The training loop's own passes over every param: the checks that the gradients and the updated
-    /// params are finite, and the copy of the params kept to restore them if they are not.
-    Checks,
     /// Whole training steps, as wall time (not summed over threads): what the others are shares of.
     Steps,
 }
 
 impl Phase {
     /// Every phase, in the order of [`Times::nanos`].
-    pub const ALL: [Phase; 8] = [
+    pub const ALL: [Phase; 7] = [
         Phase::GridReads,
         Phase::GridScatters,
         Phase::Products,
         Phase::OuterProducts,
         Phase::Elementwise,
         Phase::Optimizer,
-        Phase::Checks,
         Phase::Steps,
     ];
 
@@ -51,20 +47,19 @@ impl Phase {
             Phase::OuterProducts => "weight gradients",
             Phase::Elementwise => "elementwise",
             Phase::Optimizer => "optimizer",
-            Phase::Checks => "finite checks",
             Phase::Steps => "steps",
         }
     }
 
     /// The unit of the work [`Times::work`] counts for this phase: floating-point operations for the
     /// products (a multiply-add is two), corners read or written for the grids (each `features` floats),
-    /// bytes read and written for the optimizer and the checks, sample points for whole steps; nothing
+    /// bytes read and written for the optimizer, sample points for whole steps; nothing
     /// (`""`) for the elementwise code, whose work has no single measure.
     pub fn unit(self) -> &'static str {
         match self {
             Phase::GridReads | Phase::GridScatters => "corners",
             Phase::Products | Phase::OuterProducts => "FLOP",
-            Phase::Optimizer | Phase::Checks => "bytes",
+            Phase::Optimizer => "bytes",
             Phase::Steps => "samples",
             Phase::Elementwise => "",
         }
@@ -72,8 +67,8 @@ impl Phase {
 }
 
 static ENABLED: AtomicBool = AtomicBool::new(false);
-static NANOS: [AtomicU64; 8] = [const { AtomicU64::new(0) }; 8];
-static WORK: [AtomicU64; 8] = [const { AtomicU64::new(0) }; 8];
+static NANOS: [AtomicU64; 7] = [const { AtomicU64::new(0) }; 7];
+static WORK: [AtomicU64; 7] = [const { AtomicU64::new(0) }; 7];
 
 /// Turns the accounting on or off (for the whole process).
 pub fn enable(on: bool) {
@@ -103,9 +98,9 @@ pub fn count(phase: Phase, amount: u64) {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Times {
     /// Nanoseconds per phase, in the order of [`Phase::ALL`].
-    pub nanos: [u64; 8],
+    pub nanos: [u64; 7],
     /// Work per phase in its [`Phase::unit`], in the same order.
-    pub work: [u64; 8],
+    pub work: [u64; 7],
 }
 
 impl Times {
@@ -133,8 +128,8 @@ pub fn take() -> Times {
 /// is off.
 pub(crate) struct Laps {
     last: Option<Instant>,
-    nanos: [u64; 8],
-    work: [u64; 8],
+    nanos: [u64; 7],
+    work: [u64; 7],
 }
 
 impl Laps {
@@ -142,8 +137,8 @@ impl Laps {
     pub(crate) fn start() -> Laps {
         Laps {
             last: enabled().then(Instant::now),
-            nanos: [0; 8],
-            work: [0; 8],
+            nanos: [0; 7],
+            work: [0; 7],
         }
     }
 

@@ -42,7 +42,7 @@ impl Appearance {
     }
 
     /// One Adam step of view `view`'s transform at learning rate `lr` along `grads` (∂loss/∂values), plus
-    /// the pull toward the identity.
+    /// the pull toward the identity; a transform that would become non-finite stops the run.
     pub fn step(&mut self, view: usize, grads: [f32; TRANSFORM_VALUES], lr: f32) -> Result<()> {
         let values = &mut self.transforms[view].0;
         let identity = ColorTransform::IDENTITY.0;
@@ -51,8 +51,13 @@ impl Appearance {
             .collect();
         let adam = &mut self.optimizers[view];
         adam.lr = lr;
-        adam.step(values, &pulled)
-            .map_err(|e| Failure::Message(e.to_string()))
+        match adam.step(values, &pulled) {
+            Ok(0) => Ok(()),
+            Ok(_) => Err(Failure::Message(format!(
+                "training diverged: the colour transform of training view {view} would become non-finite"
+            ))),
+            Err(e) => Err(Failure::Message(e.to_string())),
+        }
     }
 
     /// The state of every view for a checkpoint: [`VIEW_STATE`] floats a view, in the views' order.

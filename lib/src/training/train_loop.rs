@@ -7,10 +7,10 @@
 //!
 //! Per step k from the first (0, or the checkpoint's step when resuming) to `steps`:
 //! 1. [`Objective::before_step`], then [`Objective::gradient`] at the params;
-//! 2. a non-finite loss or gradient stops the run with [`crate::checkpoint::diverged`] (the checkpoint on
-//!    disk is the last good one: it is only ever written after a finite step);
-//! 3. Adam at the schedule's rate for step k; should a param become non-finite all the same, the params of
-//!    before the step are restored and the run stops;
+//! 2. Adam at the schedule's rate for step k, whose pass over the params also checks them: a non-finite
+//!    loss or gradient stops the run with [`crate::checkpoint::diverged`] (the checkpoint on disk is the
+//!    last good one: it is only ever written after a finite step), and so does a param that would become
+//!    non-finite (Adam leaves each such element as it was; the run stops before anything is written);
 //! 4. [`Objective::after_step`] with the [`Progress`]; the checkpoint when due; the run ends after the last
 //!    step, once the steps (hooks excluded) have taken the time limit, or when Ctrl-C asked it to.
 
@@ -20,7 +20,6 @@ use std::time::Instant;
 use nerfjit_dsl::Program;
 use nerfjit_jit::profile::{self, Phase};
 use nerfjit_runtime::Schedule;
-use rayon::prelude::*;
 
 use crate::cluster::Reduction;
 use crate::failure::{Failure, Result};
@@ -298,8 +297,6 @@ pub fn train(
     }
     // Bytes each rank sent in the all-reduces, and the steps that sent only the non-zero values.
     let (mut bytes_sent, mut sparse_steps) = (0.0, 0u32);
-    // The params before a step, to restore if the step makes one non-finite (kept between steps).
-    let mut before = Vec::new();
     // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
     let (mut reduce_seconds, mut step_seconds) = (0.0, 0.0);
     // In an MPI job the ranks keep one clock: the mean of their training times, agreed at each all-reduce
@@ -351,41 +348,27 @@ pub fn train(
             agreed = Some((sums[1] > 0.0, f64::from(sums[2] * scale)));
         }
         let threads = rayon::current_num_threads() as u32;
-        let checking = Instant::now();
-        let grads_finite = loss.is_finite() && all_finite(&grads);
-        let mut checks = checking.elapsed();
-        if !grads_finite {
+        let diverged = |grads: &[f32]| {
             ui.bar.abandon();
-            return Err(crate::checkpoint::diverged(
-                program,
-                step,
-                loss,
-                &grads,
-                settings.checkpoint,
-            ));
+            crate::checkpoint::diverged(program, step, loss, grads, settings.checkpoint)
+        };
+        if !loss.is_finite() {
+            return Err(diverged(&grads));
         }
         adam.lr = lr;
-        let copying = Instant::now();
-        copy_into(&mut before, params);
-        checks += copying.elapsed();
         let update = Instant::now();
-        adam.step(params, &grads)?;
+        let rejected = adam.step(params, &grads)?;
         // Adam runs on every thread: its time summed over them, as the kernels' phases are.
         profile::record(Phase::Optimizer, update.elapsed() * threads);
         // Adam reads the params, gradients and both moments and writes all but the gradients.
         profile::count(Phase::Optimizer, 28 * params.len() as u64);
-        let checking = Instant::now();
-        let params_finite = all_finite(params);
-        checks += checking.elapsed();
-        // The step waits for the checks on every thread; they read the gradients, the params twice, and
-        // write the copy.
-        profile::record(Phase::Checks, checks * threads);
-        profile::count(Phase::Checks, 16 * params.len() as u64);
-        if !params_finite {
-            params.copy_from_slice(&before);
+        if rejected > 0 {
+            if !grads.iter().all(|g| g.is_finite()) {
+                return Err(diverged(&grads));
+            }
             ui.bar.abandon();
             return Err(Failure::Message(format!(
-                "training diverged at step {step}: a param became non-finite"
+                "training diverged at step {step}: {rejected} param values would become non-finite"
             )));
         }
         objective.recycle(grads);
@@ -481,24 +464,6 @@ fn check_same_params(cluster: &dyn crate::cluster::Cluster, params: &[f32], done
         }
         _ => Ok(()),
     }
-}
-
-/// Values a task of the loop's passes over the params takes.
-const PASS_BLOCK: usize = 1 << 16;
-
-/// Whether every value is finite: on every thread, each block without branches so that it vectorizes.
-fn all_finite(values: &[f32]) -> bool {
-    values
-        .par_chunks(PASS_BLOCK)
-        .all(|block| block.iter().fold(true, |all, v| all & v.is_finite()))
-}
-
-/// `copy` becomes a copy of `values`, on every thread.
-fn copy_into(copy: &mut Vec<f32>, values: &[f32]) {
-    copy.resize(values.len(), 0.0);
-    copy.par_chunks_mut(PASS_BLOCK)
-        .zip(values.par_chunks(PASS_BLOCK))
-        .for_each(|(c, v)| c.copy_from_slice(v));
 }
 
 #[cfg(test)]

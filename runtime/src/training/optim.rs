@@ -14,6 +14,10 @@ use crate::error::{Error, Result};
 /// them: an entry whose gradient is exactly 0 in a step keeps its moments and its value (the step count
 /// t of the bias correction is the optimizer's, as in PyTorch); instant-ngp's optimizer also leaves
 /// untouched table entries alone.
+///
+/// An element whose gradient or updated value is not finite keeps its value and moments, and
+/// [`Adam::step`] counts it: training checks the step's outcome in the update's own pass over the params
+/// rather than in passes of its own.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Adam {
     /// Learning rate (set it from a [`Schedule`] before each step if it varies).
@@ -51,8 +55,9 @@ impl Adam {
         self.steps
     }
 
-    /// Updates `params` by one step along the gradients `grads` (both of length `n_params`).
-    pub fn step(&mut self, params: &mut [f32], grads: &[f32]) -> Result<()> {
+    /// Updates `params` by one step along the gradients `grads` (both of length `n_params`); returns the
+    /// number of elements left as they were because their gradient or updated value is not finite.
+    pub fn step(&mut self, params: &mut [f32], grads: &[f32]) -> Result<usize> {
         if params.len() != self.m.len() || grads.len() != self.m.len() {
             return Err(Error::Invalid(format!(
                 "Adam for {} parameters got {} parameters and {} gradients",
@@ -83,18 +88,18 @@ impl Adam {
         };
         // Each stretch of dense params before a sparse range, then that range; the empty range at the end
         // closes the last dense stretch.
-        let mut start = 0;
+        let (mut start, mut rejected) = (0, 0);
         for range in sparse
             .iter()
             .cloned()
             .chain(std::iter::once(params.len()..params.len()))
         {
             let dense = start..range.start;
-            update.run(params, grads, &mut self.m, &mut self.v, dense, false);
+            rejected += update.run(params, grads, &mut self.m, &mut self.v, dense, false);
             start = range.end;
-            update.run(params, grads, &mut self.m, &mut self.v, range, true);
+            rejected += update.run(params, grads, &mut self.m, &mut self.v, range, true);
         }
-        Ok(())
+        Ok(rejected)
     }
 
     /// The first and second moments, one of each per parameter.
@@ -161,10 +166,11 @@ struct Update {
 }
 
 impl Update {
-    /// Updates the params in `range`, leaving those whose gradient is 0 as they are if `sparse`. Element by
-    /// element (the same result on any number of threads), in parallel blocks; without branches and with
-    /// the coefficients copied into the closure, so that the loop vectorizes (a table of millions of
-    /// entries is updated every step).
+    /// Updates the params in `range`, leaving those whose gradient is 0 as they are if `sparse`, and those
+    /// whose gradient or updated value is not finite (returns their count). Element by element (the same
+    /// result on any number of threads), in parallel blocks; without branches and with the coefficients
+    /// copied into the closure, so that the loop vectorizes (a table of millions of entries is updated
+    /// every step).
     fn run(
         &self,
         params: &mut [f32],
@@ -173,7 +179,7 @@ impl Update {
         v: &mut [f32],
         range: Range<usize>,
         sparse: bool,
-    ) {
+    ) -> usize {
         const BLOCK: usize = 1 << 14;
         let Update {
             b1,
@@ -188,19 +194,24 @@ impl Update {
             .par_chunks_mut(BLOCK)
             .zip(grads[r.clone()].par_chunks(BLOCK))
             .zip(m[r.clone()].par_chunks_mut(BLOCK).zip(v[r].par_chunks_mut(BLOCK)))
-            .for_each(move |((params, grads), (m, v))| {
+            .map(move |((params, grads), (m, v))| {
+                let mut rejected = 0u32;
                 for ((p, &g), (m, v)) in params.iter_mut().zip(grads).zip(m.iter_mut().zip(v)) {
                     let m_new = b1 * *m + (1.0 - b1) * g;
                     let v_new = b2 * *v + (1.0 - b2) * g * g;
                     let m_hat = m_new / correction1;
                     let v_hat = v_new / correction2;
                     let p_new = *p - lr * m_hat / (v_hat.sqrt() + eps);
-                    let keep = sparse & (g == 0.0);
+                    let bad = !(g.is_finite() & p_new.is_finite());
+                    rejected += u32::from(bad);
+                    let keep = (sparse & (g == 0.0)) | bad;
                     *m = if keep { *m } else { m_new };
                     *v = if keep { *v } else { v_new };
                     *p = if keep { *p } else { p_new };
                 }
-            });
+                rejected as usize
+            })
+            .sum()
     }
 }
 
@@ -414,6 +425,32 @@ mod tests {
         assert!(Adam::from_state(2, 0.01, &[0.5, 0.0, 0.0, 0.0, 0.0]).is_err());
         assert!(Adam::from_state(0, 0.01, &[]).is_err());
         assert!(a.step(&mut [0.0; 3], &[0.0; 3]).is_err());
+    }
+
+    #[test]
+    fn elements_whose_gradient_or_new_value_is_not_finite_keep_their_state_and_are_counted() {
+        for sparse in [false, true] {
+            // A huge rate makes element 3's step overflow; elements 1 and 2 have non-finite gradients.
+            let mut adam = Adam::new(5, 1e38);
+            if sparse {
+                adam.sparse = std::iter::once(0..5).collect();
+            }
+            adam.step(&mut [0.0; 5], &[1.0, 1.0, 1.0, 0.0, 1.0]).unwrap();
+            let (m, v) = (adam.m.clone(), adam.v.clone());
+            let mut p = [1.0, 2.0, 3.0, -3e38, 5.0];
+            let before = p;
+            let rejected = adam
+                .step(&mut p, &[1e-30, f32::NAN, f32::INFINITY, 1.0, 0.0])
+                .unwrap();
+            assert_eq!(rejected, 3, "sparse {sparse}");
+            assert!(p.iter().all(|x| x.is_finite()), "{p:?}");
+            assert_eq!(&p[1..4], &before[1..4]);
+            assert_eq!((&adam.m[1..4], &adam.v[1..4]), (&m[1..4], &v[1..4]));
+            // The finite elements did step: element 0 on its gradient, element 4 on its moments unless
+            // sparse (a zero gradient there keeps it).
+            assert_ne!(p[0], before[0]);
+            assert_eq!(p[4] == before[4], sparse);
+        }
     }
 
     #[test]
