@@ -11,7 +11,7 @@
 //!    loss or gradient stops the run with [`crate::checkpoint::diverged`] (the checkpoint on disk is the
 //!    last good one: it is only ever written after a finite step), and so does a param that would become
 //!    non-finite (Adam leaves each such element as it was; the run stops before anything is written);
-//! 4. [`Objective::after_step`] with the [`Progress`]; the checkpoint when due; the run ends after the last
+//! 3. [`Objective::after_step`] with the [`Progress`]; the checkpoint when due; the run ends after the last
 //!    step, once the steps (hooks excluded) have taken the time limit, or when Ctrl-C asked it to.
 
 use std::path::Path;
