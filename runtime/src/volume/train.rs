@@ -9,7 +9,8 @@
 //! c mod [`ACCUMULATORS`], whose chunks run in order in one parallel task, and the accumulators are
 //! summed in order, so a step's result does not depend on the number of threads. Accumulators
 //! are kept between steps (a hash grid's gradient has millions of entries: fresh memory every step
-//! would be faulted in page by page).
+//! would be faulted in page by page), and the sum zeroes each one it adds as it reads it, so the
+//! next step need not clear them in a pass of its own.
 
 use std::sync::Mutex;
 
@@ -44,14 +45,25 @@ pub const KEPT_TILE_BYTES: usize = 32 << 20;
 /// Gradient accumulators of a step at most (its parallel tasks).
 pub const ACCUMULATORS: usize = 4;
 
-/// Accumulators given back by earlier steps, for the next ones.
-static SPARE_ACCUMULATORS: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+/// An accumulator given back by an earlier step, and whether it is already all zeros.
+struct Spare {
+    grads: Vec<f32>,
+    zeroed: bool,
+}
 
-/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length.
+/// Accumulators given back by earlier steps, for the next ones.
+static SPARE_ACCUMULATORS: Mutex<Vec<Spare>> = Mutex::new(Vec::new());
+
+/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length, one the
+/// step that gave it back zeroed first.
 fn accumulator(n: usize) -> Vec<f32> {
-    let spare = SPARE_ACCUMULATORS.lock().map(|mut s| s.pop()).unwrap_or(None);
+    let spare = SPARE_ACCUMULATORS.lock().ok().and_then(|mut s| {
+        let zeroed = s.iter().rposition(|a| a.zeroed);
+        zeroed.or(s.len().checked_sub(1)).map(|i| s.swap_remove(i))
+    });
     match spare {
-        Some(mut grads) if grads.len() == n => {
+        Some(Spare { grads, zeroed: true }) if grads.len() == n => grads,
+        Some(Spare { mut grads, .. }) if grads.len() == n => {
             grads.fill(0.0);
             grads
         }
@@ -59,14 +71,19 @@ fn accumulator(n: usize) -> Vec<f32> {
     }
 }
 
+/// Keeps `grads` for later steps, with whether it is all zeros.
+fn keep_spare(grads: Vec<f32>, zeroed: bool) {
+    if let Ok(mut spare) = SPARE_ACCUMULATORS.lock() {
+        if spare.len() < 2 * ACCUMULATORS {
+            spare.push(Spare { grads, zeroed });
+        }
+    }
+}
+
 /// Gives a step's gradient (its [`StepResult::param_grads`], once used) back as an accumulator for
 /// the next steps; optional, it saves faulting in fresh memory for large tables.
 pub fn recycle(grads: Vec<f32>) {
-    if let Ok(mut spare) = SPARE_ACCUMULATORS.lock() {
-        if spare.len() < 2 * ACCUMULATORS {
-            spare.push(grads);
-        }
-    }
+    keep_spare(grads, false);
 }
 
 /// The outcome of [`volume_step`].
@@ -495,20 +512,24 @@ pub fn volume_step_with(
     let squared_error = totals.squared_error;
     let mut accumulators = tasks.into_iter().map(|(_, grads)| grads);
     let mut param_grads = accumulators.next().unwrap_or_else(|| vec![0.0; n_params]);
-    let rest: Vec<Vec<f32>> = accumulators.collect();
-    // Element by element in task order: the same sums on any number of threads.
-    param_grads
-        .par_chunks_mut(1 << 16)
-        .enumerate()
-        .for_each(|(i, total)| {
-            for grads in &rest {
-                let part = &grads[i << 16..(i << 16) + total.len()];
-                for (t, g) in total.iter_mut().zip(part) {
-                    *t += g;
-                }
+    let mut rest: Vec<Vec<f32>> = accumulators.collect();
+    // Element by element in task order: the same sums on any number of threads. Each part is zeroed as
+    // it is added, while it is in cache, so that the next step need not clear it.
+    const BLOCK: usize = 1 << 16;
+    let mut parts: Vec<_> = rest.iter_mut().map(|g| g.chunks_mut(BLOCK)).collect();
+    let blocks: Vec<(&mut [f32], Vec<&mut [f32]>)> = param_grads
+        .chunks_mut(BLOCK)
+        .map(|total| (total, parts.iter_mut().filter_map(Iterator::next).collect()))
+        .collect();
+    blocks.into_par_iter().for_each(|(total, parts)| {
+        for part in parts {
+            for (t, g) in total.iter_mut().zip(part) {
+                *t += *g;
+                *g = 0.0;
             }
-        });
-    rest.into_iter().for_each(recycle);
+        }
+    });
+    rest.into_iter().for_each(|grads| keep_spare(grads, true));
     let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
     let (loss, coarse_loss) = match job.fine {
         Some(_) => (mse(squared_error[1]), Some(mse(squared_error[0]))),
