@@ -54,12 +54,12 @@ struct Spare {
 /// Accumulators given back by earlier steps, for the next ones.
 static SPARE_ACCUMULATORS: Mutex<Vec<Spare>> = Mutex::new(Vec::new());
 
-/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length, one the
-/// step that gave it back zeroed first.
+/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length, preferring
+/// one given back already zeroed.
 fn accumulator(n: usize) -> Vec<f32> {
     let spare = SPARE_ACCUMULATORS.lock().ok().and_then(|mut s| {
-        let zeroed = s.iter().rposition(|a| a.zeroed);
-        zeroed.or(s.len().checked_sub(1)).map(|i| s.swap_remove(i))
+        let i = s.iter().rposition(|a| a.zeroed).or(s.len().checked_sub(1))?;
+        Some(s.swap_remove(i))
     });
     match spare {
         Some(Spare { grads, zeroed: true }) if grads.len() == n => grads,
