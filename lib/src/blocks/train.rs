@@ -366,10 +366,13 @@ impl TrainPlan {
     }
 
     /// Runs only the first `steps` steps (no checkpoints, previews or summary file), for benchmarks;
-    /// returns the ms per step of the training loop alone.
+    /// returns the ms per step of the training loop alone. The block's time limit is dropped: a schedule
+    /// `over: run` runs over the steps, whatever the machine's speed, so that the same build gives the same
+    /// losses (with the limit, slow steps made the learning rate follow the clock).
     pub fn run_steps(&self, program: &Program, params: &mut Vec<f32>, steps: u32) -> Result<String> {
         let quiet = TrainPlan {
             steps,
+            time_limit: None,
             checkpoint: None,
             log: None,
             tensorboard: None,
