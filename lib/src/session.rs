@@ -40,6 +40,7 @@ use std::rc::Rc;
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::{compile_with, Program};
 use nerfjit_jit::KernelCache;
+use nerfjit_runtime::OccupancyGrid;
 
 use crate::blocks::mesh::MeshPlan;
 use crate::blocks::sphere_trace::SphereTracePlan;
@@ -70,6 +71,8 @@ pub struct Session {
     params: Vec<f32>,
     cache: KernelCache,
     plans: Vec<Plan>,
+    /// The occupancy grid the last `train` block ended with, while the params are the ones it trained.
+    trained_grid: Option<OccupancyGrid>,
 }
 
 impl Session {
@@ -115,6 +118,7 @@ impl Session {
             params,
             cache: KernelCache::new(),
             plans,
+            trained_grid: None,
         })
     }
 
@@ -152,6 +156,7 @@ impl Session {
             )));
         }
         self.params[p.offset..p.offset + values.len()].copy_from_slice(values);
+        self.trained_grid = None;
         Ok(())
     }
 
@@ -201,17 +206,25 @@ impl Session {
         }
         match &self.plans[index] {
             Plan::SphereTrace(p) => p.run(program, params, cache, &frames),
-            Plan::Volume(p) => p.run(program, params, cache, &frames),
-            Plan::Train(p) => p.run(
-                program,
-                params,
-                cache,
-                observer.resume,
-                observer.live,
-                observer.bars(),
-            ),
+            Plan::Volume(p) => p.run(program, params, cache, self.trained_grid.as_ref(), &frames),
+            Plan::Train(p) => {
+                self.trained_grid = None;
+                let trained = p.run(
+                    program,
+                    params,
+                    cache,
+                    observer.resume,
+                    observer.live,
+                    observer.bars(),
+                )?;
+                self.trained_grid = trained.occupancy;
+                Ok(trained.summary)
+            }
             Plan::Viz(p) => p.run(),
-            Plan::TrainSdf(p) => p.run(program, params, cache, observer.resume, observer.bars()),
+            Plan::TrainSdf(p) => {
+                self.trained_grid = None;
+                p.run(program, params, cache, observer.resume, observer.bars())
+            }
             Plan::Mesh(p) => {
                 // A mesh of a function fitted to a cloud scaled into the unit sphere is written in the cloud's
                 // units: the frame of the last point-cloud fit before this block.
@@ -284,6 +297,64 @@ mod tests {
             (small - 0.5).abs() < 0.05 && (large - 0.8).abs() < 0.05,
             "{small} {large}"
         );
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn renders_after_training_skip_the_cells_of_the_trained_grid() {
+        let out = std::env::temp_dir().join(format!("nerfjit-session-grid-{}", std::process::id()));
+        std::fs::create_dir_all(&out).unwrap();
+        let camera = |image: &str, eye: &str| {
+            format!(
+                r#"{{"image": "{image}", "focal": 1.0, "principal_point": [0, 0], "eye": {eye},
+                "scene_center": [0, 0, 0], "up": [0, 1, 0]}}"#
+            )
+        };
+        let json = format!(
+            r#"{{"image_size": [16, 16], "cameras": [{}, {}]}}"#,
+            camera("v_000.png", "[-2.5, 0.3, 0]"),
+            camera("v_001.png", "[0, -0.4, -2.5]")
+        );
+        std::fs::write(out.join("cams.json"), json).unwrap();
+        let field = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, [1, 0.8, 1]), alpha: 1.0, beta: 0.05)
+                     fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)
+";
+        let views = "camera: cameras(\"cams.json\"), size: 16, near: 0, far: 5, samples: 32";
+        let truth =
+            format!("const center = [0.2, 0, 0]\n{field}render volume {{ {views}, out: \"v.png\" }}\n");
+        Session::from_source("truth.sdf", &truth, &out)
+            .unwrap()
+            .run()
+            .unwrap();
+        let grid = |resolution: u32| {
+            format!("skip_empty: grid(bounds: 2, resolution: {resolution}, threshold: 0.001)")
+        };
+        let fit = format!(
+            "param center: vec3 = [0, 0, 0]\n{field}\
+             train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: 32, steps: 20, batch: 128, \
+             checkpoint: none, {}, grid_warmup: 10, grid_every: 5 }}\n\
+             render volume {{ {views}, {}, out: \"same.png\" }}\n\
+             render volume {{ {views}, {}, out: \"other.png\" }}\n",
+            grid(16),
+            grid(16),
+            grid(8)
+        );
+        let mut s = Session::from_source("fit.sdf", &fit, &out).unwrap();
+        let summaries = s.run().unwrap();
+        assert!(
+            summaries[1].contains("the train block's occupancy grid"),
+            "{}",
+            summaries[1]
+        );
+        assert!(
+            summaries[2].contains("occupancy grid built in"),
+            "{}",
+            summaries[2]
+        );
+        // Params changed after training: the trained grid no longer describes them.
+        s.set_param("center", &[0.1, 0.0, 0.0]).unwrap();
+        let again = s.run_block(1, &Observer::default()).unwrap();
+        assert!(again.contains("occupancy grid built in"), "{again}");
         std::fs::remove_dir_all(&out).unwrap();
     }
 }

@@ -107,6 +107,16 @@ struct Eikonal {
     occupied: bool,
 }
 
+/// What a `train` block leaves for the blocks after it.
+pub struct Trained {
+    /// The block's summary line.
+    pub summary: String,
+    /// The occupancy grid its last validation rendered with (as its checkpoint keeps it, for a run
+    /// already complete), if it skips empty space: render blocks of the same grid take it rather than
+    /// building one from the field, as `eval-views` of the checkpoint does.
+    pub occupancy: Option<OccupancyGrid>,
+}
+
 /// The `skip_empty`, `grid_every`, `grid_warmup`, `grid_update` and `grid_seed` settings.
 #[derive(Clone, Copy, Debug)]
 struct TrainingGrid {
@@ -383,8 +393,8 @@ impl TrainPlan {
             validation: None,
             ..*self
         };
-        let line = quiet.run(program, params, &KernelCache::new(), false, None, &NoBars)?;
-        Ok(line.lines().next().unwrap_or_default().to_string())
+        let trained = quiet.run(program, params, &KernelCache::new(), false, None, &NoBars)?;
+        Ok(trained.summary.lines().next().unwrap_or_default().to_string())
     }
 
     /// The training views and the held-out views validation scores (if the block asks for validation).
@@ -462,7 +472,8 @@ impl TrainPlan {
     }
 
     /// Trains `params` in place (resuming from the checkpoint when asked, compiling through `cache`),
-    /// publishing its progress and params to a live viewer when given; returns a summary line.
+    /// publishing its progress and params to a live viewer when given; returns its summary line and
+    /// final occupancy grid.
     pub fn run(
         &self,
         program: &Program,
@@ -471,7 +482,7 @@ impl TrainPlan {
         resume: bool,
         live: Option<&dyn TrainingObserver>,
         bars: &dyn ProgressBars,
-    ) -> Result<String> {
+    ) -> Result<Trained> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
         for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
             crate::note(&line);
@@ -534,7 +545,14 @@ impl TrainPlan {
         };
         let end = train_loop::train(program, params, &loop_settings, &mut objective)?;
         if end.complete {
-            return Ok(end.already_complete(self.checkpoint.as_deref()));
+            let occupancy = match (&self.grid, &self.checkpoint) {
+                (Some(_), Some(path)) => crate::checkpoint::saved_occupancy(path)?,
+                _ => None,
+            };
+            return Ok(Trained {
+                summary: end.already_complete(self.checkpoint.as_deref()),
+                occupancy,
+            });
         }
         let (loss, psnr) = (end.loss, objective.psnr);
         let (ms_per_step, samples_per_s) = (end.ms_per_step(), end.samples_per_s());
@@ -567,14 +585,18 @@ impl TrainPlan {
             Some(_) => format!(", {} rays a step at the end", objective.rays),
             None => String::new(),
         };
-        Ok(format!(
+        let summary = format!(
             "trained {} steps in {:.1} s of training, {:.1} s in all ({ms_per_step:.2} ms/step, {:.2} M samples/s{rays}, JIT compile {compile_s:.3} s): loss {loss:.6}, PSNR {psnr:.2} dB\n{}",
             end.trained(),
             end.train_seconds,
             end.wall_seconds,
             samples_per_s * 1e-6,
             describe_params(program, params)
-        ))
+        );
+        Ok(Trained {
+            summary,
+            occupancy: objective.grid.take(),
+        })
     }
 
     fn write_preview(

@@ -5,7 +5,9 @@ use std::time::Instant;
 
 use nerfjit_dsl::Program;
 use nerfjit_jit::{KernelCache, Precision};
-use nerfjit_runtime::{rgb_image, Camera, DepthSpacing, Mode, Quantize, VolumeFrame, VolumeSettings};
+use nerfjit_runtime::{
+    rgb_image, Camera, DepthSpacing, Mode, OccupancyGrid, Quantize, VolumeFrame, VolumeSettings,
+};
 
 use crate::diagnostics::nonfinite::{self, ProbeRays};
 use crate::failure::{Failure, Result};
@@ -100,12 +102,15 @@ impl VolumePlan {
     }
 
     /// Renders every frame with `params` (compiling through `cache`) and writes the outputs; returns a
-    /// summary line.
+    /// summary line. With `skip_empty`, the frames skip the cells of `trained` (the grid a `train` block
+    /// of these params ended with) when it has the block's bounds, resolution and space, and those of a
+    /// grid built from the field otherwise.
     pub fn run(
         &self,
         program: &Program,
         params: &[f32],
         cache: &KernelCache,
+        trained: Option<&OccupancyGrid>,
         progress: &dyn Fn(usize),
     ) -> Result<String> {
         let t = Instant::now();
@@ -115,19 +120,34 @@ impl VolumePlan {
         let settings = self.settings(field);
         let (w, h) = self.size;
         let start = Instant::now();
-        let grid = match self.skip_empty {
-            Some(s) => Some(field.occupancy_grid(
-                program,
-                params,
-                cache,
-                (s.bounds, s.resolution, s.threshold, s.space),
-            )?),
-            None => None,
+        let built;
+        let (grid, grid_note) = match self.skip_empty {
+            Some(s) => {
+                let same = |g: &&OccupancyGrid| {
+                    (g.bounds(), g.resolution(), g.space()) == (s.bounds, s.resolution, s.space)
+                };
+                match trained.filter(same) {
+                    Some(g) => (Some(g), "; the train block's occupancy grid".to_string()),
+                    None => {
+                        built = field.occupancy_grid(
+                            program,
+                            params,
+                            cache,
+                            (s.bounds, s.resolution, s.threshold, s.space),
+                        )?;
+                        let note =
+                            format!("; occupancy grid built in {:.3} s", start.elapsed().as_secs_f64());
+                        (Some(&built), note)
+                    }
+                }
+            }
+            None => (None, String::new()),
         };
+        let start = Instant::now();
         // Each rank of an MPI job renders its share of the frames; rank 0 gathers and writes them.
         let mut done = 0;
         let rendered = crate::cluster::split(self.cameras.len(), |i| -> Result<Vec<u8>> {
-            let frame = fields.render_with(&self.cameras[i], (w, h), params, &settings, grid.as_ref())?;
+            let frame = fields.render_with(&self.cameras[i], (w, h), params, &settings, grid)?;
             done += 1;
             progress(done);
             Ok(frame_bytes(&frame))
@@ -185,7 +205,7 @@ impl VolumePlan {
             })?;
         }
         Ok(format!(
-            "volume-rendered {} frame{} of {w}×{h}×{} samples in {seconds:.3} s ({:.2} ms/frame; JIT compile {compile_s:.3} s) → {}",
+            "volume-rendered {} frame{} of {w}×{h}×{} samples in {seconds:.3} s ({:.2} ms/frame; JIT compile {compile_s:.3} s{grid_note}) → {}",
             frames.len(),
             if frames.len() == 1 { "" } else { "s" },
             self.samples,
