@@ -316,9 +316,8 @@ mod tests {
             camera("v_001.png", "[0, -0.4, -2.5]")
         );
         std::fs::write(out.join("cams.json"), json).unwrap();
-        let field = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, [1, 0.8, 1]), alpha: 1.0, beta: 0.05)
-                     fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)
-";
+        let field = "fn opacity(p: vec3) -> f32 = opacity_laplace(box(p - center, [1, 0.8, 1]), alpha: 1.0, beta: 0.05)\n\
+                     fn color(p: vec3) -> vec3 = clamp(abs(p - center), 0.02, 0.98)\n";
         let views = "camera: cameras(\"cams.json\"), size: 16, near: 0, far: 5, samples: 32";
         let truth =
             format!("const center = [0.2, 0, 0]\n{field}render volume {{ {views}, out: \"v.png\" }}\n");

@@ -122,25 +122,19 @@ impl VolumePlan {
         let start = Instant::now();
         let built;
         let (grid, grid_note) = match self.skip_empty {
-            Some(s) => {
-                let same = |g: &&OccupancyGrid| {
-                    (g.bounds(), g.resolution(), g.space()) == (s.bounds, s.resolution, s.space)
-                };
-                match trained.filter(same) {
-                    Some(g) => (Some(g), "; the train block's occupancy grid".to_string()),
-                    None => {
-                        built = field.occupancy_grid(
-                            program,
-                            params,
-                            cache,
-                            (s.bounds, s.resolution, s.threshold, s.space),
-                        )?;
-                        let note =
-                            format!("; occupancy grid built in {:.3} s", start.elapsed().as_secs_f64());
-                        (Some(&built), note)
-                    }
+            Some(s) => match trained.filter(|g| s.fits(g)) {
+                Some(g) => (Some(g), "; the train block's occupancy grid".to_string()),
+                None => {
+                    built = field.occupancy_grid(
+                        program,
+                        params,
+                        cache,
+                        (s.bounds, s.resolution, s.threshold, s.space),
+                    )?;
+                    let note = format!("; occupancy grid built in {:.3} s", start.elapsed().as_secs_f64());
+                    (Some(&built), note)
                 }
-            }
+            },
             None => (None, String::new()),
         };
         let start = Instant::now();

@@ -206,10 +206,7 @@ impl Rendering {
         };
         if is_checkpoint(source) {
             let saved = crate::checkpoint::saved_occupancy(Path::new(source))?;
-            let same = |g: &OccupancyGrid| {
-                (g.bounds(), g.resolution(), g.space()) == (s.bounds, s.resolution, s.space)
-            };
-            if let Some(grid) = saved.filter(same) {
+            if let Some(grid) = saved.filter(|g| s.fits(g)) {
                 return Ok(Some(grid));
             }
         }

@@ -5,7 +5,7 @@
 use glam::Vec3;
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
-use nerfjit_runtime::{DepthSpacing, GridSpace, Schedule};
+use nerfjit_runtime::{DepthSpacing, GridSpace, OccupancyGrid, Schedule};
 
 use crate::settings::primitives::{triple, CallArgs};
 
@@ -20,6 +20,15 @@ pub struct SkipEmpty {
     pub threshold: f32,
     /// The space the grid's box is in: the scene's, or mip-NeRF 360's contraction (all of space).
     pub space: GridSpace,
+}
+
+impl SkipEmpty {
+    /// Whether `grid` (one a run kept) has this setting's bounds, resolution and space, so that a render
+    /// of this setting may skip its cells rather than build a grid of its own (the threshold is the one
+    /// the grid was made with).
+    pub fn fits(&self, grid: &OccupancyGrid) -> bool {
+        (grid.bounds(), grid.resolution(), grid.space()) == (self.bounds, self.resolution, self.space)
+    }
 }
 
 /// The `spacing` setting: `linear`, or `lindisp(split: 6)` (half the samples evenly in depth up to `split`,
