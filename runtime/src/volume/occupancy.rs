@@ -1006,6 +1006,52 @@ mod tests {
                 proptest::prop_assert!(!grid.occupied(p) || (a <= t && t <= b), "t {t} outside [{a}, {b}] at {p:?}");
             }
         }
+
+        /// The walk keeps exactly the samples whose points `occupied` accepts, in order, stops after
+        /// the wanted count with the sample after the last one kept, and otherwise at the range's end:
+        /// random grids, rays, ranges (shorter and longer than a chunk) and counts, continued from
+        /// where each call left off.
+        #[test]
+        fn the_walk_keeps_the_occupied_samples_in_order(
+            fill in 0.0f64..0.6,
+            seed in 0u64..1000,
+            origin in proptest::array::uniform3(-2.0f32..2.0),
+            target in proptest::array::uniform3(-1.0f32..1.0),
+            start in 0usize..40,
+            len in 0usize..120,
+            want in 1usize..12,
+        ) {
+            let res = 16;
+            let mut rng = crate::rng::Rng::new(seed);
+            let cells: Vec<bool> = (0..res * res * res).map(|_| f64::from(rng.next_f32()) < fill).collect();
+            let grid = OccupancyGrid::from_cells(UNIT, res, |i| cells[i]);
+            let d = [0, 1, 2].map(|i| target[i] - origin[i]);
+            let depth = |j: usize| 0.03 * j as f32;
+            let point = |j: usize| [0, 1, 2].map(|i| origin[i] + d[i] * depth(j));
+            let samples = start..start + len;
+            let expected: Vec<u32> =
+                samples.clone().filter(|&j| grid.occupied(point(j))).map(|j| j as u32).collect();
+            let (mut kept, mut from) = (Vec::new(), samples.start);
+            while from < samples.end {
+                let [mut x, mut y, mut z] = [0; 3].map(|_| vec![0.0f32; want]);
+                let mut index = vec![0u32; want];
+                let columns = [&mut x[..], &mut y[..], &mut z[..]];
+                let rest = from..samples.end;
+                let (n, next) = grid.next_occupied((origin, d), rest, depth, columns, &mut index);
+                proptest::prop_assert!(n <= want && next > from && next <= samples.end);
+                proptest::prop_assert!(n == want || next == samples.end, "{n} of {want}, stopped at {next}");
+                if n == want {
+                    proptest::prop_assert_eq!(next, index[n - 1] as usize + 1);
+                }
+                for k in 0..n {
+                    let p = point(index[k] as usize);
+                    proptest::prop_assert_eq!([x[k], y[k], z[k]], p);
+                }
+                kept.extend_from_slice(&index[..n]);
+                from = next;
+            }
+            proptest::prop_assert_eq!(kept, expected);
+        }
     }
 
     #[test]
