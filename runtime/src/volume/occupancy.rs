@@ -946,6 +946,15 @@ mod tests {
 
     const UNIT: ([f32; 3], [f32; 3]) = ([-1.0; 3], [1.0; 3]);
 
+    /// A grid over `bounds` whose cells are each occupied with probability `fill`.
+    fn random_grid(bounds: ([f32; 3], [f32; 3]), resolution: usize, fill: f64, seed: u64) -> OccupancyGrid {
+        let mut rng = crate::rng::Rng::new(seed);
+        let cells: Vec<bool> = (0..resolution.pow(3))
+            .map(|_| f64::from(rng.next_f32()) < fill)
+            .collect();
+        OccupancyGrid::from_cells(bounds, resolution, |i| cells[i])
+    }
+
     proptest::proptest! {
         /// The contraction puts all of space inside the ball of radius 2, and its inverse takes it back.
         #[test]
@@ -986,9 +995,7 @@ mod tests {
             snap in 0usize..4,
         ) {
             let bounds = ([-1.0, -0.5, -1.25], [1.0, 0.75, 0.5]);
-            let mut rng = crate::rng::Rng::new(seed);
-            let cells: Vec<bool> = (0..resolution.pow(3)).map(|_| f64::from(rng.next_f32()) < fill).collect();
-            let grid = OccupancyGrid::from_cells(bounds, resolution, |i| cells[i]);
+            let grid = random_grid(bounds, resolution, fill, seed);
             // Some rays along an axis, or from a block corner: the walk's ties.
             let mut d: [f32; 3] = [0, 1, 2].map(|i| target[i] - origin[i]);
             if snap == 1 {
@@ -1009,8 +1016,8 @@ mod tests {
 
         /// The walk keeps exactly the samples whose points `occupied` accepts, in order, stops after
         /// the wanted count with the sample after the last one kept, and otherwise at the range's end:
-        /// random grids, rays, ranges (shorter and longer than a chunk) and counts, continued from
-        /// where each call left off.
+        /// random grids, rays, ranges and counts, each walk continued from where the call before left
+        /// off.
         #[test]
         fn the_walk_keeps_the_occupied_samples_in_order(
             fill in 0.0f64..0.6,
@@ -1021,10 +1028,7 @@ mod tests {
             len in 0usize..120,
             want in 1usize..12,
         ) {
-            let res = 16;
-            let mut rng = crate::rng::Rng::new(seed);
-            let cells: Vec<bool> = (0..res * res * res).map(|_| f64::from(rng.next_f32()) < fill).collect();
-            let grid = OccupancyGrid::from_cells(UNIT, res, |i| cells[i]);
+            let grid = random_grid(UNIT, 16, fill, seed);
             let d = [0, 1, 2].map(|i| target[i] - origin[i]);
             let depth = |j: usize| 0.03 * j as f32;
             let point = |j: usize| [0, 1, 2].map(|i| origin[i] + d[i] * depth(j));
