@@ -63,6 +63,14 @@ const LAYERS_PER_TASK: usize = 4;
 /// ([`OccupancyGrid::occupied_stretch`]).
 const BLOCK: usize = 8;
 
+/// Coarse levels of the cells the walk over a ray's samples steps over empty space with: level k
+/// (1 to `COARSE_LEVELS`) has a bit per cube of 2^k cells per side ([`OccupancyGrid::next_occupied`]).
+const COARSE_LEVELS: usize = 3;
+
+/// How far inside an empty coarse cell, in cells, the walk stops stepping over samples, so that a
+/// rounding of a sample's point cannot carry it into a neighbouring cell unlooked.
+const SKIP_MARGIN: f32 = 1e-2;
+
 /// The space an occupancy grid's box is in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum GridSpace {
@@ -225,6 +233,10 @@ pub struct OccupancyGrid {
     /// block (x, y, z) is occupied (the dilation makes [`OccupancyGrid::occupied_stretch`] robust to
     /// rounding).
     blocks: Vec<u64>,
+    /// Level k's bits (k = 1 to [`COARSE_LEVELS`], at index k − 1), in the cells' layout with rows of
+    /// 2^(shift − k) bits: bit (x, y, z) is set if a cell of the cube of 2^k cells per side at
+    /// (x, y, z)·2^k is occupied (no dilation).
+    coarse: [Vec<u64>; COARSE_LEVELS],
 }
 
 impl OccupancyGrid {
@@ -394,8 +406,9 @@ impl OccupancyGrid {
             outer: [lo, hi].map(|side| [0, 1, 2].map(|i| side[i] + (side[i] - center[i]) * 2e-4)),
             bits,
             blocks: Vec::new(),
+            coarse: Default::default(),
         };
-        grid.mark_blocks();
+        grid.summarize_cells();
         grid
     }
 
@@ -404,10 +417,13 @@ impl OccupancyGrid {
         self.resolution.div_ceil(BLOCK)
     }
 
-    /// Sets `blocks` from the cells' bits.
-    fn mark_blocks(&mut self) {
+    /// Sets `blocks` and `coarse` from the cells' bits.
+    fn summarize_cells(&mut self) {
         let (res, n) = (self.resolution, self.blocks_per_axis());
         let mut blocks = vec![0u64; (n * n * n).div_ceil(64)];
+        let coarse_shift = |k: usize| self.shift.saturating_sub(k as u32);
+        let mut coarse: [Vec<u64>; COARSE_LEVELS] =
+            std::array::from_fn(|level| vec![0u64; (1usize << (3 * coarse_shift(level + 1))).div_ceil(64)]);
         let row = 1usize << self.shift;
         for (w, &word) in self.bits.iter().enumerate() {
             let mut word = word;
@@ -415,6 +431,11 @@ impl OccupancyGrid {
                 let bit = w * 64 + word.trailing_zeros() as usize;
                 word &= word - 1;
                 let (x, y, z) = (bit % row, bit / row % row, bit / (row * row));
+                for (level, bits) in coarse.iter_mut().enumerate() {
+                    let k = level + 1;
+                    let at = bit_of(coarse_shift(k), [x >> k, y >> k, z >> k].map(|c| c as u32)) as usize;
+                    bits[at / 64] |= 1 << (at % 64);
+                }
                 // The blocks within one cell of the cell: those of its neighbours'.
                 let near = |c: usize| c.saturating_sub(1) / BLOCK..=(c + 1).min(res - 1) / BLOCK;
                 for bz in near(z) {
@@ -427,7 +448,7 @@ impl OccupancyGrid {
                 }
             }
         }
-        self.blocks = blocks;
+        (self.blocks, self.coarse) = (blocks, coarse);
     }
 
     /// Whether block (x, y, z) is marked (see `blocks`).
@@ -581,7 +602,7 @@ impl OccupancyGrid {
                     }
                 }
             }
-            grid.mark_blocks();
+            grid.summarize_cells();
         }
         grid
     }
@@ -694,21 +715,50 @@ impl OccupancyGrid {
     ) -> (usize, usize) {
         // The space's branch outside the walk.
         match self.space {
-            GridSpace::Scene => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
-                self.box_bit_index(p[0], p[1], p[2])
-            }),
-            GridSpace::Contracted => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
-                let [x, y, z] = contract(p);
-                self.box_bit_index(x, y, z)
-            }),
-            GridSpace::Ndc => self.walk((o, d), samples, depth, [x, y, z], index, |p| {
-                let [x, y, z] = ndc(p);
-                self.box_bit_index(x, y, z)
-            }),
+            GridSpace::Scene => {
+                // The ray in cell coordinates (cell c spans [c, c + 1) along each axis), for stepping
+                // over empty coarse cells: rays are straight through the cells in the scene's space.
+                let start = [0, 1, 2].map(|i| (o[i] - self.lo[i]) * self.scale[i]);
+                let inverse = [0, 1, 2].map(|i| 1.0 / (d[i] * self.scale[i]));
+                self.walk(
+                    (o, d),
+                    samples,
+                    depth,
+                    [x, y, z],
+                    index,
+                    |p| self.box_bit_index(p[0], p[1], p[2]),
+                    |p, t| Some(self.empty_until(p, t, (start, inverse))),
+                )
+            }
+            GridSpace::Contracted => self.walk_warped((o, d), samples, depth, [x, y, z], index, contract),
+            GridSpace::Ndc => self.walk_warped((o, d), samples, depth, [x, y, z], index, ndc),
         }
     }
 
-    /// [`OccupancyGrid::next_occupied`] with each point's bit from `bit_index`.
+    /// [`OccupancyGrid::walk`] in a space whose box coordinates `warp` gives (no straight rays through the
+    /// cells: nothing is stepped over).
+    #[inline(always)]
+    fn walk_warped(
+        &self,
+        ray: ([f32; 3], [f32; 3]),
+        samples: Range<usize>,
+        depth: impl Fn(usize) -> f32,
+        points: [&mut [f32]; 3],
+        index: &mut [u32],
+        warp: impl Fn([f32; 3]) -> [f32; 3],
+    ) -> (usize, usize) {
+        let bit_index = |p| {
+            let [x, y, z] = warp(p);
+            self.box_bit_index(x, y, z)
+        };
+        self.walk(ray, samples, depth, points, index, bit_index, |_, _| None)
+    }
+
+    /// [`OccupancyGrid::next_occupied`] with each point's bit from `bit_index`; after a sample at point
+    /// p and depth t in an empty cell, the samples of depths from t up to `empty_until(p, t)` (if it
+    /// gives one: the depth to which the ray stays in empty cells, [`OccupancyGrid::empty_until`]) are
+    /// stepped over without looking them up.
+    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn walk(
         &self,
@@ -718,19 +768,61 @@ impl OccupancyGrid {
         [x, y, z]: [&mut [f32]; 3],
         index: &mut [u32],
         bit_index: impl Fn([f32; 3]) -> u32,
+        empty_until: impl Fn([f32; 3], f32) -> Option<f32>,
     ) -> (usize, usize) {
         let (want, mut found, mut j) = (index.len(), 0, samples.start);
         while j < samples.end && found < want {
             let t = depth(j);
             let p = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
-            // Written at `found` either way (there is room: found < want), kept only if occupied:
-            // no branch to mispredict.
+            // Written at `found` either way (there is room: found < want), kept only if occupied.
             (x[found], y[found], z[found]) = (p[0], p[1], p[2]);
             index[found] = j as u32;
-            found += usize::from(self.bit(bit_index(p)));
+            let occupied = self.bit(bit_index(p));
+            found += usize::from(occupied);
             j += 1;
+            let skip_to = if occupied { None } else { empty_until(p, t) };
+            if let Some(until) = skip_to {
+                // Only samples between this one and where the empty cells end: all in them.
+                while j < samples.end && (t..until).contains(&depth(j)) {
+                    j += 1;
+                }
+            }
         }
         (found, j)
+    }
+
+    /// The depth, a little short of where the ray leaves it, up to which the ray that passes point `p`
+    /// (inside the box) at depth `t` stays in the largest empty cube of [`COARSE_LEVELS`]' cells around
+    /// `p`; `t` or less if no coarse cell around `p` is empty or `p` is outside the box (or NaN). The
+    /// ray is given in cell coordinates: its point at depth 0 and the inverse of its direction.
+    #[inline(always)]
+    fn empty_until(&self, p: [f32; 3], t: f32, (start, inverse): ([f32; 3], [f32; 3])) -> f32 {
+        let f = [0, 1, 2].map(|i| (p[i] - self.lo[i]) * self.scale[i]);
+        let top = self.resolution as f32;
+        if !f.iter().all(|&f| (0.0..top).contains(&f)) {
+            return t;
+        }
+        let cell = f.map(|f| f as u32);
+        for k in (1..=COARSE_LEVELS).rev() {
+            let cube = cell.map(|c| c >> k);
+            let at = bit_of(self.shift.saturating_sub(k as u32), cube) as usize;
+            if self.coarse[k - 1][at / 64] >> (at % 64) & 1 == 0 {
+                // Where the ray meets the far side of the cube along each axis, the margin inside it.
+                let size = (1u32 << k) as f32;
+                let leave = |i: usize| {
+                    let side = (cube[i] << k) as f32;
+                    let plane = if inverse[i] > 0.0 {
+                        side + size - SKIP_MARGIN
+                    } else {
+                        side + SKIP_MARGIN
+                    };
+                    (plane - start[i]) * inverse[i]
+                };
+                // A NaN (a zero direction on a side) drops out of the minimum.
+                return leave(0).min(leave(1)).min(leave(2));
+            }
+        }
+        t
     }
 
     /// The depths [t0, t1] (t0 may be negative) where the ray `o + t·d` is inside the bounds
@@ -943,6 +1035,7 @@ fn max_filter<W: Iterator<Item = usize>>(
 mod tests {
     use super::*;
     use crate::field::ClosureFn;
+    use proptest::strategy::Strategy;
 
     const UNIT: ([f32; 3], [f32; 3]) = ([-1.0; 3], [1.0; 3]);
 
@@ -1016,21 +1109,30 @@ mod tests {
 
         /// The walk keeps exactly the samples whose points `occupied` accepts, in order, stops after
         /// the wanted count with the sample after the last one kept, and otherwise at the range's end:
-        /// random grids, rays, ranges and counts, each walk continued from where the call before left
-        /// off.
+        /// random grids (mostly sparse ones, whose empty coarse cells the walk steps over; of sizes
+        /// that are and are not multiples of the coarsest cells, over boxes that are not cubes), rays
+        /// (some along an axis), sample spacings, ranges and counts, each walk continued from where
+        /// the call before left off.
         #[test]
         fn the_walk_keeps_the_occupied_samples_in_order(
-            fill in 0.0f64..0.6,
+            resolution in 1usize..40,
+            fill in (0.0f64..1.0).prop_map(|u| 0.6 * u * u * u),
             seed in 0u64..1000,
             origin in proptest::array::uniform3(-2.0f32..2.0),
             target in proptest::array::uniform3(-1.0f32..1.0),
+            along_axis in proptest::bool::weighted(0.2),
+            spacing in 0.002f32..0.05,
             start in 0usize..40,
-            len in 0usize..120,
+            len in 0usize..400,
             want in 1usize..12,
         ) {
-            let grid = random_grid(UNIT, 16, fill, seed);
-            let d = [0, 1, 2].map(|i| target[i] - origin[i]);
-            let depth = |j: usize| 0.03 * j as f32;
+            let bounds = ([-1.0, -0.5, -1.25], [1.0, 0.75, 0.5]);
+            let grid = random_grid(bounds, resolution, fill, seed);
+            let mut d = [0, 1, 2].map(|i| target[i] - origin[i]);
+            if along_axis {
+                d = [0.0, -0.0, d[2]];
+            }
+            let depth = |j: usize| spacing * j as f32;
             let point = |j: usize| [0, 1, 2].map(|i| origin[i] + d[i] * depth(j));
             let samples = start..start + len;
             let expected: Vec<u32> =

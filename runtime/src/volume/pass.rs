@@ -8,8 +8,9 @@
 //! - With an [`OccupancyGrid`], rays that miss the grid's box or cross none of its marked blocks of
 //!   cells are done without any work; for the others, the samples between where the ray enters its
 //!   first marked block and leaves its last ([`OccupancyGrid::occupied_stretch`]) are looked up in the
-//!   grid, and the occupied ones are packed ray by ray into one dense field call (the other samples are empty
-//!   space: all outputs 0, alpha 0) and composited ray by ray.
+//!   grid (stepping over those in empty coarse cells of a grid in the scene's space), and the occupied
+//!   ones are packed ray by ray into one dense field call (the other samples are empty space: all
+//!   outputs 0, alpha 0) and composited ray by ray.
 //! - Without a grid, the samples go to the field sample-major (sample j of ray k at `j·n + k`) and are
 //!   composited across rays, a loop that vectorizes.
 //! - With early termination, the samples go [`CHUNK_SAMPLES`] depths at a time; with a grid, each field
