@@ -247,7 +247,7 @@ impl Simd<'_, '_> {
         self.float(odd)
     }
 
-    /// sin x (`phase` = 0) or cos x (`phase` = 1).
+    /// sin x (`phase` = 0) or cos x (`phase` = 1), always in [−1, 1].
     pub fn sin_cos(&mut self, x: Value, phase: i32) -> Value {
         let (r, q) = self.reduce_half_pi(x);
         let (s, c) = self.sincos_poly(r);
@@ -264,7 +264,12 @@ impl Simd<'_, '_> {
         let sign = self.b.ins().ishl_imm_s(sign, 30);
         let vb = self.bits(v);
         let vb = self.b.ins().bxor(vb, sign);
-        self.float(vb)
+        let v = self.float(vb);
+        // For large |x| the three-part reduction loses r (and past 2³¹·π/2 the quadrant), and the
+        // polynomial of a large r is no sine: keep the result in [−1, 1] (NaN stays NaN).
+        let (one, minus_one) = (self.f(1.0), self.f(-1.0));
+        let v = self.min(v, one);
+        self.max(v, minus_one)
     }
 
     /// tan x.
