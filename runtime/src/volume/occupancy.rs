@@ -455,7 +455,7 @@ impl OccupancyGrid {
     fn block(&self, [x, y, z]: [i32; 3]) -> bool {
         let n = self.blocks_per_axis();
         let b = x as usize + n * (y as usize + n * z as usize);
-        self.blocks[b / 64] >> (b % 64) & 1 == 1
+        is_set(&self.blocks, b)
     }
 
     /// The stretch [a, b] of depths within the ray's interval `(t0, t1)` in the box
@@ -697,8 +697,7 @@ impl OccupancyGrid {
     /// Whether bit `index` (from [`OccupancyGrid::bit_index`]) is set.
     #[inline(always)]
     fn bit(&self, index: u32) -> bool {
-        let index = index as usize;
-        self.bits[index / 64] >> (index % 64) & 1 == 1
+        is_set(&self.bits, index as usize)
     }
 
     /// Walks the samples `samples` of the ray `o + t·d` (sample j at depth `depth(j)`) and writes the
@@ -806,7 +805,7 @@ impl OccupancyGrid {
         for k in (1..=COARSE_LEVELS).rev() {
             let cube = cell.map(|c| c >> k);
             let at = bit_of(self.shift.saturating_sub(k as u32), cube) as usize;
-            if self.coarse[k - 1][at / 64] >> (at % 64) & 1 == 0 {
+            if !is_set(&self.coarse[k - 1], at) {
                 // Where the ray meets the far side of the cube along each axis, the margin inside it.
                 let size = (1u32 << k) as f32;
                 let leave = |i: usize| {
@@ -869,6 +868,12 @@ impl OccupancyGrid {
         }
         (t0, t1)
     }
+}
+
+/// Whether bit `i` of the words `bits` (bit i % 64 of word i / 64) is set.
+#[inline(always)]
+fn is_set(bits: &[u64], i: usize) -> bool {
+    bits[i / 64] >> (i % 64) & 1 == 1
 }
 
 /// The bit of cell (x, y, z) in rows and planes of 2^`shift` bits.
