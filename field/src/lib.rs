@@ -11,7 +11,9 @@ use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Passes,
 use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
-use nerfjit_runtime::{BatchFn, BatchVjp, GridSpace, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel};
+use nerfjit_runtime::{
+    BatchFn, BatchVjp, GridSpace, HeldScatters, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel,
+};
 
 /// Why a script function could not be made a field: errors in the script, or anything else (a missing
 /// function, a wrong signature, a kernel that did not compile, a render that failed).
@@ -392,6 +394,28 @@ impl KeptPasses for JitPasses<'_> {
     fn bytes_per_point(&self) -> usize {
         self.0.bytes_per_point()
     }
+
+    fn hold_scatters(&mut self) -> bool {
+        self.0.hold_scatters()
+    }
+
+    fn take_scatters(&mut self) -> Option<Box<dyn HeldScatters + '_>> {
+        let held = self.0.take_scatters()?;
+        Some(Box::new(JitHeldScatters(held)))
+    }
+}
+
+/// A kernel's [`nerfjit_jit::HeldScatters`] as the runtime's [`HeldScatters`].
+struct JitHeldScatters<'a>(nerfjit_jit::HeldScatters<'a>);
+
+impl HeldScatters for JitHeldScatters<'_> {
+    fn parts(&self) -> &[std::ops::Range<usize>] {
+        self.0.parts()
+    }
+
+    fn add(&self, part: usize, grads: &mut [f32]) {
+        self.0.add(part, grads);
+    }
 }
 
 /// A volume field of a script: `density(p)` or `opacity(p)`, and `color(p)` or `color(p, d)`, compiled
@@ -690,12 +714,23 @@ mod tests {
         fn coarse_color(p: vec3) -> vec3 = sigmoid(p)
     ";
 
+    /// A hash-grid field read twice (density and color), as the instant recipes have it.
+    const HASH_NET: &str = "
+        param table: hashgrid<3, levels: 6, features: 2, log2_size: 10, base: 4, finest: 64, bounds: 1.5> = uniform(-0.5, 0.5, seed: 1)
+        param w1: mat<16, 12> = kaiming(seed: 2)
+        param wd: mat<4, 16> = kaiming(seed: 3)
+        param wc: mat<3, 7> = xavier(seed: 4)
+        fn g(p: vec3) -> vec<4> = dense(wd, relu(dense(w1, hashgrid(table, p))))
+        fn density(p: vec3) -> f32 = softplus(g(p)[0])
+        fn color(p: vec3, d: vec3) -> vec3 = sigmoid(dense(wc, concat(g(p), d)))
+    ";
+
     /// Training steps whose backward passes read what the forward passes kept give the steps that
-    /// recompute the forward pass (plain and hierarchical, f32 and bf16 products).
+    /// recompute the forward pass (plain and hierarchical, f32 and bf16 products; a hash grid's scatters
+    /// held back and added level by level after the step's tasks, one task and several).
     #[test]
     fn kept_forward_passes_train_as_recomputed_ones() {
         use nerfjit_runtime::{Camera, RayBatch, VolumeSettings};
-        let program = nerfjit_dsl::compile("net.sdf", NET).unwrap();
         let cache = KernelCache::new();
         let camera = Camera::look_at(
             glam::Vec3::new(0.3, 0.5, -3.0),
@@ -705,10 +740,6 @@ mod tests {
             glam::Vec2::ZERO,
         )
         .unwrap();
-        let rays = RayBatch::random_pixels(&camera, 16, 16, 40, 5).unwrap().0;
-        let targets: Vec<[f32; 3]> = (0..rays.len())
-            .map(|k| [0.1 * (k % 7) as f32, 0.5, 0.2])
-            .collect();
         let settings = VolumeSettings {
             spacing: nerfjit_runtime::DepthSpacing::Linear,
             near: 2.0,
@@ -718,7 +749,21 @@ mod tests {
             background: Some([0.0; 3]),
             early_termination: None,
         };
-        for (products, importance) in [(Precision::F32, 0), (Precision::F32, 40), (Precision::Bf16, 0)] {
+        // 40 rays are one task of the step; 2,000 of 48 samples are three chunks of 32,768 points.
+        let cases = [
+            (NET, Precision::F32, 0, 40),
+            (NET, Precision::F32, 40, 40),
+            (NET, Precision::Bf16, 0, 40),
+            (HASH_NET, Precision::F32, 0, 40),
+            (HASH_NET, Precision::F32, 0, 2000),
+            (HASH_NET, Precision::Bf16, 0, 2000),
+        ];
+        for (source, products, importance, n_rays) in cases {
+            let program = nerfjit_dsl::compile("net.sdf", source).unwrap();
+            let rays = RayBatch::random_pixels(&camera, 64, 64, n_rays, 5).unwrap().0;
+            let targets: Vec<[f32; 3]> = (0..rays.len())
+                .map(|k| [0.1 * (k % 7) as f32, 0.5, 0.2])
+                .collect();
             let fields = VolumeFields::compile(&program, &cache, importance, products).unwrap();
             let bound = fields.bind(&program.param_values);
             assert!(
@@ -732,7 +777,19 @@ mod tests {
                 };
                 model.step((&rays, &targets), &settings, None, None).unwrap()
             };
+            let holds = bound.fine.1.kept_passes().unwrap().hold_scatters();
+            assert_eq!(holds, source == HASH_NET, "a hash grid's scatters are held back");
             let (kept, recomputed) = (step(false), step(true));
+            // The held scatters are added level by level on the pool's threads: one thread gives the
+            // same bits.
+            let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+            let bits = |g: &[f32]| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            let alone = one_thread.install(|| step(false));
+            assert_eq!(
+                bits(&alone.param_grads),
+                bits(&kept.param_grads),
+                "{products:?}, {n_rays} rays"
+            );
             assert!(
                 (kept.loss - recomputed.loss).abs() <= 1e-6 * recomputed.loss,
                 "{products:?}: {} vs {}",

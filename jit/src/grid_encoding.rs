@@ -63,6 +63,14 @@ impl Path {
     }
 }
 
+/// A stretch of a gradient: `grads[i]` is the gradient of param `origin + i`.
+pub struct GradWindow<'a> {
+    /// The gradients of the stretch's params.
+    pub grads: &'a mut [f32],
+    /// The first param of the stretch.
+    pub origin: usize,
+}
+
 /// The 8 corners of one point's cell in one level: entries and weights.
 struct Corners {
     entry: [usize; 8],
@@ -93,6 +101,20 @@ impl GridPlan {
     /// One past the last param the grid touches.
     pub fn params_end(&self) -> usize {
         self.end
+    }
+
+    /// The number of levels.
+    pub fn levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The params of level `l`'s part of the table.
+    pub fn level_params(&self, l: usize) -> std::ops::Range<usize> {
+        let start = |l: usize| match self.levels.get(l) {
+            Some(level) => self.table + level.offset as usize * self.features,
+            None => self.end,
+        };
+        start(l)..start(l + 1)
     }
 
     /// The table entries a point reads (or a scatter writes): 8 corners on each level, `features` floats
@@ -183,39 +205,73 @@ impl GridPlan {
         }
     }
 
-    /// `grads[corner·features + f] += w · cot[l·features + f][t]` for t < count.
+    /// `grads[corner·features + f] += w · cot[l·features + f][t]` for t < count, on every level.
     ///
     /// # Safety
     /// The pointers of `p` and `cot` must address `count` readable floats.
     pub unsafe fn scatter(&self, p: [*const f32; 3], cot: &[*const f32], grads: &mut [f32], count: usize) {
+        let window = GradWindow { grads, origin: 0 };
+        // SAFETY: passed on.
+        unsafe { self.scatter_levels(p, cot, window, count, 0..self.levels.len()) };
+    }
+
+    /// [`GridPlan::scatter`] on the levels `levels` only, into a window of the gradient that holds their
+    /// params: the same additions in the same order on each of those levels, so that a scatter split by
+    /// level (into disjoint windows, on several threads) gives the whole scatter's bits.
+    ///
+    /// # Safety
+    /// The pointers of `p` and `cot` must address `count` readable floats.
+    ///
+    /// # Panics
+    /// If the window does not hold the params of those levels.
+    pub unsafe fn scatter_levels(
+        &self,
+        p: [*const f32; 3],
+        cot: &[*const f32],
+        window: GradWindow<'_>,
+        count: usize,
+        levels: std::ops::Range<usize>,
+    ) {
         assert!(
-            grads.len() >= self.end,
-            "the grid's table is outside the gradients"
+            levels.end <= self.levels.len(),
+            "the grid has no level {}",
+            levels.end - 1
+        );
+        if levels.is_empty() {
+            return;
+        }
+        let params = self.level_params(levels.start).start..self.level_params(levels.end - 1).end;
+        assert!(
+            window.origin <= params.start && params.end <= window.origin + window.grads.len(),
+            "the window of the gradient does not hold the levels' params"
         );
         assert_eq!(cot.len(), self.levels.len() * self.features);
         // SAFETY (both vector paths): the CPU has their instructions and the indices fit (`Path::available`);
         // the caller's guarantees are passed on.
         #[cfg(target_arch = "x86_64")]
         match self.path {
-            Path::Avx512 => return unsafe { avx512::scatter(self, p, cot, grads, count) },
-            Path::Avx2 => return unsafe { avx2::scatter(self, p, cot, grads, count) },
+            Path::Avx512 => return unsafe { avx512::scatter(self, p, cot, window, count, levels) },
+            Path::Avx2 => return unsafe { avx2::scatter(self, p, cot, window, count, levels) },
             Path::Scalar => {}
         }
-        for (l, level) in self.levels.iter().enumerate() {
+        let GradWindow { grads, origin } = window;
+        for l in levels {
             for t in 0..count {
                 // SAFETY: t < count, as the caller guarantees for every column.
                 let point = p.map(|c| unsafe { *c.add(t) });
-                // SAFETY: passed on from the caller.
-                unsafe { self.scatter_point(&self.corners(level, point), l, t, cot, grads) };
+                let corners = self.corners(&self.levels[l], point);
+                // SAFETY: passed on from the caller; the window holds the level's params (asserted).
+                unsafe { self.scatter_point(&corners, l, t, cot, grads, origin) };
             }
         }
     }
 
-    /// Point `t`'s part of [`GridPlan::scatter`] in level `l`, its cell's corners given.
+    /// Point `t`'s part of [`GridPlan::scatter`] in level `l`, its cell's corners given, into `grads`
+    /// holding the params from `origin` on.
     ///
     /// # Safety
     /// The pointers of `cot` must address more than `t` readable floats; the corners' entries must be
-    /// those of a level of this plan.
+    /// those of level `l` of this plan, whose params `grads` holds.
     #[inline(always)]
     unsafe fn scatter_point(
         &self,
@@ -224,6 +280,7 @@ impl GridPlan {
         t: usize,
         cot: &[*const f32],
         grads: &mut [f32],
+        origin: usize,
     ) {
         for f in 0..self.features {
             // SAFETY: t is below the columns' length (caller).
@@ -232,8 +289,9 @@ impl GridPlan {
                 continue;
             }
             for k in 0..8 {
-                // SAFETY: entry + f < self.end ≤ grads.len(), as in `read`.
-                unsafe { *grads.get_unchecked_mut(corners.entry[k] + f) += corners.weight[k] * c };
+                // SAFETY: a corner's entry + f lies in its level's params (Level::entry masks or indexes
+                // within the level), which grads holds from origin on.
+                unsafe { *grads.get_unchecked_mut(corners.entry[k] + f - origin) += corners.weight[k] * c };
             }
         }
     }
@@ -243,10 +301,11 @@ impl GridPlan {
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use std::arch::x86_64::*;
+    use std::ops::Range;
 
     use nerfjit_dsl::grid::Level;
 
-    use super::GridPlan;
+    use super::{GradWindow, GridPlan};
 
     /// Points per vector.
     const LANES: usize = 16;
@@ -469,15 +528,20 @@ mod avx512 {
     /// whose pair has one cotangent 0 then adds ±0 to that feature, which leaves it as it was.
     ///
     /// # Safety
-    /// As [`GridPlan::scatter`]'s, with `grads.len() ≥ plan.end` and every index below 2^31.
+    /// As [`GridPlan::scatter_levels`]'s, with the window holding the levels' params (checked there) and
+    /// every index below 2^31.
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn scatter(
         plan: &GridPlan,
         p: [*const f32; 3],
         cot: &[*const f32],
-        grads: &mut [f32],
+        window: GradWindow<'_>,
         count: usize,
+        levels: Range<usize>,
     ) {
+        let GradWindow { grads, origin } = window;
+        // Indices into the window: every entry of the levels is at least `origin` (checked by the caller).
+        let origin = _mm512_set1_epi32(origin as i32);
         let zero = _mm512_setzero_ps();
         let spread = pair_spread();
         let interleave = [
@@ -488,7 +552,8 @@ mod avx512 {
         let mut index = [0u32; LANES];
         let mut value = [0.0f32; LANES];
         let mut pairs_value = [0.0f32; 2 * LANES];
-        for (l, level) in plan.levels.iter().enumerate() {
+        for l in levels {
+            let level = &plan.levels[l];
             for start in (0..count).step_by(LANES) {
                 let m = lanes(start, count);
                 // SAFETY: the caller's columns hold count floats.
@@ -508,7 +573,10 @@ mod avx512 {
                     // Per half, the points' cotangents as pairs: [c0 of point 0, c1 of point 0, …].
                     let paired = interleave.map(|i| _mm512_permutex2var_ps(c[0], i, c[1]));
                     for k in 0..8 {
-                        let at = _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(2 * pair as i32));
+                        let at = _mm512_sub_epi32(
+                            _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(2 * pair as i32)),
+                            origin,
+                        );
                         // SAFETY: 16 indices and 32 values into arrays of 16 and 32.
                         unsafe {
                             _mm512_storeu_si512(index.as_mut_ptr().cast(), at);
@@ -520,8 +588,8 @@ mod avx512 {
                                 _mm512_storeu_ps(pairs_value.as_mut_ptr().add(16 * half), add);
                             }
                         }
-                        // SAFETY: every index + 1 is below plan.end ≤ grads.len() (the pair's second
-                        // feature), as in the scalar path.
+                        // SAFETY: every index + 1 (the pair's second feature) lies in the level's params,
+                        // as in the scalar path, which the window holds from its origin on.
                         unsafe { add_pairs(grads, &index, &pairs_value, live) };
                     }
                 }
@@ -534,7 +602,10 @@ mod avx512 {
                         continue;
                     }
                     for k in 0..8 {
-                        let at = _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(f as i32));
+                        let at = _mm512_sub_epi32(
+                            _mm512_add_epi32(corners.index[k], _mm512_set1_epi32(f as i32)),
+                            origin,
+                        );
                         let add = _mm512_mul_ps(corners.weight[k], c);
                         // SAFETY: 16 lanes into arrays of 16.
                         unsafe {
@@ -545,7 +616,8 @@ mod avx512 {
                         while lanes != 0 {
                             let lane = lanes.trailing_zeros() as usize;
                             lanes &= lanes - 1;
-                            // SAFETY: an index + f is below plan.end ≤ grads.len(), as in the scalar path.
+                            // SAFETY: an index + f lies in the level's params, as in the scalar path, which
+                            // the window holds from its origin on.
                             unsafe { *grads.get_unchecked_mut(index[lane] as usize) += value[lane] };
                         }
                     }
@@ -591,10 +663,11 @@ mod avx512 {
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
+    use std::ops::Range;
 
     use nerfjit_dsl::grid::Level;
 
-    use super::{Corners, GridPlan};
+    use super::{Corners, GradWindow, GridPlan};
 
     /// Points per vector.
     const LANES: usize = 8;
@@ -841,20 +914,26 @@ mod avx2 {
     /// [`GridPlan::scatter`] on AVX2: the corners 8 points at a time, the additions point by point.
     ///
     /// # Safety
-    /// As [`GridPlan::scatter`]'s, with `grads.len() ≥ plan.end` and every index below 2^31.
+    /// As [`GridPlan::scatter_levels`]'s, with the window holding the levels' params (checked there) and
+    /// every index below 2^31.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn scatter(
         plan: &GridPlan,
         p: [*const f32; 3],
         cot: &[*const f32],
-        grads: &mut [f32],
+        window: GradWindow<'_>,
         count: usize,
+        levels: Range<usize>,
     ) {
+        let GradWindow { grads, origin } = window;
         let mut index = [[0u32; LANES]; 8];
         let mut weight = [[0.0f32; LANES]; 8];
-        for l in 0..plan.levels.len() {
+        for l in levels {
+            // The lines the corners' entries fall on, prefetched (an address computed without
+            // dereferencing: the window's start minus its origin).
+            let table = grads.as_ptr().wrapping_sub(origin);
             // SAFETY: the caller's columns hold count floats.
-            let mut look = unsafe { Lookahead::new(plan, l, p, count, grads.as_ptr()) };
+            let mut look = unsafe { Lookahead::new(plan, l, p, count, table) };
             for (b, start) in (0..count).step_by(LANES).enumerate() {
                 // SAFETY: as above; the block starts below count.
                 let vectors = unsafe { look.block(b) };
@@ -871,7 +950,7 @@ mod avx2 {
                         weight: std::array::from_fn(|k| weight[k][lane]),
                     };
                     // SAFETY: start + lane < count; the entries are this plan's (as in the scalar path).
-                    unsafe { plan.scatter_point(&corners, l, start + lane, cot, grads) };
+                    unsafe { plan.scatter_point(&corners, l, start + lane, cot, grads, origin) };
                 }
             }
         }
@@ -883,7 +962,7 @@ mod tests {
     use nerfjit_dsl::ir::{GridRead, GridSpec, V};
     use proptest::prelude::*;
 
-    use super::{GridPlan, Path};
+    use super::{GradWindow, GridPlan, Path};
 
     /// A grid of dense and hashed levels with `features` features, its table at param 3.
     fn read(deriv: u8, extent: f32, features: u32) -> GridRead {
@@ -985,6 +1064,25 @@ mod tests {
                     let bits = |g: Vec<f32>| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                     prop_assert_eq!(bits(scattered(&plan)), bits(scattered(&scalar)), "{:?} far {}", path, far);
                 }
+                // Level by level, each into a window of its own params alone (as a step's held scatters
+                // are added): the whole scatter's bits, and nothing outside the windows.
+                let mut by_level = vec![0.0f32; plan.params_end()];
+                let mut rest = by_level.as_mut_slice();
+                let mut at = 0;
+                for l in 0..plan.levels() {
+                    let params = plan.level_params(l);
+                    prop_assert_eq!(params.start, at.max(3), "levels follow each other from the table on");
+                    let (_, tail) = std::mem::take(&mut rest).split_at_mut(params.start - at);
+                    let (grads, tail) = tail.split_at_mut(params.len());
+                    let window = GradWindow { grads, origin: params.start };
+                    // SAFETY: every column holds count floats.
+                    unsafe { plan.scatter_levels(p, &cot, window, count, l..l + 1) };
+                    rest = tail;
+                    at = params.end;
+                }
+                prop_assert_eq!(at, plan.params_end());
+                let bits = |g: Vec<f32>| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                prop_assert_eq!(bits(by_level), bits(scattered(&plan)), "{:?} far {} by level", path, far);
             }
         }
     }

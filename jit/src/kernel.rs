@@ -12,6 +12,7 @@ use crate::bf16::Precision;
 use crate::codegen::{self, Columns};
 
 mod dense_layers;
+pub use dense_layers::HeldScatters;
 use dense_layers::Tiled;
 
 type KernelFn = unsafe extern "C" fn(*const *const f32, *const *mut f32, *const f32, *mut f32, i64);
@@ -518,7 +519,7 @@ pub struct Passes<'a> {
     passes: dense_layers::Passes<'a>,
 }
 
-impl Passes<'_> {
+impl<'a> Passes<'a> {
     /// Evaluates the outputs at points `0..n` of the forward pass's `inputs` and keeps what the backward
     /// pass needs after what the forward passes since the last backward pass kept (a tile arena per 128
     /// points or fewer of a call, [`Passes::bytes_per_point`] a point: keep a few hundred points at a
@@ -557,6 +558,19 @@ impl Passes<'_> {
     /// The memory the forward passes keep per point, in bytes.
     pub fn bytes_per_point(&self) -> usize {
         self.passes.bytes_per_point()
+    }
+
+    /// From now on, the backward passes hold their grid scatters back from the reductions, to be taken
+    /// by [`Passes::take_scatters`] and added part by part (a level of a grid each, on any number of
+    /// threads) where the kernel allows it: its scatters' levels and its other reductions are disjoint.
+    /// Returns whether they are held.
+    pub fn hold_scatters(&mut self) -> bool {
+        self.passes.hold_scatters()
+    }
+
+    /// The grid scatters held since [`Passes::hold_scatters`] (which then holds them no more).
+    pub fn take_scatters(&mut self) -> Option<HeldScatters<'a>> {
+        self.passes.take_scatters()
     }
 
     /// Adds the sums the backward passes keep until the end to `reductions`.

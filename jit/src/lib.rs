@@ -42,7 +42,7 @@ mod tape;
 
 pub use bf16::Precision;
 pub use cache::KernelCache;
-pub use kernel::{CompileStats, JitError, Kernel, Options, Passes, MAX_KERNEL_NODES};
+pub use kernel::{CompileStats, HeldScatters, JitError, Kernel, Options, Passes, MAX_KERNEL_NODES};
 pub use marcher::{Marcher, Stop};
 pub use nerfjit_dsl::march_rays::MarchRays;
 pub use tape::{fused_products, Tape};

@@ -1,7 +1,8 @@
 //! The JIT and the runtime write only their buffers in a training run. CI runs this test binary under
 //! valgrind's memcheck (`.ci/run`): the box's views are rendered, three training steps of the box
-//! (elementwise kernels) and two of a small network (tiled kernels whose backward passes read the arenas
-//! their forward passes kept) run in this process, and valgrind reports no error. Valgrind's virtual CPU has
+//! (elementwise kernels), two of a small network (tiled kernels whose backward passes read the arenas
+//! their forward passes kept) and two of a hash grid (its scatters held back and added level by level) run
+//! in this process, and valgrind reports no error. Valgrind's virtual CPU has
 //! no AVX-512, so CI builds this binary for x86-64-v3 and the AVX2 paths run.
 
 use std::path::{Path, PathBuf};
@@ -63,5 +64,17 @@ fn training_steps_under_valgrind_make_no_memory_errors() {
                summary: \"net.json\" }\n";
     run(&dir, "net.sdf", net);
     assert!(dir.join("net.json").exists());
+
+    // A hash grid, whose backward passes hold their scatters back for the step to add level by level (two
+    // tasks: 512 rays of 96 samples are two chunks of points).
+    let grid = "param table: hashgrid<3, levels: 4, features: 2, log2_size: 9, base: 4, finest: 32, bounds: 1.5> = \
+                uniform(-0.1, 0.1, seed: 1)\nparam w1: mat<8, 8> = kaiming(seed: 2)\nparam w2: mat<4, 8> = kaiming(seed: 3)\n\
+                fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, hashgrid(table, p))))\n\
+                fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
+                fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
+                train { data: views(\"cams.json\"), near: 0, far: 5, samples: 96, steps: 2, batch: 512, lr: 0.01, \
+                summary: \"grid.json\" }\n";
+    run(&dir, "grid.sdf", grid);
+    assert!(dir.join("grid.json").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }

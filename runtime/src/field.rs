@@ -118,8 +118,32 @@ pub trait KeptPasses: Send {
     fn backward(&mut self, n: usize, cotangents: &[&[f32]], param_grads: &mut [f32]);
     /// About the memory the forward pass keeps per point, in bytes.
     fn bytes_per_point(&self) -> usize;
-    /// Adds what the backward passes held back to `param_grads`.
+    /// Adds what the backward passes held back to `param_grads`, except the scatters of
+    /// [`KeptPasses::hold_scatters`].
     fn finish(&mut self, param_grads: &mut [f32]);
+
+    /// From now on, the backward passes hold their grid scatters (the gradients of hash-grid tables)
+    /// back from `param_grads`, for [`KeptPasses::take_scatters`], if the field can; returns whether they
+    /// are held. Their params are then left alone by the backward passes and by `finish`.
+    fn hold_scatters(&mut self) -> bool {
+        false
+    }
+
+    /// The scatters held since [`KeptPasses::hold_scatters`], which holds them no more.
+    fn take_scatters(&mut self) -> Option<Box<dyn HeldScatters + '_>> {
+        None
+    }
+}
+
+/// Grid scatters held back by a field's backward passes ([`KeptPasses::hold_scatters`]), in parts
+/// whose params are disjoint (a level of a grid each): a caller adds the parts of the scatters of several
+/// passes into one gradient, a part on each thread, and the sums do not depend on how the parts are shared
+/// out.
+pub trait HeldScatters: Send + Sync {
+    /// The params of each part, sorted and disjoint.
+    fn parts(&self) -> &[std::ops::Range<usize>];
+    /// Adds part `part`'s scatters to `grads`, the gradients of that part's params alone.
+    fn add(&self, part: usize, grads: &mut [f32]);
 }
 
 /// A [`KeptPasses`]' forward pass as a [`BatchFn`], for code that evaluates fields through that trait

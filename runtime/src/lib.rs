@@ -43,7 +43,7 @@ pub use data::nerfstudio::{is_nerfstudio, load_nerfstudio};
 pub use data::npy::{read_npy_rgb, write_npy_f32, write_npy_rgb, ImageF32};
 pub use data::pointcloud::{bounding_box, mean_center, read_points, PointFrame};
 pub use error::{Error, Result};
-pub use field::{BatchFn, BatchVjp, ClosureFn, ClosureVjp, KeptPasses, WithBounds};
+pub use field::{BatchFn, BatchVjp, ClosureFn, ClosureVjp, HeldScatters, KeptPasses, WithBounds};
 pub use output::image_out::{depth_image, normal_image, rgb_image, save_gif, save_png, Quantize};
 pub use output::video::save_mp4;
 pub use rng::Rng;

@@ -21,7 +21,7 @@ use nerfjit_dsl::ir::{Graph, Op, V};
 use crate::bf16::{self, Bf16Matrix, Bf16Scratch, Precision};
 use crate::codegen::Columns;
 use crate::gemm::{self, COLUMN, TILE};
-use crate::grid_encoding::GridPlan;
+use crate::grid_encoding::{GradWindow, GridPlan};
 use crate::kernel::{lane_sum, CompileStats, JitError, Kernel, Options};
 use crate::profile::{Laps, Phase};
 
@@ -99,6 +99,10 @@ pub(crate) struct Tiled {
     grids: Vec<Vec<GridStep>>,
     outer: Vec<OuterProduct>,
     scatters: Vec<ScatterStep>,
+    /// The params of each level of the scatters' grids, sorted (levels of one grid scattered twice
+    /// once), if the scatters can be held back and added level by level ([`Passes::hold_scatters`]):
+    /// their levels' params are disjoint and nothing else adds to them.
+    scatter_parts: Option<Vec<std::ops::Range<usize>>>,
     fills: Vec<(usize, Fill)>,
     input_slots: Vec<Option<usize>>,
     output_slots: Vec<usize>,
@@ -349,6 +353,7 @@ impl Tiled {
             input_slots,
             output_slots,
             spare,
+            scatter_parts: None,
             n_slots: slots.count,
             n_reductions: g.reductions.len(),
             precision: options.products,
@@ -387,8 +392,38 @@ impl Tiled {
             };
             plan.segments.push(segment);
         }
+        plan.scatter_parts = plan.find_scatter_parts();
         plan.stats.seconds = start.elapsed().as_secs_f64();
         Ok(plan)
+    }
+
+    /// The params of each level of the scatters' grids, sorted, if they are disjoint (a level scattered
+    /// by several scatters counted once) and no segment's reduction or outer product adds to them.
+    fn find_scatter_parts(&self) -> Option<Vec<std::ops::Range<usize>>> {
+        let mut parts: Vec<std::ops::Range<usize>> = self
+            .scatters
+            .iter()
+            .flat_map(|sc| (0..sc.plan.levels()).map(|l| sc.plan.level_params(l)))
+            .collect();
+        parts.sort_by_key(|r| (r.start, r.end));
+        parts.dedup();
+        if parts.is_empty() || parts.windows(2).any(|w| w[0].end > w[1].start) {
+            return None;
+        }
+        let inside = |r: usize| parts.iter().any(|p| p.contains(&r));
+        let reductions = self
+            .segments
+            .iter()
+            .flatten()
+            .flat_map(|seg| seg.reductions.iter().copied());
+        let outer = self
+            .outer
+            .iter()
+            .flat_map(|o| o.target..o.target + o.left.len() * o.right.len());
+        if reductions.chain(outer).any(inside) {
+            return None;
+        }
+        Some(parts)
     }
 
     /// Lets values whose lifetimes do not overlap share a column of the arena, so that a tile's arena
@@ -558,7 +593,8 @@ impl Tiled {
             // SAFETY: the arena holds n_slots columns of TILE ≥ count floats; sizes were checked.
             unsafe {
                 w.forward_tile(arena, (start, count), forward, outputs, &mut laps);
-                w.backward_tile(arena, (start, count), backward, reductions, &mut laps);
+                w.backward_tile(arena, (start, count), backward, &mut laps);
+                w.scatter_tile(arena, count, reductions, &mut laps);
             }
         }
         laps.lap(Phase::Elementwise);
@@ -699,8 +735,8 @@ impl<'a> Workspace<'a> {
         }
     }
 
-    /// The backward pass of the tile in `arena` (after its forward pass): loads the points'
-    /// `cotangents`, runs the other stages, adds the grid scatters to `reductions`.
+    /// The backward pass of the tile in `arena` (after its forward pass) but its grid scatters
+    /// ([`Workspace::scatter_tile`]): loads the points' `cotangents`, runs the other stages.
     ///
     /// # Safety
     /// As [`Workspace::forward_tile`].
@@ -709,7 +745,6 @@ impl<'a> Workspace<'a> {
         arena: *mut f32,
         (start, count): (usize, usize),
         cotangents: &[&[f32]],
-        reductions: &mut [f32],
         laps: &mut Laps,
     ) {
         let plan = self.plan;
@@ -717,7 +752,6 @@ impl<'a> Workspace<'a> {
         unsafe {
             plan.load(arena, cotangents, plan.forward_inputs, start, count);
             self.run_stages(arena, plan.forward_stages..plan.segments.len(), count, laps);
-            self.scatter_tile(arena, count, reductions, laps);
         }
     }
 
@@ -815,6 +849,23 @@ impl<'a> Workspace<'a> {
         laps.lap(Phase::GridScatters);
     }
 
+    /// Appends the points and cotangents of the tile's grid scatters (in `arena`) to `held`.
+    ///
+    /// # Safety
+    /// As [`Workspace::run_stages`].
+    unsafe fn hold_tile(&self, arena: *const f32, count: usize, held: &mut [HeldStep]) {
+        // SAFETY: every slot index is < n_slots, so each column of TILE ≥ count floats lies in the arena.
+        let column = |s: usize| unsafe { std::slice::from_raw_parts(arena.add(s * COLUMN), count) };
+        for (sc, held) in self.plan.scatters.iter().zip(held) {
+            for (to, &slot) in held.p.iter_mut().zip(&sc.p) {
+                to.extend_from_slice(column(slot));
+            }
+            for (to, &slot) in held.cotangent.iter_mut().zip(&sc.cotangent) {
+                to.extend_from_slice(column(slot));
+            }
+        }
+    }
+
     /// Adds the segments' reductions and the outer products' sums to `reductions`, and starts them again.
     fn finish(&mut self, reductions: &mut [f32]) {
         for (seg, acc) in self.plan.segments.iter().zip(&mut self.accums) {
@@ -848,6 +899,61 @@ pub(crate) struct Passes<'a> {
     workspace: Option<Workspace<'a>>,
     /// The points in each arena the forward passes since the last backward pass filled, in order.
     kept: Vec<usize>,
+    /// The backward passes' grid scatters, held back ([`Passes::hold_scatters`]).
+    held: Option<Vec<HeldStep>>,
+}
+
+/// One scatter's points and cotangents, as columns, in the order the backward passes ran.
+struct HeldStep {
+    p: [Vec<f32>; 3],
+    cotangent: Vec<Vec<f32>>,
+}
+
+/// The grid scatters of a kernel's backward passes, held back from the reductions
+/// ([`crate::Passes::hold_scatters`]) to be added part by part: each part is one level of a grid (its params
+/// disjoint from the other parts' and from every other reduction), so that the parts can be added on
+/// several threads into one gradient.
+pub struct HeldScatters<'a> {
+    plan: &'a Tiled,
+    steps: Vec<HeldStep>,
+}
+
+impl HeldScatters<'_> {
+    /// The params of each part, sorted and disjoint.
+    pub fn parts(&self) -> &[std::ops::Range<usize>] {
+        self.plan.scatter_parts.as_deref().unwrap_or(&[])
+    }
+
+    /// Adds part `part`'s scatters to `grads`, the gradients of that part's params: the additions of
+    /// the backward passes' scatters to those params, in the same order.
+    ///
+    /// # Panics
+    /// If there is no such part or `grads` is not as long as its params.
+    pub fn add(&self, part: usize, grads: &mut [f32]) {
+        let params = self.parts()[part].clone();
+        assert_eq!(
+            grads.len(),
+            params.len(),
+            "the gradients of a part of the scatters"
+        );
+        let mut laps = Laps::start();
+        for (sc, held) in self.plan.scatters.iter().zip(&self.steps) {
+            let count = held.p[0].len();
+            let p = [0, 1, 2].map(|a| held.p[a].as_ptr());
+            let cotangent: Vec<*const f32> = held.cotangent.iter().map(|c| c.as_ptr()).collect();
+            for l in (0..sc.plan.levels()).filter(|&l| sc.plan.level_params(l) == params) {
+                let window = GradWindow {
+                    grads: &mut *grads,
+                    origin: params.start,
+                };
+                // SAFETY: every held column holds `count` floats (each tile appended `count` to all).
+                unsafe { sc.plan.scatter_levels(p, &cotangent, window, count, l..l + 1) };
+                laps.count(Phase::GridScatters, 8 * count as u64);
+            }
+        }
+        laps.lap(Phase::GridScatters);
+        laps.finish();
+    }
 }
 
 impl<'a> Passes<'a> {
@@ -858,7 +964,31 @@ impl<'a> Passes<'a> {
             params,
             workspace: None,
             kept: Vec::new(),
+            held: None,
         }
+    }
+
+    /// Holds the grid scatters of the backward passes from now on back from the reductions, for
+    /// [`Passes::take_scatters`], if the plan's scatters allow it (see [`HeldScatters`]); returns whether
+    /// they are held.
+    pub(crate) fn hold_scatters(&mut self) -> bool {
+        if self.plan.scatter_parts.is_some() && self.held.is_none() {
+            let steps = self.plan.scatters.iter().map(|sc| HeldStep {
+                p: Default::default(),
+                cotangent: vec![Vec::new(); sc.cotangent.len()],
+            });
+            self.held = Some(steps.collect());
+        }
+        self.held.is_some()
+    }
+
+    /// The scatters held since [`Passes::hold_scatters`] (which holds them no more).
+    pub(crate) fn take_scatters(&mut self) -> Option<HeldScatters<'a>> {
+        let steps = self.held.take()?;
+        Some(HeldScatters {
+            plan: self.plan,
+            steps,
+        })
     }
 
     /// The forward pass over points `0..n` (sizes checked by the caller): writes the outputs, keeps a tile
@@ -902,7 +1032,16 @@ impl<'a> Passes<'a> {
         for (t, count) in self.kept.drain(..).enumerate() {
             let arena = w.arena(t);
             // SAFETY: a forward pass filled arena t with `count` points; sizes were checked by the caller.
-            unsafe { w.backward_tile(arena, (start, count), cotangents, reductions, &mut laps) };
+            unsafe {
+                w.backward_tile(arena, (start, count), cotangents, &mut laps);
+                match &mut self.held {
+                    Some(held) => {
+                        w.hold_tile(arena, count, held);
+                        laps.lap(Phase::GridScatters);
+                    }
+                    None => w.scatter_tile(arena, count, reductions, &mut laps),
+                }
+            }
             start += count;
         }
         laps.lap(Phase::Elementwise);

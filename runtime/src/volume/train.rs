@@ -11,14 +11,22 @@
 //! are kept between steps (a hash grid's gradient has millions of entries: fresh memory every step
 //! would be faulted in page by page), and the sum zeroes each one it adds as it reads it, so the
 //! next step need not clear them in a pass of its own.
+//!
+//! A hash grid's table is most of a field's params, and its gradient is scattered: where the field's
+//! backward passes can hold their scatters back ([`KeptPasses::hold_scatters`]), no task writes the
+//! table's gradient, the accumulators are summed outside it, and after the tasks each level of the table
+//! is scattered on its own thread, every task's points in task order, into the first accumulator. A
+//! step then writes one table-sized gradient instead of four and sums none (on 2026-12-03, a Zen 3: late
+//! 800² steps of lego 0.51×, W8's 0.80–0.83×).
 
+use std::ops::Range;
 use std::sync::Mutex;
 
 use rayon::prelude::*;
 
 use crate::cameras::rays::RayBatch;
 use crate::error::{Error, Result};
-use crate::field::{check_vjp_arity, BatchFn, BatchVjp, KeptForward, KeptPasses};
+use crate::field::{check_vjp_arity, BatchFn, BatchVjp, HeldScatters, KeptForward, KeptPasses};
 use crate::rng::Rng;
 use crate::training::metrics::psnr;
 use crate::volume::appearance::{ColorTransform, TRANSFORM_VALUES};
@@ -84,6 +92,62 @@ fn keep_spare(grads: Vec<f32>, zeroed: bool) {
 /// the next steps; optional, it saves faulting in fresh memory for large tables.
 pub fn recycle(grads: Vec<f32>) {
     keep_spare(grads, false);
+}
+
+/// The stretches of `0..n` outside the sorted, disjoint `ranges`.
+fn complement(ranges: &[Range<usize>], n: usize) -> Vec<Range<usize>> {
+    let mut out = Vec::with_capacity(ranges.len() + 1);
+    let mut start = 0;
+    for r in ranges {
+        if r.start > start {
+            out.push(start..r.start);
+        }
+        start = start.max(r.end);
+    }
+    if start < n {
+        out.push(start..n);
+    }
+    out
+}
+
+/// The stretches `ranges` (sorted, disjoint, within `values`) of `values`, each its own slice.
+fn windows<'v>(mut values: &'v mut [f32], ranges: &[Range<usize>]) -> Vec<&'v mut [f32]> {
+    let mut out = Vec::with_capacity(ranges.len());
+    let mut at = 0;
+    for r in ranges {
+        let (_, rest) = std::mem::take(&mut values).split_at_mut(r.start - at);
+        let (window, rest) = rest.split_at_mut(r.len());
+        out.push(window);
+        values = rest;
+        at = r.end;
+    }
+    out
+}
+
+/// Adds `parts` to `total` on the stretches `ranges` (sorted, disjoint), element by element in the
+/// parts' order: the same sums on any number of threads. Each part is zeroed as it is added, while it
+/// is in cache, so that the next step need not clear it.
+fn sum_into(total: &mut [f32], parts: &mut [Vec<f32>], ranges: &[Range<usize>]) {
+    const BLOCK: usize = 1 << 16;
+    let mut parts: Vec<Vec<&mut [f32]>> = parts.iter_mut().map(|g| windows(g, ranges)).collect();
+    let mut blocks: Vec<(&mut [f32], Vec<&mut [f32]>)> = Vec::new();
+    for (i, total) in windows(total, ranges).into_iter().enumerate() {
+        let mut chunks: Vec<_> = parts
+            .iter_mut()
+            .map(|p| std::mem::take(&mut p[i]).chunks_mut(BLOCK))
+            .collect();
+        for total in total.chunks_mut(BLOCK) {
+            blocks.push((total, chunks.iter_mut().filter_map(Iterator::next).collect()));
+        }
+    }
+    blocks.into_par_iter().for_each(|(total, parts)| {
+        for part in parts {
+            for (t, g) in total.iter_mut().zip(part) {
+                *t += *g;
+                *g = 0.0;
+            }
+        }
+    });
 }
 
 /// The outcome of [`volume_step`].
@@ -476,7 +540,7 @@ pub fn volume_step_with(
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
     let n_tasks = n_chunks.min(ACCUMULATORS);
     let n_params = vjp.n_params();
-    let tasks: Vec<(TileTotals, Vec<f32>)> = (0..n_tasks)
+    let tasks: Vec<(TileTotals, Vec<f32>, Kept)> = (0..n_tasks)
         .into_par_iter()
         .map(|task| {
             let mut grads = accumulator(n_params);
@@ -488,6 +552,13 @@ pub fn volume_step_with(
                     .as_ref()
                     .and_then(|(f, _)| job.keep.then(|| f.vjp.kept_passes()).flatten()),
             };
+            // A single field's grid scatters are held back and added after the tasks, level by level
+            // into one gradient (see below).
+            if job.fine.is_none() {
+                if let Some(passes) = &mut kept.coarse {
+                    passes.hold_scatters();
+                }
+            }
             with_scratch(|s| {
                 for c in (task..n_chunks).step_by(n_tasks) {
                     let tiles = c * tiles_per_chunk..((c + 1) * tiles_per_chunk).min(n_tiles);
@@ -502,33 +573,39 @@ pub fn volume_step_with(
             for passes in [&mut kept.coarse, &mut kept.fine].into_iter().flatten() {
                 passes.finish(&mut grads);
             }
-            (totals, grads)
+            (totals, grads, kept)
         })
         .collect();
     let mut totals = TileTotals::default();
-    for (t, _) in &tasks {
+    for (t, _, _) in &tasks {
         totals += *t;
     }
     let squared_error = totals.squared_error;
-    let mut accumulators = tasks.into_iter().map(|(_, grads)| grads);
+    let (accumulators, mut kept): (Vec<Vec<f32>>, Vec<Kept>) =
+        tasks.into_iter().map(|(_, g, k)| (g, k)).unzip();
+    let held: Option<Vec<Box<dyn HeldScatters + '_>>> = kept
+        .iter_mut()
+        .map(|k| k.coarse.as_mut().and_then(|passes| passes.take_scatters()))
+        .collect();
+    let mut accumulators = accumulators.into_iter();
     let mut param_grads = accumulators.next().unwrap_or_else(|| vec![0.0; n_params]);
     let mut rest: Vec<Vec<f32>> = accumulators.collect();
-    // Element by element in task order: the same sums on any number of threads. Each part is zeroed as
-    // it is added, while it is in cache, so that the next step need not clear it.
-    const BLOCK: usize = 1 << 16;
-    let mut parts: Vec<_> = rest.iter_mut().map(|g| g.chunks_mut(BLOCK)).collect();
-    let blocks: Vec<(&mut [f32], Vec<&mut [f32]>)> = param_grads
-        .chunks_mut(BLOCK)
-        .map(|total| (total, parts.iter_mut().filter_map(Iterator::next).collect()))
-        .collect();
-    blocks.into_par_iter().for_each(|(total, parts)| {
-        for part in parts {
-            for (t, g) in total.iter_mut().zip(part) {
-                *t += *g;
-                *g = 0.0;
-            }
-        }
-    });
+    // The grids' gradients were held back (no task wrote them): the accumulators are summed elsewhere,
+    // and the grids' levels are scattered into the first accumulator, a level at a time on each thread,
+    // each level's scatters in task order.
+    let grid_params = held
+        .as_ref()
+        .and_then(|h| h.first())
+        .map_or(&[][..], |h| h.parts())
+        .to_vec();
+    let summed = complement(&grid_params, n_params);
+    sum_into(&mut param_grads, &mut rest, &summed);
+    if let Some(held) = &held {
+        windows(&mut param_grads, &grid_params)
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(part, grads)| held.iter().for_each(|h| h.add(part, grads)));
+    }
     rest.into_iter().for_each(|grads| keep_spare(grads, true));
     let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
     let (loss, coarse_loss) = match job.fine {
