@@ -17,7 +17,8 @@
 //! table's gradient, the accumulators are summed outside it, and after the tasks each level of the table
 //! is scattered on its own thread, every task's points in task order, into the first accumulator. A
 //! step then writes one table-sized gradient instead of four and sums none (on 2026-12-03, a Zen 3: late
-//! 800² steps of lego 0.51×, W8's 0.80–0.83×).
+//! 800² steps of lego 0.74–0.86× the time, 0.42–0.47× while the machine's memory was contended; W8's steps
+//! 0.86–0.87×; docs/BENCHMARKS.md).
 
 use std::ops::Range;
 use std::sync::Mutex;
