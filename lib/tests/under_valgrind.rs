@@ -29,6 +29,16 @@ fn run(dir: &Path, name: &str, source: &str) {
     }
 }
 
+/// A script training two steps of the network `h` (4 outputs: density and colour) defined in `body`.
+fn network(body: &str, samples: u32, batch: u32, summary: &str) -> String {
+    format!(
+        "{body}fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
+         fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
+         train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: {samples}, steps: 2, batch: {batch}, \
+         lr: 0.01, summary: \"{summary}\" }}\n"
+    )
+}
+
 fn scratch() -> PathBuf {
     let dir = std::env::temp_dir().join(format!("nerfjit-valgrind-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -55,26 +65,19 @@ fn training_steps_under_valgrind_make_no_memory_errors() {
     run(&dir, "box.sdf", &trainer);
     assert!(dir.join("box.json").exists());
 
-    let net = "param w1: mat<16, 3> = linear_init(seed: 1)\nparam b1: vec<16> = linear_init(fan_in: 3, seed: 2)\n\
+    let net =
+        "param w1: mat<16, 3> = linear_init(seed: 1)\nparam b1: vec<16> = linear_init(fan_in: 3, seed: 2)\n\
                param w2: mat<4, 16> = linear_init(seed: 3)\n\
-               fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, b1, p)))\n\
-               fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
-               fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
-               train { data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: 2, batch: 64, lr: 0.01, \
-               summary: \"net.json\" }\n";
-    run(&dir, "net.sdf", net);
+               fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, b1, p)))\n";
+    run(&dir, "net.sdf", &network(net, 48, 64, "net.json"));
     assert!(dir.join("net.json").exists());
 
     // A hash grid, whose backward passes hold their scatters back for the step to add level by level (two
     // tasks: 512 rays of 96 samples are two chunks of points).
     let grid = "param table: hashgrid<3, levels: 4, features: 2, log2_size: 9, base: 4, finest: 32, bounds: 1.5> = \
                 uniform(-0.1, 0.1, seed: 1)\nparam w1: mat<8, 8> = kaiming(seed: 2)\nparam w2: mat<4, 8> = kaiming(seed: 3)\n\
-                fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, hashgrid(table, p))))\n\
-                fn density(p: vec3) -> f32 = softplus(h(p)[0])\n\
-                fn color(p: vec3) -> vec3 = sigmoid([h(p)[1], h(p)[2], h(p)[3]])\n\
-                train { data: views(\"cams.json\"), near: 0, far: 5, samples: 96, steps: 2, batch: 512, lr: 0.01, \
-                summary: \"grid.json\" }\n";
-    run(&dir, "grid.sdf", grid);
+                fn h(p: vec3) -> vec<4> = dense(w2, relu(dense(w1, hashgrid(table, p))))\n";
+    run(&dir, "grid.sdf", &network(grid, 96, 512, "grid.json"));
     assert!(dir.join("grid.json").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }

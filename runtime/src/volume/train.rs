@@ -597,12 +597,10 @@ pub fn volume_step_with(
     let grid_params = held
         .as_ref()
         .and_then(|h| h.first())
-        .map_or(&[][..], |h| h.parts())
-        .to_vec();
-    let summed = complement(&grid_params, n_params);
-    sum_into(&mut param_grads, &mut rest, &summed);
+        .map_or(&[][..], |h| h.parts());
+    sum_into(&mut param_grads, &mut rest, &complement(grid_params, n_params));
     if let Some(held) = &held {
-        windows(&mut param_grads, &grid_params)
+        windows(&mut param_grads, grid_params)
             .into_par_iter()
             .enumerate()
             .for_each(|(part, grads)| held.iter().for_each(|h| h.add(part, grads)));
