@@ -123,7 +123,7 @@ impl GridPlan {
         8 * self.levels.len() as u64
     }
 
-    /// The pairs of neighbouring features that the AVX-512 paths move as one 8-byte element: all of them
+    /// The pairs of neighbouring features that the vector paths move as one 8-byte element: all of them
     /// when the features are even in number, else none.
     #[cfg(target_arch = "x86_64")]
     fn feature_pairs(&self) -> usize {
@@ -737,6 +737,7 @@ mod avx2 {
         ///
         /// # Safety
         /// As for [`Lookahead::new`], with `8b < count`.
+        #[inline]
         #[target_feature(enable = "avx2")]
         unsafe fn compute(&self, b: usize) -> Corners8 {
             let start = b * LANES;
@@ -749,6 +750,7 @@ mod avx2 {
         ///
         /// # Safety
         /// As for [`Lookahead::compute`].
+        #[inline]
         #[target_feature(enable = "avx2")]
         unsafe fn fetch(&mut self, b: usize) {
             // SAFETY: passed on.
@@ -770,17 +772,19 @@ mod avx2 {
         ///
         /// # Safety
         /// As for [`Lookahead::compute`].
+        #[inline]
         #[target_feature(enable = "avx2")]
-        unsafe fn block(&mut self, b: usize) -> Corners8 {
+        unsafe fn block(&mut self, b: usize) -> &Corners8 {
             if self.ahead == 0 {
                 // SAFETY: passed on.
-                return unsafe { self.compute(b) };
+                self.ring[0] = unsafe { self.compute(b) };
+                return &self.ring[0];
             }
             if (b + self.ahead) * LANES < self.count {
                 // SAFETY: passed on; that block starts below count.
                 unsafe { self.fetch(b + self.ahead) };
             }
-            self.ring[b % (AHEAD + 1)]
+            &self.ring[b % (AHEAD + 1)]
         }
     }
 
@@ -870,7 +874,11 @@ mod avx2 {
         p.map(|c| unsafe { _mm256_maskload_ps(c.add(start), m) })
     }
 
-    /// [`GridPlan::read`] on AVX2.
+    /// [`GridPlan::read`] on AVX2. With an even number of features, a point's two neighbouring features
+    /// come in one 8-byte element of a gather (two gathers of 4 points a corner instead of two of 8 floats:
+    /// half the elements; gathers run element by element on AMD Zen), summed in the pairs' interleaved
+    /// order and separated into their columns at the end, with the same operations on each value. Full
+    /// blocks are stored plainly (masked stores are microcoded on Zen), the last one masked.
     ///
     /// # Safety
     /// As [`GridPlan::read`]'s, with `params.len() ≥ plan.end` and every index below 2^31.
@@ -882,14 +890,66 @@ mod avx2 {
         params: &[f32],
         count: usize,
     ) {
+        // Each of points 0–3 (4–7) weight twice, for the two features of its pair.
+        let spread = [
+            _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3),
+            _mm256_setr_epi32(4, 4, 5, 5, 6, 6, 7, 7),
+        ];
+        let pairs = plan.feature_pairs();
         for l in 0..plan.levels.len() {
             // SAFETY: the caller's columns hold count floats.
             let mut look = unsafe { Lookahead::new(plan, l, p, count, params.as_ptr()) };
             for (b, start) in (0..count).step_by(LANES).enumerate() {
                 let m = lanes(start, count);
+                // Each half's 32-bit lane masks widened to its 4 64-bit lanes.
+                let half_masks = [
+                    _mm256_cvtepi32_epi64(_mm256_castsi256_si128(m)),
+                    _mm256_cvtepi32_epi64(_mm256_extracti128_si256::<1>(m)),
+                ];
+                let store = |column: usize, sum: __m256| {
+                    // SAFETY: the output columns hold count floats, and a full block lies below count.
+                    unsafe {
+                        if start + LANES <= count {
+                            _mm256_storeu_ps(out[column].add(start), sum);
+                        } else {
+                            _mm256_maskstore_ps(out[column].add(start), m, sum);
+                        }
+                    }
+                };
                 // SAFETY: as above; the block starts below count.
                 let corners = unsafe { look.block(b) };
-                for f in 0..plan.features {
+                for pair in 0..pairs {
+                    let shift = _mm256_set1_epi32(2 * pair as i32);
+                    let mut sum = [_mm256_setzero_ps(); 2];
+                    for k in 0..8 {
+                        let at = _mm256_add_epi32(corners.index[k], shift);
+                        let halves = [_mm256_castsi256_si128(at), _mm256_extracti128_si256::<1>(at)];
+                        for half in 0..2 {
+                            // SAFETY: an index + 1 is below plan.end ≤ params.len() (the pair's second
+                            // feature), as in the scalar path.
+                            let value = _mm256_castsi256_ps(unsafe {
+                                _mm256_mask_i32gather_epi64::<4>(
+                                    _mm256_setzero_si256(),
+                                    params.as_ptr().cast(),
+                                    halves[half],
+                                    half_masks[half],
+                                )
+                            });
+                            let weight = _mm256_permutevar8x32_ps(corners.weight[k], spread[half]);
+                            sum[half] = _mm256_add_ps(sum[half], _mm256_mul_ps(weight, value));
+                        }
+                    }
+                    // Points 0, 1, 4, 5, 2, 3, 6, 7 of each feature, then in order.
+                    let first = _mm256_shuffle_ps::<0b10_00_10_00>(sum[0], sum[1]);
+                    let second = _mm256_shuffle_ps::<0b11_01_11_01>(sum[0], sum[1]);
+                    let order = |v: __m256| {
+                        _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(v)))
+                    };
+                    let column = l * plan.features + 2 * pair;
+                    store(column, order(first));
+                    store(column + 1, order(second));
+                }
+                for f in 2 * pairs..plan.features {
                     let shift = _mm256_set1_epi32(f as i32);
                     let mut sum = _mm256_setzero_ps();
                     for k in 0..8 {
@@ -904,8 +964,7 @@ mod avx2 {
                         };
                         sum = _mm256_add_ps(sum, _mm256_mul_ps(corners.weight[k], value));
                     }
-                    // SAFETY: the output columns hold count floats.
-                    unsafe { _mm256_maskstore_ps(out[l * plan.features + f].add(start), m, sum) };
+                    store(l * plan.features + f, sum);
                 }
             }
         }
