@@ -92,7 +92,7 @@ pub struct TrainPlan {
     /// `every` steps from step `warmup` on.
     grid: Option<TrainingGrid>,
     /// Training rays stop once their transmittance is below this (later samples are neither evaluated
-    /// nor back-propagated); validation stops rays the same way, previews are exact.
+    /// nor back-propagated); validation and previews stop rays the same way.
     early_termination: Option<f32>,
 }
 
@@ -508,7 +508,6 @@ impl TrainPlan {
             val_views: val_views.as_ref(),
             fields: &fields,
             regularizers: regularizers.as_ref(),
-            settings,
             step_settings: VolumeSettings {
                 early_termination: self.early_termination,
                 ..settings
@@ -606,8 +605,10 @@ impl TrainPlan {
         fields: &VolumeFields,
         params: &[f32],
         settings: &VolumeSettings,
+        grid: Option<&OccupancyGrid>,
     ) -> Result<()> {
-        let frame = fields.render(&views.cameras[0], views.width, views.height, params, settings)?;
+        let size = (views.width, views.height);
+        let frame = fields.render_with(&views.cameras[0], size, params, settings, grid)?;
         // The preview shows the render next to the target view.
         let target = &views.images[0];
         let (w, h) = (views.width as usize, views.height as usize);
@@ -635,9 +636,7 @@ struct VolumeObjective<'a> {
     val_views: Option<&'a Views>,
     fields: &'a VolumeFields,
     regularizers: Option<&'a RegularizerKernels>,
-    /// Previews' settings (every sample).
-    settings: VolumeSettings,
-    /// The steps' and validation's settings (with early termination when asked).
+    /// The steps', validation's and previews' settings (with early termination when asked).
     step_settings: VolumeSettings,
     live: Option<&'a dyn TrainingObserver>,
     /// The step's view and background colour: the same on every rank of an MPI job, whose ranks then
@@ -676,7 +675,7 @@ impl VolumeObjective<'_> {
             return Ok(());
         }
         let t = Instant::now();
-        let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.settings.mode);
+        let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.step_settings.mode);
         let (ema, rng) = (&mut self.ema, &mut self.ema_rng);
         let built = g
             .grid
@@ -950,8 +949,14 @@ impl Objective for VolumeObjective<'_> {
         }
         if let Some(path) = &self.plan.preview {
             if p.done.is_multiple_of(self.plan.preview_every) || (p.last && !p.interrupted) {
-                self.plan
-                    .write_preview(path, self.views, self.fields, params, &self.settings)?;
+                self.plan.write_preview(
+                    path,
+                    self.views,
+                    self.fields,
+                    params,
+                    &self.step_settings,
+                    self.grid.as_ref(),
+                )?;
             }
         }
         Ok(())
