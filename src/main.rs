@@ -16,10 +16,14 @@ use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
 use nerfjit_viewer as viewer;
 
+mod huge_pages;
 #[cfg(feature = "mpi")]
 mod mpi_cluster;
 mod terminal;
 use terminal::TerminalBars;
+
+#[global_allocator]
+static ALLOCATOR: huge_pages::HugePages = huge_pages::HugePages;
 
 /// Scene scripts with symbolic derivatives, compiled by a Cranelift JIT, rendered on the CPU.
 #[derive(Parser)]
