@@ -219,14 +219,15 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Score a script's volume field (or a checkpoint's) on the views of a Blender-format camera file:
-    /// PSNR and SSIM per view and their means.
+    /// Score a script's volume field (or a checkpoint's) on the views of a camera file: PSNR and SSIM per
+    /// view and their means.
     EvalViews {
         /// A script, or a checkpoint written by a train block.
         source: String,
         /// The camera file with the views' images: Blender `transforms_*.json` (at --size²), a nerfstudio
-        /// `transforms.json` or a COLMAP model folder (every frame, normalized by its own cameras as
-        /// training normalizes them, downscaled by the whole factor nearest to width ÷ --size) [default:
+        /// `transforms.json`, a COLMAP model, LLFF scene or DTU scan folder (every frame, read as the
+        /// field's training read its data: normalized or not, masked or not; downscaled by the whole
+        /// factor nearest to width ÷ --size) [default:
         /// the views the script's train block holds out for validation, loaded as it trains: its `val`
         /// file or `holdout(every: n)` views of its data, at its size].
         #[arg(long)]
@@ -237,10 +238,10 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
     },
-    /// Render several trained fields (checkpoints or scripts) from one view of a Blender-format camera file
-    /// as a labeled grid beside the target image, with each render's PSNR (the fewer-views comparison).
+    /// Render several trained fields (checkpoints or scripts) from one view of a camera file as a labeled
+    /// grid beside the target image, with each render's PSNR (the fewer-views comparison).
     Compare {
-        /// The camera file with the views' images (Blender `transforms_*.json`).
+        /// The camera file with the views' images (any that eval-views reads).
         #[arg(long)]
         cameras: PathBuf,
         #[command(flatten)]
@@ -320,7 +321,8 @@ enum DataCommand {
 #[derive(clap::Args)]
 struct CameraChoice {
     /// A camera file: Blender or nerfstudio `transforms.json`, a nerfstudio `camera_path.json`, a COLMAP
-    /// model folder (captures normalized as for training) or the course's `box_cameras.json`.
+    /// model, LLFF scene or DTU scan folder (captures placed as the field's training placed its data) or
+    /// the course's `box_cameras.json`.
     #[arg(long)]
     cameras: Option<PathBuf>,
     /// A camera path as in a script, e.g. 'orbit(radius: 4, frames: 60, up: z, focal: 2)' or

@@ -679,10 +679,12 @@ fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
     );
 }
 
-#[test]
-fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
-    let dir = scratch("dtu");
-    render_truth(&dir);
+/// Writes the true box's eight views into `dir` as a DTU scan in the IDR / NeuS layout: `image/` (the
+/// background painted gray), `mask/` (not strictly binary) and `cameras_sphere.npz` (OpenCV projections
+/// of a tilted, shifted, scaled world, and the scale matrix back to the truth's frame shrunk by `shrink`:
+/// at 1 the scan's frame is the truth's).
+fn write_dtu_scan(dir: &Path, shrink: f32) {
+    render_truth(dir);
     std::fs::create_dir_all(dir.join("image")).unwrap();
     std::fs::create_dir_all(dir.join("mask")).unwrap();
     let mut archive = zip::ZipWriter::new(std::fs::File::create(dir.join("cameras_sphere.npz")).unwrap());
@@ -692,7 +694,7 @@ fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
     let mut scale_mat = [0.0f64; 16];
     for r in 0..3 {
         for c in 0..3 {
-            scale_mat[4 * r + c] = f64::from(2.5 * tilt.col(c)[r]);
+            scale_mat[4 * r + c] = f64::from(2.5 * shrink * tilt.col(c)[r]);
         }
         scale_mat[4 * r + 3] = f64::from(to_capture_world(Vec3::ZERO)[r]);
     }
@@ -745,6 +747,12 @@ fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
     }
     archive.finish().unwrap();
     std::fs::remove_dir_all(dir.join("images")).unwrap();
+}
+
+#[test]
+fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
+    let dir = scratch("dtu");
+    write_dtu_scan(&dir, 1.0);
     let (ok, report, err) = run(&dir, &["data", "check", "."]);
     assert!(ok, "{err}");
     assert!(
@@ -783,4 +791,43 @@ fn a_dtu_scan_with_projection_matrices_and_masks_trains() {
                 .starts_with("every 4th view of"),
         "{scores}"
     );
+}
+
+/// A field trained on a DTU scan moved into nerfjit's frame (`normalize: true`, here the truth's frame,
+/// twice the scan's) without its masks is scored from the scan's folder as it was trained: `eval-views
+/// --cameras SCAN` places the cameras in that frame (not the scan's, where the box would be half its
+/// size) and scores whole images, the masks choosing only the pixels of the masked score; so its
+/// held-out views score as validation scores them.
+#[test]
+fn a_dtu_scan_given_as_cameras_is_read_as_its_field_was_trained_on_it() {
+    let dir = scratch("dtu_cameras");
+    write_dtu_scan(&dir, 2.0);
+    let script = format!(
+        "const center = [0.2, -0.1, 0.1]\nconst sides = [1.2, 0.8, 1.0]\n{FIELD}\
+         train {{ data: dtu(\".\", masks: false, normalize: true), near: 2, far: 6, samples: 48, steps: 1, \
+         val: holdout(every: 4) }}\n"
+    );
+    std::fs::write(dir.join("truth.sdf"), script).unwrap();
+    let scores = |extra: &[&str], json: &str| -> serde_json::Value {
+        let args = [&["eval-views", "truth.sdf", "--json", json][..], extra].concat();
+        let (ok, out, err) = run(&dir, &args);
+        assert!(ok, "{err}");
+        std::fs::write(dir.join(format!("{json}.out")), out).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(dir.join(json)).unwrap()).unwrap()
+    };
+    let held_out = scores(&[], "held_out.json");
+    let all = scores(&["--cameras", "."], "all.json");
+    let psnr = |s: &serde_json::Value, i: usize| s["views"][i]["psnr"].as_f64().unwrap();
+    assert_eq!(all["views"].as_array().unwrap().len(), 8, "{all}");
+    for (held, view) in [(0, 0), (1, 4)] {
+        assert!(
+            (psnr(&held_out, held) - psnr(&all, view)).abs() < 1e-3,
+            "view {view}: {} dB held out, {} dB from the scan's folder",
+            psnr(&held_out, held),
+            psnr(&all, view)
+        );
+    }
+    // Inside the masks the truth renders its own images: the cameras are in the trained frame.
+    let masked = all["mean_masked_psnr"].as_f64().unwrap();
+    assert!(masked > 30.0, "inside the masks: {masked} dB\n{all}");
 }

@@ -177,9 +177,9 @@ fn held_out(v: &Spanned, data: &DataSet, script_dir: &Path) -> std::result::Resu
     Ok(HeldOut::File(file))
 }
 
-/// The cameras of the data the first `train` block of `program` trains on (a script in `script_dir`), if
-/// it names data whose camera file can be read.
-pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_runtime::Camera>> {
+/// The data the first `train` block of `program` trains on (a script in `script_dir`), if it names data
+/// that exists.
+pub fn train_data(program: &Program, script_dir: &Path) -> Option<DataSet> {
     let block = program
         .blocks()
         .into_iter()
@@ -187,7 +187,13 @@ pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_
     let data = nerfjit_dsl::config::Settings::new(program, block)
         .ok()?
         .take("data")?;
-    data_set(&data, script_dir).ok()?.cameras().ok()
+    data_set(&data, script_dir).ok()
+}
+
+/// The cameras of the data the first `train` block of `program` trains on (a script in `script_dir`), if
+/// it names data whose camera file can be read.
+pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_runtime::Camera>> {
+    train_data(program, script_dir)?.cameras().ok()
 }
 
 impl TrainPlan {

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
-use nerfjit_runtime::{load_blender_views, mse, psnr, rgb_image, save_png, ImageF32, Quantize};
+use nerfjit_runtime::{mse, psnr, rgb_image, save_png, ImageF32, Quantize};
 
 use crate::commands::render_views::ViewArgs;
 use crate::failure::{Failure, Result};
@@ -60,7 +60,8 @@ pub fn compare(
     }
     let (first, _) = crate::commands::render_views::load(&rows[0].sources[0])?;
     let background = args.resolve(&first).background;
-    let views = load_blender_views(cameras, Some(args.size), background, None)?;
+    let trained = crate::commands::render_views::trained_data(&rows[0].sources[0], &first);
+    let views = crate::training::data_source::file_views(cameras, args.size, background, trained.as_ref())?;
     let (Some(camera), Some(target)) = (views.cameras.get(index), views.images.get(index)) else {
         return Err(Failure::Message(format!(
             "view {index} does not exist: {} has {} views",

@@ -31,7 +31,7 @@ pub struct PointsArgs<'a> {
 /// Renders the views, back-projects their opaque pixels and writes the cloud; returns a summary line.
 pub fn run(args: &PointsArgs) -> Result<String> {
     let (program, params) = crate::commands::render_views::load(args.view.source)?;
-    let cameras = match args.cameras.cameras()? {
+    let cameras = match args.cameras.cameras(args.view.source, &program)? {
         Some((cameras, _)) => cameras,
         None => {
             let folder = Path::new(args.view.source).parent().unwrap_or(Path::new(""));

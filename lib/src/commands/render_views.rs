@@ -19,6 +19,7 @@ use crate::settings::block::MAX_PIXELS;
 use crate::settings::camera::FrameSize;
 use crate::settings::primitives::triple;
 use crate::settings::values::SkipEmpty;
+use crate::training::data_source::DataSet;
 use crate::training::validation::{means, score_on_ranks};
 use nerfjit_field::VolumeFields;
 
@@ -239,6 +240,14 @@ pub fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)
     Ok((views, described))
 }
 
+/// The data the field of `source` (a script or checkpoint, compiled as `program`) was trained on, if its
+/// `train` block names data found here: camera files given to render or score the field are read as it
+/// read its own (a DTU scan trained with `normalize: true` is rendered normalized, not in the scan's frame).
+pub fn trained_data(source: &str, program: &Program) -> Option<DataSet> {
+    let folder = Path::new(source).parent().unwrap_or(Path::new(""));
+    crate::blocks::train::train_data(program, folder)
+}
+
 /// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
 pub fn load(source: &str) -> Result<(Program, Vec<f32>)> {
     if is_checkpoint(source) {
@@ -269,9 +278,18 @@ pub enum CameraSource<'a> {
 
 impl CameraSource<'_> {
     /// The cameras of a file or a path with the file's frame size if it states one; `None` for the default.
-    pub(crate) fn cameras(&self) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
+    /// A capture's file is normalized as `program`'s training normalized its data (from `source`, a script
+    /// or checkpoint: see [`trained_data`]).
+    pub(crate) fn cameras(
+        &self,
+        source: &str,
+        program: &Program,
+    ) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
         Ok(match self {
-            CameraSource::File(file) => Some(crate::settings::camera::camera_file(file, true)?),
+            CameraSource::File(file) => Some(crate::settings::camera::camera_file(
+                file,
+                trained_data(source, program).and_then(|d| d.normalizes()),
+            )?),
             CameraSource::Path(text) => Some((path_cameras(text)?, None)),
             CameraSource::Default => None,
         })
@@ -282,7 +300,7 @@ impl CameraSource<'_> {
 /// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
     let (program, params) = load(args.source)?;
-    let (cameras, frame) = match cameras.cameras()? {
+    let (cameras, frame) = match cameras.cameras(args.source, &program)? {
         Some(found) => found,
         None => (
             script_cameras(&program)?.ok_or_else(|| {
@@ -372,7 +390,12 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let rendering = args.resolve(&program);
     let (views, described) = match cameras {
         Some(file) => (
-            crate::training::data_source::file_views(file, args.size, rendering.background)?,
+            crate::training::data_source::file_views(
+                file,
+                args.size,
+                rendering.background,
+                trained_data(args.source, &program).as_ref(),
+            )?,
             format!("the views of {}", file.display()),
         ),
         None => held_out_views(args.source, &program)?,

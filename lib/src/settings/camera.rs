@@ -52,7 +52,10 @@ pub fn cameras(
         "cameras" => {
             let a = CallArgs::new(v, &["file", "normalize"])?;
             let file = script_dir.join(a.string("file")?);
-            let normalize = a.choice("normalize", &["true", "false"], "true")? == "true";
+            let normalize = match a.raw("normalize") {
+                Some(_) => Some(a.choice("normalize", &["true", "false"], "true")? == "true"),
+                None => None,
+            };
             camera_file(&file, normalize).map(|(cameras, _)| cameras)
         }
         "look_at" => {
@@ -85,19 +88,21 @@ pub fn cameras(
 pub type FrameSize = (u32, u32);
 
 /// The cameras of a camera file — the course's, Blender's, a nerfstudio `transforms.json` or
-/// `camera_path.json`, a COLMAP model folder or an LLFF scene folder (captures normalized as for training
-/// unless `normalize` is false), or a DTU scan folder (in the scan's frame, as training keeps it) — and
-/// the (width, height) of its images when the file says.
+/// `camera_path.json`, a COLMAP model folder, an LLFF scene folder or a DTU scan folder — and the
+/// (width, height) of its images when the file says. A capture is normalized by its own cameras as
+/// training normalizes one when `normalize` is `Some(true)`, kept in its frame when `Some(false)`, and
+/// with `None` as training does by default: captures normalized, DTU scans in the scan's frame.
 pub fn camera_file(
     file: &Path,
-    normalize: bool,
+    normalize: Option<bool>,
 ) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
-    if dtu_cameras_file(file).is_some() {
-        let capture = load_dtu(file, false)?;
-        let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
-        return Ok((capture.cameras(file, 1, None)?, size));
-    }
-    let capture = if is_llff(file) {
+    // A DTU scan stays in its own frame (the object inside the unit sphere) unless asked; captures are
+    // normalized unless asked not to be.
+    let mut normalize_capture = normalize != Some(false);
+    let capture = if dtu_cameras_file(file).is_some() {
+        normalize_capture = normalize == Some(true);
+        Some(load_dtu(file, false)?)
+    } else if is_llff(file) {
         let scales = nerfjit_runtime::data::llff::image_scales(file);
         Some(load_llff(file, scales.last().copied().unwrap_or(1))?.capture)
     } else if is_colmap_model(file) {
@@ -118,7 +123,7 @@ pub fn camera_file(
     };
     match capture {
         Some(mut capture) => {
-            if normalize {
+            if normalize_capture {
                 capture.normalize()?;
             }
             let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));

@@ -83,17 +83,23 @@ const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.
                     llff(\"scene\", downscale: 8) or dtu(\"scan\", masks: true)";
 
 /// The views of a camera file with its images, to score renders against: a nerfstudio capture, a
-/// COLMAP model folder, an LLFF scene folder or a DTU scan folder (with its masks where it has them)
-/// (every frame, normalized by its own cameras as training and `render --cameras`
-/// normalize it, downscaled by the whole factor nearest to the frames' width ÷ `width`), or Blender
-/// transforms at `width`².
-pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views> {
+/// COLMAP model folder, an LLFF scene folder or a DTU scan folder (every frame, downscaled by the whole
+/// factor nearest to the frames' width ÷ `width`), or Blender transforms at `width`². A capture is read
+/// as `trained` (the data the field was trained on, when known) read its own: normalized by its own
+/// cameras or kept in its frame as that data was ([`DataSet::normalizes`]; without it, as each kind is by
+/// default: captures normalized, DTU scans in the scan's frame, as `render --cameras` places its cameras).
+/// A DTU scan's masks, where it has them, black out the background as training with `masks: true` does,
+/// unless the field was trained on that kind of scan without them: then the images are whole and the
+/// masks only choose the pixels of the masked score.
+pub fn file_views(file: &Path, width: u32, background: [f32; 3], trained: Option<&DataSet>) -> Result<Views> {
+    let normalize = trained.and_then(DataSet::normalizes);
     let data = CaptureData {
         downscale: 1,
         background,
         views: None,
-        normalize: true,
+        normalize: normalize.unwrap_or(true),
     };
+    let mut masks_apart = false;
     let kind = if nerfjit_runtime::is_llff(file) {
         let downscale = nerfjit_runtime::data::llff::downscale_for_width(file, width)?;
         let set = DataSet {
@@ -102,13 +108,13 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
         };
         return set.views();
     } else if nerfjit_runtime::dtu_cameras_file(file).is_some() {
-        DataKind::Dtu(
-            CaptureData {
-                normalize: false,
-                ..data
-            },
-            file.join("mask").is_dir(),
-        )
+        let masks = file.join("mask").is_dir();
+        masks_apart = masks && matches!(trained.map(|t| &t.kind), Some(DataKind::Dtu(_, false)));
+        let data = CaptureData {
+            normalize: normalize.unwrap_or(false),
+            ..data
+        };
+        DataKind::Dtu(data, masks && !masks_apart)
     } else if nerfjit_runtime::is_colmap_model(file) {
         let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
         DataKind::Colmap(data, images)
@@ -126,7 +132,19 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3]) -> Result<Views
     let (capture, _) = set.capture()?.expect("a capture's kind");
     let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
     let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
-    set.downscaled(downscale).load(false)
+    let set = set.downscaled(downscale);
+    let mut views = set.load(false)?;
+    if masks_apart {
+        let DataKind::Dtu(data, _) = set.kind else {
+            unreachable!("only a DTU scan keeps its masks apart")
+        };
+        let masked = DataSet {
+            kind: DataKind::Dtu(data, true),
+            ..set
+        };
+        views.masks = masked.load(false)?.masks;
+    }
+    Ok(views)
 }
 
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
@@ -363,6 +381,17 @@ impl DataSet {
             DataKind::Blender(b) => b.background,
             DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
                 c.background
+            }
+        }
+    }
+
+    /// Whether a capture's cameras are moved into nerfjit's frame (its `normalize`); `None` for the
+    /// course's and Blender data, which are read as they are.
+    pub fn normalizes(&self) -> Option<bool> {
+        match &self.kind {
+            DataKind::Course | DataKind::Blender(_) => None,
+            DataKind::Nerfstudio(c) | DataKind::Colmap(c, _) | DataKind::Llff(c) | DataKind::Dtu(c, _) => {
+                Some(c.normalize)
             }
         }
     }
