@@ -174,6 +174,15 @@ pub enum SdfLoss {
         /// Usually 1 / the number of points.
         scale: f64,
     },
+    /// `scale · max(c − (o·f(p) + (1 − o)·|f(p)|), 0)` with the point's clearance c and whether it is
+    /// known to lie outside, o (1) or not (0), as fourth and fifth inputs: the surface keeps at least c
+    /// (its distance to the nearest cloud point, less a margin) from p, so it cannot lie where no cloud
+    /// point is near, and outside f ≥ c (SAL's unsigned-distance supervision, one-sided, so that a true
+    /// distance, never more than the distance to the nearest point, is not penalized).
+    Clearance {
+        /// Usually the weight / the number of points.
+        scale: f64,
+    },
     /// Two terms: `near · exp(−sharpness · |f(p)|)` (no surface away from the points) and
     /// `eikonal · (|∇ₓf(p)| − 1)²` (a distance has a unit gradient; its param gradient is second order).
     Regularizers {
@@ -204,6 +213,19 @@ pub fn sdf_loss(f: &Lowered, n_params: usize, loss: SdfLoss) -> Graph {
             let squared = g.push(Op::Mul(error, error));
             let scale = g.constant(scale);
             vec![g.push(Op::Mul(scale, squared))]
+        }
+        SdfLoss::Clearance { scale } => {
+            let (clearance, outside) = (g.input(3), g.input(4));
+            // o·f + (1 − o)·|f| = |f| + o·(f − |f|)
+            let abs = g.push(Op::Abs(d));
+            let below = g.push(Op::Sub(d, abs));
+            let signed = g.push(Op::Mul(outside, below));
+            let kept = g.push(Op::Add(abs, signed));
+            let short = g.push(Op::Sub(clearance, kept));
+            let zero = g.constant(0.0);
+            let hinge = g.push(Op::Max(short, zero));
+            let scale = g.constant(scale);
+            vec![g.push(Op::Mul(scale, hinge))]
         }
         SdfLoss::Regularizers {
             near,

@@ -48,7 +48,7 @@ pub use output::image_out::{depth_image, normal_image, rgb_image, save_gif, save
 pub use output::video::save_mp4;
 pub use rng::Rng;
 pub use surfaces::mesh::Mesh;
-pub use surfaces::mesh_metrics::{chamfer_report, point_to_mesh_distances, ChamferReport};
+pub use surfaces::mesh_metrics::{chamfer_report, point_to_mesh_distances, ChamferReport, PointIndex};
 pub use surfaces::raster::{render_mesh, render_points};
 pub use surfaces::sphere_trace::{
     on_pool, render_frames, sphere_trace, sphere_trace_into, Frame, Shading, TraceSettings,

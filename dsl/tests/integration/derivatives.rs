@@ -268,8 +268,16 @@ fn sdf_loss_kernels_compute_their_formulas_and_the_exact_param_gradient() {
     let value_and_gradient = kernel_graphs::with_gradient(&f);
     let params = p.param_values_f64();
     let x = [0.5, -0.3, 0.35];
+    let d_at_x = eval_point(&value_and_gradient, &x, &params).outputs[0];
+    // The clearance term reads a fourth and fifth input, the point's clearance c and whether it is
+    // outside: c 0.2 beyond |d| (the hinge active) unsigned and signed (where d < 0 the signed form
+    // counts d itself), and 0 (inactive).
+    let clearances = [(d_at_x.abs() + 0.2, 0.0), (d_at_x.abs() + 0.2, 1.0), (0.0, 0.0)];
     let losses = [
         SdfLoss::Surface { scale: 0.25 },
+        SdfLoss::Clearance { scale: 0.5 },
+        SdfLoss::Clearance { scale: 0.75 },
+        SdfLoss::Clearance { scale: 1.5 },
         SdfLoss::Sphere {
             radius: 0.7,
             scale: 0.5,
@@ -280,13 +288,18 @@ fn sdf_loss_kernels_compute_their_formulas_and_the_exact_param_gradient() {
             eikonal: 0.1,
         },
     ];
-    for loss in losses {
+    for (i, loss) in losses.into_iter().enumerate() {
+        let (clearance, outside) = clearances[i % 3];
         // The terms from d and ∇d as the loss's documentation states them.
         let terms = |q: &[f64]| -> Vec<f64> {
             let o = eval_point(&value_and_gradient, &x, q).outputs;
             let (d, norm) = (o[0], (o[1] * o[1] + o[2] * o[2] + o[3] * o[3]).sqrt());
             match loss {
                 SdfLoss::Surface { scale } => vec![scale * d.abs()],
+                SdfLoss::Clearance { scale } => {
+                    let kept = if outside == 1.0 { d } else { d.abs() };
+                    vec![scale * (clearance - kept).max(0.0)]
+                }
                 SdfLoss::Sphere { radius, scale } => {
                     let length = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
                     vec![scale * (d - (length - radius)).powi(2)]
@@ -302,7 +315,7 @@ fn sdf_loss_kernels_compute_their_formulas_and_the_exact_param_gradient() {
             }
         };
         let kernel = kernel_graphs::sdf_loss(&f, p.n_params(), loss);
-        let got = eval_point(&kernel, &x, &params);
+        let got = eval_point(&kernel, &[x[0], x[1], x[2], clearance, outside], &params);
         let want = terms(&params);
         assert_eq!(got.outputs.len(), want.len(), "{loss:?}");
         for (a, b) in got.outputs.iter().zip(&want) {

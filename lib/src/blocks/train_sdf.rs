@@ -3,7 +3,10 @@
 //! second-order kernel. An optional pre-training pulls the SDF toward a sphere first.
 //!
 //! Per step, with cloud points xᵢ (N) and uniform points yⱼ (M) in [−b, b]³:
-//! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)².
+//! L = mean |d(xᵢ)| + w_near · mean exp(−α|d(yⱼ)|) + w_eik · mean (|∇d(yⱼ)| − 1)²
+//!   (+ w_clear · mean max(cⱼ − |d(zⱼ)|, 0) at M more uniform points zⱼ, with cⱼ the distance from zⱼ to
+//!   the nearest cloud point less twice the cloud's spacing, and d(zⱼ) itself for |d(zⱼ)| where zⱼ is
+//!   known to be outside: a surface only where points are; see [`crate::training::clearance`]).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -19,6 +22,7 @@ use crate::observe::{NoBars, ProgressBars};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
 use crate::settings::schema::Kind;
+use crate::training::clearance::Clearance;
 use crate::training::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 
@@ -43,6 +47,8 @@ pub struct TrainSdfPlan {
     near_weight: f32,
     near_sharpness: f32,
     eikonal_weight: f32,
+    /// w_clear: the clearance term's weight (0: off).
+    clearance_weight: f32,
     /// σ of the noise that moves cloud points into eikonal points (0: none).
     eikonal_jitter: f32,
     pretrain_steps: u32,
@@ -69,6 +75,8 @@ struct Kernels {
     regularizers: RegularizerKernels,
     /// The eikonal term alone at the batch's cloud points moved by Gaussian noise, when asked for.
     jittered: Option<RegularizerKernels>,
+    /// w_clear · max(c − |d(z)|, 0) / m on uniform points z with their clearance c, when asked for.
+    clearance: Option<Arc<Kernel>>,
 }
 
 /// The slots of `train sdf`'s `data: points(...)`.
@@ -130,6 +138,7 @@ impl TrainSdfPlan {
             near_weight: b.number("near_weight")? as f32,
             near_sharpness: b.number("near_sharpness")? as f32,
             eikonal_weight: b.number("eikonal_weight")? as f32,
+            clearance_weight: b.number("clearance_weight")? as f32,
             eikonal_jitter: b.number("eikonal_jitter")? as f32,
             pretrain_steps: b.whole("pretrain_steps")? as u32,
             pretrain_radius: b.number("pretrain_radius")? as f32,
@@ -186,6 +195,12 @@ impl TrainSdfPlan {
                 )?),
                 None => None,
             },
+            clearance: match self.clearance_weight > 0.0 {
+                true => Some(loss(SdfLoss::Clearance {
+                    scale: f64::from(self.clearance_weight) / self.random_here() as f64,
+                })?),
+                false => None,
+            },
         })
     }
 
@@ -226,10 +241,12 @@ impl TrainSdfPlan {
         let t = Instant::now();
         let kernels = self.compile(program, cache)?;
         let compile_s = t.elapsed().as_secs_f64();
+        let clearance = (self.clearance_weight > 0.0).then(|| Clearance::new(&cloud, self.bound));
         let mut objective = SdfObjective {
             plan: self,
             kernels: &kernels,
             cloud: &cloud,
+            clearance: clearance.as_ref(),
             // Each rank of an MPI job draws its own points.
             rng: Rng::new(self.seed ^ 0xB0_77 ^ ((crate::cluster::current().rank() as u64) << 40)),
             threads: rayon::current_num_threads(),
@@ -329,13 +346,16 @@ impl TrainSdfPlan {
         loss.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
     }
 
-    /// One step of the fit; returns the three loss terms (already weighted).
+    /// One step of the fit; returns the three loss terms (already weighted; the clearance term, if any,
+    /// counted with the near-surface term: both keep the surface off the uniform points).
+    #[allow(clippy::too_many_arguments)]
     fn fit_step(
         &self,
         k: &Kernels,
         params: &[f32],
         grads: &mut [f32],
         cloud: &[[f32; 3]],
+        clearance: Option<&Clearance>,
         rng: &mut Rng,
         threads: usize,
     ) -> [f32; 3] {
@@ -359,9 +379,12 @@ impl TrainSdfPlan {
         let surface = terms.iter().map(|&x| f64::from(x)).sum::<f64>();
 
         // Random points: the near-surface penalty on d and the eikonal term on ∇d.
-        let [near, mut eikonal] = self
+        let [mut near, mut eikonal] = self
             .regularizers()
             .add(&k.regularizers, params, grads, rng, threads);
+        if let (Some(kernel), Some(clearance)) = (&k.clearance, clearance) {
+            near += self.clearance_step(kernel, clearance, params, grads, rng, threads);
+        }
         // And the eikonal term about the surface (IGR's sampling): the same cloud points, jittered.
         if let (Some(kernels), Some(reg)) = (&k.jittered, self.jittered()) {
             for column in &mut xs {
@@ -372,6 +395,32 @@ impl TrainSdfPlan {
             eikonal += reg.add_at(kernels, &xs, params, grads, threads)[1];
         }
         [surface as f32, near, eikonal]
+    }
+
+    /// The clearance term at this rank's share of a step's uniform points: max(c − |d|, 0), weighted.
+    fn clearance_step(
+        &self,
+        kernel: &Kernel,
+        clearance: &Clearance,
+        params: &[f32],
+        grads: &mut [f32],
+        rng: &mut Rng,
+        threads: usize,
+    ) -> f32 {
+        let m = self.random_here();
+        let [x, y, z] = uniform_points(rng, m, self.bound);
+        let points: Vec<[f32; 3]> = (0..m).map(|i| [x[i], y[i], z[i]]).collect();
+        let (c, outside) = clearance.targets(&points);
+        let mut terms = vec![0.0f32; m];
+        kernel.eval_parallel(
+            m,
+            &[&x, &y, &z, &c, &outside],
+            &mut [&mut terms],
+            params,
+            grads,
+            threads,
+        );
+        terms.iter().map(|&t| f64::from(t)).sum::<f64>() as f32
     }
 
     /// The eikonal term at the batch's jittered cloud points, when `eikonal_jitter` asks for it.
@@ -412,6 +461,8 @@ struct SdfObjective<'a> {
     plan: &'a TrainSdfPlan,
     kernels: &'a Kernels,
     cloud: &'a [[f32; 3]],
+    /// The indexed cloud of the clearance term, when asked for.
+    clearance: Option<&'a Clearance>,
     rng: Rng,
     threads: usize,
     /// The last step's surface, near-surface and eikonal terms.
@@ -426,7 +477,15 @@ impl Objective for SdfObjective<'_> {
             let sphere = plan.sphere_step(k, params, &mut grads, &mut self.rng, threads);
             [sphere, 0.0, 0.0]
         } else {
-            plan.fit_step(k, params, &mut grads, self.cloud, &mut self.rng, threads)
+            plan.fit_step(
+                k,
+                params,
+                &mut grads,
+                self.cloud,
+                self.clearance,
+                &mut self.rng,
+                threads,
+            )
         };
         Ok(Gradient {
             loss: self.terms.iter().sum(),

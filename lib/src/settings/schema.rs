@@ -633,6 +633,13 @@ pub const TRAIN_SDF: BlockSchema = BlockSchema {
         ),
         number("eikonal_weight", 0.0, 1e6, 0.02, "the eikonal term's weight"),
         number(
+            "clearance_weight",
+            0.0,
+            1e6,
+            0.0,
+            "the weight of the term keeping the surface as far from uniform points as their nearest cloud point, less twice the cloud's spacing (0: off)",
+        ),
+        number(
             "eikonal_jitter",
             0.0,
             1e3,

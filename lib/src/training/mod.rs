@@ -2,6 +2,7 @@
 //! held-out views, and the logs it writes (metrics JSON lines, TensorBoard events).
 
 pub mod appearance;
+pub mod clearance;
 pub mod data_source;
 pub mod metrics_log;
 pub mod regularizers;

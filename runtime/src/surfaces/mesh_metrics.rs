@@ -90,17 +90,59 @@ pub fn point_to_mesh_distances(points: &[[f32; 3]], mesh: &Mesh) -> Result<Vec<f
 
 /// The distance from each of `queries` to the nearest of `points` (not empty).
 fn nearest_point_distances(queries: &[[f32; 3]], points: &[[f32; 3]]) -> Vec<f32> {
-    let points: Vec<Vec3> = points.iter().map(|&p| Vec3::from(p)).collect();
-    let boxes: Vec<(Vec3, Vec3)> = points.iter().map(|&p| (p, p)).collect();
-    let bvh = Bvh::new(&boxes);
-    queries
-        .par_iter()
-        .map(|&q| {
-            let q = Vec3::from(q);
-            let nearest = bvh.nearest(q, |i| points[i as usize].distance_squared(q));
-            nearest.map_or(f32::INFINITY, |(_, d2)| d2.sqrt())
-        })
-        .collect()
+    PointIndex::new(points).distances(queries)
+}
+
+/// A point cloud indexed for nearest-point queries (a bounding volume hierarchy over its points).
+pub struct PointIndex {
+    points: Vec<Vec3>,
+    bvh: Bvh,
+}
+
+impl PointIndex {
+    /// Indexes `points`.
+    pub fn new(points: &[[f32; 3]]) -> PointIndex {
+        let points: Vec<Vec3> = points.iter().map(|&p| Vec3::from(p)).collect();
+        let boxes: Vec<(Vec3, Vec3)> = points.iter().map(|&p| (p, p)).collect();
+        PointIndex {
+            bvh: Bvh::new(&boxes),
+            points,
+        }
+    }
+
+    /// The distance from each of `queries` to the nearest point (infinite without points), on all
+    /// threads.
+    pub fn distances(&self, queries: &[[f32; 3]]) -> Vec<f32> {
+        queries
+            .par_iter()
+            .map(|&q| self.nearest_distance(Vec3::from(q), None))
+            .collect()
+    }
+
+    /// The median distance from a point of the cloud to its nearest other point, over at most `sample`
+    /// points spread evenly through the cloud: how far apart its points lie (0 for fewer than two).
+    pub fn spacing(&self, sample: usize) -> f32 {
+        if self.points.len() < 2 || sample == 0 {
+            return 0.0;
+        }
+        let stride = self.points.len().div_ceil(sample);
+        let mut gaps: Vec<f32> = (0..self.points.len())
+            .step_by(stride)
+            .collect::<Vec<_>>()
+            .par_iter()
+            .map(|&i| self.nearest_distance(self.points[i], Some(i)))
+            .collect();
+        gaps.sort_by(f32::total_cmp);
+        gaps[gaps.len() / 2]
+    }
+
+    fn nearest_distance(&self, q: Vec3, skip: Option<usize>) -> f32 {
+        let nearest = self.bvh.nearest(q, |i| match Some(i as usize) == skip {
+            true => f32::INFINITY,
+            false => self.points[i as usize].distance_squared(q),
+        });
+        nearest.map_or(f32::INFINITY, |(_, d2)| d2.sqrt())
+    }
 }
 
 /// How far a mesh is from a point cloud, both ways.
