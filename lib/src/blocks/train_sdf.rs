@@ -337,13 +337,9 @@ impl TrainSdfPlan {
         rng: &mut Rng,
         threads: usize,
     ) -> f32 {
-        let m = self.random_here();
-        let ys = uniform_points(rng, m, self.bound);
+        let ys = uniform_points(rng, self.random_here(), self.bound);
         let ins: Vec<&[f32]> = ys.iter().map(Vec::as_slice).collect();
-        let mut loss = vec![0.0f32; m];
-        k.sphere
-            .eval_parallel(m, &ins, &mut [&mut loss], params, grads, threads);
-        loss.iter().map(|&x| f64::from(x)).sum::<f64>() as f32
+        summed_terms(&k.sphere, &ins, params, grads, threads)
     }
 
     /// One step of the fit; returns the three loss terms (already weighted; the clearance term, if any,
@@ -373,10 +369,7 @@ impl TrainSdfPlan {
             }
         }
         let ins: Vec<&[f32]> = xs.iter().map(Vec::as_slice).collect();
-        let mut terms = vec![0.0f32; nb];
-        k.surface
-            .eval_parallel(nb, &ins, &mut [&mut terms], params, grads, threads);
-        let surface = terms.iter().map(|&x| f64::from(x)).sum::<f64>();
+        let surface = summed_terms(&k.surface, &ins, params, grads, threads);
 
         // Random points: the near-surface penalty on d and the eikonal term on ∇d.
         let [mut near, mut eikonal] = self
@@ -394,7 +387,7 @@ impl TrainSdfPlan {
             }
             eikonal += reg.add_at(kernels, &xs, params, grads, threads)[1];
         }
-        [surface as f32, near, eikonal]
+        [surface, near, eikonal]
     }
 
     /// The clearance term at this rank's share of a step's uniform points: max(c − |d|, 0), weighted.
@@ -411,16 +404,7 @@ impl TrainSdfPlan {
         let [x, y, z] = uniform_points(rng, m, self.bound);
         let points: Vec<[f32; 3]> = (0..m).map(|i| [x[i], y[i], z[i]]).collect();
         let (c, outside) = clearance.targets(&points);
-        let mut terms = vec![0.0f32; m];
-        kernel.eval_parallel(
-            m,
-            &[&x, &y, &z, &c, &outside],
-            &mut [&mut terms],
-            params,
-            grads,
-            threads,
-        );
-        terms.iter().map(|&t| f64::from(t)).sum::<f64>() as f32
+        summed_terms(kernel, &[&x, &y, &z, &c, &outside], params, grads, threads)
     }
 
     /// The eikonal term at the batch's jittered cloud points, when `eikonal_jitter` asks for it.
@@ -453,6 +437,21 @@ impl TrainSdfPlan {
             eikonal_weight: self.eikonal_weight,
         }
     }
+}
+
+/// Evaluates a loss kernel of one term per point on the columns `inputs` (adding its param gradient to
+/// `grads`) and returns the sum of its terms.
+fn summed_terms(
+    kernel: &Kernel,
+    inputs: &[&[f32]],
+    params: &[f32],
+    grads: &mut [f32],
+    threads: usize,
+) -> f32 {
+    let n = inputs.first().map_or(0, |c| c.len());
+    let mut terms = vec![0.0f32; n];
+    kernel.eval_parallel(n, inputs, &mut [&mut terms], params, grads, threads);
+    terms.iter().map(|&t| f64::from(t)).sum::<f64>() as f32
 }
 
 /// A `train sdf` block's objective: pre-training toward a sphere for the first `pretrain_steps`, then the

@@ -98,9 +98,9 @@ pub fn camera_file(
 ) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
     // A DTU scan stays in its own frame (the object inside the unit sphere) unless asked; captures are
     // normalized unless asked not to be.
-    let mut normalize_capture = normalize != Some(false);
-    let capture = if dtu_cameras_file(file).is_some() {
-        normalize_capture = normalize == Some(true);
+    let dtu = dtu_cameras_file(file).is_some();
+    let normalize_capture = normalize.unwrap_or(!dtu);
+    let capture = if dtu {
         Some(load_dtu(file, false)?)
     } else if is_llff(file) {
         let scales = nerfjit_runtime::data::llff::image_scales(file);
