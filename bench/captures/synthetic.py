@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 
@@ -237,9 +238,7 @@ def synthetic_object(args):
                 os.path.join(args.out, split, f"r_{i}.png")
             )
         for bg in (0, 1):
-            for name in os.listdir(os.path.join(args.out, f"{split}_{bg}")):
-                os.remove(os.path.join(args.out, f"{split}_{bg}", name))
-            os.rmdir(os.path.join(args.out, f"{split}_{bg}"))
+            shutil.rmtree(os.path.join(args.out, f"{split}_{bg}"))
     return f"80 training and 10 validation views of {size}x{size} RGBA, transforms_train.json and transforms_val.json"
 
 
