@@ -698,6 +698,11 @@ impl Lanes {
     /// is that of [`Compositor::forward_backward`] on each ray. With `distortion`, the gradients
     /// are those of the loss plus its distortion loss (see [`Distortion`]), and the rays' summed
     /// distortion loss is returned (0 without). Leaves the accumulators undefined.
+    ///
+    /// `skip`, if given, marks rows (sample indices) whose values are all 0 (samples a grid left
+    /// out): they change no ray's composite (alpha 0: the transmittance and the sums stay as they are,
+    /// bit for bit) and are not swept, their gradients left undefined. Not with `distortion`, whose
+    /// loss reads every row.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward_backward(
         &mut self,
@@ -706,13 +711,21 @@ impl Lanes {
         raw: &[f32],
         rgb: [&[f32]; 3],
         grads: [&mut [f32]; 4],
-        distortion: Option<&Distortion>,
+        (distortion, skip): (Option<&Distortion>, Option<&[bool]>),
         cotangent: impl FnMut(usize, &RayOutput) -> RayOutput,
     ) -> f64 {
+        assert!(
+            distortion.is_none() || skip.is_none(),
+            "the distortion loss reads every row"
+        );
+        let rows = t.len() / self.transmittance.len().max(1);
+        let skip = skip.map(|s| &s[..rows]);
         match c.mode {
-            Mode::Density => self.forward_backward_with::<true>(c, t, raw, rgb, grads, distortion, cotangent),
+            Mode::Density => {
+                self.forward_backward_with::<true>(c, t, raw, rgb, grads, (distortion, skip), cotangent)
+            }
             Mode::Opacity => {
-                self.forward_backward_with::<false>(c, t, raw, rgb, grads, distortion, cotangent)
+                self.forward_backward_with::<false>(c, t, raw, rgb, grads, (distortion, skip), cotangent)
             }
         }
     }
@@ -726,7 +739,7 @@ impl Lanes {
         raw: &[f32],
         [r, g, b]: [&[f32]; 3],
         [g_raw, g_r, g_g, g_b]: [&mut [f32]; 4],
-        distortion: Option<&Distortion>,
+        (distortion, skip): (Option<&Distortion>, Option<&[bool]>),
         mut cotangent: impl FnMut(usize, &RayOutput) -> RayOutput,
     ) -> f64 {
         let alpha_of = if DENSITY { density_alpha } else { opacity_alpha };
@@ -736,8 +749,9 @@ impl Lanes {
         }
         let rows = t.len() / n;
         let threshold = c.threshold();
+        let swept = |j: usize| skip.is_none_or(|s| !s[j]);
         // δ of every sample, kept in g_b until the sweep back.
-        for j in 0..rows {
+        for j in (0..rows).filter(|&j| swept(j)) {
             let row = j * n..(j + 1) * n;
             if j + 1 < rows {
                 let (here, next) = (&t[row.clone()], &t[(j + 1) * n..(j + 2) * n]);
@@ -756,7 +770,7 @@ impl Lanes {
             opacity,
             distortion: distortion_scratch,
         } = self;
-        for j in 0..rows {
+        for j in (0..rows).filter(|&j| swept(j)) {
             let row = j * n..(j + 1) * n;
             let (t, raw, r, g, b) = (
                 &t[row.clone()],
@@ -812,7 +826,7 @@ impl Lanes {
         }
         let (gc_r, gc_g, gc_b, gd, go) = (&acc_r[..n], &acc_g[..n], &acc_b[..n], &depth[..n], &opacity[..n]);
         let suffix = &mut transmittance[..n];
-        for j in (0..rows).rev() {
+        for j in (0..rows).rev().filter(|&j| swept(j)) {
             let row = j * n..(j + 1) * n;
             let (t, r, g, b) = (&t[row.clone()], &r[row.clone()], &g[row.clone()], &b[row.clone()]);
             let (g_raw, g_r) = (&mut g_raw[row.clone()], &mut g_r[row.clone()]);
@@ -1162,11 +1176,19 @@ mod tests {
             k in 1usize..6,
             gaps in prop::collection::vec(0.02f32..0.3, 12 * 6),
             values in prop::collection::vec(0.0f32..0.9, 4 * 12 * 6),
+            empty in prop::collection::vec(prop::bool::weighted(0.3), 12),
             cots in prop::collection::vec(-1.0f32..1.0, 5 * 6),
         ) {
-            // k rays of n samples, each at its own depths.
+            // k rays of n samples, each at its own depths; the rows marked `empty` all zeros (samples
+            // a grid left out).
             let depth = |ray: usize, j: usize| 0.5 + gaps[ray * 12..ray * 12 + j].iter().sum::<f32>();
-            let at = |channel: usize, ray: usize, j: usize| values[(channel * 6 + ray) * 12 + j];
+            let at = |channel: usize, ray: usize, j: usize| {
+                if empty[j] {
+                    0.0
+                } else {
+                    values[(channel * 6 + ray) * 12 + j]
+                }
+            };
             let sample_major = |f: &dyn Fn(usize, usize) -> f32| -> Vec<f32> {
                 (0..n).flat_map(|j| (0..k).map(move |ray| (j, ray))).map(|(j, ray)| f(ray, j)).collect()
             };
@@ -1182,7 +1204,7 @@ mod tests {
             let mut grads = [vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k]];
             let [g0, g1, g2, g3] = &mut grads;
             let mut outputs = vec![RayOutput::default(); k];
-            lanes.forward_backward(&c, &t, &raw, [&r, &g, &b], [g0, g1, g2, g3], None, |ray, out| {
+            lanes.forward_backward(&c, &t, &raw, [&r, &g, &b], [g0, g1, g2, g3], (None, None), |ray, out| {
                 outputs[ray] = *out;
                 cot(ray)
             });
@@ -1197,6 +1219,22 @@ mod tests {
                 prop_assert_eq!(outputs[ray], out);
                 for (got, want) in grads.iter().zip(&expected) {
                     prop_assert_eq!(&column(got), want, "ray {}", ray);
+                }
+            }
+            // Stepping over the empty rows changes neither the composites nor the other rows'
+            // gradients, bit for bit.
+            lanes.reset(k);
+            let mut skipped = [vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k], vec![7.0; n * k]];
+            let [g0, g1, g2, g3] = &mut skipped;
+            let mut skipped_outputs = vec![RayOutput::default(); k];
+            lanes.forward_backward(&c, &t, &raw, [&r, &g, &b], [g0, g1, g2, g3], (None, Some(&empty)), |ray, out| {
+                skipped_outputs[ray] = *out;
+                cot(ray)
+            });
+            prop_assert_eq!(skipped_outputs, outputs);
+            for (got, want) in skipped.iter().zip(&grads) {
+                for i in (0..n * k).filter(|i| !empty[i / k]) {
+                    prop_assert_eq!(got[i].to_bits(), want[i].to_bits(), "sample {}", i);
                 }
             }
         }
@@ -1280,7 +1318,7 @@ mod tests {
             let mut grads = [vec![7.0; 2 * n], vec![7.0; 2 * n], vec![7.0; 2 * n], vec![7.0; 2 * n]];
             let [g0, g1, g2, g3] = &mut grads;
             let got_loss =
-                lanes.forward_backward(&c, &t, &raw, [&red, &green, &blue], [g0, g1, g2, g3], Some(&d), |_, _| cot32);
+                lanes.forward_backward(&c, &t, &raw, [&red, &green, &blue], [g0, g1, g2, g3], (Some(&d), None), |_, _| cot32);
             let want_loss: f64 = both.iter().map(|r| reference_distortion(&c, &d, r, live_samples(&c, r))).sum();
             prop_assert!((got_loss - want_loss).abs() <= 1e-4 * (1.0 + want_loss), "loss {got_loss} vs {want_loss}");
             for (k, ray) in both.into_iter().enumerate() {
@@ -1336,7 +1374,7 @@ mod tests {
             &[0.5, 1.0],
             [&zeros, &zeros, &zeros],
             [g0, g1, g2, g3],
-            Some(&d),
+            (Some(&d), None),
             |_, _| RayOutput::default(),
         );
         assert!((loss - 1.0 / 3.0).abs() < 1e-6, "{loss}");

@@ -367,6 +367,17 @@ fn run_pass(
     let depths = &depths[..len];
     let inputs: Vec<&[f32]> = inputs[..field.n_inputs()].iter().map(|c| &c[..len]).collect();
     let compositor = settings.compositor();
+    // The rows (sample indices) where the pass evaluated no ray hold zeros: the sweeps step over them.
+    let skip = match (&evaluated, &job.distortion) {
+        (Some(index), None) => {
+            let mut empty = vec![true; settings.samples];
+            for &i in index {
+                empty[i / n] = false;
+            }
+            Some(empty)
+        }
+        _ => None,
+    };
     let mut squared_error = 0.0f64;
     lanes.reset(n);
     let distortion = lanes.forward_backward(
@@ -380,7 +391,7 @@ fn run_pass(
             &mut g_g[..len],
             &mut g_b[..len],
         ],
-        job.distortion.as_ref(),
+        (job.distortion.as_ref(), skip.as_deref()),
         |k, out| {
             let target = job.targets[first + k];
             let background = settings.background.unwrap_or([0.0; 3]);
