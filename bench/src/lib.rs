@@ -507,6 +507,7 @@ fn w2(reps: usize) -> Result<()> {
             &program.param_values,
             &cache,
             (bounds, resolution, threshold, nerfjit_runtime::GridSpace::Scene),
+            false,
         )
     };
     nerfjit::emit(&format!(

@@ -505,7 +505,8 @@ impl VolumeField {
     }
 
     /// The occupancy grid of the script's `density` (or `opacity`) with `params` in `resolution`³ cells
-    /// over `bounds`, occupied where it may exceed `threshold`: from its interval bounds where they bound
+    /// over `bounds`, occupied where it (with `thickness`, a cell's optical thickness,
+    /// [`nerfjit_runtime::CellThickness`]) may exceed `threshold`: from its interval bounds where they bound
     /// anything (a script's analytic field: the grid misses nothing, see
     /// [`OccupancyGrid::from_bounds`]), else by probing the field ([`OccupancyGrid::build`]: dense layers
     /// and grid reads have no useful bounds).
@@ -515,6 +516,7 @@ impl VolumeField {
         params: &[f32],
         cache: &KernelCache,
         (bounds, resolution, threshold, space): (([f32; 3], [f32; 3]), usize, f32, GridSpace),
+        thickness: bool,
     ) -> Result<OccupancyGrid> {
         let name = match self.mode {
             Mode::Density => "density",
@@ -525,18 +527,22 @@ impl VolumeField {
             params,
             cache,
         };
-        // Interval bounds hold over boxes of the scene: a warped grid's cells are probed.
-        let bounds_of = match space {
-            GridSpace::Scene => compiler.bounds(name, &[Type::Vec(3)], &Type::F32)?,
-            GridSpace::Contracted | GridSpace::Ndc => None,
+        // Interval bounds hold over boxes of the scene, and of the density: a warped grid's cells, and
+        // cells whose thickness is thresholded, are probed.
+        let bounds_of = match (space, thickness) {
+            (GridSpace::Scene, false) => compiler.bounds(name, &[Type::Vec(3)], &Type::F32)?,
+            _ => None,
         };
         let built = match bounds_of {
             Some(bounds_of) => {
                 OccupancyGrid::from_bounds(&bounds_of, bounds, resolution, self.mode, threshold)
             }
-            None => space.with_field(&self.bind_density(params), |density| {
-                OccupancyGrid::build(density, bounds, resolution, self.mode, threshold)
-            }),
+            None => space.with_grid_field(
+                &self.bind_density(params),
+                (bounds, resolution),
+                (self.mode, thickness),
+                |density| OccupancyGrid::build(density, bounds, resolution, self.mode, threshold),
+            ),
         };
         Ok(built?.in_space(space))
     }
@@ -817,7 +823,7 @@ mod tests {
         let probed = OccupancyGrid::build(&field.bind_density(params), unit, 8, Mode::Density, 0.5).unwrap();
         assert_eq!(probed.occupied_cells(), 0, "a probe lies on the shell");
         let grid = field
-            .occupancy_grid(&program, params, &cache, (unit, 8, 0.5, GridSpace::Scene))
+            .occupancy_grid(&program, params, &cache, (unit, 8, 0.5, GridSpace::Scene), false)
             .unwrap();
         // Every cell the shell crosses (its nearest point to the origin closer than 0.605, its farthest
         // farther than 0.595) is occupied.

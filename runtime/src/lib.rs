@@ -58,7 +58,9 @@ pub use training::metrics::{masked_mse, mse, psnr, ssim};
 pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
 pub use volume::model::{TrainableModel, VolumeModel};
-pub use volume::occupancy::{contract, ndc, uncontract, unndc, GridSpace, OccupancyGrid, Unwarped};
+pub use volume::occupancy::{
+    contract, ndc, uncontract, unndc, CellThickness, GridSpace, OccupancyGrid, Unwarped,
+};
 pub use volume::occupancy_ema::DensityEma;
 pub use volume::render::render_volume_with;
 pub use volume::render::{render_volume, VolumeFrame, VolumeSettings};

@@ -683,11 +683,12 @@ impl VolumeObjective<'_> {
         let t = Instant::now();
         let (bounds, resolution, mode) = (g.grid.bounds, g.grid.resolution, self.step_settings.mode);
         let (ema, rng) = (&mut self.ema, &mut self.ema_rng);
-        let built = g
-            .grid
-            .space
-            .with_field(&self.fields.fine.bind_density(params), |density| {
-                nerfjit_runtime::Result::Ok(match (g.update, ema) {
+        let built = g.grid.space.with_grid_field(
+            &self.fields.fine.bind_density(params),
+            (bounds, resolution),
+            (mode, g.grid.thickness),
+            |density| {
+                Ok(match (g.update, ema) {
                     (GridUpdate::Rebuild, _) => OccupancyGrid::build_for_training(
                         density,
                         bounds,
@@ -703,7 +704,8 @@ impl VolumeObjective<'_> {
                         .insert(DensityEma::sampled(density, bounds, resolution, rng)?)
                         .grid(mode, g.grid.threshold)?,
                 })
-            })?;
+            },
+        )?;
         let built = built.in_space(g.grid.space);
         // Every rebuild is reported; running updates every 16th time.
         let updates = (step - g.warmup) / g.every;

@@ -130,6 +130,7 @@ impl VolumePlan {
                         params,
                         cache,
                         (s.bounds, s.resolution, s.threshold, s.space),
+                        s.thickness,
                     )?;
                     let note = format!("; occupancy grid built in {:.3} s", start.elapsed().as_secs_f64());
                     (Some(&built), note)

@@ -212,13 +212,18 @@ impl Rendering {
             }
         }
         let mode = fields.fine.mode;
-        let grid = s.space.with_field(&fields.fine.bind_density(params), |density| {
-            if self.running_grid {
-                DensityEma::probe(density, s.bounds, s.resolution)?.grid(mode, s.threshold)
-            } else {
-                OccupancyGrid::build_for_training(density, s.bounds, s.resolution, mode, s.threshold)
-            }
-        })?;
+        let grid = s.space.with_grid_field(
+            &fields.fine.bind_density(params),
+            (s.bounds, s.resolution),
+            (mode, s.thickness),
+            |density| {
+                if self.running_grid {
+                    DensityEma::probe(density, s.bounds, s.resolution)?.grid(mode, s.threshold)
+                } else {
+                    OccupancyGrid::build_for_training(density, s.bounds, s.resolution, mode, s.threshold)
+                }
+            },
+        )?;
         Ok(Some(grid.in_space(s.space)))
     }
 }

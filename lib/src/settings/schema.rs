@@ -289,7 +289,7 @@ const SPACING: Setting = value(
 );
 const SKIP_EMPTY: Setting = value(
     "skip_empty",
-    "grid(bounds, resolution, threshold, space: scene, contracted or ndc) or none",
+    "grid(bounds, resolution, threshold or thickness, space: scene, contracted or ndc) or none",
     Some(check_skip_empty),
     "an occupancy grid: samples in its empty cells are skipped (space: contracted puts its box in contract(p)'s \
      coordinates, covering all of space; space: ndc in a forward-facing capture's normalized device coordinates)",
@@ -915,6 +915,22 @@ mod tests {
             error.message
         );
         assert_eq!(error.hint.as_deref(), Some("did you mean 'steps'?"));
+    }
+
+    #[test]
+    fn a_grid_takes_a_threshold_or_a_thickness() {
+        let grid = |args: &str| {
+            let script =
+                format!("fn density(p: vec3) -> f32 = 1\nrender volume {{ skip_empty: grid({args}) }}");
+            let value = settings_of(&script).take("skip_empty").unwrap();
+            crate::settings::values::skip_empty(&value).map(|s| s.map(|s| (s.threshold, s.thickness)))
+        };
+        assert_eq!(grid("bounds: 1, thickness: 0.01").unwrap(), Some((0.01, true)));
+        assert_eq!(grid("bounds: 1, threshold: 0.3").unwrap(), Some((0.3, false)));
+        assert_eq!(grid("bounds: 1").unwrap(), Some((1e-4, false)));
+        let both = grid("bounds: 1, threshold: 0.3, thickness: 0.01").unwrap_err();
+        assert!(both.message.contains("not both"), "{}", both.message);
+        assert!(both.hint.unwrap().contains("thickness: 0.01"));
     }
 
     #[test]

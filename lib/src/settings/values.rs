@@ -16,8 +16,12 @@ pub struct SkipEmpty {
     pub bounds: ([f32; 3], [f32; 3]),
     /// Cells per axis.
     pub resolution: usize,
-    /// Values at or below this count as empty.
+    /// Values at or below this count as empty: a cell's density (or opacity), or with `thickness` its
+    /// optical thickness.
     pub threshold: f32,
+    /// The threshold is on each cell's optical thickness, its density times the length a ray crosses in
+    /// it ([`nerfjit_runtime::CellThickness`]), rather than on the density itself.
+    pub thickness: bool,
     /// The space the grid's box is in: the scene's, or mip-NeRF 360's contraction (all of space).
     pub space: GridSpace,
 }
@@ -55,13 +59,14 @@ pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnosti
     }
 }
 
-/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4, space: scene)`,
-/// or `none` (exact: for `--set` to switch a script's grid off).
+/// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4, space: scene)`
+/// (or `thickness: 0.01` instead of `threshold`), or `none` (exact: for `--set` to switch a script's grid
+/// off).
 pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
     if matches!(&v.value, Value::Name(n) if n == "none") {
         return Ok(None);
     }
-    let a = CallArgs::new(v, &["bounds", "resolution", "threshold", "space"])?;
+    let a = CallArgs::new(v, &["bounds", "resolution", "threshold", "thickness", "space"])?;
     let space =
         GridSpace::named(&a.choice("space", &["scene", "contracted", "ndc"], "scene")?).unwrap_or_default();
     let bounds = match a.raw("bounds") {
@@ -87,10 +92,23 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
             "the grid's resolution is a whole number from 1 to 256",
         ));
     }
+    let thickness = a.raw("thickness").is_some();
+    if thickness && a.raw("threshold").is_some() {
+        return Err(
+            Diagnostic::new(v.span, "the grid takes a 'threshold' or a 'thickness', not both").with_hint(
+                "thickness: 0.01 bounds each cell's optical thickness, threshold: 0.3 its density",
+            ),
+        );
+    }
+    let threshold = match thickness {
+        true => a.number("thickness", None)?,
+        false => a.number("threshold", Some(1e-4))?,
+    };
     Ok(Some(SkipEmpty {
         bounds,
         resolution: resolution as usize,
-        threshold: a.number("threshold", Some(1e-4))? as f32,
+        threshold: threshold as f32,
+        thickness,
         space,
     }))
 }

@@ -26,6 +26,12 @@
 //!   a ray has δ = [`crate::volume::composite::LAST_DELTA`], a skipped last sample contributes
 //!   nothing although σ·1e10 might be large).
 //!
+//! A density threshold means different things at different scales and in warped spaces: in NDC a cell
+//! near the cameras spans a fraction of a unit of depth and one far off spans hundreds. Thresholding
+//! each cell's optical thickness instead ([`CellThickness`]: the density times the length a ray crosses
+//! in the cell) bounds the opacity a skipped cell could have added, whatever the space and the scene's
+//! size.
+//!
 //! The first output is assumed not to depend on the view direction: a field that takes one
 //! is probed with direction (0, 0, 1).
 //!
@@ -102,6 +108,66 @@ impl GridSpace {
         match self {
             GridSpace::Scene => f(field),
             space => f(&Unwarped { space, field }),
+        }
+    }
+
+    /// [`GridSpace::with_field`], and with `thickness` the field's first output, a density, times the
+    /// length a ray crosses in a cell of the grid over `bounds` with `resolution`³ cells around each
+    /// point ([`CellThickness`]): the cell's optical thickness, for a threshold that means the same in
+    /// every space and at every scale. An error for `thickness` with a field of opacities (`mode`), whose
+    /// values are a sample's already.
+    pub fn with_grid_field<R>(
+        self,
+        field: &dyn BatchFn,
+        (bounds, resolution): (([f32; 3], [f32; 3]), usize),
+        (mode, thickness): (Mode, bool),
+        f: impl FnOnce(&dyn BatchFn) -> Result<R>,
+    ) -> Result<R> {
+        if thickness && mode == Mode::Opacity {
+            return Err(Error::Invalid(
+                "an occupancy grid's thickness is for a field of densities; this field gives each \
+                 sample's opacity: give the grid a threshold instead"
+                    .into(),
+            ));
+        }
+        self.with_field(field, |field| {
+            if thickness {
+                let (lo, hi) = bounds;
+                let volume: f32 = (0..3).map(|a| (hi[a] - lo[a]) / resolution as f32).product();
+                f(&CellThickness {
+                    space: self,
+                    cell: volume.abs().cbrt(),
+                    field,
+                })
+            } else {
+                f(field)
+            }
+        })
+    }
+
+    /// The length in the scene that a unit of this space's coordinates spans along the rays at `c` (a
+    /// point in them): 1 in the scene's space; in NDC, the depth a unit of its third coordinate spans
+    /// there (d²/8 at depth d, taken from 1 to 1000 as [`unndc`] takes it), the rays of a forward-facing
+    /// capture running along the depth; in the contraction, 1 inside the unit ball and beyond it the
+    /// radial length a unit of contracted radius spans (r², r = 1/(2 − ‖c‖) up to [`uncontract`]'s
+    /// clamp), the rays of a capture taken from inside running outwards.
+    #[inline(always)]
+    pub fn stretch(self, c: [f32; 3]) -> f32 {
+        match self {
+            GridSpace::Scene => 1.0,
+            GridSpace::Ndc => {
+                let d = unndc(c)[1] + 4.0;
+                d * d / 8.0
+            }
+            GridSpace::Contracted => {
+                let norm = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+                if norm > 1.0 {
+                    let r = 1.0 / (2.0 - norm.min(2.0 - 1e-3));
+                    r * r
+                } else {
+                    1.0
+                }
+            }
         }
     }
 
@@ -209,6 +275,37 @@ impl BatchFn for Unwarped<'_> {
         let mut columns: Vec<&[f32]> = points.iter().map(Vec::as_slice).collect();
         columns.extend_from_slice(&inputs[3..]);
         self.field.eval(n, &columns, outputs);
+    }
+}
+
+/// A density read per cell of a grid: the first output of `field` (a function of points in `space`'s
+/// coordinates, as [`Unwarped`] gives one) times `cell` (the size of the grid's cells in those
+/// coordinates) times [`GridSpace::stretch`] at the point: the optical thickness of the cell around the
+/// point along the rays, which bounds the opacity a ray gathers crossing it (1 − e^−thickness). The other
+/// outputs pass unchanged.
+pub struct CellThickness<'a> {
+    /// The space of the inputs.
+    pub space: GridSpace,
+    /// The cells' size in the space's coordinates (the cube root of a cell's volume).
+    pub cell: f32,
+    /// The function whose first output is a density.
+    pub field: &'a dyn BatchFn,
+}
+
+impl BatchFn for CellThickness<'_> {
+    fn n_inputs(&self) -> usize {
+        self.field.n_inputs()
+    }
+
+    fn n_outputs(&self) -> usize {
+        self.field.n_outputs()
+    }
+
+    fn eval(&self, n: usize, inputs: &[&[f32]], outputs: &mut [&mut [f32]]) {
+        self.field.eval(n, inputs, outputs);
+        for (i, value) in outputs[0][..n].iter_mut().enumerate() {
+            *value *= self.cell * self.space.stretch([inputs[0][i], inputs[1][i], inputs[2][i]]);
+        }
     }
 }
 
@@ -1080,6 +1177,34 @@ mod tests {
             proptest::prop_assert!((0..3).all(|k| (back[k] - p[k]).abs() <= tolerance), "{p:?} {c:?} {back:?}");
         }
 
+        /// A space's stretch is the length in the scene a unit of its coordinates spans along the rays, by
+        /// central differences of its inverse: the depth a unit of NDC's third coordinate spans, the
+        /// radius a unit of contracted radius spans (1 inside the unit ball), 1 in the scene's space.
+        #[test]
+        fn the_stretch_is_the_scene_length_a_unit_spans_along_the_rays(
+            c in proptest::array::uniform3(-1.0f32..1.0),
+            w in -0.9f32..1.3,
+            norm in 0.2f32..1.95,
+        ) {
+            let h = 1e-3f32;
+            // NDC: the depth (y + 4) at the third coordinate w ± h.
+            let depth = |w: f32| f64::from(unndc([c[0], c[1], w])[1]) + 4.0;
+            let ndc = (depth(w - h) - depth(w + h)) / (2.0 * f64::from(h));
+            let stretch = f64::from(GridSpace::Ndc.stretch([c[0], c[1], w]));
+            proptest::prop_assert!((ndc / stretch - 1.0).abs() < 1e-3, "{ndc} {stretch}");
+            // The contraction: the radius of the point at contracted radius norm ± h along c (away from
+            // the unit sphere, where the stretch has a kink).
+            let length = c.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-3);
+            let at = |r: f32| c.map(|x| x / length * r);
+            let radius = |r: f32| f64::from(uncontract(at(r)).iter().map(|x| x * x).sum::<f32>().sqrt());
+            let radial = (radius(norm + h) - radius(norm - h)) / (2.0 * f64::from(h));
+            let stretch = f64::from(GridSpace::Contracted.stretch(at(norm)));
+            if (norm - 1.0).abs() > 2.0 * h && norm + h < 2.0 - 1e-3 {
+                proptest::prop_assert!((radial / stretch - 1.0).abs() < 1e-2, "{norm}: {radial} {stretch}");
+            }
+            proptest::prop_assert_eq!(GridSpace::Scene.stretch(c), 1.0);
+        }
+
         /// No occupied point of a ray lies outside its occupied stretch: grids of random cells (of sizes
         /// that are and are not multiples of a block, over boxes that are not cubes), rays from inside and
         /// outside the box, including ones along an axis or through blocks' edges, each swept densely.
@@ -1289,6 +1414,58 @@ mod tests {
             .count();
         assert_eq!(contracted.occupied_cells(), near);
         assert!(contracted.occupied([1e6, 0.0, 0.0]) && !contracted.cell(0, 0, 0));
+    }
+
+    #[test]
+    fn a_cells_thickness_is_its_density_times_the_length_a_ray_crosses_in_it() {
+        // The scene's space, cells of 0.25 × 0.5 × 1 (the side of a cube of their volume: 0.5): a
+        // thickness of 0.6 marks the cells a density of 1.2 marks.
+        let bounds = ([-1.0, -1.0, -1.0], [1.0, 3.0, 7.0]);
+        let field = ClosureFn::new(3, 4, |p, out| {
+            out.fill(0.0);
+            out[0] = (p[0] + 0.5 * p[1] - 0.25 * p[2]).abs();
+        });
+        let thickness = |space: GridSpace, bounds, resolution, mode, threshold| {
+            space.with_grid_field(&field, (bounds, resolution), (mode, true), |f| {
+                OccupancyGrid::build(f, bounds, resolution, mode, threshold)
+            })
+        };
+        let by_thickness = thickness(GridSpace::Scene, bounds, 8, Mode::Density, 0.6).unwrap();
+        let by_density = OccupancyGrid::build(&field, bounds, 8, Mode::Density, 1.2).unwrap();
+        assert_eq!(by_thickness, by_density);
+        assert!((1..512).contains(&by_density.occupied_cells()));
+        // In NDC a constant density 0.05 is thicker the farther the cell: 16³ cells of 0.1625 over
+        // [−1.3, 1.3]³ have thickness 0.05 · 0.1625 · d²/8 at depth d, 0.1016 at depth 10 (w = −0.2).
+        // Cells two or more layers past it are all occupied, and those two or more before it empty.
+        let fog = ClosureFn::new(3, 4, |_, out| {
+            out.fill(0.0);
+            out[0] = 0.05;
+        });
+        let ndc_box = ([-1.3; 3], [1.3; 3]);
+        let grid = GridSpace::Ndc
+            .with_grid_field(&fog, (ndc_box, 16), (Mode::Density, true), |f| {
+                OccupancyGrid::build(f, ndc_box, 16, Mode::Density, 0.1016)
+            })
+            .unwrap();
+        let layer = |z: usize| (0..256).filter(|i| grid.cell(i % 16, i / 16, z)).count();
+        let boundary = (-0.2f32 + 1.3) / 0.1625;
+        for z in 0..16 {
+            if (z as f32 + 1.0) < boundary - 2.0 {
+                assert_eq!(layer(z), 256, "far layer {z}");
+            } else if (z as f32) > boundary + 2.0 {
+                assert_eq!(layer(z), 0, "near layer {z}");
+            }
+        }
+        // A density threshold cannot tell them apart: all or nothing.
+        let flat = GridSpace::Ndc.with_field(&fog, |f| {
+            OccupancyGrid::build(f, ndc_box, 16, Mode::Density, 0.04)
+        });
+        assert_eq!(flat.unwrap().occupied_cells(), 4096);
+        // A field of opacities has no thickness.
+        let err = thickness(GridSpace::Scene, bounds, 8, Mode::Opacity, 0.5)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("thickness is for a field of densities"), "{err}");
     }
 
     #[test]
