@@ -59,7 +59,7 @@ pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
 pub use volume::model::{TrainableModel, VolumeModel};
 pub use volume::occupancy::{
-    contract, ndc, uncontract, unndc, CellThickness, GridSpace, OccupancyGrid, Unwarped,
+    check_thickness, contract, ndc, uncontract, unndc, CellThickness, GridSpace, OccupancyGrid, Unwarped,
 };
 pub use volume::occupancy_ema::DensityEma;
 pub use volume::render::render_volume_with;

@@ -196,6 +196,16 @@ fn a_hash_grid_field_learns_the_box_from_its_renders() {
         with_sparse > 24.0 && with_sparse != with_grid,
         "PSNR {with_sparse:.2} dB with sparse updates, {with_grid:.2} without"
     );
+    // A cell's optical thickness is for densities: this field of opacities is refused before any step.
+    let thick = script
+        .replace("threshold: 0.01", "thickness: 0.01")
+        .replace("STEPS", "300");
+    std::fs::write(dir.join("thick.sdf"), thick).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "thick.sdf"]);
+    assert!(
+        !ok && err.contains("thickness is for a field of densities") && !out.contains("step "),
+        "{out}\n{err}"
+    );
     // Steps sized in samples: once the grid skips the empty space around the box, a step takes more
     // rays than the 800 it started with (48 samples each before the grid) and still learns the box.
     let sized = script.replace("batch: 800,", "batch: 800, batch_samples: 19200,");

@@ -8,8 +8,8 @@ use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{
-    load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, GridSpace, OccupancyGrid, Quantize,
-    Rng, Schedule, TrainableModel, Views, VolumeSettings,
+    check_thickness, load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, GridSpace,
+    OccupancyGrid, Quantize, Rng, Schedule, TrainableModel, Views, VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
@@ -493,9 +493,12 @@ impl TrainPlan {
         for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
             crate::note(&line);
         }
-        let (views, val_views) = self.load_views()?;
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;
+        if self.grid.as_ref().is_some_and(|g| g.grid.thickness) {
+            // Refused before the views load and the steps run, not when the grid is first built.
+            check_thickness(fields.fine.mode)?;
+        }
         let regularizers = match &self.eikonal {
             Some(e) => Some(RegularizerKernels::compile(
                 program,
@@ -507,6 +510,7 @@ impl TrainPlan {
             None => None,
         };
         let compile_s = t.elapsed().as_secs_f64();
+        let (views, val_views) = self.load_views()?;
         let settings = self.settings(&fields.fine);
         let mut objective = VolumeObjective {
             plan: self,

@@ -123,12 +123,8 @@ impl GridSpace {
         (mode, thickness): (Mode, bool),
         f: impl FnOnce(&dyn BatchFn) -> Result<R>,
     ) -> Result<R> {
-        if thickness && mode == Mode::Opacity {
-            return Err(Error::Invalid(
-                "an occupancy grid's thickness is for a field of densities; this field gives each \
-                 sample's opacity: give the grid a threshold instead"
-                    .into(),
-            ));
+        if thickness {
+            check_thickness(mode)?;
         }
         self.with_field(field, |field| {
             if thickness {
@@ -977,6 +973,19 @@ fn is_set(bits: &[u64], i: usize) -> bool {
 #[inline(always)]
 fn bit_of(shift: u32, [x, y, z]: [u32; 3]) -> u32 {
     (z << (2 * shift)) | (y << shift) | x
+}
+
+/// Checks that a field whose first output is `mode` can have its cells' optical thickness thresholded
+/// ([`GridSpace::with_grid_field`]): a density can, a sample's opacity cannot.
+pub fn check_thickness(mode: Mode) -> Result<()> {
+    match mode {
+        Mode::Density => Ok(()),
+        Mode::Opacity => Err(Error::Invalid(
+            "an occupancy grid's thickness is for a field of densities; this field gives each sample's \
+             opacity: give the grid a threshold instead"
+                .into(),
+        )),
+    }
 }
 
 /// Checks a threshold: finite and ≥ 0 for densities, in [0, 1) for opacities.
