@@ -100,9 +100,10 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
             ),
         );
     }
-    let threshold = match thickness {
-        true => a.number("thickness", None)?,
-        false => a.number("threshold", Some(1e-4))?,
+    let threshold = if thickness {
+        a.number("thickness", None)?
+    } else {
+        a.number("threshold", Some(1e-4))?
     };
     Ok(Some(SkipEmpty {
         bounds,
