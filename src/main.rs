@@ -14,6 +14,7 @@ use nerfjit::settings::schema;
 use nerfjit::{emit, failure, interrupt, script, WORK_STACK_BYTES};
 use nerfjit_bench as bench;
 use nerfjit_dsl::budget;
+use nerfjit_runtime::Layout;
 use nerfjit_viewer as viewer;
 
 mod huge_pages;
@@ -232,6 +233,10 @@ enum Command {
         /// file or `holdout(every: n)` views of its data, at its size].
         #[arg(long)]
         cameras: Option<PathBuf>,
+        /// The layout to read a data folder holding several as: dtu, llff, nerfstudio, colmap or blender
+        /// [default: the one the field's training read there, else the most specific].
+        #[arg(long, value_parser = layout_arg, requires = "cameras")]
+        format: Option<Layout>,
         #[command(flatten)]
         view: ViewOptions,
         /// Also write the scores as JSON: per view and mean PSNR and SSIM, the settings and render time.
@@ -244,6 +249,10 @@ enum Command {
         /// The camera file with the views' images (any that eval-views reads).
         #[arg(long)]
         cameras: PathBuf,
+        /// The layout to read a data folder holding several as: dtu, llff, nerfstudio, colmap or blender
+        /// [default: the one the field's training read there, else the most specific].
+        #[arg(long, value_parser = layout_arg)]
+        format: Option<Layout>,
         #[command(flatten)]
         view: ViewOptions,
         /// Which view of the camera file.
@@ -310,8 +319,13 @@ enum DataCommand {
     /// Report what a data set holds — camera files, views, image sizes and formats, intrinsics, where the
     /// cameras are — or name precisely what is wrong with it.
     Check {
-        /// A camera file (Blender `transforms_*.json` or the course's `box_cameras.json`) or a folder of them.
+        /// A camera file (Blender or nerfstudio transforms, the course's `box_cameras.json`) or a data
+        /// folder: Blender camera files, a COLMAP model, an LLFF scene or a DTU scan.
         path: PathBuf,
+        /// The layout to read a folder holding several as: dtu, llff, nerfstudio, colmap or blender
+        /// [default: the most specific].
+        #[arg(long, value_parser = layout_arg)]
+        format: Option<Layout>,
     },
 }
 
@@ -329,12 +343,22 @@ struct CameraChoice {
     /// 'surround(radius: 4, frames: 20, up: z, focal: 2)'.
     #[arg(long, conflicts_with = "cameras")]
     path: Option<String>,
+    /// The layout to read a --cameras folder holding several as: dtu, llff, nerfstudio, colmap or blender
+    /// [default: the one the field's training read there, else the most specific].
+    #[arg(long, value_parser = layout_arg, requires = "cameras")]
+    format: Option<Layout>,
+}
+
+/// A `--format` value: the layout it names.
+fn layout_arg(text: &str) -> Result<Layout, String> {
+    Layout::parse(text)
+        .ok_or_else(|| format!("'{text}' is not a layout: dtu, llff, nerfstudio, colmap or blender"))
 }
 
 impl CameraChoice {
     fn source(&self) -> render_views::CameraSource<'_> {
         match (&self.cameras, &self.path) {
-            (Some(file), _) => render_views::CameraSource::File(file),
+            (Some(file), _) => render_views::CameraSource::File(file, self.format),
             (None, Some(text)) => render_views::CameraSource::Path(text),
             (None, None) => render_views::CameraSource::Default,
         }
@@ -344,9 +368,10 @@ impl CameraChoice {
 #[derive(clap::Args)]
 struct ViewOptions {
     /// Image side in pixels (1 to 4096); with `render --cameras` the width, the height following the
-    /// camera file's aspect ratio.
-    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(1..=4096))]
-    size: u32,
+    /// camera file's aspect ratio [default: 128; `eval-views` and `compare` of a field's own training
+    /// data: the scale its training read them at].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    size: Option<u32>,
     /// Start of the sampled interval along each ray [default: the script's, else 2].
     #[arg(long)]
     near: Option<f32>,
@@ -599,18 +624,20 @@ fn run_command(cli: Cli) -> ExitCode {
         Command::EvalViews {
             source,
             cameras,
+            format,
             view,
             json,
-        } => render_views::eval(&view.args(&source), cameras.as_deref(), json.as_deref())
+        } => render_views::eval(&view.args(&source), cameras.as_deref(), format, json.as_deref())
             .map(|text| emit(&text)),
         Command::Compare {
             cameras,
+            format,
             view,
             index,
             columns,
             rows,
             out,
-        } => compare::compare(&view.args(""), &cameras, index, &columns, &rows, &out)
+        } => compare::compare(&view.args(""), &cameras, format, index, &columns, &rows, &out)
             .map(|text| emit(&format!("{text}\n"))),
         Command::View { source, host, port } => viewer::run(&viewer::ViewArgs {
             source: &source,
@@ -621,8 +648,8 @@ fn run_command(cli: Cli) -> ExitCode {
             import::run(&model, out.as_deref()).map(|text| emit(&format!("{text}\n")))
         }
         Command::Data {
-            action: DataCommand::Check { path },
-        } => data_check::run(&path).map(|text| emit(&text)),
+            action: DataCommand::Check { path, format },
+        } => data_check::run(&path, format).map(|text| emit(&text)),
         Command::Settings { kind } => schema::help_for(&kind.join(" ")).map(|text| emit(&text)),
         Command::Examples { name } => script::examples(name.as_deref()).map(|text| emit(&text)),
         Command::Completions { shell } => {

@@ -39,7 +39,7 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
     let views: Vec<_> = (0..count).map(|i| &cameras[i * cameras.len() / count]).collect();
     let args = ViewArgs {
         source: &source,
-        size: 800,
+        size: Some(800),
         near: None,
         far: None,
         samples: None,

@@ -38,6 +38,7 @@ pub use data::capture::{Capture, CaptureRequest, Normalization};
 pub use data::colmap::{default_images_folder, is_colmap_model, load_colmap};
 pub use data::dataset::{load_box_views, read_rgb_image, Views};
 pub use data::dtu::{dtu_cameras_file, load_dtu};
+pub use data::layout::{choose_layout, layouts_at, Chosen, Found, Layout};
 pub use data::llff::{is_llff, load_llff, LlffScene};
 pub use data::nerfstudio::{is_nerfstudio, load_nerfstudio};
 pub use data::npy::{read_npy_rgb, write_npy_f32, write_npy_rgb, ImageF32};

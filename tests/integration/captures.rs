@@ -304,38 +304,8 @@ fn a_nerfstudio_capture_with_rectangular_images_and_per_frame_intrinsics_trains(
 fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
     let dir = scratch("colmap");
     render_truth(&dir);
-    // COLMAP's world: the scene tilted about a horizontal axis, shifted and scaled.
-    let tilt = Mat3::from_axis_angle(Vec3::new(0.6, 0.8, 0.0), 0.7);
-    let (shift, scale) = (Vec3::new(3.0, -5.0, 11.0), 2.5);
-    let to_model = |x: Vec3| scale * (tilt * x) + shift;
-    let mut cameras = String::from("# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n");
-    let mut images = String::from("# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D[]\n");
-    for (i, s) in shots().iter().enumerate() {
-        let [fx, fy, cx, cy] = s.pixels();
-        cameras += &format!("{} PINHOLE {WIDTH} {HEIGHT} {fx} {fy} {cx} {cy}\n", i + 1);
-        let (left, up, forward) = s.axes();
-        // OpenCV camera axes (right, down, forward) in the model's world; world-to-camera is their transpose.
-        let c2w = tilt * Mat3::from_cols(-left, -up, forward);
-        let w2c = c2w.transpose();
-        let t = -(w2c * to_model(s.eye));
-        let q = Quat::from_mat3(&w2c);
-        images += &format!(
-            "{} {} {} {} {} {} {} {} {} view_{i:03}.png\n\n",
-            20 - i,
-            q.w,
-            q.x,
-            q.y,
-            q.z,
-            t.x,
-            t.y,
-            t.z,
-            i + 1
-        );
-    }
     let model = dir.join("sparse/0");
-    std::fs::create_dir_all(&model).unwrap();
-    std::fs::write(model.join("cameras.txt"), cameras).unwrap();
-    std::fs::write(model.join("images.txt"), images).unwrap();
+    write_colmap_cameras(&model, &shots());
     // The sparse points: a 4 × 4 lattice on each face of the true box, in the model's world.
     let (center, half) = (Vec3::new(0.2, -0.1, 0.1), Vec3::new(0.6, 0.4, 0.5));
     let mut points = String::from("# POINT3D_ID X Y Z R G B ERROR TRACK[]\n");
@@ -346,7 +316,7 @@ fn a_colmap_model_in_other_coordinates_is_normalized_and_trains() {
                 at[axis] = side;
                 at[(axis + 1) % 3] = (k % 4) as f32 / 1.5 - 1.0;
                 at[(axis + 2) % 3] = (k / 4) as f32 / 1.5 - 1.0;
-                let p = to_model(center + half * Vec3::from_array(at));
+                let p = to_capture_world(center + half * Vec3::from_array(at));
                 points += &format!(
                     "{} {} {} {} 128 128 128 0.5\n",
                     points.lines().count(),
@@ -605,7 +575,7 @@ fn npy_f64(shape: &[usize], values: &[f64]) -> Vec<u8> {
     bytes
 }
 
-/// The world the LLFF and DTU captures are written in: the scene tilted about a horizontal axis,
+/// The world the COLMAP, LLFF and DTU captures are written in: the scene tilted about a horizontal axis,
 /// scaled and shifted.
 fn to_capture_world(x: Vec3) -> Vec3 {
     2.5 * (capture_tilt() * x) + Vec3::new(3.0, -5.0, 11.0)
@@ -615,18 +585,74 @@ fn capture_tilt() -> Mat3 {
     Mat3::from_axis_angle(Vec3::new(0.6, 0.8, 0.0), 0.7)
 }
 
-#[test]
-fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
-    let dir = scratch("llff");
-    // LLFF states one focal length for images centered on the optical axis.
-    let llff_shots: Vec<Shot> = shots()
+/// Writes the COLMAP text model's `cameras.txt` and `images.txt` into `model`: camera i is `shots[i]`
+/// (OpenCV world-to-camera quaternions in the capture's world) and took `view_00i.png`.
+fn write_colmap_cameras(model: &Path, shots: &[Shot]) {
+    let mut cameras = String::from("# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n");
+    let mut images = String::from("# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D[]\n");
+    for (i, s) in shots.iter().enumerate() {
+        let [fx, fy, cx, cy] = s.pixels();
+        cameras += &format!("{} PINHOLE {WIDTH} {HEIGHT} {fx} {fy} {cx} {cy}\n", i + 1);
+        let (left, up, forward) = s.axes();
+        // OpenCV camera axes (right, down, forward) in the model's world; world-to-camera is their transpose.
+        let c2w = capture_tilt() * Mat3::from_cols(-left, -up, forward);
+        let w2c = c2w.transpose();
+        let t = -(w2c * to_capture_world(s.eye));
+        let q = Quat::from_mat3(&w2c);
+        images += &format!(
+            "{} {} {} {} {} {} {} {} {} view_{i:03}.png\n\n",
+            20 - i,
+            q.w,
+            q.x,
+            q.y,
+            q.z,
+            t.x,
+            t.y,
+            t.z,
+            i + 1
+        );
+    }
+    std::fs::create_dir_all(model).unwrap();
+    std::fs::write(model.join("cameras.txt"), cameras).unwrap();
+    std::fs::write(model.join("images.txt"), images).unwrap();
+}
+
+/// The shots as LLFF states them: one focal length, images centered on the optical axis.
+fn llff_shots() -> Vec<Shot> {
+    shots()
         .into_iter()
         .map(|s| Shot {
             focal: [2.4, 2.4],
             principal: [0.0, 0.0],
             ..s
         })
-        .collect();
+        .collect()
+}
+
+/// LLFF's `poses_bounds.npy` of `shots` in the capture's world, for full-size images `scale` times the
+/// rendered ones, with the depth bounds 2 to 6 in the truth's units.
+fn llff_poses(shots: &[Shot], scale: f32) -> Vec<u8> {
+    let mut values = Vec::new();
+    for s in shots {
+        let (left, up, forward) = s.axes();
+        // LLFF's camera axes: down, right, back; in the capture's world.
+        let axes = capture_tilt() * Mat3::from_cols(-up, -left, -forward);
+        let eye = to_capture_world(s.eye);
+        let fx = s.pixels()[0];
+        let hwf = [scale * HEIGHT as f32, scale * WIDTH as f32, scale * fx];
+        for r in 0..3 {
+            let row = axes.row(r);
+            values.extend([row.x, row.y, row.z, eye[r], hwf[r]].map(f64::from));
+        }
+        values.extend([2.5 * 2.0, 2.5 * 6.0]);
+    }
+    npy_f64(&[shots.len(), 17], &values)
+}
+
+#[test]
+fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
+    let dir = scratch("llff");
+    let llff_shots = llff_shots();
     render_shots(&dir, &llff_shots);
     // The poses state the full-size images (twice the size of images_2/, which holds them under other
     // names, in the same sorted order); there is no images/ folder.
@@ -639,21 +665,7 @@ fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
         )
         .unwrap();
     }
-    let mut values = Vec::new();
-    for s in &llff_shots {
-        let (left, up, forward) = s.axes();
-        // LLFF's camera axes: down, right, back; in the capture's world.
-        let axes = capture_tilt() * Mat3::from_cols(-up, -left, -forward);
-        let eye = to_capture_world(s.eye);
-        let fx = s.pixels()[0];
-        let hwf = [2.0 * HEIGHT as f32, 2.0 * WIDTH as f32, 2.0 * fx];
-        for r in 0..3 {
-            let row = axes.row(r);
-            values.extend([row.x, row.y, row.z, eye[r], hwf[r]].map(f64::from));
-        }
-        values.extend([2.5 * 2.0, 2.5 * 6.0]);
-    }
-    std::fs::write(dir.join("poses_bounds.npy"), npy_f64(&[8, 17], &values)).unwrap();
+    std::fs::write(dir.join("poses_bounds.npy"), llff_poses(&llff_shots, 2.0)).unwrap();
     let (ok, report, err) = run(&dir, &["data", "check", "."]);
     assert!(ok, "{err}");
     assert!(
@@ -830,4 +842,212 @@ fn a_dtu_scan_given_as_cameras_is_read_as_its_field_was_trained_on_it() {
     // Inside the masks the truth renders its own images: the cameras are in the trained frame.
     let masked = all["mean_masked_psnr"].as_f64().unwrap();
     assert!(masked > 30.0, "inside the masks: {masked} dB\n{all}");
+}
+
+/// Trains the true box for one step (its params start at the truth) on `data`, holding out views 0 and 4
+/// and scoring them at the end; returns the last validation.
+fn train_truth(dir: &Path, data: &str) -> serde_json::Value {
+    let script = format!(
+        "param center: vec3 = [0.2, -0.1, 0.1]\nparam sides: vec3 = [1.2, 0.8, 1.0]\n{FIELD}\
+         train {{ data: {data}, near: 2, far: 6, samples: 48, steps: 1, batch: 64, lr: 1e-6, \
+         val: holdout(every: 4), val_every: 100000, summary: \"summary.json\" }}\n"
+    );
+    std::fs::write(dir.join("train.sdf"), script).unwrap();
+    let (ok, _, err) = run(dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    summary["validation"].as_array().unwrap().last().unwrap().clone()
+}
+
+/// `nerfjit eval-views` of the checkpoint in `dir` with `args`: its JSON report and standard error.
+fn scored(dir: &Path, args: &[&str]) -> (serde_json::Value, String) {
+    let args = [
+        &["eval-views", "train.ckpt.safetensors", "--json", "scores.json"][..],
+        args,
+    ]
+    .concat();
+    let (ok, _, err) = run(dir, &args);
+    assert!(ok, "{err}");
+    let scores = serde_json::from_str(&std::fs::read_to_string(dir.join("scores.json")).unwrap()).unwrap();
+    (scores, err)
+}
+
+/// Copies a DTU scan's images (`image/000.png`, …) to `images/view_000.png`, … for the other layouts.
+fn copy_images_for_other_layouts(dir: &Path) {
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    for i in 0..8 {
+        std::fs::copy(
+            dir.join(format!("image/{i:03}.png")),
+            dir.join(format!("images/view_{i:03}.png")),
+        )
+        .unwrap();
+    }
+}
+
+/// A DTU scan whose folder also holds an LLFF `poses_bounds.npy` and a COLMAP `sparse/0`, whose cameras
+/// disagree with the scan's (their views in reverse order): every command reads it as the DTU scan and
+/// says that it holds the others; `--format` reads another; and `eval-views --cameras` of a checkpoint
+/// trained on it reads it as its training did, its held-out views scoring as its validation.
+#[test]
+fn a_folder_holding_dtu_llff_and_colmap_layouts_is_read_as_the_dtu_scan() {
+    let dir = scratch("dtu_llff_colmap");
+    write_dtu_scan(&dir, 1.0);
+    copy_images_for_other_layouts(&dir);
+    let reversed = |shots: Vec<Shot>| shots.into_iter().rev().collect::<Vec<_>>();
+    std::fs::write(
+        dir.join("poses_bounds.npy"),
+        llff_poses(&reversed(llff_shots()), 1.0),
+    )
+    .unwrap();
+    write_colmap_cameras(&dir.join("sparse/0"), &reversed(shots()));
+    std::fs::write(dir.join("sparse/0/points3D.txt"), "").unwrap();
+
+    let (ok, report, err) = run(&dir, &["data", "check", "."]);
+    assert!(ok, "{err}");
+    assert!(
+        report.starts_with(
+            "note: '.' holds several layouts: read as DTU (cameras_sphere.npz), the most specific"
+        ) && report.contains("it also holds LLFF (poses_bounds.npy), COLMAP (sparse/0)")
+            && report.contains("DTU / IDR / NeuS")
+            && report.contains("8 masks"),
+        "{report}"
+    );
+    for (format, kind) in [
+        ("llff", "LLFF (poses_bounds.npy"),
+        ("colmap", "COLMAP (images in"),
+    ] {
+        let (ok, report, err) = run(&dir, &["data", "check", ".", "--format", format]);
+        assert!(ok, "{err}");
+        assert!(report.contains(kind) && report.contains("as asked"), "{report}");
+    }
+    let (ok, _, err) = run(&dir, &["data", "check", ".", "--format", "nerfstudio"]);
+    assert!(
+        !ok && err.contains("holds no nerfstudio data set: it holds DTU (cameras_sphere.npz), LLFF"),
+        "{err}"
+    );
+
+    let validation = train_truth(&dir, "dtu(\".\", masks: true)");
+    let (psnr, masked) = (
+        validation["val_psnr"].as_f64().unwrap(),
+        validation["val_masked_psnr"].as_f64().unwrap(),
+    );
+    assert!(psnr > 25.0, "{validation}");
+    let (scores, _) = scored(&dir, &["--cameras", "."]);
+    assert_eq!(scores["views"].as_array().unwrap().len(), 8, "{scores}");
+    assert!(
+        scores["protocol"]["views"]
+            .as_str()
+            .unwrap()
+            .contains("read as DTU as its training read them"),
+        "{scores}"
+    );
+    let held = &scores["held_out"];
+    assert_eq!(held["views"], serde_json::json!([0, 4]), "{scores}");
+    let (again, again_masked) = (
+        held["mean_psnr"].as_f64().unwrap(),
+        held["mean_masked_psnr"].as_f64().unwrap(),
+    );
+    assert!(
+        (again - psnr).abs() < 0.01 && (again_masked - masked).abs() < 0.01,
+        "eval-views --cameras: {again} / {again_masked} dB on the held-out views, validation {psnr} / {masked}"
+    );
+    // Named, the LLFF cameras are read (and, reversed, do not fit the images).
+    let (llff, err) = scored(&dir, &["--cameras", ".", "--format", "llff", "--size", "48"]);
+    assert!(err.contains("read as LLFF (poses_bounds.npy), as asked"), "{err}");
+    assert!(llff["held_out"].is_null(), "{llff}");
+    let (dtu, _) = scored(&dir, &["--cameras", ".", "--size", "48"]);
+    let mean = |s: &serde_json::Value| s["mean_psnr"].as_f64().unwrap();
+    assert!(
+        mean(&llff) + 5.0 < mean(&dtu),
+        "LLFF {} dB, DTU {} dB",
+        mean(&llff),
+        mean(&dtu)
+    );
+    // A reader written as in a script reads what it says.
+    let (reader, _) = scored(&dir, &["--cameras", "dtu(\".\", masks: true)"]);
+    assert!(
+        (reader["held_out"]["mean_psnr"].as_f64().unwrap() - psnr).abs() < 0.01,
+        "{reader}"
+    );
+
+    // render --cameras places the scan's cameras, as --format dtu does, not LLFF's.
+    let render = |out: &str, extra: &[&str]| {
+        let args = [
+            &[
+                "render",
+                "train.ckpt.safetensors",
+                "--cameras",
+                ".",
+                "--size",
+                "48",
+                "--out",
+                out,
+            ][..],
+            extra,
+        ]
+        .concat();
+        let (ok, _, err) = run(&dir, &args);
+        assert!(ok, "{err}");
+        (1..8)
+            .map(|i| std::fs::read(dir.join(out).join(format!("view_{i:03}.png"))).unwrap())
+            .collect::<Vec<_>>()
+    };
+    let (default, dtu, llff) = (
+        render("default", &[]),
+        render("dtu", &["--format", "dtu"]),
+        render("llff", &["--format", "llff"]),
+    );
+    assert!(
+        default == dtu && default != llff,
+        "render --cameras . did not read the DTU scan"
+    );
+}
+
+/// A 360-style folder (an LLFF `poses_bounds.npy` beside a COLMAP `sparse/0`, the LLFF cameras reversed
+/// on purpose): read as LLFF, the more specific, by default; a field trained on its COLMAP model is scored
+/// from the folder as its training read it.
+#[test]
+fn a_folder_holding_llff_and_colmap_layouts_is_read_as_its_checkpoint_was_trained() {
+    let dir = scratch("llff_colmap");
+    render_truth(&dir);
+    write_colmap_cameras(&dir.join("sparse/0"), &shots());
+    std::fs::write(dir.join("sparse/0/points3D.txt"), "").unwrap();
+    let reversed: Vec<Shot> = llff_shots().into_iter().rev().collect();
+    std::fs::write(dir.join("poses_bounds.npy"), llff_poses(&reversed, 1.0)).unwrap();
+
+    let (ok, report, err) = run(&dir, &["data", "check", "."]);
+    assert!(ok, "{err}");
+    assert!(
+        report.contains("read as LLFF (poses_bounds.npy), the most specific")
+            && report.contains("it also holds COLMAP (sparse/0)")
+            && report.contains("LLFF (poses_bounds.npy; image folders images"),
+        "{report}"
+    );
+    let psnr = train_truth(&dir, "colmap(\"sparse/0\")")["val_psnr"]
+        .as_f64()
+        .unwrap();
+    assert!(psnr > 25.0, "{psnr}");
+    let (scores, _) = scored(&dir, &["--cameras", "."]);
+    assert!(
+        scores["protocol"]["views"]
+            .as_str()
+            .unwrap()
+            .contains("read as COLMAP as its training read them"),
+        "{scores}"
+    );
+    let again = scores["held_out"]["mean_psnr"].as_f64().unwrap();
+    assert!(
+        (again - psnr).abs() < 0.01,
+        "eval-views --cameras {again} dB, validation {psnr} dB"
+    );
+    // The script alone (no checkpoint's data to follow) reads the folder's most specific layout: LLFF.
+    let (ok, _, err) = run(
+        &dir,
+        &["eval-views", "truth.sdf", "--cameras", ".", "--size", "48"],
+    );
+    assert!(
+        ok && err.contains("read as LLFF (poses_bounds.npy), the most specific"),
+        "{err}"
+    );
 }

@@ -467,6 +467,19 @@ impl TrainPlan {
         }))
     }
 
+    /// Every how many views of its data the block holds out (`holdout(every: n)`) and how many of them
+    /// validation scores (all if None); `None` when it validates on a file or not at all.
+    pub fn held_out_every(&self) -> Option<(usize, Option<usize>)> {
+        match self.validation.as_ref()? {
+            Validation {
+                held_out: HeldOut::Every(n),
+                views,
+                ..
+            } => Some((*n, *views)),
+            _ => None,
+        }
+    }
+
     /// Which views the block holds out, in words (for reports of the protocol scored).
     pub fn held_out_description(&self) -> Option<String> {
         let v = self.validation.as_ref()?;

@@ -6,10 +6,11 @@ use std::path::Path;
 
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
-use nerfjit_runtime::{mse, psnr, rgb_image, save_png, ImageF32, Quantize};
+use nerfjit_runtime::{mse, psnr, rgb_image, save_png, ImageF32, Layout, Quantize};
 
 use crate::commands::render_views::ViewArgs;
 use crate::failure::{Failure, Result};
+use crate::training::data_source::{scored_views, ScoredViews};
 use nerfjit_field::VolumeFields;
 
 /// One row of the grid: its label and one script or checkpoint per column.
@@ -37,11 +38,13 @@ const SCALE: usize = 2;
 const BACKGROUND: [f32; 3] = [0.12, 0.12, 0.14];
 const INK: [f32; 3] = [0.95, 0.95, 0.95];
 
-/// Renders the grid of `rows` × `columns` (plus the target column) from view `index` of `cameras`; settings
+/// Renders the grid of `rows` × `columns` (plus the target column) from view `index` of `cameras` (read as
+/// `eval-views` reads them, a folder holding several layouts as `format`); settings
 /// not given in `args` come from the first entry's script (the target is composited on its background).
 pub fn compare(
     args: &ViewArgs,
     cameras: &Path,
+    format: Option<Layout>,
     index: usize,
     columns: &[String],
     rows: &[Row],
@@ -61,7 +64,14 @@ pub fn compare(
     let (first, _) = crate::commands::render_views::load(&rows[0].sources[0])?;
     let background = args.resolve(&first).background;
     let trained = crate::commands::render_views::trained_data(&rows[0].sources[0], &first);
-    let views = crate::training::data_source::file_views(cameras, args.size, background, trained.as_ref())?;
+    let views = scored_views(&ScoredViews {
+        cameras,
+        format,
+        width: args.size,
+        background,
+        trained: trained.as_ref(),
+    })?
+    .views;
     let (Some(camera), Some(target)) = (views.cameras.get(index), views.images.get(index)) else {
         return Err(Failure::Message(format!(
             "view {index} does not exist: {} has {} views",

@@ -1,14 +1,16 @@
 //! `nerfjit data check`: what a data set holds (its camera files, views, image sizes and formats,
 //! intrinsics, where the cameras are), or precisely what is wrong with it, before any training. Reads
 //! Blender and course camera files, nerfstudio / instant-ngp `transforms.json`, COLMAP model folders,
-//! LLFF scenes (`poses_bounds.npy`) and DTU scans (`cameras_sphere.npz`).
+//! LLFF scenes (`poses_bounds.npy`) and DTU scans (`cameras_sphere.npz`); a folder holding several of
+//! these is read as the most specific, or as `--format` names, and the report says which it holds.
 
 use std::path::{Path, PathBuf};
 
 use image::ImageDecoder;
 use nerfjit_runtime::{
-    default_images_folder, dtu_cameras_file, is_colmap_model, is_llff, is_nerfstudio, load_blender_cameras,
+    choose_layout, default_images_folder, dtu_cameras_file, is_nerfstudio, load_blender_cameras,
     load_box_cameras, load_colmap, load_dtu, load_llff, load_nerfstudio, CameraFormat, CameraSet, Capture,
+    Layout,
 };
 
 use crate::failure::{Failure, Result};
@@ -22,17 +24,26 @@ const CAMERA_FILES: &[&str] = &[
     "box_cameras.json",
 ];
 
-/// Checks `path`, a camera file or a folder of them; a report, or what is wrong.
-pub fn run(path: &Path) -> Result<String> {
-    if path.is_dir() && is_llff(path) {
-        return check_llff(path);
+/// Checks `path`, a camera file or a data folder, read as `format` when given, else by the most specific
+/// layout it holds (and says so when it holds several); a report, or what is wrong.
+pub fn run(path: &Path, format: Option<Layout>) -> Result<String> {
+    if !path.exists() {
+        return Err(Failure::Message(format!("'{}' does not exist", path.display())));
     }
-    if path.is_dir() && dtu_cameras_file(path).is_some() {
-        return check_dtu(path);
-    }
-    if path.is_dir() && is_colmap_model(path) {
-        return check_colmap(path);
-    }
+    let chosen = choose_layout(path, format)?;
+    let note = chosen.as_ref().and_then(|c| c.note(path)).map(|n| n + "\n");
+    let report = match chosen.map(|c| (c.found.layout, c.found.source)) {
+        Some((Layout::Dtu, folder)) => check_dtu(&folder),
+        Some((Layout::Llff, folder)) => check_llff(&folder),
+        Some((Layout::Colmap, model)) => check_colmap(&model),
+        Some((Layout::Nerfstudio, file)) => check_file(&file),
+        _ => check_camera_files(path),
+    }?;
+    Ok(note.unwrap_or_default() + &report)
+}
+
+/// Checks a camera file, or every camera file of a folder (Blender's splits, the course's).
+fn check_camera_files(path: &Path) -> Result<String> {
     let files: Vec<PathBuf> = if path.is_dir() {
         let mut found: Vec<PathBuf> = CAMERA_FILES
             .iter()
@@ -50,10 +61,8 @@ pub fn run(path: &Path) -> Result<String> {
             )));
         }
         found
-    } else if path.is_file() {
-        vec![path.to_path_buf()]
     } else {
-        return Err(Failure::Message(format!("'{}' does not exist", path.display())));
+        vec![path.to_path_buf()]
     };
     let reports = files.iter().map(|f| check_file(f)).collect::<Result<Vec<_>>>()?;
     Ok(reports.concat())

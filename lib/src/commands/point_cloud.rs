@@ -43,7 +43,7 @@ pub fn run(args: &PointsArgs) -> Result<String> {
             })?
         }
     };
-    let size = args.view.size;
+    let size = args.view.side();
     let pixels = cameras.len() as u64 * u64::from(size) * u64::from(size);
     if pixels > MAX_POINTS {
         return Err(Failure::Message(format!(

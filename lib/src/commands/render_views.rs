@@ -10,7 +10,7 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{
-    rgb_image, Camera, DensityEma, DepthSpacing, OccupancyGrid, Quantize, Views, VolumeSettings,
+    rgb_image, Camera, DensityEma, DepthSpacing, Layout, OccupancyGrid, Quantize, Views, VolumeSettings,
 };
 
 use crate::failure::{at, Failure, Result};
@@ -19,8 +19,8 @@ use crate::settings::block::MAX_PIXELS;
 use crate::settings::camera::FrameSize;
 use crate::settings::primitives::triple;
 use crate::settings::values::SkipEmpty;
-use crate::training::data_source::DataSet;
-use crate::training::validation::{means, score_on_ranks};
+use crate::training::data_source::{reader_call, scored_views, DataSet, ScoredViews, DEFAULT_WIDTH};
+use crate::training::validation::{means, score_on_ranks, MeanScores};
 use nerfjit_field::VolumeFields;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
@@ -28,8 +28,9 @@ use nerfjit_field::VolumeFields;
 pub struct ViewArgs<'a> {
     /// A script, or a checkpoint written by `train` (it holds its script).
     pub source: &'a str,
-    /// Image side in pixels.
-    pub size: u32,
+    /// Image side in pixels (with `render --cameras` the width); `None`: [`DEFAULT_WIDTH`], or views scored
+    /// from the field's own training data at its training's scale.
+    pub size: Option<u32>,
     /// Start of the sampled interval.
     pub near: Option<f32>,
     /// End of the sampled interval.
@@ -70,6 +71,11 @@ pub struct Rendering {
 }
 
 impl ViewArgs<'_> {
+    /// The image side (or width) asked, else [`DEFAULT_WIDTH`].
+    pub fn side(&self) -> u32 {
+        self.size.unwrap_or(DEFAULT_WIDTH)
+    }
+
     /// The settings given, else those `program`'s first `train` block trains with (its `near`, `far`,
     /// `samples`, `importance`, and `background` or its Blender data's background), else near 2, far 6,
     /// 128 samples, black, no importance sampling.
@@ -245,6 +251,15 @@ pub fn held_out_views(source: &str, program: &Program) -> Result<(Views, String)
     Ok((views, described))
 }
 
+/// Every how many views the train block of `source` (a script or checkpoint, compiled as `program`)
+/// holds out of its data for validation (`holdout(every: n)`), and how many of them it scores; `None`
+/// when it validates on another file or not at all.
+fn held_out_every(source: &str, program: &Program) -> Result<Option<(usize, Option<usize>)>> {
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let block = crate::settings::block::first_block(program, crate::settings::schema::Kind::Train, folder)?;
+    Ok(crate::blocks::train::TrainPlan::new(block)?.held_out_every())
+}
+
 /// The data the field of `source` (a script or checkpoint, compiled as `program`) was trained on, if its
 /// `train` block names data found here: camera files given to render or score the field are read as it
 /// read its own (a DTU scan trained with `normalize: true` is rendered normalized, not in the scan's frame).
@@ -271,9 +286,10 @@ pub fn is_checkpoint(source: &str) -> bool {
 
 /// Where `nerfjit render` takes its cameras from.
 pub enum CameraSource<'a> {
-    /// A camera file: Blender or nerfstudio transforms, a nerfstudio `camera_path.json`, a COLMAP model
-    /// folder or the course's `box_cameras.json`.
-    File(&'a Path),
+    /// A camera file: Blender or nerfstudio transforms, a nerfstudio `camera_path.json`, a COLMAP model,
+    /// LLFF scene or DTU scan folder or the course's `box_cameras.json`; and the layout to read a folder
+    /// holding several as (by default the one the field's training read there, else the most specific).
+    File(&'a Path, Option<Layout>),
     /// A camera path written as in a script, e.g. `orbit(radius: 4, frames: 60, up: z, focal: 2)`.
     Path(&'a str),
     /// The command's default: for `render`, the first `render` block of the script (a checkpoint's
@@ -291,10 +307,23 @@ impl CameraSource<'_> {
         program: &Program,
     ) -> Result<Option<(Vec<Camera>, Option<FrameSize>)>> {
         Ok(match self {
-            CameraSource::File(file) => Some(crate::settings::camera::camera_file(
-                file,
-                trained_data(source, program).and_then(|d| d.normalizes()),
-            )?),
+            CameraSource::File(file, format) => {
+                // A reader written out, or the field's own training data: read as it says or as training
+                // read it; any other file or folder by its layout.
+                let trained = trained_data(source, program);
+                let own = || {
+                    let matches = |t: &DataSet| t.reads(file) && format.is_none_or(|f| t.layout() == Some(f));
+                    trained.clone().filter(matches)
+                };
+                match reader_call(&file.to_string_lossy(), Path::new("."))?.or_else(own) {
+                    Some(set) => Some((set.cameras()?, set.frame_size()?)),
+                    None => Some(crate::settings::camera::camera_file(
+                        file,
+                        trained.and_then(|d| d.normalizes()),
+                        *format,
+                    )?),
+                }
+            }
             CameraSource::Path(text) => Some((path_cameras(text)?, None)),
             CameraSource::Default => None,
         })
@@ -318,7 +347,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
         ),
     };
     // --size is the width; the height keeps the aspect ratio of the file's frames.
-    let (n, width) = (cameras.len(), args.size);
+    let (n, width) = (cameras.len(), args.side());
     let height = frame.map_or(width, |(w, h)| {
         ((f64::from(width) * f64::from(h) / f64::from(w)).round() as u32).clamp(1, 16384)
     });
@@ -389,21 +418,39 @@ pub fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
     Ok(None)
 }
 
-/// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`).
-pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Result<String> {
+/// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`). With
+/// `cameras` (a file, a folder read by its layout or as `format`, or a reader call; see
+/// [`scored_views`]) every view it holds; when those are the field's own training data with views held
+/// out, the mean over the held-out ones too (which equals its validation at its training's scale).
+pub fn eval(
+    args: &ViewArgs,
+    cameras: Option<&Path>,
+    format: Option<Layout>,
+    json: Option<&Path>,
+) -> Result<String> {
     let (program, params) = load(args.source)?;
     let rendering = args.resolve(&program);
-    let (views, described) = match cameras {
-        Some(file) => (
-            crate::training::data_source::file_views(
-                file,
-                args.size,
-                rendering.background,
-                trained_data(args.source, &program).as_ref(),
-            )?,
-            format!("the views of {}", file.display()),
-        ),
-        None => held_out_views(args.source, &program)?,
+    let (views, described, held_out) = match cameras {
+        Some(file) => {
+            let trained = trained_data(args.source, &program);
+            let read = scored_views(&ScoredViews {
+                cameras: file,
+                format,
+                width: args.size,
+                background: rendering.background,
+                trained: trained.as_ref(),
+            })?;
+            let held_out = match read.as_trained {
+                true => held_out_every(args.source, &program)?,
+                false => None,
+            };
+            let described = format!("the views of {} ({})", file.display(), read.how);
+            (read.views, described, held_out)
+        }
+        None => {
+            let (views, described) = held_out_views(args.source, &program)?;
+            (views, described, None)
+        }
     };
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
@@ -430,6 +477,25 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
     let mean = means(&scores);
     let column = masked_column(mean.masked_psnr);
     lines += &format!("mean  {:>9.2}  {:.4}{column}\n", mean.psnr, mean.ssim);
+    // The views its training held out of these, as its validation chose them.
+    let held: Option<(Vec<usize>, MeanScores)> = held_out.map(|(every, limit)| {
+        let chosen: Vec<usize> = (0..scores.len())
+            .step_by(every)
+            .take(limit.unwrap_or(usize::MAX))
+            .collect();
+        let mean = means(&chosen.iter().map(|&i| scores[i]).collect::<Vec<_>>());
+        (chosen, mean)
+    });
+    if let Some((chosen, mean)) = &held {
+        let column = masked_column(mean.masked_psnr);
+        let listed: Vec<String> = chosen.iter().map(usize::to_string).collect();
+        lines += &format!(
+            "held  {:>9.2}  {:.4}{column}   (views {}: those its validation scores)\n",
+            mean.psnr,
+            mean.ssim,
+            listed.join(", ")
+        );
+    }
     if let Some(path) = json {
         let report = serde_json::json!({
             "source": args.source,
@@ -456,6 +522,10 @@ pub fn eval(args: &ViewArgs, cameras: Option<&Path>, json: Option<&Path>) -> Res
             "mean_psnr": mean.psnr,
             "mean_ssim": mean.ssim,
             "mean_masked_psnr": mean.masked_psnr,
+            "held_out": held.as_ref().map(|(chosen, mean)| serde_json::json!({
+                "views": chosen, "mean_psnr": mean.psnr, "mean_ssim": mean.ssim,
+                "mean_masked_psnr": mean.masked_psnr,
+            })),
             "render_seconds": seconds,
         });
         crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&report).unwrap_or_default())?;

@@ -1,5 +1,6 @@
 //! The `camera` setting of blocks: the course's orbit, a general orbit, one look-at camera, or a camera
-//! file (the course's box_cameras.json, Blender transforms, a nerfstudio transforms.json or a COLMAP model).
+//! file (the course's box_cameras.json, Blender transforms, a nerfstudio transforms.json, a COLMAP model,
+//! an LLFF scene or a DTU scan).
 
 use std::path::Path;
 
@@ -7,9 +8,8 @@ use glam::{Vec2, Vec3};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::Diagnostic;
 use nerfjit_runtime::{
-    default_images_folder, dtu_cameras_file, is_camera_path, is_colmap_model, is_llff, is_nerfstudio,
-    load_blender_cameras, load_box_cameras, load_camera_path, load_colmap, load_dtu, load_llff,
-    load_nerfstudio, orbit, surround, Camera, CameraFormat, Up,
+    choose_layout, default_images_folder, is_camera_path, load_blender_cameras, load_box_cameras,
+    load_camera_path, load_colmap, load_dtu, load_llff, load_nerfstudio, orbit, surround, Camera, Layout, Up,
 };
 
 use crate::settings::primitives::{triple, CallArgs};
@@ -56,7 +56,7 @@ pub fn cameras(
                 Some(_) => Some(a.choice("normalize", &["true", "false"], "true")? == "true"),
                 None => None,
             };
-            camera_file(&file, normalize).map(|(cameras, _)| cameras)
+            camera_file(&file, normalize, None).map(|(cameras, _)| cameras)
         }
         "look_at" => {
             let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
@@ -89,51 +89,57 @@ pub type FrameSize = (u32, u32);
 
 /// The cameras of a camera file — the course's, Blender's, a nerfstudio `transforms.json` or
 /// `camera_path.json`, a COLMAP model folder, an LLFF scene folder or a DTU scan folder — and the
-/// (width, height) of its images when the file says. A capture is normalized by its own cameras as
-/// training normalizes one when `normalize` is `Some(true)`, kept in its frame when `Some(false)`, and
-/// with `None` as training does by default: captures normalized, DTU scans in the scan's frame.
+/// (width, height) of its images when the file says. A folder holding several layouts is read as `layout`
+/// when given, else as the most specific ([`choose_layout`], noted). A capture is normalized by its own
+/// cameras as training normalizes one when `normalize` is `Some(true)`, kept in its frame when
+/// `Some(false)`, and with `None` as training does by default: captures normalized, DTU scans in the
+/// scan's frame.
 pub fn camera_file(
     file: &Path,
     normalize: Option<bool>,
+    layout: Option<Layout>,
 ) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
+    let text = || nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default();
+    if layout.is_none() && file.is_file() && is_camera_path(&text()) {
+        let path = load_camera_path(file)?;
+        return Ok((path.cameras, Some((path.width, path.height))));
+    }
+    let Some(chosen) = choose_layout(file, layout)? else {
+        let set = load_box_cameras(file)?;
+        return Ok((set.cameras, set.image_size));
+    };
+    if let Some(note) = chosen.note(file) {
+        crate::note(&note);
+    }
+    let source = chosen.found.source.as_path();
     // A DTU scan stays in its own frame (the object inside the unit sphere) unless asked; captures are
     // normalized unless asked not to be.
-    let dtu = dtu_cameras_file(file).is_some();
-    let normalize_capture = normalize.unwrap_or(!dtu);
-    let capture = if dtu {
-        Some(load_dtu(file, false)?)
-    } else if is_llff(file) {
-        let scales = nerfjit_runtime::data::llff::image_scales(file);
-        Some(load_llff(file, scales.last().copied().unwrap_or(1))?.capture)
-    } else if is_colmap_model(file) {
-        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
-        Some(load_colmap(file, &images)?)
-    } else {
-        let text = nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default();
-        if is_camera_path(&text) {
-            let path = load_camera_path(file)?;
-            return Ok((path.cameras, Some((path.width, path.height))));
-        } else if is_nerfstudio(&text) {
-            Some(load_nerfstudio(file)?)
-        } else if CameraFormat::of_text(&text) == Some(CameraFormat::Blender) {
-            return Ok((load_blender_cameras(file)?.cameras, None));
-        } else {
-            None
+    let normalize_capture = normalize.unwrap_or(chosen.found.layout != Layout::Dtu);
+    let mut capture = match chosen.found.layout {
+        Layout::Dtu => load_dtu(source, false)?,
+        Layout::Llff => {
+            let scales = nerfjit_runtime::data::llff::image_scales(source);
+            load_llff(source, scales.last().copied().unwrap_or(1))?.capture
         }
+        Layout::Colmap => {
+            let images = default_images_folder(source).unwrap_or_else(|| source.to_path_buf());
+            load_colmap(source, &images)?
+        }
+        Layout::Nerfstudio => load_nerfstudio(source)?,
+        Layout::Blender if source.is_dir() => {
+            return Err(nerfjit_runtime::Error::Invalid(format!(
+                "'{}' is a Blender data set ({}): name one of its camera files",
+                file.display(),
+                chosen.found.evidence
+            )))
+        }
+        Layout::Blender => return Ok((load_blender_cameras(source)?.cameras, None)),
     };
-    match capture {
-        Some(mut capture) => {
-            if normalize_capture {
-                capture.normalize()?;
-            }
-            let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
-            Ok((capture.cameras(file, 1, None)?, size))
-        }
-        None => {
-            let set = load_box_cameras(file)?;
-            Ok((set.cameras, set.image_size))
-        }
+    if normalize_capture {
+        capture.normalize()?;
     }
+    let size = capture.frames.first().map(|f| (f.camera.width, f.camera.height));
+    Ok((capture.cameras(source, 1, None)?, size))
 }
 
 /// The most frames a camera path may have.

@@ -21,11 +21,12 @@ use std::path::{Path, PathBuf};
 use nerfjit_dsl::config::{Spanned, Value};
 use nerfjit_dsl::{budget, Diagnostic};
 use nerfjit_runtime::{
-    default_images_folder, load_blender_cameras, load_blender_views, load_box_cameras, load_box_views,
-    load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture, CaptureRequest, Normalization, Views,
+    choose_layout, default_images_folder, layouts_at, load_blender_cameras, load_blender_views,
+    load_box_cameras, load_box_views, load_colmap, load_dtu, load_llff, load_nerfstudio, Camera, Capture,
+    CaptureRequest, Layout, Normalization, Views,
 };
 
-use crate::failure::Result;
+use crate::failure::{at, Failure, Result};
 use crate::settings::primitives::{triple, whole, CallArgs};
 
 /// How to load a Blender data set: image size, background, and how many views (the first n; all if None).
@@ -82,16 +83,97 @@ const HINT: &str = "use views(\"box_cameras.json\"), blender(\"transforms_train.
                     nerfstudio(\"transforms.json\"), colmap(\"sparse/0\", images: \"images\"), \
                     llff(\"scene\", downscale: 8) or dtu(\"scan\", masks: true)";
 
-/// The views of a camera file with its images, to score renders against: a nerfstudio capture, a
-/// COLMAP model folder, an LLFF scene folder or a DTU scan folder (every frame, downscaled by the whole
-/// factor nearest to the frames' width ÷ `width`), or Blender transforms at `width`². A capture is read
-/// as `trained` (the data the field was trained on, when known) read its own: normalized by its own
-/// cameras or kept in its frame as that data was ([`DataSet::normalizes`]; without it, as each kind is by
-/// default: captures normalized, DTU scans in the scan's frame, as `render --cameras` places its cameras).
+/// What `--cameras` of `eval-views` and `compare` names, and how to read it.
+#[derive(Clone, Copy, Debug)]
+pub struct ScoredViews<'a> {
+    /// A camera file or data folder, or a reader written as in a script (`dtu("scan24", masks: true)`).
+    pub cameras: &'a Path,
+    /// The layout to read a folder holding several as (`--format`); the most specific by default.
+    pub format: Option<Layout>,
+    /// The width to read the views at (Blender: the side); `None`: as the field's training read them
+    /// when these are its data, else [`DEFAULT_WIDTH`].
+    pub width: Option<u32>,
+    /// The color the images' alpha is composited on.
+    pub background: [f32; 3],
+    /// The data the field was trained on, when known.
+    pub trained: Option<&'a DataSet>,
+}
+
+/// The width views are scored at when neither `--size` nor the field's training says.
+pub const DEFAULT_WIDTH: u32 = 128;
+
+/// Views read for scoring, and how they were read.
+pub struct ReadViews {
+    /// The views.
+    pub views: Views,
+    /// How they were read, for people: "read as DTU (cameras_sphere.npz) as its training read them".
+    pub how: String,
+    /// Whether they are the field's own training data read as its training read them.
+    pub as_trained: bool,
+}
+
+/// The views of `request.cameras` with their images, to score renders against:
+/// - a reader written as in a script (`llff("fern", downscale: 8)`): read as it says;
+/// - the data the field was trained on (its camera file or folder, or the folder holding it): read as its
+///   training read it (the reader and its arguments after `--set` overrides: masks, normalization, views),
+///   at its training's scale unless a width is asked;
+/// - any other file or folder: read by its layout ([`choose_layout`]: the most specific, or `format`; a
+///   folder holding several is noted), every frame, downscaled by the whole factor nearest to the frames'
+///   width ÷ the width (Blender transforms at width²). A capture is normalized or kept in its frame as
+///   the data the field was trained on was ([`DataSet::normalizes`]; without it, as each kind is by
+///   default: captures normalized, DTU scans in the scan's frame, as `render --cameras` places them).
+///
 /// A DTU scan's masks, where it has them, black out the background as training with `masks: true` does,
 /// unless the field was trained on that kind of scan without them: then the images are whole and the
 /// masks only choose the pixels of the masked score.
-pub fn file_views(file: &Path, width: u32, background: [f32; 3], trained: Option<&DataSet>) -> Result<Views> {
+pub fn scored_views(request: &ScoredViews) -> Result<ReadViews> {
+    let ScoredViews {
+        cameras: file,
+        format,
+        width,
+        background,
+        trained,
+    } = *request;
+    let written = file.to_string_lossy();
+    if let Some(set) = reader_call(&written, Path::new("."))? {
+        let set = set.on_background(background).at_width(width)?;
+        let as_trained = trained.is_some_and(|t| t.same_data_as(&set));
+        let views = set.scored()?;
+        let how = format!("read as {written}");
+        return Ok(ReadViews {
+            views,
+            how,
+            as_trained,
+        });
+    }
+    let own = trained.filter(|t| t.reads(file) && format.is_none_or(|f| t.layout() == Some(f)));
+    if let Some(set) = own {
+        let set = set.on_background(background).at_width(width)?;
+        let how = format!(
+            "read as {} as its training read them",
+            set.layout().map_or("the course's views", Layout::title)
+        );
+        let views = set.scored()?;
+        return Ok(ReadViews {
+            views,
+            how,
+            as_trained: true,
+        });
+    }
+    let width = width.unwrap_or(DEFAULT_WIDTH);
+    let Some(chosen) = choose_layout(file, format)? else {
+        let views = load_blender_views(file, Some(width), background, None)?;
+        return Ok(ReadViews {
+            views,
+            how: "read as Blender transforms".into(),
+            as_trained: false,
+        });
+    };
+    if let Some(note) = chosen.note(file) {
+        crate::note(&note);
+    }
+    let how = format!("read as {}", chosen.found.describe());
+    let source = chosen.found.source.clone();
     let normalize = trained.and_then(DataSet::normalizes);
     let data = CaptureData {
         downscale: 1,
@@ -99,52 +181,70 @@ pub fn file_views(file: &Path, width: u32, background: [f32; 3], trained: Option
         views: None,
         normalize: normalize.unwrap_or(true),
     };
-    let mut masks_apart = false;
-    let kind = if nerfjit_runtime::is_llff(file) {
-        let downscale = nerfjit_runtime::data::llff::downscale_for_width(file, width)?;
-        let set = DataSet {
-            path: file.to_path_buf(),
-            kind: DataKind::Llff(CaptureData { downscale, ..data }),
-        };
-        return set.views();
-    } else if nerfjit_runtime::dtu_cameras_file(file).is_some() {
-        let masks = file.join("mask").is_dir();
-        masks_apart = masks && matches!(trained.map(|t| &t.kind), Some(DataKind::Dtu(_, false)));
-        let data = CaptureData {
-            normalize: normalize.unwrap_or(false),
-            ..data
-        };
-        DataKind::Dtu(data, masks && !masks_apart)
-    } else if nerfjit_runtime::is_colmap_model(file) {
-        let images = default_images_folder(file).unwrap_or_else(|| file.to_path_buf());
-        DataKind::Colmap(data, images)
-    } else if nerfjit_runtime::is_nerfstudio(
-        &nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default(),
-    ) {
-        DataKind::Nerfstudio(data)
-    } else {
-        return Ok(load_blender_views(file, Some(width), background, None)?);
+    let kind = match chosen.found.layout {
+        Layout::Blender if source.is_dir() => {
+            return Err(Failure::Message(format!(
+                "'{}' is a Blender data set ({}): name one of its camera files",
+                file.display(),
+                chosen.found.evidence
+            )))
+        }
+        Layout::Blender => {
+            let views = load_blender_views(&source, Some(width), background, None)?;
+            return Ok(ReadViews {
+                views,
+                how,
+                as_trained: false,
+            });
+        }
+        Layout::Llff => DataKind::Llff(data),
+        Layout::Dtu => {
+            let masks = source.join("mask").is_dir();
+            let masks_apart = matches!(trained.map(|t| &t.kind), Some(DataKind::Dtu(_, false)));
+            let data = CaptureData {
+                normalize: normalize.unwrap_or(false),
+                ..data
+            };
+            DataKind::Dtu(data, masks && !masks_apart)
+        }
+        Layout::Colmap => {
+            let images = default_images_folder(&source).unwrap_or_else(|| source.clone());
+            DataKind::Colmap(data, images)
+        }
+        Layout::Nerfstudio => DataKind::Nerfstudio(data),
     };
-    let set = DataSet {
-        path: file.to_path_buf(),
-        kind,
-    };
-    let (capture, _) = set.capture()?.expect("a capture's kind");
-    let frame_width = capture.frames.first().map_or(width, |f| f.camera.width);
-    let downscale = (frame_width as f32 / width.max(1) as f32).round().max(1.0) as u32;
-    let set = set.downscaled(downscale);
-    let mut views = set.load(false)?;
-    if masks_apart {
-        let DataKind::Dtu(data, _) = set.kind else {
-            unreachable!("only a DTU scan keeps its masks apart")
-        };
-        let masked = DataSet {
-            kind: DataKind::Dtu(data, true),
-            ..set
-        };
-        views.masks = masked.load(false)?.masks;
+    let set = DataSet { path: source, kind }.at_width(Some(width))?;
+    let views = set.scored()?;
+    Ok(ReadViews {
+        views,
+        how,
+        as_trained: false,
+    })
+}
+
+/// A data source written as in a script's `data` setting (`dtu("scan24", masks: true)`, paths relative to
+/// `dir`), when `text` is one: the data set it names, or its error with a caret; `None` when `text` is not
+/// written as a call (or names an existing file or folder).
+pub fn reader_call(text: &str, dir: &Path) -> Result<Option<DataSet>> {
+    let text = text.trim();
+    let looks_like_call = text.ends_with(')')
+        && text
+            .split('(')
+            .next()
+            .is_some_and(|name| !name.is_empty() && name.chars().all(|c| c.is_ascii_lowercase() || c == '_'));
+    if !looks_like_call || Path::new(text).exists() {
+        return Ok(None);
     }
-    Ok(views)
+    let script = format!("train {{ data: {text} }}\n");
+    let program = nerfjit_dsl::compile("--cameras", &script).map_err(Failure::Script)?;
+    let block = program
+        .blocks()
+        .into_iter()
+        .next()
+        .expect("the script holds its block");
+    let mut settings = nerfjit_dsl::config::Settings::new(&program, block).map_err(|d| at(&program, d))?;
+    let data = settings.take("data").expect("the block sets data");
+    Ok(Some(data_set(&data, dir).map_err(|d| at(&program, d))?))
 }
 
 /// Reads the `data` setting of a script in `script_dir`, checking that its files exist.
@@ -262,6 +362,11 @@ pub fn data_set(v: &Spanned, script_dir: &Path) -> std::result::Result<DataSet, 
     Ok(DataSet { path, kind })
 }
 
+/// Whether `a` and `b` name the same existing file or folder.
+fn same_file(a: &Path, b: &Path) -> bool {
+    matches!((a.canonicalize(), b.canonicalize()), (Ok(a), Ok(b)) if a == b)
+}
+
 /// Resolves a data path: as written (relative to the working folder) if it exists, else relative to the
 /// script's folder.
 pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
@@ -279,6 +384,73 @@ pub fn data_path(written: &str, script_dir: &Path) -> PathBuf {
 }
 
 impl DataSet {
+    /// The layout its reader reads; `None` for the course's views.
+    pub fn layout(&self) -> Option<Layout> {
+        match self.kind {
+            DataKind::Course => None,
+            DataKind::Blender(_) => Some(Layout::Blender),
+            DataKind::Nerfstudio(_) => Some(Layout::Nerfstudio),
+            DataKind::Colmap(..) => Some(Layout::Colmap),
+            DataKind::Llff(_) => Some(Layout::Llff),
+            DataKind::Dtu(..) => Some(Layout::Dtu),
+        }
+    }
+
+    /// Whether `path` names this data set's files: its camera file or folder itself, or a folder holding
+    /// them in this layout (a COLMAP model in `sparse/0`, a `transforms.json`).
+    pub fn reads(&self, path: &Path) -> bool {
+        same_file(&self.path, path)
+            || layouts_at(path)
+                .iter()
+                .any(|f| Some(f.layout) == self.layout() && same_file(&f.source, &self.path))
+    }
+
+    /// Whether `other` reads the same files as this data set in the same layout.
+    pub fn same_data_as(&self, other: &DataSet) -> bool {
+        self.layout() == other.layout() && same_file(&self.path, &other.path)
+    }
+
+    /// The same data set read at about `width` pixels across when given (Blender: `width`²; captures
+    /// downscaled by the whole factor nearest to their full-size width ÷ `width`; the course's views as
+    /// they are); unchanged when not.
+    pub fn at_width(&self, width: Option<u32>) -> Result<DataSet> {
+        let Some(width) = width else {
+            return Ok(self.clone());
+        };
+        let mut set = self.clone();
+        let downscale = match &mut set.kind {
+            DataKind::Course => return Ok(set),
+            DataKind::Blender(b) => {
+                b.size = width;
+                return Ok(set);
+            }
+            DataKind::Llff(_) => nerfjit_runtime::data::llff::downscale_for_width(&self.path, width)?,
+            _ => {
+                let (capture, _) = self.downscaled(1).capture()?.expect("a capture's kind");
+                let full = capture.frames.first().map_or(width, |f| f.camera.width);
+                (full as f32 / width.max(1) as f32).round().max(1.0) as u32
+            }
+        };
+        Ok(set.downscaled(downscale))
+    }
+
+    /// The views to score renders against, composited on the data's background: as [`DataSet::load`]
+    /// reads them, and a DTU scan read without its masks keeps them apart to choose the pixels of the
+    /// masked score (its images stay whole).
+    pub fn scored(&self) -> Result<Views> {
+        let mut views = self.load(false)?;
+        if let DataKind::Dtu(data, false) = self.kind {
+            if self.path.join("mask").is_dir() {
+                let masked = DataSet {
+                    path: self.path.clone(),
+                    kind: DataKind::Dtu(data, true),
+                };
+                views.masks = masked.load(false)?.masks;
+            }
+        }
+        Ok(views)
+    }
+
     /// Whether the data set is a Blender one (which validation views require).
     pub fn blender(&self) -> Option<BlenderData> {
         match self.kind {
@@ -477,6 +649,19 @@ impl DataSet {
             None => Vec::new(),
         };
         Ok(points)
+    }
+
+    /// The (width, height) of the views as read, where the cameras state it (captures and the course's
+    /// views; Blender views are square at their size).
+    pub fn frame_size(&self) -> Result<Option<(u32, u32)>> {
+        if let Some((capture, data)) = self.capture()? {
+            let (_, width, height) = capture.view_sizes(&self.path, data.downscale, data.views)?;
+            return Ok(Some((width, height)));
+        }
+        Ok(match self.kind {
+            DataKind::Blender(b) => Some((b.size, b.size)),
+            _ => load_box_cameras(&self.path)?.image_size,
+        })
     }
 
     /// The cameras of the training views, without their images.

@@ -1,8 +1,8 @@
 //! Data and file formats read: the course's views ([`dataset`]), Blender / NeRF-synthetic data sets
 //! ([`blender`]), captures of real scenes from nerfstudio, COLMAP, LLFF and DTU ([`capture`],
 //! [`nerfstudio`], [`colmap`], [`llff`], [`dtu`]), images decoded within the limits ([`decode`]), point
-//! clouds ([`pointcloud`]), NumPy files ([`npy`]), and size-capped reading of every
-//! input ([`input`]).
+//! clouds ([`pointcloud`]), NumPy files ([`npy`]), size-capped reading of every input ([`input`]), and
+//! which layout a folder holding several is read as ([`layout`]).
 
 pub mod blender;
 pub mod capture;
@@ -12,6 +12,7 @@ pub mod decode;
 pub mod dtu;
 pub mod input;
 pub(crate) mod json;
+pub mod layout;
 pub mod llff;
 pub mod nerfstudio;
 pub mod npy;
