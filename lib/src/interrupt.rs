@@ -24,13 +24,23 @@ pub fn on_signal() {
     crate::note("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
 }
 
+/// Asks the watching training loop to stop at the end of its step, as a first signal does, without ever
+/// exiting the process (for hosts such as Python that catch the signal themselves); whether one watched.
+pub fn request_stop() -> bool {
+    REQUESTED.store(true, Ordering::SeqCst);
+    WATCHERS.load(Ordering::SeqCst) > 0
+}
+
 /// A training loop's claim on the signal while it lives.
 pub struct Watch(());
 
 impl Watch {
-    /// Starts watching for the signal.
+    /// Starts watching for the signal; the first watcher starts with no stop asked (a stop asked of an
+    /// earlier run in the same process, as from Python, does not carry over).
     pub fn start() -> Watch {
-        WATCHERS.fetch_add(1, Ordering::SeqCst);
+        if WATCHERS.fetch_add(1, Ordering::SeqCst) == 0 {
+            REQUESTED.store(false, Ordering::SeqCst);
+        }
         Watch(())
     }
 

@@ -1,0 +1,463 @@
+//! nerfjit from Python: the extension module `nerfjit._nerfjit`, which the package `nerfjit` re-exports.
+//!
+//! Conversions only: a `Script` is a compiled program with its params, whose functions run as JIT kernels
+//! on numpy arrays (values, gradients, vector-Jacobian products), and `run` runs a script's blocks as
+//! `nerfjit run` does. Every kernel runs with the GIL released, over the machine's cores; compilation and
+//! runs happen on a thread with the command line's deep stack.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::{mpsc, Arc, Mutex};
+use std::time::Duration;
+
+use nerfjit::failure::Failure;
+use nerfjit_dsl::{kernel_graphs, Program, Type};
+use nerfjit_jit::{Kernel, Options};
+use numpy::ndarray::{Array2, Array3, ArrayView2};
+use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyKeyError, PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use rayon::prelude::*;
+
+create_exception!(
+    nerfjit,
+    ScriptError,
+    PyValueError,
+    "A script that does not compile; the message is the diagnostic: line, column, caret and hint."
+);
+create_exception!(
+    nerfjit,
+    NerfjitError,
+    PyRuntimeError,
+    "Anything else nerfjit refuses or fails at: a missing file, a bad argument, a run that failed."
+);
+
+/// The Python exception for `failure`.
+fn to_py(failure: Failure) -> PyErr {
+    match failure {
+        Failure::Script(report) => ScriptError::new_err(report.to_string()),
+        other => NerfjitError::new_err(other.to_string()),
+    }
+}
+
+/// Runs `work` on a thread with the command line's stack (deep expressions recurse deeply in the
+/// compiler's passes).
+fn on_work_stack<T: Send>(work: impl FnOnce() -> T + Send) -> T {
+    std::thread::scope(|scope| {
+        let thread = std::thread::Builder::new()
+            .stack_size(nerfjit::WORK_STACK_BYTES)
+            .spawn_scoped(scope, work)
+            .expect("a thread for the work");
+        thread
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    })
+}
+
+/// What a kernel of a function computes.
+#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
+enum Kind {
+    /// The values.
+    Value,
+    /// The values, then each output's gradient with respect to the inputs.
+    Gradient,
+    /// Inputs and one cotangent per output → the values, the inputs' cotangents; the params' as reductions.
+    Vjp,
+}
+
+/// A compiled kernel of one function and its shape.
+struct Compiled {
+    kernel: Kernel,
+    /// Scalars the function reads per point.
+    inputs: usize,
+    /// Scalars it returns per point.
+    outputs: usize,
+    /// Whether it returns one scalar (`f32`), not a vector.
+    scalar: bool,
+}
+
+/// Points per call of a kernel; the calls run on every core.
+const CHUNK: usize = 4096;
+
+impl Compiled {
+    /// Runs the kernel on the columns `inputs` (n points each) with `params`: its output columns and its
+    /// reductions summed over the points.
+    fn run(&self, n: usize, inputs: &[Vec<f32>], params: &[f32]) -> (Vec<Vec<f32>>, Vec<f32>) {
+        let k = &self.kernel;
+        let chunks: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..n.div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(n));
+                let ins: Vec<&[f32]> = inputs.iter().map(|col| &col[start..end]).collect();
+                let mut outs = vec![vec![0.0f32; end - start]; k.n_outputs];
+                let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
+                let mut reductions = vec![0.0f32; k.n_reductions];
+                k.eval(end - start, &ins, &mut refs, params, &mut reductions);
+                (outs, reductions)
+            })
+            .collect();
+        let mut outputs = vec![Vec::with_capacity(n); k.n_outputs];
+        let mut reductions = vec![0.0f32; k.n_reductions];
+        for (outs, sums) in chunks {
+            for (all, part) in outputs.iter_mut().zip(outs) {
+                all.extend(part);
+            }
+            for (total, part) in reductions.iter_mut().zip(sums) {
+                *total += part;
+            }
+        }
+        (outputs, reductions)
+    }
+}
+
+/// The columns of an (n, width) array: one `Vec` per column.
+fn columns(points: ArrayView2<f32>) -> Vec<Vec<f32>> {
+    points.columns().into_iter().map(|c| c.to_vec()).collect()
+}
+
+/// An (n, columns) array of `columns`.
+fn rows(n: usize, columns: &[Vec<f32>]) -> Array2<f32> {
+    Array2::from_shape_fn((n, columns.len()), |(i, c)| columns[c][i])
+}
+
+/// The numpy shape of a param of type `ty`: a scalar, a vector, a matrix, or the flat values of networks and
+/// grid tables.
+fn param_shape(ty: &Type) -> Vec<usize> {
+    match ty {
+        Type::F32 => vec![],
+        Type::Vec(n) => vec![*n],
+        Type::Mat(r, c) => vec![*r, *c],
+        other => vec![other.scalars()],
+    }
+}
+
+/// The params of `program` as a dict of numpy arrays of their shapes, their values read from `flat` (the
+/// params' values, or their gradients).
+fn param_dict<'py>(py: Python<'py>, program: &Program, flat: &[f32]) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    for p in &program.params {
+        let values = flat[p.offset..p.offset + p.ty.scalars()].to_vec();
+        dict.set_item(&p.name, values.into_pyarray(py).reshape(param_shape(&p.ty))?)?;
+    }
+    Ok(dict)
+}
+
+/// A function's values at n points from its output columns: (n,) for an `f32` result, else (n, outputs).
+fn values_array<'py>(py: Python<'py>, compiled: &Compiled, n: usize, outs: &[Vec<f32>]) -> Bound<'py, PyAny> {
+    match compiled.scalar {
+        true => outs[0].clone().into_pyarray(py).into_any(),
+        false => rows(n, &outs[..compiled.outputs]).into_pyarray(py).into_any(),
+    }
+}
+
+/// What a kernel computed at n points: its output columns and its reductions.
+struct Evaluated {
+    compiled: Arc<Compiled>,
+    n: usize,
+    outs: Vec<Vec<f32>>,
+    reductions: Vec<f32>,
+}
+
+/// A compiled `.sdf` script: its functions run on numpy arrays, its params are numpy arrays.
+///
+/// `Script(source, set=[])` compiles a script file (a path that exists, or an example's name such as
+/// `"torus"`) or a script's text, with `--set` overrides (`["radius=1.5", "train.steps=100"]`); errors
+/// raise `ScriptError` with the diagnostic. Points are `(N, k)` arrays of any float type, k the scalars the
+/// function reads (`p: vec3` → 3; `color(p, d)` → 6).
+#[pyclass(module = "nerfjit", name = "Script")]
+struct Script {
+    program: Mutex<Program>,
+    params: Mutex<Vec<f32>>,
+    kernels: Mutex<HashMap<(String, Kind), Arc<Compiled>>>,
+}
+
+impl Script {
+    /// The kernel of `kind` for function `name`, compiled on first use.
+    fn kernel(&self, name: &str, kind: Kind) -> PyResult<Arc<Compiled>> {
+        let key = (name.to_string(), kind);
+        if let Some(k) = self.kernels.lock().expect("the kernel cache").get(&key) {
+            return Ok(k.clone());
+        }
+        let program = self.program.lock().expect("the program");
+        let n_params = program.n_params();
+        let compiled = on_work_stack(|| -> Result<Compiled, Failure> {
+            let lowered = program.lower(name).map_err(Failure::Script)?;
+            let (inputs, outputs) = (lowered.graph.n_inputs as usize, lowered.graph.outputs.len());
+            let graph = match kind {
+                Kind::Value => kernel_graphs::value(&lowered),
+                Kind::Gradient => kernel_graphs::with_gradient(&lowered),
+                Kind::Vjp => kernel_graphs::vjp(&lowered, n_params),
+            };
+            let kernel =
+                Kernel::compile(&graph, Options::default()).map_err(|e| Failure::Message(e.to_string()))?;
+            Ok(Compiled {
+                kernel,
+                inputs,
+                outputs,
+                scalar: lowered.signature.output == Type::F32,
+            })
+        })
+        .map_err(to_py)?;
+        let compiled = Arc::new(compiled);
+        self.kernels
+            .lock()
+            .expect("the kernel cache")
+            .insert(key, compiled.clone());
+        Ok(compiled)
+    }
+
+    /// Runs the `kind` kernel of function `name` at `points`, with the columns of `cotangent` (the shape of
+    /// its values) after theirs when given, the GIL released.
+    fn evaluate(
+        &self,
+        py: Python<'_>,
+        name: &str,
+        kind: Kind,
+        points: &PyArrayLikeDyn<f32, AllowTypeChange>,
+        cotangent: Option<&PyArrayLikeDyn<f32, AllowTypeChange>>,
+    ) -> PyResult<Evaluated> {
+        let compiled = self.kernel(name, kind)?;
+        let mut cols = Script::points(&compiled, name, points)?;
+        let n = cols.first().map_or(points.shape()[0], Vec::len);
+        if let Some(seeds) = cotangent {
+            let m = compiled.outputs;
+            let seeds = seeds.as_array();
+            if seeds.len() != n * m {
+                let shape = if compiled.scalar {
+                    format!("({n},)")
+                } else {
+                    format!("({n}, {m})")
+                };
+                return Err(PyValueError::new_err(format!(
+                    "the cotangent has the shape of {name}'s values, {shape}, not {:?}",
+                    seeds.shape()
+                )));
+            }
+            let flat: Vec<f32> = seeds.iter().copied().collect();
+            cols.extend((0..m).map(|o| (0..n).map(|i| flat[i * m + o]).collect()));
+        }
+        let params = self.params.lock().expect("the params").clone();
+        let (outs, reductions) = py.detach(|| compiled.run(n, &cols, &params));
+        Ok(Evaluated {
+            compiled,
+            n,
+            outs,
+            reductions,
+        })
+    }
+
+    /// The columns of `points` for `compiled`, checked: (N, k) with k its inputs (or (N,) for one input).
+    fn points(
+        compiled: &Compiled,
+        name: &str,
+        points: &PyArrayLikeDyn<f32, AllowTypeChange>,
+    ) -> PyResult<Vec<Vec<f32>>> {
+        let view = points.as_array();
+        let n = view.len();
+        let shaped = match view.ndim() {
+            1 if compiled.inputs == 1 => view.into_shape_with_order((n, 1)).ok(),
+            2 => view.into_dimensionality::<numpy::ndarray::Ix2>().ok(),
+            _ => None,
+        };
+        match shaped {
+            Some(v) if v.ncols() == compiled.inputs => Ok(columns(v.view())),
+            _ => Err(PyValueError::new_err(format!(
+                "{name} reads {} scalars per point: pass an array of shape (N, {}), not {:?}",
+                compiled.inputs,
+                compiled.inputs,
+                points.shape()
+            ))),
+        }
+    }
+}
+
+#[pymethods]
+impl Script {
+    #[new]
+    #[pyo3(signature = (source, set = Vec::new()))]
+    fn new(py: Python<'_>, source: String, set: Vec<String>) -> PyResult<Script> {
+        let program = py
+            .detach(|| {
+                on_work_stack(|| {
+                    let is_path =
+                        std::path::Path::new(&source).is_file() || !source.contains(['\n', '(', '=']);
+                    if is_path {
+                        nerfjit::script::load_with(&source, &set)
+                    } else {
+                        nerfjit_dsl::compile_with("<text>", &source, &set).map_err(Failure::Script)
+                    }
+                })
+            })
+            .map_err(to_py)?;
+        let params = program.param_values.clone();
+        Ok(Script {
+            program: Mutex::new(program),
+            params: Mutex::new(params),
+            kernels: Mutex::new(HashMap::new()),
+        })
+    }
+
+    /// The script's own functions' signatures, e.g. `["fn sdf(p: vec3) -> f32"]`.
+    #[getter]
+    fn functions(&self) -> Vec<String> {
+        let program = self.program.lock().expect("the program");
+        program.functions().iter().map(ToString::to_string).collect()
+    }
+
+    /// The params by name, as numpy arrays (copies; set them with `set_param`).
+    #[getter]
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let values = self.params.lock().expect("the params");
+        param_dict(py, &self.program.lock().expect("the program"), &values)
+    }
+
+    /// Sets param `name` to `value` (any array of its shape or its number of values).
+    fn set_param(&self, name: &str, value: PyArrayLikeDyn<f32, AllowTypeChange>) -> PyResult<()> {
+        let program = self.program.lock().expect("the program");
+        let Some(p) = program.params.iter().find(|p| p.name == name) else {
+            let names: Vec<&str> = program.params.iter().map(|p| p.name.as_str()).collect();
+            return Err(PyKeyError::new_err(format!(
+                "no param '{name}': the script's params are {}",
+                names.join(", ")
+            )));
+        };
+        let view = value.as_array();
+        if view.len() != p.ty.scalars() {
+            return Err(PyValueError::new_err(format!(
+                "param '{name}' is {} ({} values), not an array of shape {:?}",
+                p.ty,
+                p.ty.scalars(),
+                view.shape()
+            )));
+        }
+        if let Some(bad) = view.iter().find(|x| !x.is_finite()) {
+            return Err(PyValueError::new_err(format!(
+                "param '{name}' would hold {bad}: values must be finite"
+            )));
+        }
+        let mut values = self.params.lock().expect("the params");
+        for (slot, x) in values[p.offset..].iter_mut().zip(view.iter()) {
+            *slot = *x;
+        }
+        Ok(())
+    }
+
+    /// Function `name` at `points`, by its JIT kernel: (N,) for a function returning `f32`, else (N, k).
+    fn eval<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let Evaluated {
+            compiled, n, outs, ..
+        } = self.evaluate(py, name, Kind::Value, &points, None)?;
+        Ok(values_array(py, &compiled, n, &outs))
+    }
+
+    /// The gradient of function `name` with respect to its inputs at `points`: (N, k) for a function returning
+    /// `f32`, else the Jacobian (N, outputs, k).
+    fn grad<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let Evaluated {
+            compiled, n, outs, ..
+        } = self.evaluate(py, name, Kind::Gradient, &points, None)?;
+        let (m, k) = (compiled.outputs, compiled.inputs);
+        let jacobian = &outs[m..];
+        Ok(match compiled.scalar {
+            true => rows(n, jacobian).into_pyarray(py).into_any(),
+            false => Array3::from_shape_fn((n, m, k), |(i, o, j)| jacobian[o * k + j][i])
+                .into_pyarray(py)
+                .into_any(),
+        })
+    }
+
+    /// The vector-Jacobian product of function `name` at `points` with `cotangent` (the shape of its values):
+    /// `(values, d_points, d_params)`, d_points of the shape of the points and d_params a dict of arrays
+    /// of the params' shapes, Σᵢ cotangentᵢ · ∂valueᵢ/∂θ.
+    fn vjp<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        cotangent: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyDict>)> {
+        let Evaluated {
+            compiled,
+            n,
+            outs,
+            reductions,
+        } = self.evaluate(py, name, Kind::Vjp, &points, Some(&cotangent))?;
+        let m = compiled.outputs;
+        let values = values_array(py, &compiled, n, &outs[..m]);
+        let d_points = rows(n, &outs[m..])
+            .into_pyarray(py)
+            .reshape(points.shape().to_vec())?
+            .into_any();
+        let d_params = param_dict(py, &self.program.lock().expect("the program"), &reductions)?;
+        Ok((values, d_points, d_params))
+    }
+}
+
+/// Runs the blocks of the script at `script` (a path, or an example's name) as `nerfjit run` does, with
+/// `set` overrides, writing into `out` (default: the working folder), resuming its checkpoint when
+/// `resume`. Ctrl-C stops training at the end of its step with its checkpoint written, then raises
+/// `KeyboardInterrupt`.
+#[pyfunction]
+#[pyo3(signature = (script, *, set = Vec::new(), out = None, resume = false))]
+fn run(py: Python<'_>, script: String, set: Vec<String>, out: Option<PathBuf>, resume: bool) -> PyResult<()> {
+    let (done, finished) = mpsc::channel();
+    let worker = std::thread::Builder::new()
+        .stack_size(nerfjit::WORK_STACK_BYTES)
+        .spawn(move || {
+            let result = nerfjit::commands::run::run(&script, &set, out.as_deref(), resume, None);
+            let _ = done.send(());
+            result
+        })
+        .map_err(|e| NerfjitError::new_err(format!("cannot start the run: {e}")))?;
+    let mut interrupted = None;
+    let mut finished = finished;
+    loop {
+        let (receiver, ended) = py.detach(move || {
+            let ended = finished.recv_timeout(Duration::from_millis(100)).is_ok();
+            (finished, ended)
+        });
+        finished = receiver;
+        if ended {
+            break;
+        }
+        if let Err(signal) = py.check_signals() {
+            interrupted.get_or_insert(signal);
+        }
+        if interrupted.is_some() {
+            nerfjit::interrupt::request_stop();
+        }
+    }
+    let result = worker
+        .join()
+        .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+    match (interrupted, result) {
+        (Some(signal), Err(Failure::Interrupted(message))) => {
+            nerfjit::note(&message);
+            Err(signal)
+        }
+        (Some(signal), _) => Err(signal),
+        (None, result) => result.map_err(to_py),
+    }
+}
+
+/// The extension module: `Script`, `run` and the exceptions.
+#[pymodule]
+fn _nerfjit(module: &Bound<'_, PyModule>) -> PyResult<()> {
+    module.add_class::<Script>()?;
+    module.add_function(wrap_pyfunction!(run, module)?)?;
+    module.add("ScriptError", module.py().get_type::<ScriptError>())?;
+    module.add("NerfjitError", module.py().get_type::<NerfjitError>())?;
+    Ok(())
+}
