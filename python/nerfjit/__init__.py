@@ -8,11 +8,16 @@ on), their functions on numpy arrays, and runs of their blocks.
     script.eval("sdf", np.zeros((4, 3)))        # array([-1., -1., -1., -1.], dtype=float32)
     script.grad("sdf", np.eye(3))               # the unit normals
     nerfjit.run("examples/train_box.sdf", set=["train.steps=200"], out="box")
+    field = nerfjit.load("box/train_box.ckpt.safetensors")
+    image, depth, opacity = field.render(c2w, focal=50.0, size=64)   # numpy (64, 64, 3), (64, 64), (64, 64)
+    vertices, faces = nerfjit.Script("torus").mesh("sdf", resolution=64, bounds=1.5)
 
-`nerfjit.torch` (imported on its own, needs torch) makes a script's function a `torch.nn.Module` whose
+`nerfjit.data.load(path)` reads a data set's cameras and images as numpy arrays. `nerfjit.torch` (imported
+on its own, needs torch) makes a script's function a `torch.nn.Module` whose
 forward and backward passes are nerfjit's kernels.
 """
 
-from ._nerfjit import NerfjitError, Script, ScriptError, run
+from . import data
+from ._nerfjit import Field, NerfjitError, Script, ScriptError, load, run
 
-__all__ = ["Script", "ScriptError", "NerfjitError", "run"]
+__all__ = ["Script", "Field", "ScriptError", "NerfjitError", "load", "run", "data"]

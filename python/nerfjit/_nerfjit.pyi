@@ -28,10 +28,59 @@ class Script:
         """Function `name` at `points` (N, k): (N,) for an `f32` result, else (N, outputs)."""
     def grad(self, name: str, points: npt.ArrayLike) -> npt.NDArray[np.float32]:
         """Its gradient in the inputs: (N, k) for an `f32` result, else the Jacobian (N, outputs, k)."""
+    def mesh(
+        self,
+        function: str = "sdf",
+        resolution: int = 128,
+        bounds: Union[float, tuple[Sequence[float], Sequence[float]]] = 1.0,
+        level: float = 0.0,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+        """The marching-cubes mesh of a level set: (vertices (V, 3), faces (F, 3)), faces counter-clockwise."""
     def vjp(
         self, name: str, points: npt.ArrayLike, cotangent: npt.ArrayLike
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, npt.NDArray[np.float32]]]:
         """(values, d_points, d_params): the vector-Jacobian product with `cotangent` (the values' shape)."""
+
+class Field:
+    """A trained field (a checkpoint, or a script with its initial params) that renders into numpy images."""
+
+    @property
+    def script(self) -> Script:
+        """Its script with the trained params."""
+    @property
+    def params(self) -> dict[str, npt.NDArray[np.float32]]:
+        """The trained params by name."""
+    @property
+    def rendering(self) -> tuple[float, float, int, list[float]]:
+        """(near, far, samples, background) it renders with."""
+    def render(
+        self,
+        c2w: npt.ArrayLike,
+        focal: Union[float, tuple[float, float]],
+        size: Union[int, tuple[int, int]],
+        principal: Optional[tuple[float, float]] = None,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """(image (H, W, 3), depth (H, W), opacity (H, W)) seen by an OpenGL/Blender camera-to-world c2w."""
+
+def load(
+    source: str,
+    *,
+    near: Optional[float] = ...,
+    far: Optional[float] = ...,
+    samples: Optional[int] = ...,
+    background: Optional[str] = ...,
+    exact: bool = ...,
+) -> Field:
+    """Opens a checkpoint (or a script) as a field; the settings override what its train block renders with."""
+
+def load_views(
+    path: str,
+    *,
+    format: Optional[str] = ...,
+    width: Optional[int] = ...,
+    background: Optional[str] = ...,
+) -> dict:
+    """The views of a data set as numpy arrays (see `nerfjit.data.load`)."""
 
 def run(
     script: str,

@@ -10,7 +10,9 @@ use std::path::PathBuf;
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
+use nerfjit::commands::render_views::{FieldViews, ViewArgs};
 use nerfjit::failure::Failure;
+use nerfjit::training::data_source::{scored_views, ScoredViews};
 use nerfjit_dsl::{kernel_graphs, Program, Type};
 use nerfjit_jit::{Kernel, Options};
 use numpy::ndarray::{Array2, Array3, ArrayView2};
@@ -122,6 +124,18 @@ fn rows(n: usize, columns: &[Vec<f32>]) -> Array2<f32> {
     Array2::from_shape_fn((n, columns.len()), |(i, c)| columns[c][i])
 }
 
+/// The box a mesh is extracted in: `r` for [−r, r]³, or its low and high corners.
+#[derive(FromPyObject)]
+enum Bounds {
+    Radius(f32),
+    Corners([f32; 3], [f32; 3]),
+}
+
+/// An (n, 3) array of triples (vertices, triangles).
+fn rows_of<T: Copy>(triples: &[[T; 3]]) -> Array2<T> {
+    Array2::from_shape_fn((triples.len(), 3), |(i, k)| triples[i][k])
+}
+
 /// The numpy shape of a param of type `ty`: a scalar, a vector, a matrix, or the flat values of networks and
 /// grid tables.
 fn param_shape(ty: &Type) -> Vec<usize> {
@@ -174,6 +188,15 @@ struct Script {
 }
 
 impl Script {
+    /// The script of `program` with `params`.
+    fn of(program: Program, params: Vec<f32>) -> Script {
+        Script {
+            program: Mutex::new(program),
+            params: Mutex::new(params),
+            kernels: Mutex::new(HashMap::new()),
+        }
+    }
+
     /// The kernel of `kind` for function `name`, compiled on first use.
     fn kernel(&self, name: &str, kind: Kind) -> PyResult<Arc<Compiled>> {
         let key = (name.to_string(), kind);
@@ -292,11 +315,7 @@ impl Script {
             })
             .map_err(to_py)?;
         let params = program.param_values.clone();
-        Ok(Script {
-            program: Mutex::new(program),
-            params: Mutex::new(params),
-            kernels: Mutex::new(HashMap::new()),
-        })
+        Ok(Script::of(program, params))
     }
 
     /// The script's own functions' signatures, e.g. `["fn sdf(p: vec3) -> f32"]`.
@@ -378,6 +397,37 @@ impl Script {
         })
     }
 
+    /// The marching-cubes mesh of the level `level` of function `function` (`fn(p: vec3) -> f32`) on
+    /// `resolution`³ cells of `bounds` (r for [−r, r]³, or `((x0, y0, z0), (x1, y1, z1))`): `(vertices, faces)`,
+    /// float32 (V, 3) and uint32 (F, 3), faces counter-clockwise seen from outside.
+    #[pyo3(signature = (function = "sdf", resolution = 128, bounds = Bounds::Radius(1.0), level = 0.0))]
+    fn mesh<'py>(
+        &self,
+        py: Python<'py>,
+        function: &str,
+        resolution: usize,
+        bounds: Bounds,
+        level: f32,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+        let program = self.program.lock().expect("the program");
+        let params = self.params.lock().expect("the params").clone();
+        let corners = match bounds {
+            Bounds::Radius(r) => ([-r; 3], [r; 3]),
+            Bounds::Corners(lo, hi) => (lo, hi),
+        };
+        let cache = nerfjit_jit::KernelCache::new();
+        let grid = (corners, resolution, level);
+        let program = &*program;
+        let mesh = py
+            .detach(|| {
+                on_work_stack(|| nerfjit::blocks::mesh::level_set(program, &params, function, grid, &cache))
+            })
+            .map_err(to_py)?;
+        let vertices = rows_of(&mesh.vertices).into_pyarray(py).into_any();
+        let faces = rows_of(&mesh.triangles).into_pyarray(py).into_any();
+        Ok((vertices, faces))
+    }
+
     /// The vector-Jacobian product of function `name` at `points` with `cotangent` (the shape of its values):
     /// `(values, d_points, d_params)`, d_points of the shape of the points and d_params a dict of arrays
     /// of the params' shapes, Σᵢ cotangentᵢ · ∂valueᵢ/∂θ.
@@ -403,6 +453,258 @@ impl Script {
         let d_params = param_dict(py, &self.program.lock().expect("the program"), &reductions)?;
         Ok((values, d_points, d_params))
     }
+}
+
+/// A trained field: a checkpoint (or a script with its initial params) whose volume renders into numpy
+/// images as `nerfjit render` renders it, and whose functions and params are its `script`'s.
+#[pyclass(module = "nerfjit", name = "Field")]
+struct Field {
+    /// The checkpoint or script, and how to render it.
+    source: String,
+    near: Option<f32>,
+    far: Option<f32>,
+    samples: Option<usize>,
+    background: Option<[f32; 3]>,
+    exact: bool,
+    /// Its volume, compiled at the first render (a field without one, such as a neural SDF, has only its
+    /// script).
+    views: Mutex<Option<Arc<FieldViews>>>,
+    script: Py<Script>,
+}
+
+impl Field {
+    /// The volume renderer, compiled on first use.
+    fn views(&self, py: Python<'_>) -> PyResult<Arc<FieldViews>> {
+        let mut views = self.views.lock().expect("the field's renderer");
+        if let Some(v) = views.as_ref() {
+            return Ok(v.clone());
+        }
+        let args = ViewArgs {
+            source: &self.source,
+            size: None,
+            near: self.near,
+            far: self.far,
+            samples: self.samples,
+            background: self.background,
+            importance: None,
+            exact: self.exact,
+        };
+        let opened = Arc::new(
+            py.detach(|| on_work_stack(|| FieldViews::open(&args)))
+                .map_err(to_py)?,
+        );
+        *views = Some(opened.clone());
+        Ok(opened)
+    }
+}
+
+#[pymethods]
+impl Field {
+    /// The field's script, with the trained params: its functions on numpy arrays, its meshes, its params.
+    #[getter]
+    fn script(&self, py: Python<'_>) -> Py<Script> {
+        self.script.clone_ref(py)
+    }
+
+    /// The trained params by name, as numpy arrays (copies).
+    #[getter]
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        self.script.borrow(py).params(py)
+    }
+
+    /// The near and far depths, samples per ray and background its volume renders with.
+    #[getter]
+    fn rendering(&self, py: Python<'_>) -> PyResult<(f32, f32, usize, [f32; 3])> {
+        let r = self.views(py)?.rendering;
+        Ok((r.near, r.far, r.samples, r.background))
+    }
+
+    /// The view of a camera: `c2w` its 4×4 (or 3×4) camera-to-world matrix in the OpenGL / Blender
+    /// convention of `transforms.json` (looking down −z, +y up), `focal` its focal length in pixels (or
+    /// `(fx, fy)`), `size` the image's side (or `(width, height)`), `principal` the principal point in
+    /// pixels (the image's center by default). Returns `(image, depth, opacity)`: (H, W, 3) colour composited
+    /// on the background, (H, W) expected depth Σ wᵢtᵢ and (H, W) opacity Σ wᵢ, float32.
+    #[pyo3(signature = (c2w, focal, size, principal = None))]
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        c2w: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        focal: Pair,
+        size: Size,
+        principal: Option<(f32, f32)>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+        let matrix = c2w.as_array();
+        if !matches!(matrix.shape(), [3, 4] | [4, 4]) {
+            return Err(PyValueError::new_err(format!(
+                "c2w is a 4×4 or 3×4 camera-to-world matrix, not an array of shape {:?}",
+                matrix.shape()
+            )));
+        }
+        let at = |r: usize, c: usize| {
+            if r < 3 {
+                matrix[[r, c]]
+            } else {
+                [0.0, 0.0, 0.0, 1.0][c]
+            }
+        };
+        let c2w = glam::Mat4::from_cols_array_2d(&std::array::from_fn(|c| std::array::from_fn(|r| at(r, c))));
+        let (width, height) = match size {
+            Size::Side(side) => (side, side),
+            Size::Sides(w, h) => (w, h),
+        };
+        if !(1..=16384).contains(&width) || !(1..=16384).contains(&height) {
+            return Err(PyValueError::new_err(format!(
+                "an image of {width}×{height}: each side is 1 to 16384"
+            )));
+        }
+        let (fx, fy) = match focal {
+            Pair::One(f) => (f, f),
+            Pair::Two(fx, fy) => (fx, fy),
+        };
+        let (cx, cy) = principal.unwrap_or((0.5 * width as f32, 0.5 * height as f32));
+        let intrinsics = nerfjit_runtime::PixelIntrinsics { fx, fy, cx, cy };
+        let camera = nerfjit_runtime::Camera::from_pixels(c2w, intrinsics, width, height)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let views = self.views(py)?;
+        let frame = py
+            .detach(|| views.render(&camera, width, height))
+            .map_err(to_py)?;
+        let (h, w) = (height as usize, width as usize);
+        let image = numpy::ndarray::Array3::from_shape_fn((h, w, 3), |(r, c, k)| frame.rgb[r * w + c][k]);
+        let depth = Array2::from_shape_vec((h, w), frame.depth).expect("a depth per pixel");
+        let opacity = Array2::from_shape_vec((h, w), frame.opacity).expect("an opacity per pixel");
+        Ok((
+            image.into_pyarray(py).into_any(),
+            depth.into_pyarray(py).into_any(),
+            opacity.into_pyarray(py).into_any(),
+        ))
+    }
+}
+
+/// A number, or two.
+#[derive(FromPyObject)]
+enum Pair {
+    One(f32),
+    Two(f32, f32),
+}
+
+/// An image's side, or its width and height.
+#[derive(FromPyObject)]
+enum Size {
+    Side(u32),
+    Sides(u32, u32),
+}
+
+/// Opens a trained field: a checkpoint written by `train` (`.safetensors` or `.json`), or a script with its
+/// initial params. `near`, `far`, `samples` and `background` (`"black"` or `"white"`) override what its
+/// train block renders with; `exact` evaluates every sample (no occupancy grid or early termination).
+#[pyfunction]
+#[pyo3(signature = (source, *, near = None, far = None, samples = None, background = None, exact = false))]
+fn load(
+    py: Python<'_>,
+    source: String,
+    near: Option<f32>,
+    far: Option<f32>,
+    samples: Option<usize>,
+    background: Option<String>,
+    exact: bool,
+) -> PyResult<Field> {
+    let background = match background.as_deref() {
+        None => None,
+        Some("black") => Some([0.0; 3]),
+        Some("white") => Some([1.0; 3]),
+        Some(other) => {
+            return Err(PyValueError::new_err(format!(
+                "background '{other}': black or white"
+            )))
+        }
+    };
+    if samples.is_some_and(|n| !(1..=4096).contains(&n)) {
+        return Err(PyValueError::new_err("samples is 1 to 4096 per ray"));
+    }
+    let (program, params) = py
+        .detach(|| on_work_stack(|| nerfjit::commands::render_views::load(&source)))
+        .map_err(to_py)?;
+    let script = Py::new(py, Script::of(program, params))?;
+    Ok(Field {
+        source,
+        near,
+        far,
+        samples,
+        background,
+        exact,
+        views: Mutex::new(None),
+        script,
+    })
+}
+
+/// The views of a data set: a camera file or data folder read as `nerfjit eval-views --cameras` reads one
+/// (its layout, or `format`; every frame, at about `width` pixels across, composited on `background`), or a
+/// reader written as in a script (`llff("fern", downscale: 8)`). A dict of numpy arrays: `images` (N, H, W,
+/// 3), `c2w` (N, 4, 4) in the OpenGL / Blender convention, `intrinsics` (N, 4) as fx, fy, cx, cy in pixels,
+/// `masks` (N, H, W) where the data has object masks (else None), and `read_as`, how it was read.
+#[pyfunction]
+#[pyo3(signature = (path, *, format = None, width = None, background = None))]
+fn load_views<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    format: Option<String>,
+    width: Option<u32>,
+    background: Option<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let format = match format.as_deref() {
+        None => None,
+        Some(name) => Some(nerfjit_runtime::Layout::parse(name).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "format '{name}': dtu, llff, nerfstudio, colmap or blender"
+            ))
+        })?),
+    };
+    let background = match background.as_deref() {
+        None | Some("black") => [0.0; 3],
+        Some("white") => [1.0; 3],
+        Some(other) => {
+            return Err(PyValueError::new_err(format!(
+                "background '{other}': black or white"
+            )))
+        }
+    };
+    if width.is_some_and(|w| !(1..=16384).contains(&w)) {
+        return Err(PyValueError::new_err("width is 1 to 16384 pixels"));
+    }
+    let request = ScoredViews {
+        cameras: &path,
+        format,
+        width,
+        background,
+        trained: None,
+    };
+    let read = py
+        .detach(|| on_work_stack(|| scored_views(&request)))
+        .map_err(to_py)?;
+    let views = read.views;
+    let (n, w, h) = (views.len(), views.width as usize, views.height as usize);
+    let images = numpy::ndarray::Array4::from_shape_fn((n, h, w, 3), |(i, r, c, k)| {
+        views.images[i].pixels[r * w + c][k]
+    });
+    let c2w = Array3::from_shape_fn((n, 4, 4), |(i, r, c)| views.cameras[i].c2w().col(c)[r]);
+    let intrinsics = Array2::from_shape_fn((n, 4), |(i, k)| {
+        let p = views.cameras[i].pixel_intrinsics(views.width, views.height);
+        [p.fx, p.fy, p.cx, p.cy][k]
+    });
+    let dict = PyDict::new(py);
+    dict.set_item("images", images.into_pyarray(py))?;
+    dict.set_item("c2w", c2w.into_pyarray(py))?;
+    dict.set_item("intrinsics", intrinsics.into_pyarray(py))?;
+    match &views.masks {
+        Some(masks) => {
+            let masks = Array3::from_shape_fn((n, h, w), |(i, r, c)| masks[i][r * w + c]);
+            dict.set_item("masks", masks.into_pyarray(py))?
+        }
+        None => dict.set_item("masks", py.None())?,
+    }
+    dict.set_item("read_as", read.how)?;
+    Ok(dict)
 }
 
 /// Runs the blocks of the script at `script` (a path, or an example's name) as `nerfjit run` does, with
@@ -456,7 +758,10 @@ fn run(py: Python<'_>, script: String, set: Vec<String>, out: Option<PathBuf>, r
 #[pymodule]
 fn _nerfjit(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_class::<Script>()?;
+    module.add_class::<Field>()?;
     module.add_function(wrap_pyfunction!(run, module)?)?;
+    module.add_function(wrap_pyfunction!(load, module)?)?;
+    module.add_function(wrap_pyfunction!(load_views, module)?)?;
     module.add("ScriptError", module.py().get_type::<ScriptError>())?;
     module.add("NerfjitError", module.py().get_type::<NerfjitError>())?;
     Ok(())

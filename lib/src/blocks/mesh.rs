@@ -16,7 +16,7 @@ use crate::failure::{Failure, Result};
 use crate::settings::block::Block;
 use crate::settings::camera::turntable;
 use crate::settings::primitives::CallArgs;
-use nerfjit_field::{check_signature, Compiler, JitFn, Kind};
+use nerfjit_field::{check_signature, Compiler, JitFn, Kind, Specializer};
 
 /// What to extract and where to write it.
 pub struct MeshArgs<'a> {
@@ -117,27 +117,11 @@ pub fn extract_and_write(
         cache,
     };
     let t = Instant::now();
-    let MeshKernels {
-        value,
-        gradient,
-        bounds: bounds_of,
-    } = MeshKernels::compile(&compiler, args.function, args.prune)?;
+    let kernels = MeshKernels::compile(&compiler, args.function, args.prune)?;
     let compile_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let specializer = match &bounds_of {
-        Some(_) => Some(compiler.specializer(args.function, &[Type::Vec(3)], &Type::F32)?),
-        None => None,
-    };
-    let fields = Fields {
-        field: &value,
-        gradient: Some(&gradient),
-        bounds_of: bounds_of.as_ref().map(|b| b as &dyn BatchFn),
-        specialize: specializer
-            .as_ref()
-            .filter(|s| s.pays())
-            .map(|s| s as &dyn Specialize),
-    };
-    let Some((mut mesh, pruning)) = extract_on_ranks(fields, args)? else {
+    let specializer = kernels.specializer(&compiler, args.function)?;
+    let Some((mut mesh, pruning)) = extract_on_ranks(kernels.fields(specializer.as_ref()), args)? else {
         return Ok(None);
     };
     let extract_s = t.elapsed().as_secs_f64();
@@ -258,6 +242,56 @@ impl MeshKernels {
             bounds: bounds?,
         })
     }
+
+    /// The specializer of `function` over boxes of space, when its bounds are compiled.
+    fn specializer(&self, compiler: &Compiler, function: &str) -> Result<Option<Specializer>> {
+        match &self.bounds {
+            Some(_) => Ok(Some(compiler.specializer(
+                function,
+                &[Type::Vec(3)],
+                &Type::F32,
+            )?)),
+            None => Ok(None),
+        }
+    }
+
+    /// What marching cubes evaluates: the value, the gradient, the bounds and `specializer` where it pays.
+    fn fields<'a>(&'a self, specializer: Option<&'a Specializer>) -> Fields<'a> {
+        Fields {
+            field: &self.value,
+            gradient: Some(&self.gradient),
+            bounds_of: self.bounds.as_ref().map(|b| b as &dyn BatchFn),
+            specialize: specializer.filter(|s| s.pays()).map(|s| s as &dyn Specialize),
+        }
+    }
+}
+
+/// The mesh of the level `level` of `function` (`fn(p: vec3) -> f32`) with `params`, on `resolution`³ cells of
+/// `bounds`, in this process alone and kept in memory (for callers such as the Python package): the kernels
+/// compiled through `cache`, the grid pruned by interval bounds where they are informative.
+pub fn level_set(
+    program: &Program,
+    params: &[f32],
+    function: &str,
+    (bounds, resolution, level): (([f32; 3], [f32; 3]), usize, f32),
+    cache: &KernelCache,
+) -> Result<Mesh> {
+    let compiler = Compiler {
+        program,
+        params,
+        cache,
+    };
+    let kernels = MeshKernels::compile(&compiler, function, true)?;
+    let specializer = kernels.specializer(&compiler, function)?;
+    let whole = Part { index: 0, of: 1 };
+    let (slab, _) = extract_slab(
+        kernels.fields(specializer.as_ref()),
+        bounds,
+        resolution,
+        level,
+        whole,
+    )?;
+    Ok(join(vec![slab])?)
 }
 
 /// The colors of the mesh's vertices from `function`, clamped to [0, 1] (NaN as 0): `fn(p: vec3) -> vec3`, or

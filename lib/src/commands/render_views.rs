@@ -9,6 +9,7 @@ use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::volume::composite::Mode;
+use nerfjit_runtime::volume::render::VolumeFrame;
 use nerfjit_runtime::{
     rgb_image, Camera, DensityEma, DepthSpacing, Layout, OccupancyGrid, Quantize, Views, VolumeSettings,
 };
@@ -330,6 +331,60 @@ impl CameraSource<'_> {
     }
 }
 
+/// A script's or checkpoint's volume field opened to render single views in memory, as `render` renders
+/// them (the train block's near, far, samples, background and occupancy grid unless `args` says): for callers
+/// that keep the images, such as the Python package.
+pub struct FieldViews {
+    /// The program (a checkpoint's holds its script).
+    pub program: Program,
+    /// The params it renders with.
+    pub params: Vec<f32>,
+    /// How it renders.
+    pub rendering: Rendering,
+    fields: VolumeFields,
+    grid: Option<OccupancyGrid>,
+}
+
+impl FieldViews {
+    /// Opens `args.source` and compiles its fields.
+    pub fn open(args: &ViewArgs) -> Result<FieldViews> {
+        let (program, params) = load(args.source)?;
+        FieldViews::new(program, params, args)
+    }
+
+    /// Compiles the fields of `program` (`args.source`'s) to render with `params`.
+    pub fn new(program: Program, params: Vec<f32>, args: &ViewArgs) -> Result<FieldViews> {
+        let rendering = args.resolve(&program);
+        let fields = VolumeFields::compile(
+            &program,
+            &KernelCache::new(),
+            rendering.importance,
+            rendering.products,
+        )?;
+        let grid = rendering.occupancy(args.source, &fields, &params)?;
+        Ok(FieldViews {
+            program,
+            params,
+            rendering,
+            fields,
+            grid,
+        })
+    }
+
+    /// The view of `camera` at `width`×`height`: colour, expected depth and opacity per pixel.
+    pub fn render(&self, camera: &Camera, width: u32, height: u32) -> Result<VolumeFrame> {
+        let settings = self.rendering.settings(self.fields.fine.mode);
+        let frame = (self.fields).render_with(
+            camera,
+            (width, height),
+            &self.params,
+            &settings,
+            self.grid.as_ref(),
+        )?;
+        Ok(frame)
+    }
+}
+
 /// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
 /// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
@@ -365,15 +420,12 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
             .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", out.display())))?;
         out.join(if gif { "views.gif" } else { "view.png" })
     };
-    let rendering = args.resolve(&program);
-    let cache = KernelCache::new();
-    let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
-    let settings = rendering.settings(fields.fine.mode);
-    let grid = rendering.occupancy(args.source, &fields, &params)?;
+    let view = FieldViews::new(program, params, args)?;
+    let rendering = view.rendering;
     let start = Instant::now();
     // Each rank renders its share of the views; rank 0 gathers and writes them.
     let rendered = crate::cluster::split(n, |i| -> Result<Vec<u8>> {
-        let f = fields.render_with(&cameras[i], (width, height), &params, &settings, grid.as_ref())?;
+        let f = view.render(&cameras[i], width, height)?;
         Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?.into_raw())
     })
     .map_err(Failure::Message)?;

@@ -162,10 +162,22 @@ pub fn scored_views(request: &ScoredViews) -> Result<ReadViews> {
     }
     let width = width.unwrap_or(DEFAULT_WIDTH);
     let Some(chosen) = choose_layout(file, format)? else {
-        let views = load_blender_views(file, Some(width), background, None)?;
+        if file.is_dir() {
+            return Err(Failure::Message(format!(
+                "'{}' holds no data set nerfjit reads: no DTU camera archive, poses_bounds.npy, transforms.json, \
+                 COLMAP model (here or in sparse/0) or transforms_*.json",
+                file.display()
+            )));
+        }
+        // Not a layout of captured views: the course's camera file, its images as they are.
+        let set = DataSet {
+            path: file.to_path_buf(),
+            kind: DataKind::Course,
+        };
+        let how = "read as the course's cameras".to_string();
         return Ok(ReadViews {
-            views,
-            how: "read as Blender transforms".into(),
+            views: set.views()?,
+            how,
             as_trained: false,
         });
     };

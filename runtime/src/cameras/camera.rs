@@ -195,6 +195,31 @@ impl Camera {
         self.rotation
     }
 
+    /// The camera-to-world transform in the OpenGL / Blender convention of [`Camera::from_pixels`] (looking
+    /// down −z, +y up, +x right).
+    pub fn c2w(&self) -> Mat4 {
+        let r = self.rotation;
+        let axes = Mat3::from_cols(-r.x_axis, r.y_axis, -r.z_axis);
+        Mat4::from_cols(
+            axes.x_axis.extend(0.0),
+            axes.y_axis.extend(0.0),
+            axes.z_axis.extend(0.0),
+            self.position.extend(1.0),
+        )
+    }
+
+    /// Its intrinsics in pixels for a `width`×`height` image, as [`Camera::from_pixels`] takes them: with
+    /// [`Camera::c2w`] they make the same camera.
+    pub fn pixel_intrinsics(&self, width: u32, height: u32) -> PixelIntrinsics {
+        let s = self.scale.pixels(width, height);
+        PixelIntrinsics {
+            fx: 0.5 * self.focal.x * s,
+            fy: 0.5 * self.focal.y * s,
+            cx: 0.5 * (width as f32 - self.principal.x * s),
+            cy: 0.5 * (height as f32 - self.principal.y * s),
+        }
+    }
+
     /// NDC (x, y) of continuous pixel coordinates (`row`, `col`) in a `width`×`height` image:
     /// +x left, +y up; the side chosen by the camera's [`NdcScale`] spans [−1, 1].
     pub fn pixel_ndc(&self, row: f32, col: f32, width: u32, height: u32) -> Vec2 {
@@ -432,6 +457,25 @@ mod tests {
             prop_assume!(eye.length() > 2.0 && eye.normalize().y.abs() < 0.95);
             let cam = Camera::look_at(eye, Vec3::ZERO, Vec3::Y, Vec2::splat(focal), Vec2::new(0.1, -0.05)).unwrap();
             check_round_trip(&cam, Vec3::from(p), w, h)?;
+        }
+
+        #[test]
+        fn c2w_and_pixel_intrinsics_make_the_same_camera(
+            eye in prop::array::uniform3(-5.0f32..5.0),
+            focal in prop::array::uniform2(0.5f32..3.0),
+            principal in prop::array::uniform2(-0.2f32..0.2),
+            w in 1u32..400,
+            h in 1u32..400,
+            row in 0.0f32..1.0,
+            col in 0.0f32..1.0,
+        ) {
+            let eye = Vec3::from(eye);
+            prop_assume!(eye.length() > 2.0 && eye.normalize().y.abs() < 0.95);
+            let course = Camera::look_at(eye, Vec3::ZERO, Vec3::Y, Vec2::from(focal), Vec2::from(principal)).unwrap();
+            let again = Camera::from_pixels(course.c2w(), course.pixel_intrinsics(w, h), w, h).unwrap();
+            let (row, col) = (row * h as f32, col * w as f32);
+            let ((o1, d1), (o2, d2)) = (course.ray_at(row, col, w, h), again.ray_at(row, col, w, h));
+            prop_assert!((o1 - o2).length() < 1e-5 && (d1 - d2).length() < 1e-4, "{d1} against {d2}");
         }
 
         #[test]
