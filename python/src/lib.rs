@@ -5,7 +5,9 @@
 //! `nerfjit run` does. Every kernel runs with the GIL released, over the machine's cores; compilation and
 //! runs happen on a thread with the command line's deep stack.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
+use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
@@ -15,7 +17,7 @@ use nerfjit::failure::Failure;
 use nerfjit::training::data_source::{scored_views, ScoredViews};
 use nerfjit_dsl::{kernel_graphs, Program, Type};
 use nerfjit_jit::{Kernel, Options};
-use numpy::ndarray::{Array2, Array3, ArrayView2};
+use numpy::ndarray::{Array2, Array3, ShapeBuilder};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyKeyError, PyRuntimeError, PyValueError};
@@ -80,48 +82,84 @@ struct Compiled {
     scalar: bool,
 }
 
+/// What fills the input columns of points start..end (`fill(start, end, columns)`).
+type FillColumns<'a> = dyn Fn(usize, usize, &mut [Vec<f32>]) + Sync + 'a;
+
+/// Where a kernel's input columns come from: numpy's memory itself (column-major points), or copies that
+/// each chunk makes of its rows.
+enum Inputs<'a> {
+    Columns(Vec<&'a [f32]>),
+    Filled(&'a FillColumns<'a>),
+}
+
 /// Points per call of a kernel; the calls run on every core.
 const CHUNK: usize = 4096;
 
 impl Compiled {
-    /// Runs the kernel on the columns `inputs` (n points each) with `params`: its output columns and its
-    /// reductions summed over the points.
-    fn run(&self, n: usize, inputs: &[Vec<f32>], params: &[f32]) -> (Vec<Vec<f32>>, Vec<f32>) {
+    /// Runs the kernel on n points over every core, reading its input columns from `inputs`: for each of
+    /// `ranges` (of output indices) a column-major (n, range) array of those outputs, which the kernel writes
+    /// in place, and the reductions summed over the points.
+    fn run(
+        &self,
+        n: usize,
+        inputs: &Inputs,
+        params: &[f32],
+        ranges: &[Range<usize>],
+    ) -> (Vec<Vec<f32>>, Vec<f32>) {
         let k = &self.kernel;
-        let chunks: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..n.div_ceil(CHUNK))
-            .into_par_iter()
-            .map(|c| {
-                let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(n));
-                let ins: Vec<&[f32]> = inputs.iter().map(|col| &col[start..end]).collect();
-                let mut outs = vec![vec![0.0f32; end - start]; k.n_outputs];
-                let mut refs: Vec<&mut [f32]> = outs.iter_mut().map(Vec::as_mut_slice).collect();
-                let mut reductions = vec![0.0f32; k.n_reductions];
-                k.eval(end - start, &ins, &mut refs, params, &mut reductions);
-                (outs, reductions)
-            })
+        let chunks = n.div_ceil(CHUNK);
+        let mut results: Vec<Vec<f32>> = ranges.iter().map(|r| vec![0.0f32; n * r.len()]).collect();
+        // Each chunk's part of each output column that a result holds, by output index.
+        let mut parts: Vec<Vec<Option<&mut [f32]>>> = (0..chunks)
+            .map(|_| (0..k.n_outputs).map(|_| None).collect())
             .collect();
-        let mut outputs = vec![Vec::with_capacity(n); k.n_outputs];
-        let mut reductions = vec![0.0f32; k.n_reductions];
-        for (outs, sums) in chunks {
-            for (all, part) in outputs.iter_mut().zip(outs) {
-                all.extend(part);
-            }
-            for (total, part) in reductions.iter_mut().zip(sums) {
-                *total += part;
+        for (result, range) in results.iter_mut().zip(ranges) {
+            for (column, output) in result.chunks_mut(n.max(1)).zip(range.clone()) {
+                for (c, part) in column.chunks_mut(CHUNK).enumerate() {
+                    parts[c][output] = Some(part);
+                }
             }
         }
-        (outputs, reductions)
+        let chunk = |(c, mut columns): (usize, Vec<Option<&mut [f32]>>)| -> Vec<f32> {
+            let (start, end) = (c * CHUNK, ((c + 1) * CHUNK).min(n));
+            let len = end - start;
+            let filled: Vec<Vec<f32>>;
+            let ins: Vec<&[f32]> = match inputs {
+                Inputs::Columns(columns) => columns.iter().map(|col| &col[start..end]).collect(),
+                Inputs::Filled(fill) => {
+                    let mut columns = vec![vec![0.0f32; len]; k.n_inputs];
+                    fill(start, end, &mut columns);
+                    filled = columns;
+                    filled.iter().map(Vec::as_slice).collect()
+                }
+            };
+            // Outputs no result holds go to scratch columns.
+            let mut scratch = vec![vec![0.0f32; len]; columns.iter().filter(|c| c.is_none()).count()];
+            let mut spare = scratch.iter_mut();
+            let mut outs: Vec<&mut [f32]> = columns
+                .iter_mut()
+                .map(|c| match c.take() {
+                    Some(part) => part,
+                    None => spare.next().expect("a scratch column").as_mut_slice(),
+                })
+                .collect();
+            let mut reductions = vec![0.0f32; k.n_reductions];
+            k.eval(len, &ins, &mut outs, params, &mut reductions);
+            reductions
+        };
+        // One chunk runs on the calling thread: a call on a few points costs no thread hand-off.
+        let sums: Vec<Vec<f32>> = match parts.len() {
+            0 | 1 => parts.into_iter().enumerate().map(chunk).collect(),
+            _ => parts.into_par_iter().enumerate().map(chunk).collect(),
+        };
+        let mut reductions = vec![0.0f32; k.n_reductions];
+        for part in sums {
+            for (total, x) in reductions.iter_mut().zip(part) {
+                *total += x;
+            }
+        }
+        (results, reductions)
     }
-}
-
-/// The columns of an (n, width) array: one `Vec` per column.
-fn columns(points: ArrayView2<f32>) -> Vec<Vec<f32>> {
-    points.columns().into_iter().map(|c| c.to_vec()).collect()
-}
-
-/// An (n, columns) array of `columns`.
-fn rows(n: usize, columns: &[Vec<f32>]) -> Array2<f32> {
-    Array2::from_shape_fn((n, columns.len()), |(i, c)| columns[c][i])
 }
 
 /// The box a mesh is extracted in: `r` for [−r, r]³, or its low and high corners.
@@ -158,19 +196,31 @@ fn param_dict<'py>(py: Python<'py>, program: &Program, flat: &[f32]) -> PyResult
     Ok(dict)
 }
 
-/// A function's values at n points from its output columns: (n,) for an `f32` result, else (n, outputs).
-fn values_array<'py>(py: Python<'py>, compiled: &Compiled, n: usize, outs: &[Vec<f32>]) -> Bound<'py, PyAny> {
-    match compiled.scalar {
-        true => outs[0].clone().into_pyarray(py).into_any(),
-        false => rows(n, &outs[..compiled.outputs]).into_pyarray(py).into_any(),
-    }
+/// A function's values at n points from their row-major array: (n,) for an `f32` result, else (n, outputs).
+fn values_array<'py>(
+    py: Python<'py>,
+    compiled: &Compiled,
+    n: usize,
+    values: Vec<f32>,
+) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match compiled.scalar {
+        true => values.into_pyarray(py).into_any(),
+        false => columns_array(n, compiled.outputs, values)
+            .into_pyarray(py)
+            .into_any(),
+    })
 }
 
-/// What a kernel computed at n points: its output columns and its reductions.
+/// The (n, width) array whose columns lie one after the other in `columns` (numpy's Fortran order: no copy).
+fn columns_array(n: usize, width: usize, columns: Vec<f32>) -> Array2<f32> {
+    Array2::from_shape_vec((n, width).f(), columns).expect("width columns of n values")
+}
+
+/// What a kernel computed at n points: the row-major arrays of the outputs asked for, and its reductions.
 struct Evaluated {
     compiled: Arc<Compiled>,
     n: usize,
-    outs: Vec<Vec<f32>>,
+    results: Vec<Vec<f32>>,
     reductions: Vec<f32>,
 }
 
@@ -183,7 +233,9 @@ struct Evaluated {
 #[pyclass(module = "nerfjit", name = "Script")]
 struct Script {
     program: Mutex<Program>,
-    params: Mutex<Vec<f32>>,
+    /// The params' values, shared with the kernels running on them (copied only when one is set while a
+    /// kernel still holds them).
+    params: Mutex<Arc<Vec<f32>>>,
     kernels: Mutex<HashMap<(String, Kind), Arc<Compiled>>>,
 }
 
@@ -192,7 +244,7 @@ impl Script {
     fn of(program: Program, params: Vec<f32>) -> Script {
         Script {
             program: Mutex::new(program),
-            params: Mutex::new(params),
+            params: Mutex::new(Arc::new(params)),
             kernels: Mutex::new(HashMap::new()),
         }
     }
@@ -231,8 +283,9 @@ impl Script {
         Ok(compiled)
     }
 
-    /// Runs the `kind` kernel of function `name` at `points`, with the columns of `cotangent` (the shape of
-    /// its values) after theirs when given, the GIL released.
+    /// Runs the `kind` kernel of function `name` at `points` (with the columns of `cotangent`, the shape of
+    /// its values, after theirs when given), the GIL released: the outputs in `ranges`, each a row-major
+    /// (N, range) array, and the reductions.
     fn evaluate(
         &self,
         py: Python<'_>,
@@ -240,59 +293,88 @@ impl Script {
         kind: Kind,
         points: &PyArrayLikeDyn<f32, AllowTypeChange>,
         cotangent: Option<&PyArrayLikeDyn<f32, AllowTypeChange>>,
+        ranges: impl Fn(&Compiled) -> Vec<Range<usize>>,
     ) -> PyResult<Evaluated> {
         let compiled = self.kernel(name, kind)?;
-        let mut cols = Script::points(&compiled, name, points)?;
-        let n = cols.first().map_or(points.shape()[0], Vec::len);
-        if let Some(seeds) = cotangent {
-            let m = compiled.outputs;
-            let seeds = seeds.as_array();
+        let view = points.as_array();
+        let shaped = match view.ndim() {
+            1 if compiled.inputs == 1 => view.into_shape_with_order((points.len(), 1)).ok(),
+            2 => view.into_dimensionality::<numpy::ndarray::Ix2>().ok(),
+            _ => None,
+        };
+        let Some(view) = shaped.filter(|v| v.ncols() == compiled.inputs) else {
+            return Err(PyValueError::new_err(format!(
+                "{name} reads {} scalars per point: pass an array of shape (N, {}), not {:?}",
+                compiled.inputs,
+                compiled.inputs,
+                points.shape()
+            )));
+        };
+        let (n, width) = (view.nrows(), compiled.inputs);
+        let m = compiled.outputs;
+        let seeds = cotangent.map(|c| c.as_array());
+        if let Some(seeds) = &seeds {
             if seeds.len() != n * m {
-                let shape = if compiled.scalar {
-                    format!("({n},)")
-                } else {
-                    format!("({n}, {m})")
+                let shape = match compiled.scalar {
+                    true => format!("({n},)"),
+                    false => format!("({n}, {m})"),
                 };
                 return Err(PyValueError::new_err(format!(
                     "the cotangent has the shape of {name}'s values, {shape}, not {:?}",
                     seeds.shape()
                 )));
             }
-            let flat: Vec<f32> = seeds.iter().copied().collect();
-            cols.extend((0..m).map(|o| (0..n).map(|i| flat[i * m + o]).collect()));
         }
+        let seeds: Option<Cow<[f32]>> = seeds.map(|s| match s.to_slice() {
+            Some(flat) => Cow::Borrowed(flat),
+            None => Cow::Owned(s.iter().copied().collect()),
+        });
+        // Each chunk transposes its own rows into the kernel's columns.
+        let fill = |start: usize, end: usize, columns: &mut [Vec<f32>]| {
+            match view.to_slice() {
+                // Row-major (numpy's default): a plain transpose.
+                Some(flat) => {
+                    for (j, column) in columns.iter_mut().take(width).enumerate() {
+                        for (i, x) in column.iter_mut().enumerate() {
+                            *x = flat[(start + i) * width + j];
+                        }
+                    }
+                }
+                None => {
+                    let rows = view.slice(numpy::ndarray::s![start..end, ..]);
+                    for (i, row) in rows.rows().into_iter().enumerate() {
+                        for (j, x) in row.iter().enumerate() {
+                            columns[j][i] = *x;
+                        }
+                    }
+                }
+            }
+            if let Some(seeds) = &seeds {
+                for i in start..end {
+                    for o in 0..m {
+                        columns[width + o][i - start] = seeds[i * m + o];
+                    }
+                }
+            }
+        };
+        // Column-major points (np.asfortranarray, or a (k, N) array's transpose) are read where they are.
+        let columns: Option<Vec<&[f32]>> = match (view.t().to_slice(), &seeds) {
+            (Some(flat), None) if n > 0 => Some(flat.chunks(n).collect()),
+            _ => None,
+        };
+        let inputs = match columns {
+            Some(columns) => Inputs::Columns(columns),
+            None => Inputs::Filled(&fill),
+        };
         let params = self.params.lock().expect("the params").clone();
-        let (outs, reductions) = py.detach(|| compiled.run(n, &cols, &params));
+        let wanted = ranges(&compiled);
+        let (results, reductions) = py.detach(|| compiled.run(n, &inputs, &params, &wanted));
         Ok(Evaluated {
             compiled,
             n,
-            outs,
+            results,
             reductions,
         })
-    }
-
-    /// The columns of `points` for `compiled`, checked: (N, k) with k its inputs (or (N,) for one input).
-    fn points(
-        compiled: &Compiled,
-        name: &str,
-        points: &PyArrayLikeDyn<f32, AllowTypeChange>,
-    ) -> PyResult<Vec<Vec<f32>>> {
-        let view = points.as_array();
-        let n = view.len();
-        let shaped = match view.ndim() {
-            1 if compiled.inputs == 1 => view.into_shape_with_order((n, 1)).ok(),
-            2 => view.into_dimensionality::<numpy::ndarray::Ix2>().ok(),
-            _ => None,
-        };
-        match shaped {
-            Some(v) if v.ncols() == compiled.inputs => Ok(columns(v.view())),
-            _ => Err(PyValueError::new_err(format!(
-                "{name} reads {} scalars per point: pass an array of shape (N, {}), not {:?}",
-                compiled.inputs,
-                compiled.inputs,
-                points.shape()
-            ))),
-        }
     }
 }
 
@@ -357,7 +439,7 @@ impl Script {
             )));
         }
         let mut values = self.params.lock().expect("the params");
-        for (slot, x) in values[p.offset..].iter_mut().zip(view.iter()) {
+        for (slot, x) in Arc::make_mut(&mut values)[p.offset..].iter_mut().zip(view.iter()) {
             *slot = *x;
         }
         Ok(())
@@ -370,10 +452,11 @@ impl Script {
         name: &str,
         points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let values = |c: &Compiled| std::iter::once(0..c.outputs).collect();
         let Evaluated {
-            compiled, n, outs, ..
-        } = self.evaluate(py, name, Kind::Value, &points, None)?;
-        Ok(values_array(py, &compiled, n, &outs))
+            compiled, n, results, ..
+        } = self.evaluate(py, name, Kind::Value, &points, None, values)?;
+        values_array(py, &compiled, n, results.into_iter().next().unwrap_or_default())
     }
 
     /// The gradient of function `name` with respect to its inputs at `points`: (N, k) for a function returning
@@ -384,14 +467,18 @@ impl Script {
         name: &str,
         points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        // The kernel's outputs: the m values, then output o's gradient in input j at m + o·k + j.
+        let jacobian = |c: &Compiled| std::iter::once(c.outputs..c.outputs * (1 + c.inputs)).collect();
         let Evaluated {
-            compiled, n, outs, ..
-        } = self.evaluate(py, name, Kind::Gradient, &points, None)?;
+            compiled, n, results, ..
+        } = self.evaluate(py, name, Kind::Gradient, &points, None, jacobian)?;
         let (m, k) = (compiled.outputs, compiled.inputs);
-        let jacobian = &outs[m..];
+        let columns = results.into_iter().next().unwrap_or_default();
         Ok(match compiled.scalar {
-            true => rows(n, jacobian).into_pyarray(py).into_any(),
-            false => Array3::from_shape_fn((n, m, k), |(i, o, j)| jacobian[o * k + j][i])
+            true => columns_array(n, k, columns).into_pyarray(py).into_any(),
+            // Column o·k + j is ∂outₒ/∂xⱼ: the (n, m, k) array of strides (1, k·n, n), in place.
+            false => Array3::from_shape_vec((n, m, k).strides((1, k * n, n)), columns)
+                .expect("m·k columns of n values")
                 .into_pyarray(py)
                 .into_any(),
         })
@@ -438,18 +525,22 @@ impl Script {
         points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
         cotangent: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
     ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyDict>)> {
+        // The kernel's outputs: the m values, then the k inputs' cotangents.
+        let both = |c: &Compiled| vec![0..c.outputs, c.outputs..c.outputs + c.inputs];
         let Evaluated {
             compiled,
             n,
-            outs,
+            results,
             reductions,
-        } = self.evaluate(py, name, Kind::Vjp, &points, Some(&cotangent))?;
-        let m = compiled.outputs;
-        let values = values_array(py, &compiled, n, &outs[..m]);
-        let d_points = rows(n, &outs[m..])
-            .into_pyarray(py)
-            .reshape(points.shape().to_vec())?
-            .into_any();
+        } = self.evaluate(py, name, Kind::Vjp, &points, Some(&cotangent), both)?;
+        let [values, d_points]: [Vec<f32>; 2] = results.try_into().expect("two results");
+        let values = values_array(py, &compiled, n, values)?;
+        let d_points = match points.ndim() {
+            1 => d_points.into_pyarray(py).into_any(),
+            _ => columns_array(n, compiled.inputs, d_points)
+                .into_pyarray(py)
+                .into_any(),
+        };
         let d_params = param_dict(py, &self.program.lock().expect("the program"), &reductions)?;
         Ok((values, d_points, d_params))
     }
