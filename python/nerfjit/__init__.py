@@ -8,6 +8,8 @@ on), their functions on numpy arrays, and runs of their blocks.
     script.eval("sdf", np.zeros((4, 3)))        # array([-1., -1., -1., -1.], dtype=float32)
     script.grad("sdf", np.eye(3))               # the unit normals
     nerfjit.run("examples/train_box.sdf", set=["train.steps=200"], out="box")
+    for metrics in nerfjit.Trainer("examples/train_box.sdf", out="box").steps(every=100):
+        print(metrics["step"], metrics["loss"])
     field = nerfjit.load("box/train_box.ckpt.safetensors")
     image, depth, opacity = field.render(c2w, focal=50.0, size=64)   # numpy (64, 64, 3), (64, 64), (64, 64)
     vertices, faces = nerfjit.Script("torus").mesh("sdf", resolution=64, bounds=1.5)
@@ -18,6 +20,7 @@ forward and backward passes are nerfjit's kernels.
 """
 
 from . import data
-from ._nerfjit import Field, NerfjitError, Script, ScriptError, load, run
+from ._nerfjit import Field, NerfjitError, Script, ScriptError, Steps, load, run
+from .training import Trainer
 
-__all__ = ["Script", "Field", "ScriptError", "NerfjitError", "load", "run", "data"]
+__all__ = ["Script", "Field", "Trainer", "Steps", "ScriptError", "NerfjitError", "load", "run", "data"]

@@ -1,7 +1,7 @@
 """Type stubs of the extension module (see `nerfjit/__init__.py`)."""
 
 from os import PathLike
-from typing import Optional, Sequence, Union
+from typing import Any, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -81,6 +81,30 @@ def load_views(
     background: Optional[str] = ...,
 ) -> dict:
     """The views of a data set as numpy arrays (see `nerfjit.data.load`)."""
+
+class Trainer:
+    """A script's run whose training is followed step by step (`nerfjit.Trainer` wraps it)."""
+
+    def __init__(
+        self,
+        script: str,
+        *,
+        set: Sequence[str] = ...,
+        out: Optional[Union[str, PathLike[str]]] = ...,
+        resume: bool = ...,
+    ) -> None: ...
+    def steps(self, every: int = 100) -> Steps:
+        """Starts the run; iterates over the metrics of every `every`-th training step and the last."""
+
+class Steps(Iterator[dict[str, Any]]):
+    """The metrics of a running training, step by step; Ctrl-C or leaving the loop stops it."""
+
+    def __iter__(self) -> Steps: ...
+    def __next__(self) -> dict[str, Any]: ...
+    def stop(self) -> None:
+        """Asks the training to stop at the end of its step, without waiting."""
+    def close(self) -> None:
+        """Stops the training at the end of its step and waits for it, its checkpoint written."""
 
 def run(
     script: str,
