@@ -5,7 +5,7 @@ use std::sync::{Arc, Mutex};
 
 use nerfjit::commands::render_views::{FieldViews, ViewArgs};
 use numpy::ndarray::Array2;
-use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn};
+use numpy::IntoPyArray;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -86,11 +86,12 @@ impl Field {
     fn render<'py>(
         &self,
         py: Python<'py>,
-        c2w: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        c2w: &Bound<'py, PyAny>,
         focal: Pair,
         size: Size,
         principal: Option<(f32, f32)>,
     ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+        let c2w = crate::script::real(c2w, "c2w's entries")?;
         let matrix = c2w.as_array();
         if !matches!(matrix.shape(), [3, 4] | [4, 4]) {
             return Err(PyValueError::new_err(format!(

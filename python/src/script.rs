@@ -11,7 +11,7 @@ use nerfjit_dsl::{kernel_graphs, Program, Type};
 use nerfjit_jit::{Kernel, Options};
 use numpy::ndarray::{Array2, Array3, ShapeBuilder};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyArrayMethods, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyKeyError, PyValueError};
+use pyo3::exceptions::{PyKeyError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -23,6 +23,22 @@ use crate::{on_work_stack, to_py};
 pub(crate) enum Bounds {
     Radius(f32),
     Corners([f32; 3], [f32; 3]),
+}
+
+/// `array` (any array-like of real numbers) as float32, refusing complex numbers rather than dropping their
+/// imaginary parts; `what` names it in the error.
+pub(crate) fn real<'py>(
+    array: &Bound<'py, PyAny>,
+    what: &str,
+) -> PyResult<PyArrayLikeDyn<'py, f32, AllowTypeChange>> {
+    if let Ok(dtype) = array.getattr("dtype") {
+        if dtype.getattr("kind")?.extract::<String>()? == "c" {
+            return Err(PyTypeError::new_err(format!(
+                "{what} must be real numbers, not complex"
+            )));
+        }
+    }
+    array.extract()
 }
 
 /// An (n, 3) array of triples (vertices, triangles).
@@ -275,7 +291,8 @@ impl Script {
     }
 
     /// Sets param `name` to `value` (any array of its shape or its number of values).
-    fn set_param(&self, name: &str, value: PyArrayLikeDyn<f32, AllowTypeChange>) -> PyResult<()> {
+    fn set_param(&self, name: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        let value = real(value, "a param's value")?;
         let program = self.program.lock().expect("the program");
         let Some(p) = program.params.iter().find(|p| p.name == name) else {
             let names: Vec<&str> = program.params.iter().map(|p| p.name.as_str()).collect();
@@ -310,12 +327,12 @@ impl Script {
         &self,
         py: Python<'py>,
         name: &str,
-        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        points: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let values = |c: &Compiled| std::iter::once(0..c.outputs).collect();
         let Evaluated {
             compiled, n, results, ..
-        } = self.evaluate(py, name, Kind::Value, &points, None, values)?;
+        } = self.evaluate(py, name, Kind::Value, &real(points, "points")?, None, values)?;
         values_array(py, &compiled, n, results.into_iter().next().unwrap_or_default())
     }
 
@@ -325,13 +342,13 @@ impl Script {
         &self,
         py: Python<'py>,
         name: &str,
-        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        points: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
         // The kernel's outputs: the m values, then output o's gradient in input j at m + o·k + j.
         let jacobian = |c: &Compiled| std::iter::once(c.outputs..c.outputs * (1 + c.inputs)).collect();
         let Evaluated {
             compiled, n, results, ..
-        } = self.evaluate(py, name, Kind::Gradient, &points, None, jacobian)?;
+        } = self.evaluate(py, name, Kind::Gradient, &real(points, "points")?, None, jacobian)?;
         let (m, k) = (compiled.outputs, compiled.inputs);
         let columns = results.into_iter().next().unwrap_or_default();
         Ok(match compiled.scalar {
@@ -382,17 +399,25 @@ impl Script {
         &self,
         py: Python<'py>,
         name: &str,
-        points: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
-        cotangent: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
+        points: &Bound<'py, PyAny>,
+        cotangent: &Bound<'py, PyAny>,
     ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyDict>)> {
         // The kernel's outputs: the m values, then the k inputs' cotangents.
         let both = |c: &Compiled| vec![0..c.outputs, c.outputs..c.outputs + c.inputs];
+        let points = real(points, "points")?;
         let Evaluated {
             compiled,
             n,
             results,
             reductions,
-        } = self.evaluate(py, name, Kind::Vjp, &points, Some(&cotangent), both)?;
+        } = self.evaluate(
+            py,
+            name,
+            Kind::Vjp,
+            &points,
+            Some(&real(cotangent, "the cotangent")?),
+            both,
+        )?;
         let [values, d_points]: [Vec<f32>; 2] = results.try_into().expect("two results");
         let values = values_array(py, &compiled, n, values)?;
         let d_points = match points.ndim() {

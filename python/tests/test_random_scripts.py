@@ -1,7 +1,7 @@
-"""Gradients of random scripts against JAX's autodiff, an implementation independent of nerfjit's: each
-script is a random expression over a point's coordinates and two params, written once as a `.sdf` function
-and once as a JAX function; the values, the gradients in the points and the vector-Jacobian products in
-the params agree to float32 precision."""
+"""Gradients of random scripts against JAX's and torch's autodiff, implementations independent of nerfjit's:
+each script is a random expression over a point's coordinates and two params, written once as a `.sdf`
+function and once for the other library; the values, the gradients in the points and the vector-Jacobian
+products in the params agree to float32 precision (torch's through `nerfjit.torch.ScriptModule`)."""
 
 import random
 
@@ -34,7 +34,7 @@ def expression(rng: random.Random, depth: int):
     if depth == 0 or (depth < 5 and rng.random() < 0.2):
         if rng.random() < 0.2:
             c = f"{rng.uniform(-2, 2):.3f}"
-            return c, c
+            return c, f"C({c})"  # C: a constant as the other library takes it
         return rng.choice(LEAVES)
     if rng.random() < 0.45:
         mine, theirs = rng.choice(UNARY)
@@ -51,7 +51,7 @@ def test_a_random_script_differentiates_as_jax_does(seed):
     mine, theirs = expression(rng, depth=5)
     a, b = rng.uniform(-1, 1), rng.uniform(-1, 1)
     script = nerfjit.Script(f"param a: f32 = {a}\nparam b: f32 = {b}\nfn f(p: vec3) -> f32 = {mine}\n")
-    f = eval(f"lambda p, a, b: {theirs}", {"jnp": jnp, "jax": jax})  # noqa: S307 (our own generated text)
+    f = eval(f"lambda p, a, b: {theirs}", {"jnp": jnp, "jax": jax, "C": float})  # noqa: S307 (our own text)
 
     points = np.random.default_rng(seed).uniform(-1.5, 1.5, size=(256, 3)).astype(np.float32)
     cotangent = np.random.default_rng(seed + 1000).normal(size=256).astype(np.float32)
@@ -69,3 +69,41 @@ def test_a_random_script_differentiates_as_jax_does(seed):
     _, _, d_params = script.vjp("f", points, cotangent)
     pscale = 1.0 + abs(float(d_a)) + abs(float(d_b))
     np.testing.assert_allclose([d_params["a"], d_params["b"]], [d_a, d_b], atol=2e-4 * pscale, err_msg=context)
+
+
+def torch_text(jax_text: str) -> str:
+    """The JAX expression in torch's spelling."""
+    return (jax_text.replace("jax.nn.sigmoid", "torch.sigmoid").replace("jax.nn.softplus", "F.softplus")
+            .replace("jnp.", "torch."))
+
+
+@pytest.mark.parametrize("seed", range(25, 40))
+def test_a_random_script_in_torch_differentiates_as_torch_does(seed):
+    torch = pytest.importorskip("torch")
+    from nerfjit.torch import ScriptModule
+
+    rng = random.Random(seed)
+    mine, theirs = expression(rng, depth=5)
+    a, b = rng.uniform(-1, 1), rng.uniform(-1, 1)
+    module = ScriptModule(f"param a: f32 = {a}\nparam b: f32 = {b}\nfn f(p: vec3) -> f32 = {mine}\n", "f")
+    text = torch_text(theirs).replace("p[0]", "p[:, 0]").replace("p[1]", "p[:, 1]").replace("p[2]", "p[:, 2]")
+    f = eval(f"lambda p, a, b: {text} + 0 * p[:, 0] + 0 * a + 0 * b",  # noqa: S307 (our own text)
+             {"torch": torch, "F": torch.nn.functional, "C": torch.tensor})
+
+    generator = torch.Generator().manual_seed(seed)
+    points = (torch.rand(256, 3, generator=generator) * 3 - 1.5).requires_grad_(True)
+    weights = torch.randn(256, generator=generator)
+    (module(points) * weights).sum().backward()
+    twin = points.detach().clone().requires_grad_(True)
+    ta, tb = torch.tensor(module.params["a"].item(), requires_grad=True), torch.tensor(module.params["b"].item(), requires_grad=True)
+    values = f(twin, ta, tb)
+    (values * weights).sum().backward()
+
+    context = f"seed {seed}: f(p) = {mine}"
+    scale = 1.0 + values.abs().max().item()
+    torch.testing.assert_close(module(points).detach(), values.detach(), atol=2e-5 * scale, rtol=0, msg=context)
+    gscale = 1.0 + twin.grad.abs().max().item()
+    torch.testing.assert_close(points.grad, twin.grad, atol=5e-5 * gscale, rtol=0, msg=context)
+    pscale = 1.0 + ta.grad.abs().item() + tb.grad.abs().item()
+    for name, theirs_grad in (("a", ta.grad), ("b", tb.grad)):
+        torch.testing.assert_close(module.params[name].grad, theirs_grad, atol=2e-4 * pscale, rtol=0, msg=context)

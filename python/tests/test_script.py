@@ -116,6 +116,16 @@ def test_bad_scripts_and_calls_raise_clear_errors(script):
         script.vjp("sdf", np.zeros((2, 3)), np.zeros(3))
     with pytest.raises(nerfjit.NerfjitError, match="missing.sdf"):
         nerfjit.Script("missing.sdf")
+    # Arrays that are not numbers, or not of points, are refused by numpy's conversion or by shape.
+    with pytest.raises((TypeError, ValueError)):
+        script.eval("sdf", np.array([["a", "b", "c"]]))
+    with pytest.raises(TypeError, match="points must be real numbers, not complex"):
+        script.eval("sdf", np.array([[1 + 2j, 0, 0]]))
+    with pytest.raises(ValueError, match=r"pass an array of shape \(N, 3\)"):
+        script.eval("sdf", np.zeros((2, 3, 1)))
+    # Non-finite points give non-finite values, nothing worse.
+    assert np.isnan(script.eval("sdf", np.array([[np.nan, 0, 0]]))[0])
+    assert script.eval("sdf", np.zeros((0, 3))).shape == (0,)
 
 
 def test_scripts_load_from_files_examples_and_overrides(tmp_path):
