@@ -5,6 +5,8 @@
 //! - [`with_gradient`]: outputs, then ∂outₖ/∂inputs for each output k (the Jacobian, row by row).
 //! - [`vjp`]: inputs followed by one cotangent per output; outputs, then the input gradient Σₖ cₖ ∂outₖ/∂x;
 //!   reductions: the param gradient Σₖ cₖ ∂outₖ/∂θ for every param.
+//! - [`vjp_backward`]: the backward pass of [`vjp`]'s input gradient g = Σₖ cₖ ∂outₖ/∂x: inputs x, c and a
+//!   cotangent w of g; outputs ∂(w·g)/∂x and ∂(w·g)/∂c; reductions ∂(w·g)/∂θ (torch's double backward).
 //! - [`forward_backward`]: as [`vjp`] with the function's values as its only outputs, for training (run
 //!   whole, or split into a forward pass that keeps its values and a backward pass over them).
 //! - [`second_order`]: for a scalar function f, inputs x, then cotangents for f and for each component of
@@ -114,6 +116,30 @@ pub fn vjp(f: &Lowered, n_params: usize) -> Graph {
         .collect();
     let (input_grads, reductions) = gradients(&mut g, &seeds, &xs, n_params);
     g.outputs.extend(input_grads);
+    g.reductions = reductions;
+    g.compact()
+}
+
+/// The backward pass of [`vjp`]'s input gradient (what a host's double backward asks for): inputs x, one
+/// cotangent cₖ per output, and one cotangent wⱼ per input gradient gⱼ = Σₖ cₖ ∂outₖ/∂xⱼ; outputs ∂(w·g)/∂x,
+/// then ∂(w·g)/∂c; reductions ∂(w·g)/∂θ for every param.
+pub fn vjp_backward(f: &Lowered, n_params: usize) -> Graph {
+    let mut g = f.graph.clone();
+    let n_in = g.n_inputs;
+    let xs = inputs(&mut g, n_in);
+    let outs = g.outputs.clone();
+    let cs: Vec<V> = (0..outs.len() as u32).map(|k| g.input(n_in + k)).collect();
+    let seeds: Vec<(V, V)> = outs.iter().copied().zip(cs.iter().copied()).collect();
+    let grad_x = autodiff::vjp(&mut g, &seeds, &xs);
+    let n_out = cs.len() as u32;
+    let seeds: Vec<(V, V)> = grad_x
+        .iter()
+        .enumerate()
+        .map(|(j, &gj)| (gj, g.input(n_in + n_out + j as u32)))
+        .collect();
+    let wrt: Vec<V> = xs.iter().chain(&cs).copied().collect();
+    let (grads, reductions) = gradients(&mut g, &seeds, &wrt, n_params);
+    g.outputs = grads;
     g.reductions = reductions;
     g.compact()
 }

@@ -40,6 +40,10 @@ class Script:
         self, name: str, points: npt.ArrayLike, cotangent: npt.ArrayLike
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, npt.NDArray[np.float32]]]:
         """(values, d_points, d_params): the vector-Jacobian product with `cotangent` (the values' shape)."""
+    def vjp_backward(
+        self, name: str, points: npt.ArrayLike, cotangent: npt.ArrayLike, d_points_cotangent: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, npt.NDArray[np.float32]]]:
+        """(d_points, d_cotangent, d_params): derivatives of w·d_points (vjp's) in its three arguments."""
 
 class Field:
     """A trained field (a checkpoint, or a script with its initial params) that renders into numpy images."""

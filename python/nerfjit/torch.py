@@ -8,8 +8,9 @@ pass the kernel of its vector-Jacobian product (with respect to the points and t
     loss = sdf(points).abs().mean()
     loss.backward()                                           # points.grad, sdf.params["radius"].grad, ...
 
-Second derivatives through nerfjit (a loss on `torch.autograd.grad(..., create_graph=True)`) are not
-supported: the backward pass is once differentiable and says so when differentiated again.
+Second derivatives through nerfjit work for losses on the points' gradient (an eikonal term on
+`torch.autograd.grad(sdf(p).sum(), p, create_graph=True)`), by nerfjit's `vjp_backward` kernel; a loss on the
+params' gradients is refused, and third derivatives are not supported (torch says so).
 """
 
 import numpy as np
@@ -28,7 +29,7 @@ def _numpy(tensor):
 class ScriptFunction(torch.autograd.Function):
     """`ScriptFunction.apply(points, script, name, names, *params)`: function `name` of `script` at
     `points` (N, k) with its params `names` set to the tensors `params`; differentiable in the points
-    and the params."""
+    and the params, twice in the points (its backward pass is itself differentiable, see `_Vjp`)."""
 
     @staticmethod
     def forward(ctx, points, script, name, names, *params):
@@ -40,14 +41,47 @@ class ScriptFunction(torch.autograd.Function):
         return torch.from_numpy(np.ascontiguousarray(values)).to(points.dtype)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, cotangent):
         points, *params = ctx.saved_tensors
+        d_points, *d_params = _Vjp.apply(points, cotangent, ctx.script, ctx.name, ctx.names, *params)
+        return (d_points, None, None, None, *d_params)
+
+
+class _Vjp(torch.autograd.Function):
+    """The vector-Jacobian product of a script's function, as a function of the points, the cotangent and
+    the params: `(d_points, *d_params)`. Its own backward pass (torch's double backward: a loss on a
+    gradient taken with `create_graph=True`) is nerfjit's `vjp_backward` kernel, in the points, the
+    cotangent and the params, for losses on d_points; a loss on d_params itself is refused."""
+
+    @staticmethod
+    def forward(ctx, points, cotangent, script, name, names, *params):
+        for param, value in zip(names, params):
+            script.set_param(param, _numpy(value))
+        _, d_points, d_params = script.vjp(name, _numpy(points), _numpy(cotangent))
+        ctx.script, ctx.name, ctx.names = script, name, names
+        ctx.save_for_backward(points, cotangent, *params)
+        grads = [torch.from_numpy(d_params[n]).to(p.dtype).reshape(p.shape) for n, p in zip(names, params)]
+        return (torch.from_numpy(d_points).to(points.dtype), *grads)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, d_points_cotangent, *d_params_cotangents):
+        points, cotangent, *params = ctx.saved_tensors
+        if any(g is not None and bool(torch.any(g != 0)) for g in d_params_cotangents):
+            raise RuntimeError(
+                "nerfjit.torch: a loss on the params' gradients is not differentiable through nerfjit "
+                "(losses on the points' gradient, such as an eikonal term, are)"
+            )
+        if d_points_cotangent is None:
+            d_points_cotangent = torch.zeros_like(points)
         for param, value in zip(ctx.names, params):
             ctx.script.set_param(param, _numpy(value))
-        _, d_points, d_params = ctx.script.vjp(ctx.name, _numpy(points), _numpy(cotangent))
+        d_x, d_c, d_params = ctx.script.vjp_backward(
+            ctx.name, _numpy(points), _numpy(cotangent), _numpy(d_points_cotangent)
+        )
         grads = [torch.from_numpy(d_params[n]).to(p.dtype).reshape(p.shape) for n, p in zip(ctx.names, params)]
-        return (torch.from_numpy(d_points).to(points.dtype), None, None, None, *grads)
+        d_c = torch.from_numpy(np.ascontiguousarray(d_c)).to(cotangent.dtype).reshape(cotangent.shape)
+        return (torch.from_numpy(d_x).to(points.dtype), d_c, None, None, None, *grads)
 
 
 class ScriptModule(torch.nn.Module):

@@ -15,6 +15,9 @@ pub(crate) enum Kind {
     Gradient,
     /// Inputs and one cotangent per output → the values, the inputs' cotangents; the params' as reductions.
     Vjp,
+    /// Inputs, one cotangent per output and one per input gradient of `Vjp` → that gradient's backward pass
+    /// in the inputs and the cotangents; the params' as reductions.
+    VjpBackward,
 }
 
 /// A compiled kernel of one function and its shape.

@@ -87,6 +87,20 @@ fn values_array<'py>(
     })
 }
 
+/// The column-major (n, width) `columns` in the shape of `points`: (n,) for 1-D points.
+fn like_points<'py>(
+    py: Python<'py>,
+    points: &PyArrayLikeDyn<f32, AllowTypeChange>,
+    n: usize,
+    width: usize,
+    columns: Vec<f32>,
+) -> Bound<'py, PyAny> {
+    match points.ndim() {
+        1 => columns.into_pyarray(py).into_any(),
+        _ => columns_array(n, width, columns).into_pyarray(py).into_any(),
+    }
+}
+
 /// The (n, width) array whose columns lie one after the other in `columns` (numpy's Fortran order: no copy).
 fn columns_array(n: usize, width: usize, columns: Vec<f32>) -> Array2<f32> {
     Array2::from_shape_vec((n, width).f(), columns).expect("width columns of n values")
@@ -140,6 +154,7 @@ impl Script {
                 Kind::Value => kernel_graphs::value(&lowered),
                 Kind::Gradient => kernel_graphs::with_gradient(&lowered),
                 Kind::Vjp => kernel_graphs::vjp(&lowered, n_params),
+                Kind::VjpBackward => kernel_graphs::vjp_backward(&lowered, n_params),
             };
             let kernel =
                 Kernel::compile(&graph, Options::default()).map_err(|e| Failure::Message(e.to_string()))?;
@@ -159,16 +174,16 @@ impl Script {
         Ok(compiled)
     }
 
-    /// Runs the `kind` kernel of function `name` at `points` (with the columns of `cotangent`, the shape of
-    /// its values, after theirs when given), the GIL released: the outputs in `ranges`, each a row-major
-    /// (N, range) array, and the reductions.
+    /// Runs the `kind` kernel of function `name` at `points`, with the columns of `extras` after theirs
+    /// (cotangents: each an (N, width) array, or (N,) for a width of 1, and its name), the GIL released:
+    /// the outputs in `ranges`, each a column-major (N, range) array, and the reductions.
     fn evaluate(
         &self,
         py: Python<'_>,
         name: &str,
         kind: Kind,
         points: &PyArrayLikeDyn<f32, AllowTypeChange>,
-        cotangent: Option<&PyArrayLikeDyn<f32, AllowTypeChange>>,
+        extras: &[(&PyArrayLikeDyn<f32, AllowTypeChange>, usize, &str)],
         ranges: impl Fn(&Compiled) -> Vec<Range<usize>>,
     ) -> PyResult<Evaluated> {
         let compiled = self.kernel(name, kind)?;
@@ -187,24 +202,25 @@ impl Script {
             )));
         };
         let (n, width) = (view.nrows(), compiled.inputs);
-        let m = compiled.outputs;
-        let seeds = cotangent.map(|c| c.as_array());
-        if let Some(seeds) = &seeds {
-            if seeds.len() != n * m {
-                let shape = match compiled.scalar {
-                    true => format!("({n},)"),
-                    false => format!("({n}, {m})"),
+        let mut seeds: Vec<(Cow<[f32]>, usize)> = Vec::with_capacity(extras.len());
+        for (array, columns, what) in extras {
+            let array = array.as_array();
+            if array.len() != n * columns {
+                let shape = match columns {
+                    1 => format!("({n},)"),
+                    _ => format!("({n}, {columns})"),
                 };
                 return Err(PyValueError::new_err(format!(
-                    "the cotangent has the shape of {name}'s values, {shape}, not {:?}",
-                    seeds.shape()
+                    "{what} has the shape {shape} here, not {:?}",
+                    array.shape()
                 )));
             }
+            let flat = match array.to_slice() {
+                Some(flat) => Cow::Borrowed(flat),
+                None => Cow::Owned(array.iter().copied().collect()),
+            };
+            seeds.push((flat, *columns));
         }
-        let seeds: Option<Cow<[f32]>> = seeds.map(|s| match s.to_slice() {
-            Some(flat) => Cow::Borrowed(flat),
-            None => Cow::Owned(s.iter().copied().collect()),
-        });
         // Each chunk transposes its own rows into the kernel's columns.
         let fill = |start: usize, end: usize, columns: &mut [Vec<f32>]| {
             match view.to_slice() {
@@ -225,17 +241,19 @@ impl Script {
                     }
                 }
             }
-            if let Some(seeds) = &seeds {
+            let mut first = width;
+            for (seeds, m) in &seeds {
                 for i in start..end {
-                    for o in 0..m {
-                        columns[width + o][i - start] = seeds[i * m + o];
+                    for o in 0..*m {
+                        columns[first + o][i - start] = seeds[i * m + o];
                     }
                 }
+                first += m;
             }
         };
         // Column-major points (np.asfortranarray, or a (k, N) array's transpose) are read where they are.
-        let columns: Option<Vec<&[f32]>> = match (view.t().to_slice(), &seeds) {
-            (Some(flat), None) if n > 0 => Some(flat.chunks(n).collect()),
+        let columns: Option<Vec<&[f32]>> = match view.t().to_slice() {
+            Some(flat) if n > 0 && seeds.is_empty() => Some(flat.chunks(n).collect()),
             _ => None,
         };
         let inputs = match columns {
@@ -332,7 +350,7 @@ impl Script {
         let values = |c: &Compiled| std::iter::once(0..c.outputs).collect();
         let Evaluated {
             compiled, n, results, ..
-        } = self.evaluate(py, name, Kind::Value, &real(points, "points")?, None, values)?;
+        } = self.evaluate(py, name, Kind::Value, &real(points, "points")?, &[], values)?;
         values_array(py, &compiled, n, results.into_iter().next().unwrap_or_default())
     }
 
@@ -348,7 +366,7 @@ impl Script {
         let jacobian = |c: &Compiled| std::iter::once(c.outputs..c.outputs * (1 + c.inputs)).collect();
         let Evaluated {
             compiled, n, results, ..
-        } = self.evaluate(py, name, Kind::Gradient, &real(points, "points")?, None, jacobian)?;
+        } = self.evaluate(py, name, Kind::Gradient, &real(points, "points")?, &[], jacobian)?;
         let (m, k) = (compiled.outputs, compiled.inputs);
         let columns = results.into_iter().next().unwrap_or_default();
         Ok(match compiled.scalar {
@@ -402,31 +420,56 @@ impl Script {
         points: &Bound<'py, PyAny>,
         cotangent: &Bound<'py, PyAny>,
     ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyDict>)> {
+        let outputs = self.kernel(name, Kind::Vjp)?.outputs;
+        let (points, cotangent) = (real(points, "points")?, real(cotangent, "the cotangent")?);
         // The kernel's outputs: the m values, then the k inputs' cotangents.
         let both = |c: &Compiled| vec![0..c.outputs, c.outputs..c.outputs + c.inputs];
-        let points = real(points, "points")?;
+        let extras = [(&cotangent, outputs, "the cotangent (of the values)")];
         let Evaluated {
             compiled,
             n,
             results,
             reductions,
-        } = self.evaluate(
-            py,
-            name,
-            Kind::Vjp,
-            &points,
-            Some(&real(cotangent, "the cotangent")?),
-            both,
-        )?;
+        } = self.evaluate(py, name, Kind::Vjp, &points, &extras, both)?;
         let [values, d_points]: [Vec<f32>; 2] = results.try_into().expect("two results");
         let values = values_array(py, &compiled, n, values)?;
-        let d_points = match points.ndim() {
-            1 => d_points.into_pyarray(py).into_any(),
-            _ => columns_array(n, compiled.inputs, d_points)
-                .into_pyarray(py)
-                .into_any(),
-        };
+        let d_points = like_points(py, &points, n, compiled.inputs, d_points);
         let d_params = param_dict(py, &self.program.lock().expect("the program"), &reductions)?;
         Ok((values, d_points, d_params))
+    }
+
+    /// The backward pass of `vjp`'s d_points, g = Σᵢ cotangentᵢ ∂valueᵢ/∂points, with `d_points_cotangent` w
+    /// (the shape of the points), as a host's double backward asks for it: `(d_points, d_cotangent,
+    /// d_params)`, the derivatives of w·g in the points, the cotangent and the params.
+    fn vjp_backward<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        points: &Bound<'py, PyAny>,
+        cotangent: &Bound<'py, PyAny>,
+        d_points_cotangent: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyDict>)> {
+        let compiled = self.kernel(name, Kind::VjpBackward)?;
+        let (inputs, outputs) = (compiled.inputs, compiled.outputs);
+        let points = real(points, "points")?;
+        let cotangent = real(cotangent, "the cotangent")?;
+        let w = real(d_points_cotangent, "the cotangent of d_points")?;
+        let extras = [
+            (&cotangent, outputs, "the cotangent (of the values)"),
+            (&w, inputs, "the cotangent of d_points (of the points)"),
+        ];
+        // The kernel's outputs: ∂(w·g)/∂points (k), then ∂(w·g)/∂cotangent (m).
+        let both = |c: &Compiled| vec![0..c.inputs, c.inputs..c.inputs + c.outputs];
+        let Evaluated {
+            compiled,
+            n,
+            results,
+            reductions,
+        } = self.evaluate(py, name, Kind::VjpBackward, &points, &extras, both)?;
+        let [d_points, d_cotangent]: [Vec<f32>; 2] = results.try_into().expect("two results");
+        let d_points = like_points(py, &points, n, compiled.inputs, d_points);
+        let d_cotangent = values_array(py, &compiled, n, d_cotangent)?;
+        let d_params = param_dict(py, &self.program.lock().expect("the program"), &reductions)?;
+        Ok((d_points, d_cotangent, d_params))
     }
 }

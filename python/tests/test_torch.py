@@ -71,9 +71,35 @@ def test_a_torch_optimizer_fits_the_scripts_params():
     torch.testing.assert_close(module.params["center"].detach(), torch.tensor([0.5, 0.0, -0.2]), atol=5e-3, rtol=0)
 
 
-def test_second_derivatives_through_nerfjit_say_they_are_not_supported():
-    module = ScriptModule(SCENE, "sdf")
-    points = torch.randn(4, 3, requires_grad=True)
+def test_second_derivatives_in_the_points_equal_torch_autograd():
+    """An eikonal loss on the gradient in the points, differentiated again in the points and the params."""
+    module = ScriptModule(nerfjit.Script(SCENE), "sdf")
+    points = torch.randn(300, 3, generator=torch.Generator().manual_seed(3), requires_grad=True)
     (normals,) = torch.autograd.grad(module(points).sum(), points, create_graph=True)
-    with pytest.raises(RuntimeError, match="once_differentiable|does not require grad"):
-        normals.pow(2).sum().backward()
+    eikonal = (normals.norm(dim=1) - 1).pow(2).mean()
+    eikonal.backward()
+
+    twin = points.detach().clone().requires_grad_(True)
+    center = torch.tensor([0.1, -0.2, 0.3], requires_grad=True)
+    radius = torch.tensor(0.7, requires_grad=True)
+    (theirs,) = torch.autograd.grad(torch_sdf(twin, center, radius).sum(), twin, create_graph=True)
+    (theirs.norm(dim=1) - 1).pow(2).mean().backward()
+
+    torch.testing.assert_close(normals.detach(), theirs.detach(), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(points.grad, twin.grad, rtol=1e-3, atol=1e-5)
+    torch.testing.assert_close(module.params["center"].grad, center.grad, rtol=1e-3, atol=1e-5)
+
+
+def test_a_vector_functions_double_backward_checks_out():
+    """gradgradcheck of a vector function: second derivatives in the points and the cotangent."""
+    module = ScriptModule(SCENE, "shade")
+    points = torch.randn(6, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradgradcheck(lambda p: module(p), (points,), eps=1e-3, atol=5e-3, rtol=1e-3)
+
+
+def test_a_loss_on_the_params_gradient_is_refused():
+    module = ScriptModule(SCENE, "sdf")
+    points = torch.randn(4, 3)
+    (d_radius,) = torch.autograd.grad(module(points).sum(), module.params["radius"], create_graph=True)
+    with pytest.raises(RuntimeError, match="params' gradients is not differentiable through nerfjit"):
+        d_radius.pow(2).backward()

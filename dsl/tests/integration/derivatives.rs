@@ -115,6 +115,49 @@ proptest! {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(16))]
+
+    /// `vjp_backward` against central differences of what it differentiates, w·g with g the input gradient
+    /// that `vjp` computes, in the points, the cotangent and the params (skipping kinks).
+    #[test]
+    fn vjp_backward_matches_finite_differences_of_the_input_gradient(
+        x in prop::collection::vec(-1.9f64..1.9, 3),
+        c in -1.0f64..1.0,
+        w in prop::collection::vec(-1.0f64..1.0, 3),
+    ) {
+        let mut checked = 0;
+        for expr in CASES {
+            let p = program(expr);
+            let f = p.lower("f").unwrap();
+            let (first, second) = (kernel_graphs::vjp(&f, p.n_params()), kernel_graphs::vjp_backward(&f, p.n_params()));
+            let params = p.param_values_f64();
+            // w·g at the inputs x, cotangent c, params q.
+            let wg = |xc: &[f64], q: &[f64]| {
+                let g = eval_point(&first, xc, q).outputs;
+                (0..3).map(|j| w[j] * g[1 + j]).sum::<f64>()
+            };
+            let inputs: Vec<f64> = x.iter().copied().chain([c]).chain(w.iter().copied()).collect();
+            let analytic = eval_point(&second, &inputs, &params);
+            let xc: Vec<f64> = x.iter().copied().chain([c]).collect();
+            for k in 0..4 {
+                if let Some(fd) = smooth_difference(|pt| wg(pt, &params), &xc, k) {
+                    checked += 1;
+                    prop_assert!((fd - analytic.outputs[k]).abs() <= 1e-4 * (1.0 + fd.abs()),
+                        "{expr}: d(w·g)/d{} = {} but finite differences give {fd}", ["x", "y", "z", "c"][k], analytic.outputs[k]);
+                }
+            }
+            for k in 0..params.len() {
+                if let Some(fd) = smooth_difference(|q| wg(&xc, q), &params, k) {
+                    prop_assert!((fd - analytic.reductions[k]).abs() <= 1e-4 * (1.0 + fd.abs()),
+                        "{expr} param {k}: {} vs {fd}", analytic.reductions[k]);
+                }
+            }
+        }
+        prop_assert!(checked * 10 >= CASES.len() * 4 * 7, "only {checked} derivatives compared");
+    }
+}
+
 /// An expression in x and its derivative.
 type ClosedForm = (&'static str, fn(f64) -> f64);
 
