@@ -72,7 +72,7 @@ pub(crate) fn param_dict<'py>(
     Ok(dict)
 }
 
-/// A function's values at n points from their row-major array: (n,) for an `f32` result, else (n, outputs).
+/// A function's values at n points from their column-major array (one column per output): (n,) for an `f32` result, else (n, outputs).
 fn values_array<'py>(
     py: Python<'py>,
     compiled: &Compiled,
@@ -106,7 +106,7 @@ fn columns_array(n: usize, width: usize, columns: Vec<f32>) -> Array2<f32> {
     Array2::from_shape_vec((n, width).f(), columns).expect("width columns of n values")
 }
 
-/// What a kernel computed at n points: the row-major arrays of the outputs asked for, and its reductions.
+/// What a kernel computed at n points: the column-major arrays of the outputs asked for, and its reductions.
 struct Evaluated {
     compiled: Arc<Compiled>,
     n: usize,
