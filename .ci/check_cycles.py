@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Fails when the modules of a crate import each other in a cycle (issue 55).
+"""Fails when the modules of a crate import each other in a cycle, or when a folder of a layered crate
+imports one above it.
 
 For every crate of the workspace (each `Cargo.toml` with a `src/` beside it, `fuzz/` excluded), each source
 file is a module (`lib.rs`/`main.rs` the root, `a/mod.rs` and `a.rs` the module `a`, `a/b.rs` the module
@@ -9,7 +10,12 @@ it is in). A path names the longest module it starts with; a name a module re-ex
 followed to the module that defines it. A module's uses of its own descendants are not edges (a parent
 holds its children, and its `mod` lines and re-exports are how it shows them), nor are its `#[cfg(test)]`
 modules' uses (tests sit above what they test). Every other cycle of the file graph is reported, with one
-line per edge and where it is, and the script exits with 1. No network, well under a second.
+line per edge and where it is, and the script exits with 1.
+
+The crates in `LAYERS` are layered: their top-level modules (folders and files under `src/`) are listed
+from the bottom up, and a module may use only those in layers below its own. An import that runs up or
+sideways (between two modules of one layer), or a top-level module missing from the list, is reported
+with where it is, and the script exits with 1. No network, well under a second.
 """
 
 import re
@@ -17,6 +23,18 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+
+# Per layered crate, its top-level modules from the bottom up; the modules of one layer do not use each
+# other. The crate root (`lib.rs`) sits above them all.
+LAYERS = {
+    "runtime": [
+        "error rng", "input", "json", "cameras", "data", "output", "field", "surfaces", "training", "volume",
+    ],
+    "lib": [
+        "failure cluster city_model", "console", "interrupt", "observe", "script", "settings",
+        "frame_files diagnostics", "checkpoint", "training", "blocks", "session", "commands", "conformance",
+    ],
+}
 
 
 def strip(text):
@@ -230,6 +248,29 @@ def cycles(edges):
     return out
 
 
+def layering(crate, modules, edges):
+    """Problems with the layers of `crate`: top-level modules without a layer, imports up or sideways."""
+    layer_of = {m: k for k, layer in enumerate(LAYERS[crate]) for m in layer.split()}
+    problems = [f"{crate}: top-level module '{top}' has no layer in LAYERS of .ci/check_cycles.py"
+                for top in sorted({m[0] for m in modules if m} - set(layer_of))]
+    for a, targets in sorted(edges.items()):
+        for b, line in sorted(targets.items()):
+            if not a or a[0] == (b[0] if b else None) or a[0] not in layer_of:
+                continue
+            where = modules[a].relative_to(ROOT)
+            if not b:
+                problems.append(f"{crate}: {name(a)} uses the crate root, which sits above every module ({where}:{line})")
+                continue
+            if b[0] not in layer_of:
+                continue
+            up, down = layer_of[a[0]], layer_of[b[0]]
+            if down >= up:
+                how = "up" if down > up else "sideways (one layer)"
+                problems.append(f"{crate}: {name(a)} → {name(b)} runs {how}: '{a[0]}' is in layer {up}, "
+                                f"'{b[0]}' in layer {down} ({where}:{line})")
+    return problems
+
+
 def name(mod):
     return "::".join(mod) or "crate"
 
@@ -244,6 +285,11 @@ def main():
     failed = False
     for src in crates:
         modules, edges = crate_graph(src)
+        crate = str(src.parent.relative_to(ROOT))
+        if crate in LAYERS:
+            for problem in layering(crate, modules, edges):
+                failed = True
+                print(problem)
         for comp in cycles(edges):
             failed = True
             crate = src.parent.relative_to(ROOT) or Path(".")
@@ -256,7 +302,7 @@ def main():
                         print(f"    {name(a)} → {name(b)}  ({where}:{line})")
     if failed:
         sys.exit(1)
-    print(f"no import cycles in the modules of {len(crates)} crates")
+    print(f"no import cycles in the modules of {len(crates)} crates; {', '.join(LAYERS)} layered")
 
 
 if __name__ == "__main__":

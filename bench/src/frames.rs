@@ -5,7 +5,8 @@
 
 use std::path::Path;
 
-use nerfjit::commands::render_views::{held_out_views, load, script_cameras, ViewArgs};
+use nerfjit::checkpoint::load_source;
+use nerfjit::commands::render_views::{held_out_views, script_cameras, ViewArgs};
 use nerfjit::failure::{Failure, Result};
 use nerfjit_field::VolumeFields;
 use nerfjit_jit::KernelCache;
@@ -23,7 +24,7 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
         ));
     };
     let source = checkpoint.to_string_lossy();
-    let (program, params) = load(&source)?;
+    let (program, params) = load_source(&source)?;
     let (cameras, described) = match held_out_views(&source, &program) {
         Ok((views, described)) => (views.cameras, described),
         Err(_) => {

@@ -8,7 +8,7 @@ use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_dsl::{kernel_graphs, Lowered, Program, Report, Signature, Type};
 use nerfjit_jit::{fused_products, Kernel, KernelCache, Marcher, Options, Passes, Precision, Stop, Tape};
-use nerfjit_runtime::surfaces::ray_marcher::{MarchRays, RayMarcher};
+use nerfjit_runtime::field::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{

@@ -21,7 +21,7 @@ pub fn on_signal() {
     if WATCHERS.load(Ordering::SeqCst) == 0 || REQUESTED.swap(true, Ordering::SeqCst) {
         std::process::exit(i32::from(EXIT_STATUS));
     }
-    crate::note("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
+    crate::console::note("\ninterrupted: stopping after this step (press Ctrl-C again to quit at once)");
 }
 
 /// Asks the watching training loop to stop at the end of its step, as a first signal does, without ever

@@ -21,12 +21,14 @@
 //! A [`session::Session`] keeps a checked script, its params and one kernel cache between calls: its
 //! blocks run one at a time, and the params a `train` block learned can be read, changed and rendered
 //! with (a field trained and then rendered or meshed is compiled once); its documentation trains the
-//! course's box from Rust. Its modules, by subsystem: [`blocks`] (what each kind of block does),
-//! [`settings`] (the schema of every block setting and their parsers), [`training`] (both kinds of training
-//! run [`training::train_loop::train`], each block an [`training::train_loop::Objective`]; validation; logs),
-//! [`checkpoint`], [`commands`] (the work of the other commands) and [`diagnostics`]. The JIT's kernels reach
-//! the runtime as fields through the `nerfjit-field` crate.
-
+//! course's box from Rust. Its modules, from the bottom up (each uses only those before it, as
+//! `.ci/check_cycles.py` checks): [`failure`] and [`cluster`] (errors and the MPI job), [`console`],
+//! [`interrupt`] and [`observe`] (what the program says, Ctrl-C, progress), [`script`], [`settings`] (the
+//! schema of every block setting and their parsers), [`frame_files`] and [`diagnostics`], [`checkpoint`],
+//! [`training`] (both kinds of training run [`training::train_loop::train`], each block an
+//! [`training::train_loop::Objective`]; validation; logs), [`blocks`] (what each kind of block does),
+//! [`session`] and [`commands`] (the work of the other commands). The JIT's kernels reach the runtime as
+//! fields through the `nerfjit-field` crate.
 pub mod blocks;
 pub mod checkpoint;
 pub mod city_model;
@@ -34,6 +36,7 @@ pub mod cluster;
 pub mod commands;
 #[cfg(test)]
 mod conformance;
+pub mod console;
 pub mod diagnostics;
 pub mod failure;
 pub mod frame_files;
@@ -49,20 +52,4 @@ pub mod training;
 /// passes recurse deeply; the pages are only committed as they are used.
 pub const WORK_STACK_BYTES: usize = 1 << 30;
 
-/// Writes command output to standard output; a closed pipe (`nerfjit ir ... | head`) ends the output
-/// quietly instead of panicking.
-pub fn emit(text: &str) {
-    use std::io::Write;
-    // In an MPI job, rank 0 alone prints.
-    if cluster::current().rank() != 0 {
-        return;
-    }
-    let _ = std::io::stdout().lock().write_all(text.as_bytes());
-}
-
-/// Writes a line of news or warning to standard error; in an MPI job, rank 0 alone does.
-pub fn note(line: &str) {
-    if cluster::current().rank() == 0 {
-        eprintln!("{line}");
-    }
-}
+pub use console::{emit, note};

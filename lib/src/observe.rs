@@ -14,7 +14,7 @@ pub trait ProgressBar: Send + Sync {
     fn set_message(&self, _message: String) {}
     /// Prints a line above the bar (or to standard error where no bar is drawn).
     fn println(&self, line: String) {
-        crate::note(&line);
+        crate::console::note(&line);
     }
     /// Removes the bar of a task that is done.
     fn finish_and_clear(&self) {}

@@ -4,7 +4,7 @@ use std::path::Path;
 
 use nerfjit_dsl::MAX_SOURCE_BYTES;
 use nerfjit_dsl::{compile_with, Program};
-use nerfjit_runtime::data::input::read_text_at_most;
+use nerfjit_runtime::input::read_text_at_most;
 
 use crate::failure::{Failure, Result};
 

@@ -182,7 +182,7 @@ pub(crate) fn load(
         return Err(PyValueError::new_err("samples is 1 to 4096 per ray"));
     }
     let (program, params) = py
-        .detach(|| on_work_stack(|| nerfjit::commands::render_views::load(&source)))
+        .detach(|| on_work_stack(|| nerfjit::checkpoint::load_source(&source)))
         .map_err(to_py)?;
     let script = Py::new(py, Script::of(program, params))?;
     Ok(Field {

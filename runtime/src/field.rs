@@ -1,6 +1,8 @@
 //! The interfaces between renderers and compiled kernels: [`BatchFn`] for values and
 //! [`BatchVjp`] for their gradients with respect to parameters.
 
+pub use nerfjit_dsl::march_rays::MarchRays;
+
 use crate::error::{Error, Result};
 
 /// A function evaluated on batches of points in structure-of-arrays layout (one slice per
@@ -27,7 +29,7 @@ pub trait BatchFn: Sync {
 
     /// A fused sphere tracer of this function, if it is an SDF that offers one; the sphere tracer then
     /// marches whole rays in one call instead of calling [`BatchFn::eval`] once per step.
-    fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
+    fn as_marcher(&self) -> Option<&dyn RayMarcher> {
         None
     }
 
@@ -61,7 +63,7 @@ impl BatchFn for WithBounds<'_> {
         self.function.eval(n, inputs, outputs);
     }
 
-    fn as_marcher(&self) -> Option<&dyn crate::surfaces::ray_marcher::RayMarcher> {
+    fn as_marcher(&self) -> Option<&dyn RayMarcher> {
         self.function.as_marcher()
     }
 
@@ -304,6 +306,15 @@ impl<F: Fn(&[f32], &[f32], &mut [f32]) + Sync> BatchVjp for ClosureVjp<F> {
             (self.f)(&point, &cotangent, param_grads);
         }
     }
+}
+
+/// Sphere traces rays in one call, with exactly the per-ray semantics of [`crate::surfaces::sphere_trace`] (a fused native loop over whole
+/// rays that compiled SDFs offer through [`BatchFn::as_marcher`]): from
+/// `t = t0`, up to `max_steps` times, `p = o + t·d`, `dist = sdf(p)`; a hit when `dist < eps`, else
+/// `t += dist` and a miss once `t > t1`.
+pub trait RayMarcher: Sync {
+    /// Marches rays `0..n`; writes the final `t` of each ray and 1.0 where it hit, 0.0 where it missed.
+    fn march(&self, n: usize, rays: &MarchRays, eps: f32, max_steps: u32, t: &mut [f32], hit: &mut [f32]);
 }
 
 #[cfg(test)]

@@ -55,12 +55,8 @@ struct Trained {
 impl Document {
     /// The document of a script file (or shipped example) or a checkpoint.
     pub fn load(source: &str) -> Result<Document> {
-        let (program, params) = nerfjit::commands::render_views::load(source)?;
-        Document::of(
-            &program,
-            params,
-            nerfjit::commands::render_views::is_checkpoint(source),
-        )
+        let (program, params) = nerfjit::checkpoint::load_source(source)?;
+        Document::of(&program, params, nerfjit::checkpoint::is_checkpoint(source))
     }
 
     /// The document of `program` (its script and `--set` overrides) with `params`, trained ones for a

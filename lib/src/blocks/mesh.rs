@@ -67,7 +67,7 @@ pub fn parse_bounds(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), Str
 /// `nerfjit mesh`: meshes `args.function` of a script (with the params' initial values) or of a training
 /// checkpoint (with the trained ones).
 pub fn run(source: &str, args: &MeshArgs) -> Result<String> {
-    let (program, params) = crate::commands::render_views::load(source)?;
+    let (program, params) = crate::checkpoint::load_source(source)?;
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
     let frame = crate::blocks::train_sdf::fitted_frame(&program, folder)?;
     let args = &MeshArgs { frame, ..*args };

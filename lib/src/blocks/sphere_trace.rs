@@ -189,7 +189,7 @@ impl SphereTracePlan {
                 .into_iter()
                 .flatten()
             {
-                crate::note(&line);
+                crate::console::note(&line);
             }
         }
         write_frames(&self.out, &frames, self.frame_ms, |f| {

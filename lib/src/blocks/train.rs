@@ -504,7 +504,7 @@ impl TrainPlan {
     ) -> Result<Trained> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
         for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
-            crate::note(&line);
+            crate::console::note(&line);
         }
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;

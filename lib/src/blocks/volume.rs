@@ -167,7 +167,7 @@ impl VolumePlan {
             let warning = nonfinite::warning(name, &field.bind_density(params), rays)
                 .or_else(|| nonfinite::warning("color", &field.bind(params).0, rays));
             if let Some(line) = warning {
-                crate::note(&line);
+                crate::console::note(&line);
             }
         }
         write(&self.out, &frames, self.frame_ms, |f| f.rgb.clone())?;

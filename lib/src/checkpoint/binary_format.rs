@@ -23,9 +23,8 @@ use nerfjit_dsl::{Program, Type};
 use nerfjit_runtime::{Adam, GridSpace, OccupancyGrid};
 use safetensors::tensor::{Dtype, SafeTensors, View};
 
-use super::{Kept, Saved, Script};
+use super::{Kept, Saved, Script, VIEW_STATE};
 use crate::failure::{Failure, Result};
-use crate::training::appearance::VIEW_STATE;
 
 /// The format's name in the metadata.
 const FORMAT: &str = "nerfjit-checkpoint-2";
@@ -286,7 +285,7 @@ pub fn read(path: &Path, bad: &dyn Fn(&str) -> Failure) -> Result<(Program, Save
             file_len.saturating_sub(8 + header_len)
         )));
     }
-    let bytes = nerfjit_runtime::data::input::read_capped(path).map_err(|e| bad(&e.to_string()))?;
+    let bytes = nerfjit_runtime::input::read_capped(path).map_err(|e| bad(&e.to_string()))?;
     let tensors = SafeTensors::deserialize(&bytes).map_err(|e| bad(&e.to_string()))?;
     let n = program.n_params();
     let (mut params, mut m, mut v) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);

@@ -9,10 +9,15 @@ mod json_format;
 use std::path::Path;
 
 use nerfjit_dsl::{budget, Program, Type};
+use nerfjit_runtime::volume::appearance::TRANSFORM_VALUES;
 use nerfjit_runtime::{Adam, OccupancyGrid};
 
 use crate::failure::{Failure, Result};
 use crate::settings::values::AdamSettings;
+
+/// The floats a training view keeps in a checkpoint: its colour transform, then its Adam state
+/// (`[steps, m…, v…]`).
+pub const VIEW_STATE: usize = TRANSFORM_VALUES + 1 + 2 * TRANSFORM_VALUES;
 
 /// The script a checkpoint holds: enough to compile its program again.
 pub struct Script {
@@ -153,7 +158,7 @@ fn load(path: &Path) -> Result<(Program, Saved)> {
     if start[0] != b'{' {
         return binary_format::read(path, &bad);
     }
-    let text = nerfjit_runtime::data::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
+    let text = nerfjit_runtime::input::read_text_capped(path).map_err(|e| bad(&e.to_string()))?;
     let saved = json_format::decode(&text, &bad)?;
     let program = saved.script.compile_embedded(path)?;
     let n_params = program.n_params();
@@ -193,14 +198,16 @@ pub fn resume_or_start(
     let path = match checkpoint {
         Some(path) if resume && path.exists() => path,
         Some(path) if resume => {
-            crate::note(&format!(
+            crate::console::note(&format!(
                 "nothing to resume: no checkpoint at '{}' yet; starting at step 0",
                 path.display()
             ));
             return fresh();
         }
         None if resume => {
-            crate::note("nothing to resume: the training block writes no checkpoint; starting at step 0");
+            crate::console::note(
+                "nothing to resume: the training block writes no checkpoint; starting at step 0",
+            );
             return fresh();
         }
         _ => return fresh(),
@@ -220,7 +227,7 @@ pub fn resume_or_start(
     let mut adam = saved.adam;
     let run_fraction = saved.run_fraction.unwrap_or_else(|| default_fraction(saved.step));
     adam.lr = lr(saved.step, run_fraction);
-    crate::note(&format!(
+    crate::console::note(&format!(
         "resuming from {} at step {}",
         path.display(),
         saved.step
@@ -315,4 +322,20 @@ fn non_finite(program: &Program, loss: f32, grads: &[f32]) -> String {
             bad.join(", ")
         )
     }
+}
+
+/// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
+pub fn load_source(source: &str) -> Result<(Program, Vec<f32>)> {
+    if is_checkpoint(source) {
+        load_trained(Path::new(source))
+    } else {
+        let program = crate::script::load(source)?;
+        let params = program.param_values.clone();
+        Ok((program, params))
+    }
+}
+
+/// Whether `source` names a checkpoint (a `.safetensors` or `.json` file) rather than a script.
+pub fn is_checkpoint(source: &str) -> bool {
+    source.ends_with(".safetensors") || source.ends_with(".json")
 }

@@ -61,7 +61,7 @@ pub fn compare(
             columns.len()
         )));
     }
-    let (first, _) = crate::commands::render_views::load(&rows[0].sources[0])?;
+    let (first, _) = crate::checkpoint::load_source(&rows[0].sources[0])?;
     let background = args.resolve(&first).background;
     let trained = crate::commands::render_views::trained_data(&rows[0].sources[0], &first);
     let views = scored_views(&ScoredViews {
@@ -84,7 +84,7 @@ pub fn compare(
     for row in rows {
         let mut rendered = Vec::new();
         for source in &row.sources {
-            let (program, params) = crate::commands::render_views::load(source)?;
+            let (program, params) = crate::checkpoint::load_source(source)?;
             let rendering = crate::commands::render_views::Rendering {
                 background,
                 ..args.resolve(&program)

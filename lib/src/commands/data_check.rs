@@ -81,7 +81,7 @@ fn other_camera_files(folder: &Path) -> Result<Vec<PathBuf>> {
 }
 
 fn format_of(file: &Path) -> Result<CameraFormat> {
-    let text = nerfjit_runtime::data::input::read_text_capped(file)
+    let text = nerfjit_runtime::input::read_text_capped(file)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
     CameraFormat::of_text(&text).ok_or_else(|| {
         Failure::Message(format!(
@@ -94,7 +94,7 @@ fn format_of(file: &Path) -> Result<CameraFormat> {
 
 /// One camera file: its report, or the first problem found.
 fn check_file(file: &Path) -> Result<String> {
-    let text = nerfjit_runtime::data::input::read_text_capped(file)
+    let text = nerfjit_runtime::input::read_text_capped(file)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", file.display())))?;
     if is_nerfstudio(&text) {
         let capture = load_nerfstudio(file)?;

@@ -37,7 +37,7 @@ fn bytes_per_point(width: usize, outputs: usize) -> u64 {
 /// `point_bytes` of the memory limit, and refusing lines longer than `MAX_LINE_BYTES` and more bytes than
 /// an input file may hold.
 fn read_points(reader: impl BufRead, source: &str, width: usize, point_bytes: u64) -> Result<Vec<Vec<f64>>> {
-    let cap = nerfjit_runtime::data::input::MAX_INPUT_BYTES;
+    let cap = nerfjit_runtime::input::MAX_INPUT_BYTES;
     let mut reader = reader.take(cap + 1);
     let mut rows = Vec::new();
     let mut bytes = Vec::new();

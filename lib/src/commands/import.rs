@@ -173,7 +173,7 @@ pub fn convert(text: &str, source: &str) -> std::result::Result<String, String> 
 /// 32³ cells of [-1, 1]³), the render block divides it by 1.1 times the norm that 99.9% of those points
 /// stay under, and takes proportionally more steps ([`gradient_norms`]).
 pub fn script_of(input: &Path) -> Result<Imported> {
-    let text = nerfjit_runtime::data::input::read_text_capped(input)
+    let text = nerfjit_runtime::input::read_text_capped(input)
         .map_err(|e| Failure::Message(format!("cannot read '{}': {e}", input.display())))?;
     let name = input.file_name().and_then(|n| n.to_str()).unwrap_or("model.vm");
     let model = parse(&text, name).map_err(Failure::Message)?;

@@ -30,7 +30,7 @@ pub struct PointsArgs<'a> {
 
 /// Renders the views, back-projects their opaque pixels and writes the cloud; returns a summary line.
 pub fn run(args: &PointsArgs) -> Result<String> {
-    let (program, params) = crate::commands::render_views::load(args.view.source)?;
+    let (program, params) = crate::checkpoint::load_source(args.view.source)?;
     let cameras = match args.cameras.cameras(args.view.source, &program)? {
         Some((cameras, _)) => cameras,
         None => {

@@ -212,7 +212,7 @@ impl Rendering {
         let Some(s) = self.skip_empty else {
             return Ok(None);
         };
-        if is_checkpoint(source) {
+        if crate::checkpoint::is_checkpoint(source) {
             let saved = crate::checkpoint::saved_occupancy(Path::new(source))?;
             if let Some(grid) = saved.filter(|g| s.fits(g)) {
                 return Ok(Some(grid));
@@ -267,22 +267,6 @@ fn held_out_every(source: &str, program: &Program) -> Result<Option<(usize, Opti
 pub fn trained_data(source: &str, program: &Program) -> Option<DataSet> {
     let folder = Path::new(source).parent().unwrap_or(Path::new(""));
     crate::blocks::train::train_data(program, folder)
-}
-
-/// The program and params: a checkpoint's (a `.safetensors` or `.json` file), or a script's initial ones.
-pub fn load(source: &str) -> Result<(Program, Vec<f32>)> {
-    if is_checkpoint(source) {
-        crate::checkpoint::load_trained(Path::new(source))
-    } else {
-        let program = crate::script::load(source)?;
-        let params = program.param_values.clone();
-        Ok((program, params))
-    }
-}
-
-/// Whether `source` names a checkpoint (a `.safetensors` or `.json` file) rather than a script.
-pub fn is_checkpoint(source: &str) -> bool {
-    source.ends_with(".safetensors") || source.ends_with(".json")
 }
 
 /// Where `nerfjit render` takes its cameras from.
@@ -348,7 +332,7 @@ pub struct FieldViews {
 impl FieldViews {
     /// Opens `args.source` and compiles its fields.
     pub fn open(args: &ViewArgs) -> Result<FieldViews> {
-        let (program, params) = load(args.source)?;
+        let (program, params) = crate::checkpoint::load_source(args.source)?;
         FieldViews::new(program, params, args)
     }
 
@@ -388,7 +372,7 @@ impl FieldViews {
 /// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
 /// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
-    let (program, params) = load(args.source)?;
+    let (program, params) = crate::checkpoint::load_source(args.source)?;
     let (cameras, frame) = match cameras.cameras(args.source, &program)? {
         Some(found) => found,
         None => (
@@ -480,7 +464,7 @@ pub fn eval(
     format: Option<Layout>,
     json: Option<&Path>,
 ) -> Result<String> {
-    let (program, params) = load(args.source)?;
+    let (program, params) = crate::checkpoint::load_source(args.source)?;
     let rendering = args.resolve(&program);
     let (views, described, held_out) = match cameras {
         Some(file) => {

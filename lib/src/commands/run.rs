@@ -62,7 +62,7 @@ pub fn run_session(
         if let Some(bar) = bar {
             bar.finish_and_clear();
         }
-        crate::emit(&format!("{summary}\n"));
+        crate::console::emit(&format!("{summary}\n"));
     }
     Ok(())
 }

@@ -125,7 +125,7 @@ pub fn sweep(script: &str, axes: &[Axis], out: &Path, bars: &dyn ProgressBars) -
         let (run, folder) = (&runs[i], out.join(format!("run_{i:03}")));
         let start = Instant::now();
         let outcome = crate::cluster::alone(|| {
-            crate::emit(&format!(
+            crate::console::emit(&format!(
                 "run {}/{} in {}: {}\n",
                 i + 1,
                 runs.len(),

@@ -99,7 +99,7 @@ pub fn camera_file(
     normalize: Option<bool>,
     layout: Option<Layout>,
 ) -> nerfjit_runtime::Result<(Vec<Camera>, Option<FrameSize>)> {
-    let text = || nerfjit_runtime::data::input::read_text_capped(file).unwrap_or_default();
+    let text = || nerfjit_runtime::input::read_text_capped(file).unwrap_or_default();
     if layout.is_none() && file.is_file() && is_camera_path(&text()) {
         let path = load_camera_path(file)?;
         return Ok((path.cameras, Some((path.width, path.height))));
@@ -109,7 +109,7 @@ pub fn camera_file(
         return Ok((set.cameras, set.image_size));
     };
     if let Some(note) = chosen.note(file) {
-        crate::note(&note);
+        crate::console::note(&note);
     }
     let source = chosen.found.source.as_path();
     // A DTU scan stays in its own frame (the object inside the unit sphere) unless asked; captures are

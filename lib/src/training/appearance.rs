@@ -10,15 +10,13 @@
 use nerfjit_runtime::volume::appearance::{ColorTransform, TRANSFORM_VALUES};
 use nerfjit_runtime::Adam;
 
+use crate::checkpoint::VIEW_STATE;
 use crate::failure::{Failure, Result};
 use crate::settings::values::AdamSettings;
 
 /// The weight λ of the pull toward the identity, λ·‖values − identity‖² added to a step's loss for its
 /// view's transform.
 pub const PULL: f32 = 1e-3;
-
-/// The floats a view keeps in a checkpoint: its transform, then its Adam state (`[steps, m…, v…]`).
-pub const VIEW_STATE: usize = TRANSFORM_VALUES + 1 + 2 * TRANSFORM_VALUES;
 
 /// Every training view's colour transform and its optimizer.
 pub struct Appearance {

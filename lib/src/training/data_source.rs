@@ -182,7 +182,7 @@ pub fn scored_views(request: &ScoredViews) -> Result<ReadViews> {
         });
     };
     if let Some(note) = chosen.note(file) {
-        crate::note(&note);
+        crate::console::note(&note);
     }
     let how = format!("read as {}", chosen.found.describe());
     let source = chosen.found.source.clone();

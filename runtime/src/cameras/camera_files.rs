@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use glam::Vec2;
 
 use crate::cameras::camera::{check_field_of_view, Camera};
-use crate::data::json::{self, Node};
 use crate::error::{Error, Result};
+use crate::json::{self, Node};
 
 /// Cameras read from a file, each with the image it took.
 #[derive(Debug, Clone)]

@@ -12,8 +12,8 @@ use std::path::Path;
 use glam::{Mat4, Vec4};
 
 use crate::cameras::camera::{Camera, PixelIntrinsics};
-use crate::data::json::{self, Node};
 use crate::error::{Error, Result};
+use crate::json::{self, Node};
 
 /// The cameras of a camera path and the frame size and rate it asks for.
 #[derive(Debug, Clone)]

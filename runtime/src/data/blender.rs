@@ -300,7 +300,7 @@ impl CacheEntry {
 
     /// The cached images if the entry exists, is intact and no existing image changed.
     fn read(&self, stamps: &[Option<u64>]) -> Option<Vec<ImageF32>> {
-        let bytes = crate::data::input::read_capped(&self.file).ok()?;
+        let bytes = crate::input::read_capped(&self.file).ok()?;
         let mut r = ByteReader(&bytes);
         let key_len = u32::try_from(self.key.len()).ok()?;
         let header_ok = r.take(CACHE_MAGIC.len())? == CACHE_MAGIC

@@ -235,7 +235,7 @@ fn model_camera(
 
 /// The lines of a COLMAP text file without its `#` comments, with their 1-based line numbers.
 fn text_lines(file: &Path) -> Result<Vec<(usize, String)>> {
-    let text = crate::data::input::read_text_capped(file).map_err(|e| Error::reading(file, e))?;
+    let text = crate::input::read_text_capped(file).map_err(|e| Error::reading(file, e))?;
     Ok(text
         .lines()
         .enumerate()
@@ -436,7 +436,7 @@ impl<'a> Reader<'a> {
 }
 
 fn read_binary(file: &Path) -> Result<Vec<u8>> {
-    crate::data::input::read_capped(file).map_err(|e| Error::reading(file, e))
+    crate::input::read_capped(file).map_err(|e| Error::reading(file, e))
 }
 
 fn binary_cameras(file: &Path) -> Result<Vec<ModelCamera>> {

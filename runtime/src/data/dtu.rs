@@ -14,10 +14,10 @@ use glam::{DMat3, DVec3, Mat4};
 
 use crate::cameras::camera::PixelIntrinsics;
 use crate::data::capture::{Capture, Distortion, Frame, FrameCamera};
-use crate::data::input::read_stream_capped;
 use crate::data::llff::image_files;
 use crate::data::npy;
 use crate::error::{Error, Result};
+use crate::input::read_stream_capped;
 
 /// The camera archives looked for in a scan's folder, in this order.
 pub const CAMERA_FILES: &[&str] = &["cameras_sphere.npz", "cameras.npz"];

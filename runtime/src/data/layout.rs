@@ -13,10 +13,10 @@ use std::path::{Path, PathBuf};
 use crate::cameras::camera_files::CameraFormat;
 use crate::data::colmap::is_colmap_model;
 use crate::data::dtu::dtu_cameras_file;
-use crate::data::input::read_text_capped;
 use crate::data::llff::{is_llff, POSES_FILE};
 use crate::data::nerfstudio::is_nerfstudio;
 use crate::error::{Error, Result};
+use crate::input::read_text_capped;
 
 /// A layout of captured or synthetic views that nerfjit reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -15,9 +15,9 @@ use glam::Mat4;
 
 use crate::cameras::camera::PixelIntrinsics;
 use crate::data::capture::{Capture, Distortion, Frame, FrameCamera};
-use crate::data::input::read_capped;
 use crate::data::npy;
 use crate::error::{Error, Result};
+use crate::input::read_capped;
 
 /// The name of LLFF's pose file.
 pub const POSES_FILE: &str = "poses_bounds.npy";

@@ -1,7 +1,7 @@
 //! Data and file formats read: the course's views ([`dataset`]), Blender / NeRF-synthetic data sets
 //! ([`blender`]), captures of real scenes from nerfstudio, COLMAP, LLFF and DTU ([`capture`],
 //! [`nerfstudio`], [`colmap`], [`llff`], [`dtu`]), images decoded within the limits ([`decode`]), point
-//! clouds ([`pointcloud`]), NumPy files ([`npy`]), size-capped reading of every input ([`input`]), and
+//! clouds ([`pointcloud`]), NumPy files ([`npy`]), and
 //! which layout a folder holding several is read as ([`layout`]).
 
 pub mod blender;
@@ -10,8 +10,6 @@ pub mod colmap;
 pub mod dataset;
 pub mod decode;
 pub mod dtu;
-pub mod input;
-pub(crate) mod json;
 pub mod layout;
 pub mod llff;
 pub mod nerfstudio;

@@ -13,8 +13,8 @@ use std::path::Path;
 use crate::cameras::camera::PixelIntrinsics;
 use crate::cameras::camera_files::frame_image;
 use crate::data::capture::{Capture, Distortion, Frame, FrameCamera};
-use crate::data::json::{self, Node};
 use crate::error::{Error, Result};
+use crate::json::{self, Node};
 
 /// The camera models read; the others are refused with this list.
 const MODELS: &[&str] = &["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"];

@@ -276,7 +276,7 @@ pub(crate) fn parse(bytes: &[u8]) -> std::result::Result<NpyArray<'_>, String> {
 
 /// Reads a float32 little-endian `.npy` image of shape (H, W, 3), C order.
 pub fn read_npy_rgb(path: &Path) -> Result<ImageF32> {
-    let bytes = crate::data::input::read_capped(path).map_err(|e| Error::read(path, e))?;
+    let bytes = crate::input::read_capped(path).map_err(|e| Error::read(path, e))?;
     let array = parse(&bytes).map_err(|e| Error::format(path, e))?;
     let (height, width) = image_shape(&array).map_err(|e| Error::format(path, e))?;
     let pixels = array

@@ -359,7 +359,7 @@ fn read_ascii(header: &Header, data: &[u8]) -> std::result::Result<Vec<Element>,
 /// Reads the PLY file at `path`; errors name the file and what is wrong (e.g. the line of a
 /// bad ASCII value or the element row where binary data ends).
 pub(crate) fn read_ply(path: &Path) -> Result<Ply> {
-    let bytes = crate::data::input::read_capped(path).map_err(|e| Error::read(path, e))?;
+    let bytes = crate::input::read_capped(path).map_err(|e| Error::read(path, e))?;
     let header = parse_header(&bytes).map_err(|e| Error::format(path, e))?;
     let data = &bytes[header.data_start..];
     let elements = match header.format {

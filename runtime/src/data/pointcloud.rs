@@ -3,6 +3,8 @@
 
 use std::path::Path;
 
+use glam::Vec3;
+
 use crate::data::npy::parse_points;
 use crate::data::ply;
 use crate::error::{Error, Result};
@@ -35,7 +37,7 @@ pub fn read_points(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
     let points = match extension.as_str() {
         "npz" => read_npz(path, key)?,
         "npy" => {
-            let bytes = crate::data::input::read_capped(path).map_err(|e| Error::read(path, e))?;
+            let bytes = crate::input::read_capped(path).map_err(|e| Error::read(path, e))?;
             parse_points(&bytes).map_err(|e| Error::format(path, e))?
         }
         "ply" => read_ply_points(path)?,
@@ -94,7 +96,7 @@ fn read_npz(path: &Path, key: Option<&str>) -> Result<Vec<[f32; 3]>> {
     let bytes = archive
         .by_name(&format!("{name}.npy"))
         .map_err(std::io::Error::from)
-        .and_then(crate::data::input::read_stream_capped)
+        .and_then(crate::input::read_stream_capped)
         .map_err(|e| Error::format(path, format!("array '{name}': {e}")))?;
     parse_points(&bytes).map_err(|e| Error::format(path, format!("array '{name}': {e}")))
 }
@@ -124,7 +126,7 @@ fn read_ply_points(path: &Path) -> Result<Vec<[f32; 3]>> {
 
 /// The points of a text file, one per line that `coordinates` keeps (returning its coordinates' text).
 fn read_xyz(path: &Path, coordinates: impl Fn(&str) -> Option<&str>) -> Result<Vec<[f32; 3]>> {
-    let text = crate::data::input::read_text_capped(path).map_err(|e| Error::read(path, e))?;
+    let text = crate::input::read_text_capped(path).map_err(|e| Error::read(path, e))?;
     let mut points = Vec::new();
     for (k, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -225,7 +227,11 @@ impl PointFrame {
 
 /// The axis-aligned box spanned by `points`: (min, max) per axis, `None` if there are none.
 pub fn bounding_box(points: &[[f32; 3]]) -> Option<([f32; 3], [f32; 3])> {
-    crate::surfaces::mesh::bounds_of(points)
+    let first = Vec3::from(*points.first()?);
+    let (min, max) = points.iter().fold((first, first), |(lo, hi), &p| {
+        (lo.min(Vec3::from(p)), hi.max(Vec3::from(p)))
+    });
+    Some((min.into(), max.into()))
 }
 
 #[cfg(test)]

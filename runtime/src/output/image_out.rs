@@ -8,7 +8,7 @@ use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, DynamicImage, GrayImage, ImageFormat, Rgb, RgbImage};
 
 use crate::error::{check_output_folder, Error, Result};
-use crate::surfaces::sphere_trace::Frame;
+use crate::output::frame::Frame;
 
 /// How a float channel in [0, 1] becomes a byte (values are clamped to [0, 1] first, NaN
 /// becomes 0).

@@ -6,6 +6,7 @@ use std::path::Path;
 use glam::Vec3;
 
 use crate::data::ply;
+use crate::data::pointcloud::bounding_box;
 use crate::error::{check_output_folder, Error, Result};
 
 /// An indexed triangle mesh with one normal per vertex.
@@ -26,15 +27,6 @@ pub struct Mesh {
 fn corners(vertices: &[[f32; 3]], t: [u32; 3]) -> Option<[Vec3; 3]> {
     let v = |i: u32| vertices.get(i as usize).map(|&p| Vec3::from(p));
     Some([v(t[0])?, v(t[1])?, v(t[2])?])
-}
-
-/// The box spanned by `points`: (min, max) per axis, `None` if there are none.
-pub(crate) fn bounds_of(points: &[[f32; 3]]) -> Option<([f32; 3], [f32; 3])> {
-    let first = Vec3::from(*points.first()?);
-    let (min, max) = points.iter().fold((first, first), |(lo, hi), &p| {
-        (lo.min(Vec3::from(p)), hi.max(Vec3::from(p)))
-    });
-    Some((min.into(), max.into()))
 }
 
 impl Mesh {
@@ -112,7 +104,7 @@ impl Mesh {
     /// The box spanned by the vertices: (min, max) per axis, `None` for a mesh without
     /// vertices.
     pub fn bounds(&self) -> Option<([f32; 3], [f32; 3])> {
-        bounds_of(&self.vertices)
+        bounding_box(&self.vertices)
     }
 
     /// Sorted directed edges `(a << 32) | b` of all triangles.

@@ -4,9 +4,10 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::data::pointcloud::bounding_box;
 use crate::error::{Error, Result};
 use crate::surfaces::bvh::Bvh;
-use crate::surfaces::mesh::{bounds_of, Mesh};
+use crate::surfaces::mesh::Mesh;
 
 /// Squared distance from `p` to the segment from `a` to `b` (a point if `a == b`).
 fn segment_distance2(p: Vec3, a: Vec3, b: Vec3) -> f32 {
@@ -174,7 +175,7 @@ pub fn chamfer_report(points: &[[f32; 3]], mesh: &Mesh) -> Result<ChamferReport>
     let to_points = nearest_point_distances(&mesh.vertices, points);
     let (mean_points_to_mesh, max_points_to_mesh) = mean_and_max(&to_mesh);
     let (mean_mesh_to_points, max_mesh_to_points) = mean_and_max(&to_points);
-    let bbox_diagonal = bounds_of(points).map_or(0.0, |(lo, hi)| Vec3::from(hi).distance(Vec3::from(lo)));
+    let bbox_diagonal = bounding_box(points).map_or(0.0, |(lo, hi)| Vec3::from(hi).distance(Vec3::from(lo)));
     Ok(ChamferReport {
         mean_points_to_mesh,
         max_points_to_mesh,

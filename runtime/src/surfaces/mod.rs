@@ -1,7 +1,8 @@
-//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], the fused marcher [`ray_marcher`] compiled
-//! kernels offer, and empty space skipped by interval bounds in `empty_space`), marching cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields
-//! specialized to regions of the grid in [`regions`]), triangle meshes and their files ([`mesh`]), distances between points and meshes ([`mesh_metrics`]) and a software
-//! rasterizer for previews ([`raster`]).
+//! Surfaces: sphere tracing of SDFs ([`mod@sphere_trace`], marching whole rays through the fused tracer
+//! compiled kernels offer, and skipping empty space proven by interval bounds in `empty_space`), marching
+//! cubes ([`marching`], pruned by bounds over boxes in [`prune`], with fields specialized to regions of the
+//! grid in [`regions`]), triangle meshes and their files ([`mesh`]), distances between points and meshes
+//! ([`mesh_metrics`]) and a software rasterizer for previews ([`raster`]).
 
 mod bvh;
 mod empty_space;
@@ -10,6 +11,5 @@ pub mod mesh;
 pub mod mesh_metrics;
 pub mod prune;
 pub mod raster;
-pub mod ray_marcher;
 pub mod regions;
 pub mod sphere_trace;

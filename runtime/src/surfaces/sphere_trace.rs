@@ -23,8 +23,9 @@ use rayon::prelude::*;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Error, Result};
 use crate::field::{check_arity, BatchFn};
+use crate::field::{MarchRays, RayMarcher};
+use crate::output::frame::Frame;
 use crate::surfaces::empty_space::{self, GroupedRays, GROUP_COLUMNS};
-use crate::surfaces::ray_marcher::{MarchRays, RayMarcher};
 
 /// Number of pixels (consecutive in row-major order) traced together as one batch.
 pub const TILE: usize = 1024;
@@ -181,24 +182,6 @@ impl Shading<'_> {
         }
         Ok(())
     }
-}
-
-/// A rendered image with its per-pixel geometry, all in row-major pixel order.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Frame {
-    /// Image width in pixels.
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Shaded color (background where missed).
-    pub rgb: Vec<[f32; 3]>,
-    /// Ray parameter `t` of the hit, i.e. the distance from the camera along the unit ray
-    /// (`f32::INFINITY` where missed).
-    pub depth: Vec<f32>,
-    /// Unit surface normal (zero where missed or unknown).
-    pub normal: Vec<[f32; 3]>,
-    /// Whether the ray hit the surface.
-    pub hit: Vec<bool>,
 }
 
 /// What every tile needs to know about the frame.
@@ -588,20 +571,6 @@ pub fn sphere_trace(
     let mut frame = Frame::empty();
     sphere_trace_into(camera, width, height, sdf, shading, settings, &mut frame)?;
     Ok(frame)
-}
-
-impl Frame {
-    /// A 0×0 frame, to be filled by [`sphere_trace_into`].
-    pub fn empty() -> Frame {
-        Frame {
-            width: 0,
-            height: 0,
-            rgb: Vec::new(),
-            depth: Vec::new(),
-            normal: Vec::new(),
-            hit: Vec::new(),
-        }
-    }
 }
 
 /// [`sphere_trace`] into an existing frame, reusing its memory (every pixel is overwritten).

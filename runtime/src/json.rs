@@ -17,7 +17,7 @@ pub(crate) struct Node<'a> {
 
 /// Reads and parses a JSON file.
 pub(crate) fn read(path: &Path) -> Result<Value> {
-    let text = crate::data::input::read_text_capped(path).map_err(|e| {
+    let text = crate::input::read_text_capped(path).map_err(|e| {
         let reason = match e.kind() {
             std::io::ErrorKind::NotFound => "file not found".to_string(),
             _ => e.to_string(),
