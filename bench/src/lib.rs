@@ -463,7 +463,7 @@ fn w2(reps: usize) -> Result<()> {
     let plan = nerfjit::blocks::volume::VolumePlan::new(first_block(&program, Kind::Volume, ".")?)?;
     let cache = nerfjit_jit::KernelCache::new();
     let t = Instant::now();
-    let field = nerfjit_field::VolumeField::compile(&program, &cache, nerfjit_jit::Precision::F32)?;
+    let field = nerfjit_field::VolumeField::compile(&program, &cache, Precision::F32)?;
     let compile_s = t.elapsed().as_secs_f64();
     let (forward, _) = field.bind(&program.param_values);
     let settings = plan.settings(&field);
@@ -799,9 +799,7 @@ fn w4(reps: usize, products: Precision) -> Result<()> {
         early_termination: None,
         spacing: nerfjit_runtime::DepthSpacing::Linear,
     };
-    let set = nerfjit_runtime::load_blender_cameras(std::path::Path::new(
-        "../shared/data/lego/transforms_val.json",
-    ))?;
+    let set = nerfjit_runtime::load_blender_cameras(Path::new("../shared/data/lego/transforms_val.json"))?;
     let camera = set.cameras[0];
     let seconds = time_reps(reps, || {
         let frame = nerfjit_runtime::render_volume(&camera, 128, 128, &forward, &settings);

@@ -15,7 +15,6 @@
 //! let d = nerfjit_dsl::interp::eval_point(&f.graph, &[1.0, 0.0, 0.0], &program.param_values_f64());
 //! assert!((d.outputs[0] + 0.25).abs() < 1e-12);
 //! ```
-#![warn(missing_docs)]
 
 pub mod ast;
 pub mod autodiff;

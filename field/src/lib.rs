@@ -646,7 +646,7 @@ impl VolumeFields {
         size: (u32, u32),
         params: &[f32],
         settings: &nerfjit_runtime::VolumeSettings,
-        grid: Option<&nerfjit_runtime::OccupancyGrid>,
+        grid: Option<&OccupancyGrid>,
     ) -> Result<nerfjit_runtime::volume::render::VolumeFrame> {
         Ok(self.bind(params).model().render(camera, size, settings, grid)?)
     }

@@ -15,7 +15,6 @@
 //! k.eval(2, &[&x, &y, &z], &mut [&mut d], &[], &mut []);
 //! assert_eq!(d, [1.0, -0.5]);
 //! ```
-#![warn(missing_docs)]
 
 // The dense products (f32 with AVX-512/AVX2, bfloat16 on AMX or AVX-512 BF16) and the grid encodings' reads and scatters
 // are public only with the `bench` feature, for the benchmark workloads of `nerfjit-bench` that time them

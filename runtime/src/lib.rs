@@ -19,7 +19,6 @@
 //! - [`volume`]: sampling along rays, occupancy grids ([`OccupancyGrid`], [`DensityEma`]), the
 //!   [`Compositor`], and its callers: [`render_volume`], hierarchical rendering and the training step
 //!   [`volume_step`].
-#![warn(missing_docs)]
 
 pub mod cameras;
 pub mod data;

@@ -376,7 +376,7 @@ fn run_rejects_bad_scripts_before_any_work() {
     ];
     for (i, (src, expected)) in cases.iter().enumerate() {
         let path = write(&dir, &format!("bad{i}.sdf"), src);
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_nerfjit"))
+        let out = Command::new(env!("CARGO_BIN_EXE_nerfjit"))
             .args(["run", &path])
             .current_dir(&dir)
             .output()

@@ -1050,7 +1050,7 @@ impl<'a> Passes<'a> {
 
     /// The bytes the forward passes keep per point: a tile arena's over its [`TILE`] points.
     pub(crate) fn bytes_per_point(&self) -> usize {
-        self.plan.n_slots * COLUMN * std::mem::size_of::<f32>() / TILE
+        self.plan.n_slots * COLUMN * size_of::<f32>() / TILE
     }
 
     /// Adds what the backward passes summed so far (segment reductions, outer products) to `reductions`.

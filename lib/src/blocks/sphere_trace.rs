@@ -140,10 +140,7 @@ impl SphereTracePlan {
             (ShadingChoice::Color, Some(c)) => Shading::Color {
                 color: c,
                 // Normals cost a gradient evaluation per hit: only when a normal map is asked for.
-                gradient: self
-                    .normals
-                    .as_ref()
-                    .map(|_| &gradient as &dyn nerfjit_runtime::BatchFn),
+                gradient: self.normals.as_ref().map(|_| &gradient as &dyn BatchFn),
             },
             (ShadingChoice::Lambert { light, albedo }, _) => Shading::Lambert {
                 gradient: &gradient,

@@ -66,7 +66,7 @@ impl<'p> Block<'p> {
         out_dir: Option<&Path>,
         outputs: Rc<Outputs>,
     ) -> Result<Block<'p>> {
-        let schema = crate::settings::schema::of(&settings).map_err(|d| at(program, d))?;
+        let schema = schema::of(&settings).map_err(|d| at(program, d))?;
         Ok(Block {
             program,
             schema,

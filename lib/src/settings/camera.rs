@@ -14,16 +14,13 @@ use nerfjit_runtime::{
 
 use crate::settings::primitives::{triple, CallArgs};
 
-fn up(args: &CallArgs) -> std::result::Result<Up, Diagnostic> {
+fn up(args: &CallArgs) -> Result<Up, Diagnostic> {
     Ok(Up::named(&args.choice("up", &["y", "z"], "y")?).unwrap_or(Up::Y))
 }
 
 /// The cameras a `camera` value describes; a camera file is resolved against `script_dir`. The outer error
 /// points into the script; the inner one is the runtime's (a bad file, a degenerate camera).
-pub fn cameras(
-    v: &Spanned,
-    script_dir: &Path,
-) -> std::result::Result<std::result::Result<Vec<Camera>, String>, Diagnostic> {
+pub fn cameras(v: &Spanned, script_dir: &Path) -> Result<Result<Vec<Camera>, String>, Diagnostic> {
     let Value::Call(name, _) = &v.value else {
         return Err(Diagnostic::new(v.span, format!("expected a camera path, found {}", v.describe()))
             .with_hint("write surround(radius: 3, frames: 20, up: z, focal: 1), orbit(...) or cameras(\"file.json\")"));
@@ -60,7 +57,7 @@ pub fn cameras(
         }
         "look_at" => {
             let a = CallArgs::new(v, &["eye", "at", "up", "focal"])?;
-            let vec3 = |slot: &str, d: [f32; 3]| -> std::result::Result<Vec3, Diagnostic> {
+            let vec3 = |slot: &str, d: [f32; 3]| -> Result<Vec3, Diagnostic> {
                 Ok(Vec3::from_array(match a.raw(slot) {
                     Some(s) => triple(s)?,
                     None => d,

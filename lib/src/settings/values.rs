@@ -37,7 +37,7 @@ impl SkipEmpty {
 
 /// The `spacing` setting: `linear`, or `lindisp(split: 6)` (half the samples evenly in depth up to `split`,
 /// half evenly in disparity beyond it).
-pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnostic> {
+pub fn depth_spacing(v: &Spanned) -> Result<DepthSpacing, Diagnostic> {
     match &v.value {
         Value::Name(n) if n == "linear" => Ok(DepthSpacing::Linear),
         Value::Call(n, _) if n == "lindisp" => {
@@ -62,7 +62,7 @@ pub fn depth_spacing(v: &Spanned) -> std::result::Result<DepthSpacing, Diagnosti
 /// `skip_empty: grid(bounds: r or [x0, y0, z0, x1, y1, z1], resolution: 64, threshold: 1e-4, space: scene)`
 /// (or `thickness: 0.01` instead of `threshold`), or `none` (exact: for `--set` to switch a script's grid
 /// off).
-pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnostic> {
+pub fn skip_empty(v: &Spanned) -> Result<Option<SkipEmpty>, Diagnostic> {
     if matches!(&v.value, Value::Name(n) if n == "none") {
         return Ok(None);
     }
@@ -118,7 +118,7 @@ pub fn skip_empty(v: &Spanned) -> std::result::Result<Option<SkipEmpty>, Diagnos
 
 /// The `grid_seed` setting: `points` or `points(dilate: n)` (n cells around each point, 2 by default;
 /// 0 to 16), or `none`.
-pub fn grid_seed(v: &Spanned) -> std::result::Result<Option<usize>, Diagnostic> {
+pub fn grid_seed(v: &Spanned) -> Result<Option<usize>, Diagnostic> {
     let hint = "write points or points(dilate: 2)";
     match &v.value {
         Value::Name(n) if n == "none" => Ok(None),
@@ -143,13 +143,18 @@ pub fn grid_seed(v: &Spanned) -> std::result::Result<Option<usize>, Diagnostic> 
 pub enum GridUpdate {
     /// Probes of every cell, dilated by a cell.
     Rebuild,
-    /// The running maximum, its decay per update and the fraction of the cells each update probes.
-    Ema { decay: f32, fraction: f32 },
+    /// The running maximum, refreshed at each update.
+    Ema {
+        /// How much of a cell's maximum an update keeps.
+        decay: f32,
+        /// The fraction of the cells each update probes.
+        fraction: f32,
+    },
 }
 
 /// The `grid_update` setting: `rebuild` (the default) or `ema(decay: 0.95, fraction: 0.125)` (both
 /// arguments optional).
-pub fn grid_update(v: Option<Spanned>) -> std::result::Result<GridUpdate, Diagnostic> {
+pub fn grid_update(v: Option<Spanned>) -> Result<GridUpdate, Diagnostic> {
     let Some(v) = v else {
         return Ok(GridUpdate::Rebuild);
     };
@@ -183,7 +188,7 @@ pub fn grid_update(v: Option<Spanned>) -> std::result::Result<GridUpdate, Diagno
 }
 
 /// The `val_minutes` setting: one number or a list of them, in minutes of training, as seconds in order.
-pub fn minutes_list(v: &Spanned) -> std::result::Result<Vec<f64>, Diagnostic> {
+pub fn minutes_list(v: &Spanned) -> Result<Vec<f64>, Diagnostic> {
     let items = match &v.value {
         Value::List(items) => items
             .iter()
@@ -224,7 +229,7 @@ impl Default for AdamSettings {
 
 /// The `optimizer` setting: `adam(beta1: 0.9, beta2: 0.99, eps: 1e-15, sparse: true)` (every argument
 /// optional, the default Adam when the setting is absent).
-pub fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagnostic> {
+pub fn optimizer(v: Option<Spanned>) -> Result<AdamSettings, Diagnostic> {
     let defaults = AdamSettings::default();
     let Some(v) = v else {
         return Ok(defaults);
@@ -241,7 +246,7 @@ pub fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagno
         }
     }
     let a = CallArgs::new(&v, &["beta1", "beta2", "eps", "sparse"])?;
-    let decay = |slot: &str, default: f32| -> std::result::Result<f32, Diagnostic> {
+    let decay = |slot: &str, default: f32| -> Result<f32, Diagnostic> {
         match a.raw(slot) {
             None => Ok(default),
             Some(x) => Ok(crate::settings::primitives::ranged(x, 0.0, 0.999_999)? as f32),
@@ -262,7 +267,7 @@ pub fn optimizer(v: Option<Spanned>) -> std::result::Result<AdamSettings, Diagno
 /// The `schedule` setting: `constant` (the default), `exponential(gamma: 0.1, every: 1000)`,
 /// `exponential(gamma: 0.01, over: run)` (by `gamma` over the whole run, see
 /// [`Schedule::ExponentialOverRun`]) or `step(factor: 0.8, every: 50)`, starting from the rate `lr`.
-pub fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Diagnostic> {
+pub fn schedule(v: Option<Spanned>, lr: f32) -> Result<Schedule, Diagnostic> {
     const FORMS: &str =
         "write constant, exponential(gamma: 0.1, every: 1000), exponential(gamma: 0.01, over: run) or \
          step(factor: 0.8, every: 50)";
@@ -319,7 +324,7 @@ pub fn schedule(v: Option<Spanned>, lr: f32) -> std::result::Result<Schedule, Di
 // The settings of `render sphere_trace`.
 
 /// The `bounds` setting of sphere tracing: `sphere(center: [x, y, z], radius: r)`.
-pub fn bounding_sphere(v: &Spanned) -> std::result::Result<(Vec3, f32), Diagnostic> {
+pub fn bounding_sphere(v: &Spanned) -> Result<(Vec3, f32), Diagnostic> {
     let a = CallArgs::new(v, &["center", "radius"])?;
     let center = a.raw("center").map(triple).transpose()?.unwrap_or([0.0; 3]);
     let radius = a.number("radius", None)?;

@@ -281,7 +281,7 @@ pub fn train(
     let start = Instant::now();
     objective.start(first, params, &ui)?;
     // How the gradients travel: fixed by NERFJIT_ALL_REDUCE, or each step the cheaper (`None`).
-    let forced = crate::cluster::Reduction::from_env().map_err(Failure::Message)?;
+    let forced = Reduction::from_env().map_err(Failure::Message)?;
     if ranks > 1 {
         // What each rank reduces a step: every gradient, the loss, the Ctrl-C flag and its clock.
         let floats = params.len() + 3;

@@ -686,7 +686,7 @@ mod tests {
     /// 96 samples in [1, 5] of a density on a colored background.
     fn blob_settings(early_termination: Option<f32>) -> VolumeSettings {
         VolumeSettings {
-            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            spacing: DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples: 96,
@@ -868,7 +868,7 @@ mod tests {
                 Mode::Opacity => [0.05, theta[1], theta[2], theta[3], theta[4], theta[5], theta[6]],
             };
             let settings = VolumeSettings {
-                spacing: crate::volume::sampler::DepthSpacing::Linear,
+                spacing: DepthSpacing::Linear,
                 near: 1.0,
                 far: 5.0,
                 // Small tiles: several tiles and chunks per step.
@@ -1145,7 +1145,7 @@ mod tests {
     fn jitter_is_seeded_and_changes_the_samples() {
         let theta = [1.5f32, 0.2, -0.1, 0.3, 0.6, 0.8, 0.2];
         let settings = VolumeSettings {
-            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            spacing: DepthSpacing::Linear,
             near: 1.0,
             far: 5.0,
             samples: 32,
@@ -1175,7 +1175,7 @@ mod tests {
         let field = ClosureFn::new(3, 4, |_, out| out.fill(0.5));
         let vjp = ClosureVjp::new(3, 4, 1, |_, _, _| {});
         let settings = VolumeSettings {
-            spacing: crate::volume::sampler::DepthSpacing::Linear,
+            spacing: DepthSpacing::Linear,
             near: 0.0,
             far: 5.0,
             samples: 8,
