@@ -65,9 +65,9 @@ pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
 pub use volume::model::{TrainableModel, VolumeModel};
 pub use volume::occupancy::{
-    check_thickness, contract, ndc, uncontract, unndc, CellThickness, GridSpace, OccupancyGrid, Unwarped,
+    check_thickness, contract, ndc, uncontract, unndc, CellThickness, DensityEma, GridSpace, OccupancyGrid,
+    Unwarped,
 };
-pub use volume::occupancy_ema::DensityEma;
 pub use volume::render::render_volume_with;
 pub use volume::render::{render_volume, VolumeFrame, VolumeSettings};
 pub use volume::sampler::{sample_depths, sample_points, DepthRange, DepthSpacing, Spacing};

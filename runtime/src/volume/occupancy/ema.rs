@@ -14,11 +14,12 @@
 
 use rayon::prelude::*;
 
+use super::build::{cell_peaks, check_grid, check_threshold, mean};
+use super::OccupancyGrid;
 use crate::error::{Error, Result};
 use crate::field::BatchFn;
 use crate::rng::Rng;
 use crate::volume::composite::Mode;
-use crate::volume::occupancy::{cell_peaks, check_grid, check_threshold, mean, OccupancyGrid};
 
 /// Points per field call in an update.
 const UPDATE_BATCH: usize = 8192;
