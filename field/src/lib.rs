@@ -12,7 +12,8 @@ use nerfjit_runtime::field::{MarchRays, RayMarcher};
 use nerfjit_runtime::surfaces::regions::{Specialize, Specialized};
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::{
-    BatchFn, BatchVjp, GridSpace, HeldScatters, KeptPasses, OccupancyGrid, TrainableModel, VolumeModel,
+    BatchFn, BatchVjp, CoarsePass, GridSpace, HeldScatters, KeptPasses, OccupancyGrid, TrainableModel,
+    VolumeModel,
 };
 
 /// Why a script function could not be made a field: errors in the script, or anything else (a missing
@@ -682,11 +683,13 @@ impl BoundFields<'_> {
     /// The volume as trained.
     pub fn trainable(&self) -> TrainableModel<'_> {
         TrainableModel {
-            field: (&self.fine.0, &self.fine.1),
-            coarse: self
-                .coarse
-                .as_ref()
-                .map(|((c, v), n)| (c as &dyn BatchFn, v as &dyn BatchVjp, *n)),
+            field: &self.fine.0,
+            vjp: &self.fine.1,
+            coarse: self.coarse.as_ref().map(|((field, vjp), importance)| CoarsePass {
+                field,
+                vjp,
+                importance: *importance,
+            }),
             recompute_forward: false,
             appearance: None,
             distortion: 0.0,
@@ -736,7 +739,7 @@ mod tests {
     /// held back and added level by level after the step's tasks, one task and several).
     #[test]
     fn kept_forward_passes_train_as_recomputed_ones() {
-        use nerfjit_runtime::{Camera, RayBatch, VolumeSettings};
+        use nerfjit_runtime::{Camera, RayBatch, StepWorkspace, VolumeSettings};
         let cache = KernelCache::new();
         let camera = Camera::look_at(
             glam::Vec3::new(0.3, 0.5, -3.0),
@@ -781,7 +784,11 @@ mod tests {
                     recompute_forward,
                     ..bound.trainable()
                 };
-                model.step((&rays, &targets), &settings, None, None).unwrap()
+                let mut workspace = StepWorkspace::default();
+                let step = model
+                    .step(&rays, &targets, &settings, None, None, &mut workspace)
+                    .unwrap();
+                (step.loss, workspace.grads().to_vec())
             };
             let holds = bound.fine.1.kept_passes().unwrap().hold_scatters();
             assert_eq!(holds, source == HASH_NET, "a hash grid's scatters are held back");
@@ -791,20 +798,16 @@ mod tests {
             let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
             let bits = |g: &[f32]| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
             let alone = one_thread.install(|| step(false));
-            assert_eq!(
-                bits(&alone.param_grads),
-                bits(&kept.param_grads),
-                "{products:?}, {n_rays} rays"
-            );
+            assert_eq!(bits(&alone.1), bits(&kept.1), "{products:?}, {n_rays} rays");
             assert!(
-                (kept.loss - recomputed.loss).abs() <= 1e-6 * recomputed.loss,
+                (kept.0 - recomputed.0).abs() <= 1e-6 * recomputed.0,
                 "{products:?}: {} vs {}",
-                kept.loss,
-                recomputed.loss
+                kept.0,
+                recomputed.0
             );
-            let scale = recomputed.param_grads.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+            let scale = recomputed.1.iter().fold(0.0f32, |m, g| m.max(g.abs()));
             assert!(scale > 0.0);
-            for (k, (a, b)) in kept.param_grads.iter().zip(&recomputed.param_grads).enumerate() {
+            for (k, (a, b)) in kept.1.iter().zip(&recomputed.1).enumerate() {
                 assert!(
                     (a - b).abs() <= 1e-5 * scale,
                     "{products:?}, param {k}: {a} vs {b}"

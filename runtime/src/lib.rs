@@ -63,7 +63,7 @@ pub use training::denormals::flush_denormals;
 pub use training::metrics::{masked_mse, mse, psnr, ssim};
 pub use training::optim::{Adam, Schedule};
 pub use volume::composite::{Compositor, Mode, RayOutput, SampleGrads, Samples};
-pub use volume::model::{TrainableModel, VolumeModel};
+pub use volume::model::{CoarsePass, TrainableModel, VolumeModel};
 pub use volume::occupancy::{
     check_thickness, contract, ndc, uncontract, unndc, CellThickness, DensityEma, GridSpace, OccupancyGrid,
     Unwarped,
@@ -71,5 +71,5 @@ pub use volume::occupancy::{
 pub use volume::render::render_volume_with;
 pub use volume::render::{render_volume, VolumeFrame, VolumeSettings};
 pub use volume::sampler::{sample_depths, sample_points, DepthRange, DepthSpacing, Spacing};
-pub use volume::train::{volume_step, volume_step_with, FinePass, StepOptions, StepResult};
+pub use volume::train::{volume_step, volume_step_with, FinePass, StepOptions, StepResult, StepWorkspace};
 pub use volume::transmittance::{Medium, Segment, Transmittance};

@@ -8,7 +8,7 @@ use std::path::Path;
 use glam::{Vec2, Vec3};
 use nerfjit_runtime::{
     load_box_views, mse, render_volume, volume_step, Adam, BatchFn, BatchVjp, Camera, ClosureFn, ClosureVjp,
-    ImageF32, Mode, RayBatch, Rng, Schedule, StepResult, VolumeSettings,
+    ImageF32, Mode, RayBatch, Rng, Schedule, StepResult, StepWorkspace, VolumeSettings,
 };
 
 const BETA: f32 = 0.05;
@@ -181,20 +181,44 @@ fn recovers_box_center_and_sides_from_small_views() {
     let truth: Params = [0.15, -0.1, 0.05, 1.2, 0.8, 1.0];
     let (rays, targets) = views(&field(truth), &settings);
     // The trainer renders exactly what the renderer rendered.
-    let at_truth = volume_step(&rays, &targets, &field(truth), &vjp(truth), &settings, None).unwrap();
+    let mut workspace = StepWorkspace::default();
+    let at_truth = volume_step(
+        &rays,
+        &targets,
+        &field(truth),
+        &vjp(truth),
+        &settings,
+        None,
+        &mut workspace,
+    )
+    .unwrap();
     assert!(at_truth.loss < 1e-10, "loss at the truth {}", at_truth.loss);
 
     let start = [0.0, 0.0, 0.0, 1.5, 1.5, 1.5];
-    recover(&start, &truth, 0.015, |theta| {
+    recover(&start, &truth, 0.015, |theta, workspace| {
         let theta: Params = theta.try_into().expect("six params");
-        volume_step(&rays, &targets, &field(theta), &vjp(theta), &settings, None).unwrap()
+        volume_step(
+            &rays,
+            &targets,
+            &field(theta),
+            &vjp(theta),
+            &settings,
+            None,
+            workspace,
+        )
+        .unwrap()
     });
 }
 
 /// Fits params from `start` with Adam on the loss and gradient `step` gives (150 steps, the learning rate
 /// decaying from 0.05 to 0.005), and checks that they recover `truth` within `tolerance` and that the
 /// PSNR rose by more than 15 dB.
-fn recover(start: &[f32], truth: &[f32], tolerance: f32, step: impl Fn(&[f32]) -> StepResult) {
+fn recover(
+    start: &[f32],
+    truth: &[f32],
+    tolerance: f32,
+    step: impl Fn(&[f32], &mut StepWorkspace) -> StepResult,
+) {
     let steps = 150;
     let schedule = Schedule::Exponential {
         lr: 0.05,
@@ -203,12 +227,13 @@ fn recover(start: &[f32], truth: &[f32], tolerance: f32, step: impl Fn(&[f32]) -
     };
     let mut theta = start.to_vec();
     let mut adam = Adam::new(theta.len(), 0.0);
-    let first = step(&theta);
+    let mut workspace = StepWorkspace::default();
+    let first = step(&theta, &mut workspace);
     let mut last = first.clone();
     for i in 0..steps {
-        last = step(&theta);
+        last = step(&theta, &mut workspace);
         adam.lr = schedule.lr(i, 0.0);
-        adam.step(&mut theta, &last.param_grads).unwrap();
+        adam.step(&mut theta, workspace.grads()).unwrap();
     }
     let error = theta
         .iter()
@@ -294,8 +319,8 @@ fn recovers_a_jit_compiled_box_from_small_views() {
     let truth = [0.15, -0.1, 0.05, 1.2, 0.8, 1.0];
     let (rays, targets) = views(&jit.bind(&truth).0, &settings);
 
-    recover(&program.param_values, &truth, 0.015, |theta| {
+    recover(&program.param_values, &truth, 0.015, |theta, workspace| {
         let (field, vjp) = jit.bind(theta);
-        volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap()
+        volume_step(&rays, &targets, &field, &vjp, &settings, None, workspace).unwrap()
     });
 }

@@ -9,7 +9,7 @@ use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
 use nerfjit_runtime::{
     check_thickness, load_blender_views, rgb_image, save_png, DensityEma, DepthSpacing, GridSpace,
-    OccupancyGrid, Quantize, Rng, Schedule, TrainableModel, Views, VolumeSettings,
+    OccupancyGrid, Quantize, Rng, Schedule, StepWorkspace, TrainableModel, Views, VolumeSettings,
 };
 
 use crate::failure::{Failure, Result};
@@ -550,6 +550,7 @@ impl TrainPlan {
             appearance: self
                 .appearance
                 .then(|| Appearance::new(views.len(), self.optimizer)),
+            workspace: StepWorkspace::default(),
         };
         let loop_settings = LoopSettings {
             steps: self.steps,
@@ -685,6 +686,8 @@ struct VolumeObjective<'a> {
     rays: usize,
     /// The training views' colour transforms (`appearance: true`).
     appearance: Option<Appearance>,
+    /// The memory the steps reuse, and the last step's gradient.
+    workspace: StepWorkspace,
 }
 
 impl VolumeObjective<'_> {
@@ -887,7 +890,7 @@ impl Objective for VolumeObjective<'_> {
         self.update_grid(step, params, ui)
     }
 
-    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient> {
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
         let plan = self.plan;
         let view = match plan.views {
             ViewChoice::Random => self.step_rng.below(self.views.len() as u64) as usize,
@@ -922,7 +925,8 @@ impl Objective for VolumeObjective<'_> {
             distortion: plan.distortion,
             ..fields.trainable()
         };
-        let mut result = model.step((&rays, &targets), &settings, self.grid.as_ref(), jitter)?;
+        let grid = self.grid.as_ref();
+        let result = model.step(&rays, &targets, &settings, grid, jitter, &mut self.workspace)?;
         if let (Some(appearance), Some(mut grads)) = (&mut self.appearance, result.appearance_grads) {
             // The ranks' mean, as for the field's params: every rank takes the same step.
             if ranks > 1 {
@@ -940,7 +944,8 @@ impl Objective for VolumeObjective<'_> {
                 _ => uniform_points(&mut self.rng, reg.points, reg.bound),
             };
             let threads = rayon::current_num_threads();
-            let [_, eikonal] = reg.add_at(k, &points, params, &mut result.param_grads, threads);
+            let grads = self.workspace.grads_mut();
+            let [_, eikonal] = reg.add_at(k, &points, params, grads, threads);
             self.eikonal_loss = eikonal;
         }
         self.psnr = result.psnr;
@@ -957,13 +962,9 @@ impl Objective for VolumeObjective<'_> {
         }
         Ok(Gradient {
             loss: result.loss,
-            grads: result.param_grads,
+            grads: self.workspace.grads_mut(),
             samples: result.samples,
         })
-    }
-
-    fn recycle(&mut self, grads: Vec<f32>) {
-        nerfjit_runtime::volume::train::recycle(grads);
     }
 
     fn after_step(&mut self, p: &Progress, params: &[f32], ui: &mut Ui) -> Result<()> {

@@ -251,6 +251,7 @@ impl TrainSdfPlan {
             rng: Rng::new(self.seed ^ 0xB0_77 ^ ((crate::cluster::current().rank() as u64) << 40)),
             threads: rayon::current_num_threads(),
             terms: [f32::NAN; 3],
+            grads: Vec::new(),
         };
         let settings = LoopSettings {
             steps: self.pretrain_steps + self.steps,
@@ -466,20 +467,24 @@ struct SdfObjective<'a> {
     threads: usize,
     /// The last step's surface, near-surface and eikonal terms.
     terms: [f32; 3],
+    /// The last step's gradient.
+    grads: Vec<f32>,
 }
 
 impl Objective for SdfObjective<'_> {
-    fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient> {
+    fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
         let (plan, k, threads) = (self.plan, self.kernels, self.threads);
-        let mut grads = vec![0.0f32; params.len()];
+        let grads = &mut self.grads;
+        grads.clear();
+        grads.resize(params.len(), 0.0);
         self.terms = if step < plan.pretrain_steps {
-            let sphere = plan.sphere_step(k, params, &mut grads, &mut self.rng, threads);
+            let sphere = plan.sphere_step(k, params, grads, &mut self.rng, threads);
             [sphere, 0.0, 0.0]
         } else {
             plan.fit_step(
                 k,
                 params,
-                &mut grads,
+                grads,
                 self.cloud,
                 self.clearance,
                 &mut self.rng,
@@ -488,7 +493,7 @@ impl Objective for SdfObjective<'_> {
         };
         Ok(Gradient {
             loss: self.terms.iter().sum(),
-            grads,
+            grads: &mut self.grads,
             samples: 0,
         })
     }

@@ -56,12 +56,13 @@ pub struct LoopSettings<'a> {
     pub bars: &'a dyn ProgressBars,
 }
 
-/// One step's loss and the gradient of the params.
-pub struct Gradient {
+/// One step's loss and the gradient of the params, which the objective keeps (and reuses next step).
+pub struct Gradient<'a> {
     /// The loss (all terms).
     pub loss: f32,
-    /// ∂loss/∂params, one per param value.
-    pub grads: Vec<f32>,
+    /// ∂loss/∂params, one per param value (the loop may lengthen it while it all-reduces, and shortens it
+    /// again).
+    pub grads: &'a mut Vec<f32>,
     /// Field samples the step evaluated (0 where the objective does not count them).
     pub samples: usize,
 }
@@ -132,10 +133,7 @@ pub trait Objective {
 
     /// The loss of step `step` at `params` and its gradient; `lr` is the step's learning rate, for what
     /// the objective trains itself beside the params.
-    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient>;
-
-    /// Takes back a step's gradient buffer once the params are updated (to reuse it).
-    fn recycle(&mut self, _grads: Vec<f32>) {}
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient<'_>>;
 
     /// Work after each step, outside the training time: log records, validation, previews, viewers.
     fn after_step(&mut self, progress: &Progress, params: &[f32], ui: &mut Ui) -> Result<()>;
@@ -280,25 +278,12 @@ pub fn train(
     ui.bar.set_position(u64::from(first));
     let start = Instant::now();
     objective.start(first, params, &ui)?;
-    // How the gradients travel: fixed by NERFJIT_ALL_REDUCE, or each step the cheaper (`None`).
-    let forced = Reduction::from_env().map_err(Failure::Message)?;
+    let mut reduce = AllReduce::new(cluster, Reduction::from_env().map_err(Failure::Message)?);
     if ranks > 1 {
-        // What each rank reduces a step: every gradient, the loss, the Ctrl-C flag and its clock.
-        let floats = params.len() + 3;
-        ui.report(format!(
-            "data parallel over {ranks} ranks: each step all-reduces {floats} floats ({:.2} MB), {}",
-            floats as f64 * 4e-6,
-            match forced {
-                Some(Reduction::Dense) => "every value",
-                Some(Reduction::Sparse) => "the non-zero ones (NERFJIT_ALL_REDUCE=sparse)",
-                None => "every value or only the non-zero ones, whichever sends fewer bytes (NERFJIT_ALL_REDUCE=auto)",
-            }
-        ));
+        ui.report(reduce.plan(params.len()));
     }
-    // Bytes each rank sent in the all-reduces, and the steps that sent only the non-zero values.
-    let (mut bytes_sent, mut sparse_steps) = (0.0, 0u32);
-    // Time spent in the data-parallel all-reduce (waiting for the slowest rank included).
-    let (mut reduce_seconds, mut step_seconds) = (0.0, 0.0);
+    // Seconds of the steps alone (hooks excluded), for the all-reduce's share.
+    let mut step_seconds = 0.0;
     // In an MPI job the ranks keep one clock: the mean of their training times, agreed at each all-reduce
     // (validation times, the time limit and the logs then agree on every rank). `tail`: this rank's seconds of
     // the last step after its all-reduce, counted at the next one.
@@ -309,7 +294,7 @@ pub fn train(
         let lr = schedule.lr(step, run_fraction(step, finished.train_seconds));
         let Gradient {
             mut loss,
-            mut grads,
+            grads,
             samples,
         } = objective.gradient(step, lr, params)?;
         // Data parallel: every rank takes the mean of the ranks' gradients, losses and clocks, and stops when
@@ -318,34 +303,10 @@ pub fn train(
         let mut reduced_at = step_start;
         if ranks > 1 {
             let spent = finished.train_seconds + tail + step_start.elapsed().as_secs_f64();
-            grads.extend([loss, f32::from(u8::from(ui.watch.requested())), spent as f32]);
-            let reducing = Instant::now();
-            // This rank's non-zero values (only the sparse reductions need them), as a count for all ranks.
-            let nonzero = match forced {
-                Some(Reduction::Dense) => 0,
-                _ => grads.iter().filter(|g| **g != 0.0).count() * ranks,
-            };
-            let reduction = forced.unwrap_or_else(|| {
-                // The ranks agree on the non-zero count first (one float), then on the reduction.
-                let mut total = [(nonzero / ranks) as f32];
-                cluster.all_reduce_sum(&mut total);
-                Reduction::cheaper(grads.len(), total[0] as usize, ranks)
-            });
-            bytes_sent += reduction.bytes_sent(grads.len(), nonzero, ranks);
-            match reduction {
-                Reduction::Dense => cluster.all_reduce_sum(&mut grads),
-                Reduction::Sparse => {
-                    sparse_steps += 1;
-                    crate::cluster::all_reduce_sparse_sum(cluster, &mut grads);
-                }
-            }
+            let mean = reduce.mean(grads, loss, ui.watch.requested(), spent);
             reduced_at = Instant::now();
-            reduce_seconds += (reduced_at - reducing).as_secs_f64();
-            let sums = grads.split_off(grads.len() - 3);
-            let scale = 1.0 / ranks as f32;
-            grads.iter_mut().for_each(|g| *g *= scale);
-            loss = sums[0] * scale;
-            agreed = Some((sums[1] > 0.0, f64::from(sums[2] * scale)));
+            loss = mean.loss;
+            agreed = Some(mean);
         }
         let threads = rayon::current_num_threads() as u32;
         let diverged = |grads: &[f32]| {
@@ -353,34 +314,33 @@ pub fn train(
             crate::checkpoint::diverged(program, step, loss, grads, settings.checkpoint)
         };
         if !loss.is_finite() {
-            return Err(diverged(&grads));
+            return Err(diverged(grads));
         }
         adam.lr = lr;
         let update = Instant::now();
-        let rejected = adam.step(params, &grads)?;
+        let rejected = adam.step(params, grads)?;
         // Adam runs on every thread: its time summed over them, as the kernels' phases are.
         profile::record(Phase::Optimizer, update.elapsed() * threads);
         // Adam reads the params, gradients and both moments and writes all but the gradients.
         profile::count(Phase::Optimizer, 28 * params.len() as u64);
         if rejected > 0 {
             if !grads.iter().all(|g| g.is_finite()) {
-                return Err(diverged(&grads));
+                return Err(diverged(grads));
             }
             ui.bar.abandon();
             return Err(Failure::Message(format!(
                 "training diverged at step {step}: {rejected} param values would become non-finite"
             )));
         }
-        objective.recycle(grads);
         let step_time = step_start.elapsed();
         profile::record(Phase::Steps, step_time);
         profile::count(Phase::Steps, samples as u64);
         step_seconds += step_time.as_secs_f64();
         finished.interrupted = match agreed {
-            Some((interrupted, seconds)) => {
-                finished.train_seconds = seconds;
+            Some(agreed) => {
+                finished.train_seconds = agreed.train_seconds;
                 tail = reduced_at.elapsed().as_secs_f64();
-                interrupted
+                agreed.interrupted
             }
             None => {
                 finished.train_seconds += step_time.as_secs_f64();
@@ -436,18 +396,111 @@ pub fn train(
         }
     }
     if ranks > 1 && finished.done > first {
-        let steps = f64::from(finished.done - first);
-        ui.report(format!(
-            "all-reduce: {:.2} ms a step ({:.1}% of the training time; waiting for the slowest rank included), \
-             {:.2} MB sent a step by each rank, only the non-zero values in {sparse_steps} of {steps} steps",
-            1e3 * reduce_seconds / steps,
-            100.0 * reduce_seconds / step_seconds.max(1e-9),
-            bytes_sent * 1e-6 / steps
-        ));
+        ui.report(reduce.summary(finished.done - first, step_seconds));
     }
     ui.bar.finish_and_clear();
     finished.wall_seconds = start.elapsed().as_secs_f64();
     Ok(finished)
+}
+
+/// What the ranks of a data-parallel job agree on in a step's all-reduce.
+struct Agreed {
+    /// The mean of the ranks' losses.
+    loss: f32,
+    /// Whether any rank was interrupted.
+    interrupted: bool,
+    /// The mean of the ranks' training times.
+    train_seconds: f64,
+}
+
+/// A run's all-reduces: how the gradients travel (fixed by `NERFJIT_ALL_REDUCE`, or each step the cheaper
+/// way when `forced` is `None`) and what they cost.
+struct AllReduce<'c> {
+    cluster: &'c dyn crate::cluster::Cluster,
+    forced: Option<Reduction>,
+    /// Bytes this rank sent.
+    bytes_sent: f64,
+    /// Steps that sent only the non-zero values.
+    sparse_steps: u32,
+    /// Seconds spent in the all-reduces (waiting for the slowest rank included).
+    seconds: f64,
+}
+
+impl<'c> AllReduce<'c> {
+    fn new(cluster: &'c dyn crate::cluster::Cluster, forced: Option<Reduction>) -> AllReduce<'c> {
+        AllReduce {
+            cluster,
+            forced,
+            bytes_sent: 0.0,
+            sparse_steps: 0,
+            seconds: 0.0,
+        }
+    }
+
+    /// What each step will reduce, for a gradient of `params` values, in a line.
+    fn plan(&self, params: usize) -> String {
+        // Every gradient, the loss, the Ctrl-C flag and the rank's clock.
+        let floats = params + 3;
+        format!(
+            "data parallel over {} ranks: each step all-reduces {floats} floats ({:.2} MB), {}",
+            self.cluster.size(),
+            floats as f64 * 4e-6,
+            match self.forced {
+                Some(Reduction::Dense) => "every value",
+                Some(Reduction::Sparse) => "the non-zero ones (NERFJIT_ALL_REDUCE=sparse)",
+                None => "every value or only the non-zero ones, whichever sends fewer bytes (NERFJIT_ALL_REDUCE=auto)",
+            }
+        )
+    }
+
+    /// Replaces this rank's `grads` by the ranks' mean, and agrees on the mean loss, whether any rank was
+    /// `interrupted` and the mean of the seconds they `spent`.
+    fn mean(&mut self, grads: &mut Vec<f32>, loss: f32, interrupted: bool, spent: f64) -> Agreed {
+        let ranks = self.cluster.size();
+        grads.extend([loss, f32::from(u8::from(interrupted)), spent as f32]);
+        let reducing = Instant::now();
+        // This rank's non-zero values (only the sparse reductions need them), as a count for all ranks.
+        let nonzero = match self.forced {
+            Some(Reduction::Dense) => 0,
+            _ => grads.iter().filter(|g| **g != 0.0).count() * ranks,
+        };
+        let reduction = self.forced.unwrap_or_else(|| {
+            // The ranks agree on the non-zero count first (one float), then on the reduction.
+            let mut total = [(nonzero / ranks) as f32];
+            self.cluster.all_reduce_sum(&mut total);
+            Reduction::cheaper(grads.len(), total[0] as usize, ranks)
+        });
+        self.bytes_sent += reduction.bytes_sent(grads.len(), nonzero, ranks);
+        match reduction {
+            Reduction::Dense => self.cluster.all_reduce_sum(grads),
+            Reduction::Sparse => {
+                self.sparse_steps += 1;
+                crate::cluster::all_reduce_sparse_sum(self.cluster, grads);
+            }
+        }
+        self.seconds += reducing.elapsed().as_secs_f64();
+        let scale = 1.0 / ranks as f32;
+        let sums = grads.split_off(grads.len() - 3);
+        grads.iter_mut().for_each(|g| *g *= scale);
+        Agreed {
+            loss: sums[0] * scale,
+            interrupted: sums[1] > 0.0,
+            train_seconds: f64::from(sums[2] * scale),
+        }
+    }
+
+    /// What the all-reduces of `steps` steps cost, against the `step_seconds` the steps took, in a line.
+    fn summary(&self, steps: u32, step_seconds: f64) -> String {
+        let steps = f64::from(steps);
+        format!(
+            "all-reduce: {:.2} ms a step ({:.1}% of the training time; waiting for the slowest rank included), \
+             {:.2} MB sent a step by each rank, only the non-zero values in {} of {steps} steps",
+            1e3 * self.seconds / steps,
+            100.0 * self.seconds / step_seconds.max(1e-9),
+            self.bytes_sent * 1e-6 / steps,
+            self.sparse_steps
+        )
+    }
 }
 
 /// Fails (on rank 0) unless every rank of the job holds the same params, bit for bit.
@@ -481,6 +534,7 @@ mod tests {
         poison: Option<u32>,
         started_at: Option<u32>,
         seen: Vec<Progress>,
+        grads: Vec<f32>,
     }
 
     impl Quadratic {
@@ -490,6 +544,7 @@ mod tests {
                 poison,
                 started_at: None,
                 seen: Vec::new(),
+                grads: Vec::new(),
             }
         }
     }
@@ -500,15 +555,15 @@ mod tests {
             Ok(())
         }
 
-        fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient> {
+        fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
             let diff: Vec<f32> = params.iter().zip(self.target).map(|(p, t)| p - t).collect();
-            let mut grads: Vec<f32> = diff.iter().map(|d| 2.0 * d).collect();
+            self.grads = diff.iter().map(|d| 2.0 * d).collect();
             if self.poison == Some(step) {
-                grads[1] = f32::NAN;
+                self.grads[1] = f32::NAN;
             }
             Ok(Gradient {
                 loss: diff.iter().map(|d| d * d).sum(),
-                grads,
+                grads: &mut self.grads,
                 samples: 3,
             })
         }

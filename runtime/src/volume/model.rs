@@ -11,7 +11,7 @@ use crate::volume::appearance::ColorTransform;
 use crate::volume::hierarchical::{render_hierarchical, CoarseFine};
 use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::render::{render_volume_with, VolumeFrame, VolumeSettings};
-use crate::volume::train::{volume_step_with, FinePass, StepOptions, StepResult};
+use crate::volume::train::{volume_step_with, FinePass, StepOptions, StepResult, StepWorkspace};
 
 /// A volume as rendered: its field (the fine one with hierarchical sampling), and with hierarchical
 /// sampling the coarse field and the importance samples per ray.
@@ -50,10 +50,12 @@ impl VolumeModel<'_> {
 /// A volume as trained: each field with its backward pass.
 #[derive(Clone, Copy)]
 pub struct TrainableModel<'a> {
-    /// The field that makes the image, and its backward pass.
-    pub field: (&'a dyn BatchFn, &'a dyn BatchVjp),
-    /// With hierarchical sampling: the coarse field, its backward pass, and the importance samples per ray.
-    pub coarse: Option<(&'a dyn BatchFn, &'a dyn BatchVjp, usize)>,
+    /// The field that makes the image.
+    pub field: &'a dyn BatchFn,
+    /// Its backward pass.
+    pub vjp: &'a dyn BatchVjp,
+    /// With hierarchical sampling: the coarse field, whose weights place more samples for `field`.
+    pub coarse: Option<CoarsePass<'a>>,
     /// Recompute the forward pass in the backward pass even where the fields could keep its values
     /// ([`StepOptions::recompute_forward`]).
     pub recompute_forward: bool,
@@ -63,43 +65,68 @@ pub struct TrainableModel<'a> {
     pub distortion: f32,
 }
 
+/// The coarse pass of hierarchical sampling, as trained: the coarse field, sampled at the fixed depths,
+/// its backward pass, and the samples per ray drawn from its weights for the fine field.
+#[derive(Clone, Copy)]
+pub struct CoarsePass<'a> {
+    /// The coarse field.
+    pub field: &'a dyn BatchFn,
+    /// Its backward pass.
+    pub vjp: &'a dyn BatchVjp,
+    /// Depths drawn per ray from its weights.
+    pub importance: usize,
+}
+
 impl TrainableModel<'_> {
     /// One training step on `rays` toward `targets` ([`volume_step_with`]: both fields trained with
     /// hierarchical sampling), skipping the cells `grid` marks empty when given, with stratified depths
-    /// drawn from `jitter` when given.
+    /// drawn from `jitter` when given; the gradient is left in `workspace`.
     pub fn step(
         &self,
-        (rays, targets): (&RayBatch, &[[f32; 3]]),
+        rays: &RayBatch,
+        targets: &[[f32; 3]],
         settings: &VolumeSettings,
         grid: Option<&OccupancyGrid>,
         jitter: Option<&mut Rng>,
+        workspace: &mut StepWorkspace,
     ) -> Result<StepResult> {
-        let (field, vjp) = self.field;
-        match self.coarse {
-            None => {
-                let options = StepOptions {
-                    fine: None,
-                    grid,
-                    recompute_forward: self.recompute_forward,
-                    appearance: self.appearance,
-                    distortion: self.distortion,
-                };
-                volume_step_with(rays, targets, field, vjp, settings, options, jitter)
-            }
-            Some((coarse, coarse_vjp, importance)) => {
-                let fine = FinePass {
-                    field,
-                    vjp,
-                    importance,
-                };
-                let options = StepOptions {
-                    fine: Some(&fine),
-                    grid,
-                    recompute_forward: self.recompute_forward,
-                    appearance: self.appearance,
-                    distortion: self.distortion,
-                };
-                volume_step_with(rays, targets, coarse, coarse_vjp, settings, options, jitter)
+        let fine = self.coarse.map(|coarse| {
+            let fine = FinePass {
+                field: self.field,
+                vjp: self.vjp,
+                importance: coarse.importance,
+            };
+            (coarse, fine)
+        });
+        let options = |fine| StepOptions {
+            jitter,
+            fine,
+            grid,
+            recompute_forward: self.recompute_forward,
+            appearance: self.appearance,
+            distortion: self.distortion,
+        };
+        match &fine {
+            None => volume_step_with(
+                rays,
+                targets,
+                self.field,
+                self.vjp,
+                settings,
+                options(None),
+                workspace,
+            ),
+            Some((coarse, fine)) => {
+                let options = options(Some(fine));
+                volume_step_with(
+                    rays,
+                    targets,
+                    coarse.field,
+                    coarse.vjp,
+                    settings,
+                    options,
+                    workspace,
+                )
             }
         }
     }

@@ -801,9 +801,10 @@ mod tests {
     use crate::cameras::camera::Camera;
     use crate::field::{ClosureFn, ClosureVjp};
     use crate::volume::composite::{Mode, RayOutput, Samples};
-    use crate::volume::model::{TrainableModel, VolumeModel};
+    use crate::volume::model::{CoarsePass, TrainableModel, VolumeModel};
     use crate::volume::render::VolumeFrame;
     use crate::volume::sampler::DepthSpacing;
+    use crate::volume::train::StepWorkspace;
     use glam::{Vec2, Vec3};
 
     /// A view-dependent field: a dense ball (density 30 within 0.7 of the center) in a faint halo
@@ -1164,14 +1165,18 @@ mod tests {
                         .sum();
                     (sum / (3.0 * rays.len() as f64)) as f32
                 };
+                let mut workspace = StepWorkspace::default();
                 let plain = TrainableModel {
-                    field: (&fine, &no_vjp),
+                    field: &fine,
+                    vjp: &no_vjp,
                     coarse: None,
                     recompute_forward: false,
                     appearance: None,
                     distortion: 0.0,
                 };
-                let step = plain.step((&rays, &targets), &settings, grid, None).unwrap();
+                let step = plain
+                    .step(&rays, &targets, &settings, grid, None, &mut workspace)
+                    .unwrap();
                 assert!(
                     (step.loss - mse(&exact)).abs() <= 1e-6 * mse(&exact),
                     "training, {case}: {} vs {}",
@@ -1179,14 +1184,19 @@ mod tests {
                     mse(&exact)
                 );
                 let hierarchical = TrainableModel {
-                    field: (&fine, &no_vjp),
-                    coarse: Some((&coarse, &no_vjp, importance)),
+                    field: &fine,
+                    vjp: &no_vjp,
+                    coarse: Some(CoarsePass {
+                        field: &coarse,
+                        vjp: &no_vjp,
+                        importance,
+                    }),
                     recompute_forward: false,
                     appearance: None,
                     distortion: 0.0,
                 };
                 let step = hierarchical
-                    .step((&rays, &targets), &settings, grid, None)
+                    .step(&rays, &targets, &settings, grid, None, &mut workspace)
                     .unwrap();
                 let want = mse(&exact_fine);
                 assert!(

@@ -7,21 +7,17 @@
 //! one call of the field's backward pass with their cotangents. Tiles are grouped into
 //! chunks of about [`CHUNK_POINTS`] points; chunk c adds its gradients to accumulator
 //! c mod [`ACCUMULATORS`], whose chunks run in order in one parallel task, and the accumulators are
-//! summed in order, so a step's result does not depend on the number of threads. Accumulators
-//! are kept between steps (a hash grid's gradient has millions of entries: fresh memory every step
-//! would be faulted in page by page), and the sum zeroes each one it adds as it reads it, so the
-//! next step need not clear them in a pass of its own.
+//! summed in order, so a step's result does not depend on the number of threads. The accumulators and
+//! the gradient they sum to live in the caller's [`StepWorkspace`], reused from step to step.
 //!
 //! A hash grid's table is most of a field's params, and its gradient is scattered: where the field's
 //! backward passes can hold their scatters back ([`KeptPasses::hold_scatters`]), no task writes the
 //! table's gradient, the accumulators are summed outside it, and after the tasks each level of the table
 //! is scattered on its own thread, every task's points in task order, into the first accumulator. A
-//! step then writes one table-sized gradient instead of four and sums none (on 2026-12-03, a Zen 3: late
-//! 800² steps of lego 0.74–0.86× the time, 0.42–0.47× while the machine's memory was contended; W8's steps
-//! 0.86–0.87×; docs/BENCHMARKS.md).
+//! step then writes one table-sized gradient instead of four and sums none (docs/BENCHMARKS.md measures
+//! what that saves).
 
 use std::ops::Range;
-use std::sync::Mutex;
 
 use rayon::prelude::*;
 
@@ -54,45 +50,45 @@ pub const KEPT_TILE_BYTES: usize = 32 << 20;
 /// Gradient accumulators of a step at most (its parallel tasks).
 pub const ACCUMULATORS: usize = 4;
 
-/// An accumulator given back by an earlier step, and whether it is already all zeros.
-struct Spare {
+/// The memory a run's training steps share, passed to each step: the gradient of the last step, and
+/// accumulators kept from earlier steps (a hash grid's gradient has millions of entries: fresh memory
+/// every step would be faulted in page by page). The sum of a step's accumulators zeroes each one it
+/// adds as it reads it, so the next step need not clear them in a pass of its own.
+#[derive(Debug, Default)]
+pub struct StepWorkspace {
+    /// ∂loss/∂θ of the last step (empty before the first).
     grads: Vec<f32>,
-    zeroed: bool,
+    /// Accumulators for the next step: all zeros.
+    zeroed: Vec<Vec<f32>>,
 }
 
-/// Accumulators given back by earlier steps, for the next ones.
-static SPARE_ACCUMULATORS: Mutex<Vec<Spare>> = Mutex::new(Vec::new());
-
-/// A zeroed gradient accumulator of `n` floats: a spare one if there is one of that length, preferring
-/// one given back already zeroed.
-fn accumulator(n: usize) -> Vec<f32> {
-    let spare = SPARE_ACCUMULATORS.lock().ok().and_then(|mut s| {
-        let i = s.iter().rposition(|a| a.zeroed).or(s.len().checked_sub(1))?;
-        Some(s.swap_remove(i))
-    });
-    match spare {
-        Some(Spare { grads, zeroed: true }) if grads.len() == n => grads,
-        Some(Spare { mut grads, .. }) if grads.len() == n => {
-            grads.fill(0.0);
-            grads
-        }
-        _ => vec![0.0; n],
+impl StepWorkspace {
+    /// The last step's gradient of its loss in the field's parameters (empty before the first step).
+    pub fn grads(&self) -> &[f32] {
+        &self.grads
     }
-}
 
-/// Keeps `grads` for later steps, with whether it is all zeros.
-fn keep_spare(grads: Vec<f32>, zeroed: bool) {
-    if let Ok(mut spare) = SPARE_ACCUMULATORS.lock() {
-        if spare.len() < 2 * ACCUMULATORS {
-            spare.push(Spare { grads, zeroed });
+    /// The last step's gradient, for a caller to add terms of its own loss to (and to lengthen while an
+    /// all-reduce carries more values with it).
+    pub fn grads_mut(&mut self) -> &mut Vec<f32> {
+        &mut self.grads
+    }
+
+    /// A zeroed accumulator of `n` floats: a kept one of that length if there is one, else the last
+    /// step's gradient cleared, else fresh memory.
+    fn accumulator(&mut self, n: usize) -> Vec<f32> {
+        self.zeroed.retain(|a| a.len() == n);
+        if let Some(grads) = self.zeroed.pop() {
+            return grads;
+        }
+        match std::mem::take(&mut self.grads) {
+            mut grads if grads.len() == n => {
+                grads.fill(0.0);
+                grads
+            }
+            _ => vec![0.0; n],
         }
     }
-}
-
-/// Gives a step's gradient (its [`StepResult::param_grads`], once used) back as an accumulator for
-/// the next steps; optional, it saves faulting in fresh memory for large tables.
-pub fn recycle(grads: Vec<f32>) {
-    keep_spare(grads, false);
 }
 
 /// The stretches of `0..n` outside the sorted, disjoint `ranges`.
@@ -160,14 +156,12 @@ pub struct StepResult {
     pub psnr: f32,
     /// With hierarchical sampling: the coarse pass's error (`loss` is the fine pass's).
     pub coarse_loss: Option<f32>,
-    /// ∂loss/∂θ for the parameters θ of the field (length `vjp.n_params()`).
-    pub param_grads: Vec<f32>,
     /// Samples the field was evaluated at (both passes; skipped samples not counted).
     pub samples: usize,
     /// ∂loss/∂values of the step's colour transform ([`StepOptions::appearance`]), if it had one.
     pub appearance_grads: Option<[f32; TRANSFORM_VALUES]>,
     /// The distortion loss's part of the step's loss ([`StepOptions::distortion`]; 0 without): its
-    /// weight times the mean over the rays (both passes'), whose gradient `param_grads` includes.
+    /// weight times the mean over the rays (both passes'), whose gradient the step's includes.
     pub distortion_loss: f32,
 }
 
@@ -183,8 +177,10 @@ pub struct FinePass<'a> {
 }
 
 /// What a training step may add to plain volume rendering.
-#[derive(Clone, Copy, Default)]
+#[derive(Default)]
 pub struct StepOptions<'a> {
+    /// Stratified depths with uniform jitter drawn from this generator (else `linspace` depths).
+    pub jitter: Option<&'a mut Rng>,
     /// Hierarchical sampling: the fine pass.
     pub fine: Option<&'a FinePass<'a>>,
     /// Empty-space skipping: samples in the grid's empty cells (or outside it) are neither
@@ -439,7 +435,8 @@ fn run_pass(
 /// between `settings.near` and `settings.far` (`linspace` spread by the settings' spacing, or stratified with uniform jitter
 /// drawn from `jitter` when given), evaluates `field`, composites, takes the mean squared
 /// error over rays and channels, and back-propagates it through the compositor and `vjp`
-/// (the field's backward pass) to the field's parameters.
+/// (the field's backward pass) to the field's parameters: their gradient is left in `workspace`
+/// ([`StepWorkspace::grads`]).
 pub fn volume_step(
     rays: &RayBatch,
     targets: &[[f32; 3]],
@@ -447,16 +444,13 @@ pub fn volume_step(
     vjp: &dyn BatchVjp,
     settings: &VolumeSettings,
     jitter: Option<&mut Rng>,
+    workspace: &mut StepWorkspace,
 ) -> Result<StepResult> {
-    volume_step_with(
-        rays,
-        targets,
-        field,
-        vjp,
-        settings,
-        StepOptions::default(),
+    let options = StepOptions {
         jitter,
-    )
+        ..StepOptions::default()
+    };
+    volume_step_with(rays, targets, field, vjp, settings, options, workspace)
 }
 
 /// [`volume_step`] with options. With hierarchical sampling, `field` is the coarse field, sampled
@@ -471,7 +465,7 @@ pub fn volume_step_with(
     vjp: &dyn BatchVjp,
     settings: &VolumeSettings,
     options: StepOptions,
-    jitter: Option<&mut Rng>,
+    workspace: &mut StepWorkspace,
 ) -> Result<StepResult> {
     let fine = options.fine;
     if rays.is_empty() || targets.len() != rays.len() {
@@ -520,7 +514,7 @@ pub fn volume_step_with(
     };
     let n_tiles = rays.len().div_ceil(tile);
     // One seed per ray, drawn in order: the jitter depends neither on the scheduling nor on the tiles.
-    let (fixed_depths, seeds) = match jitter {
+    let (fixed_depths, seeds) = match options.jitter {
         Some(rng) => (None, (0..rays.len()).map(|_| rng.next_u64()).collect()),
         None => {
             let mut depths = vec![0.0; settings.samples];
@@ -552,10 +546,11 @@ pub fn volume_step_with(
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
     let n_tasks = n_chunks.min(ACCUMULATORS);
     let n_params = vjp.n_params();
-    let tasks: Vec<(TileTotals, Vec<f32>, Kept)> = (0..n_tasks)
+    let accumulators: Vec<Vec<f32>> = (0..n_tasks).map(|_| workspace.accumulator(n_params)).collect();
+    let tasks: Vec<(TileTotals, Vec<f32>, Kept)> = accumulators
         .into_par_iter()
-        .map(|task| {
-            let mut grads = accumulator(n_params);
+        .enumerate()
+        .map(|(task, mut grads)| {
             let mut totals = TileTotals::default();
             let mut kept = Kept {
                 coarse: job.keep.then(|| job.vjp.kept_passes()).flatten(),
@@ -616,7 +611,8 @@ pub fn volume_step_with(
             .enumerate()
             .for_each(|(part, grads)| held.iter().for_each(|h| h.add(part, grads)));
     }
-    rest.into_iter().for_each(|grads| keep_spare(grads, true));
+    workspace.zeroed = rest;
+    workspace.grads = param_grads;
     let mse = |e: f64| (e / (3.0 * rays.len() as f64)) as f32;
     let (loss, coarse_loss) = match job.fine {
         Some(_) => (mse(squared_error[1]), Some(mse(squared_error[0]))),
@@ -626,7 +622,6 @@ pub fn volume_step_with(
         loss,
         psnr: psnr(loss),
         coarse_loss,
-        param_grads,
         samples: totals.samples,
         distortion_loss: totals.distortion as f32,
         appearance_grads: options
@@ -696,22 +691,69 @@ mod tests {
         }
     }
 
-    fn step(theta: &[f32], settings: &VolumeSettings, jitter: Option<&mut Rng>) -> StepResult {
+    /// A step's result with its gradient, as the tests read them.
+    #[derive(Debug, PartialEq)]
+    struct Stepped {
+        result: StepResult,
+        param_grads: Vec<f32>,
+    }
+
+    impl std::ops::Deref for Stepped {
+        type Target = StepResult;
+        fn deref(&self) -> &StepResult {
+            &self.result
+        }
+    }
+
+    /// [`volume_step_with`] in a workspace of its own.
+    fn stepped(
+        rays: &RayBatch,
+        targets: &[[f32; 3]],
+        field: &dyn BatchFn,
+        vjp: &dyn BatchVjp,
+        settings: &VolumeSettings,
+        options: StepOptions,
+    ) -> Result<Stepped> {
+        let mut workspace = StepWorkspace::default();
+        let result = volume_step_with(rays, targets, field, vjp, settings, options, &mut workspace)?;
+        Ok(Stepped {
+            result,
+            param_grads: workspace.grads,
+        })
+    }
+
+    /// [`stepped`] with jitter drawn from `jitter`, if given.
+    fn jittered(jitter: Option<&mut Rng>) -> StepOptions<'_> {
+        StepOptions {
+            jitter,
+            ..StepOptions::default()
+        }
+    }
+
+    fn step(theta: &[f32], settings: &VolumeSettings, jitter: Option<&mut Rng>) -> Stepped {
         let theta2 = theta.to_vec();
         let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&theta2, p)));
         let theta3 = theta.to_vec();
         let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&theta3, p, c, g));
         let rays = rays();
-        volume_step(&rays, &targets(rays.len()), &field, &vjp, settings, jitter).unwrap()
+        stepped(
+            &rays,
+            &targets(rays.len()),
+            &field,
+            &vjp,
+            settings,
+            jittered(jitter),
+        )
+        .unwrap()
     }
 
     /// A step of the blob with `options`, without jitter.
-    fn step_with(theta: &[f32], settings: &VolumeSettings, options: StepOptions) -> StepResult {
+    fn step_with(theta: &[f32], settings: &VolumeSettings, options: StepOptions) -> Stepped {
         let (t2, t3) = (theta.to_vec(), theta.to_vec());
         let field = ClosureFn::new(6, 4, move |p, out| out.copy_from_slice(&blob_value(&t2, p)));
         let vjp = ClosureVjp::new(6, 4, 7, move |p, c, g| blob_vjp(&t3, p, c, g));
         let rays = rays();
-        volume_step_with(&rays, &targets(rays.len()), &field, &vjp, settings, options, None).unwrap()
+        stepped(&rays, &targets(rays.len()), &field, &vjp, settings, options).unwrap()
     }
 
     /// The blob's backward pass with kept passes: the forward pass keeps the points, the backward pass
@@ -820,7 +862,9 @@ mod tests {
             (blob_settings(Some(1e-3)), true, true, Some(&grid)),
         ] {
             let run = |recompute_forward: bool| {
+                let mut rng = Rng::new(3);
                 let options = StepOptions {
+                    jitter: jitter.then_some(&mut rng),
                     fine: hierarchical.then_some(&fine),
                     grid,
                     recompute_forward,
@@ -828,10 +872,7 @@ mod tests {
                     distortion: 0.0,
                 };
                 let before = kept.forwards.load(std::sync::atomic::Ordering::Relaxed);
-                let mut rng = Rng::new(3);
-                let jitter = jitter.then_some(&mut rng);
-                let step =
-                    volume_step_with(&rays, &targets, &field, &kept, &settings, options, jitter).unwrap();
+                let step = stepped(&rays, &targets, &field, &kept, &settings, options).unwrap();
                 (
                     step,
                     kept.forwards.load(std::sync::atomic::Ordering::Relaxed) - before,
@@ -1014,7 +1055,7 @@ mod tests {
         for threads in [2, 3] {
             let many = on(threads);
             assert_eq!(one.loss.to_bits(), many.loss.to_bits());
-            let bits = |r: &StepResult| r.param_grads.iter().map(|g| g.to_bits()).collect::<Vec<_>>();
+            let bits = |r: &Stepped| r.param_grads.iter().map(|g| g.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&one), bits(&many), "{threads} threads");
         }
     }
@@ -1042,7 +1083,7 @@ mod tests {
         let settings = blob_settings(None);
         let rays = rays();
         let targets = targets(rays.len());
-        let exact = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let exact = stepped(&rays, &targets, &field, &vjp, &settings, StepOptions::default()).unwrap();
         let all = evaluated.swap(0, Ordering::Relaxed);
         let grid = OccupancyGrid::build(&field, ([-1.5; 3], [1.5; 3]), 32, Mode::Density, 0.0).unwrap();
         evaluated.store(0, Ordering::Relaxed);
@@ -1050,7 +1091,7 @@ mod tests {
             grid: Some(&grid),
             ..StepOptions::default()
         };
-        let skipped = volume_step_with(&rays, &targets, &field, &vjp, &settings, options, None).unwrap();
+        let skipped = stepped(&rays, &targets, &field, &vjp, &settings, options).unwrap();
         let some = evaluated.load(Ordering::Relaxed);
         assert!(some * 3 < all, "{some} of {all} samples evaluated");
         assert_eq!(
@@ -1082,7 +1123,7 @@ mod tests {
         let settings = blob_settings(Some(1e-3));
         let rays = rays();
         let targets = targets(rays.len());
-        let result = volume_step(&rays, &targets, &field, &vjp, &settings, None).unwrap();
+        let result = stepped(&rays, &targets, &field, &vjp, &settings, StepOptions::default()).unwrap();
         let all = rays.len() * settings.samples;
         let (some, fewer) = (
             evaluated.load(Ordering::Relaxed),
@@ -1184,24 +1225,32 @@ mod tests {
             early_termination: None,
         };
         let t = targets(rays.len());
-        let ok = volume_step(&rays, &t, &field, &vjp, &settings, None).unwrap();
+        let ok = stepped(&rays, &t, &field, &vjp, &settings, StepOptions::default()).unwrap();
         // Opacity 0.5 per sample, color 0.5: the image is 0.5·(1 − 2⁻⁸) everywhere.
         let c = 0.5 * (1.0 - 0.5f32.powi(8));
         let mse = t.iter().flatten().map(|x| (x - c) * (x - c)).sum::<f32>() / (3 * t.len()) as f32;
         assert!((ok.loss - mse).abs() < 1e-6, "{} vs {mse}", ok.loss);
         assert_eq!(ok.param_grads, vec![0.0]);
-        let e = volume_step(&rays, &t[1..], &field, &vjp, &settings, None).unwrap_err();
+        let e = stepped(&rays, &t[1..], &field, &vjp, &settings, StepOptions::default()).unwrap_err();
         assert!(e.to_string().contains("149 targets"), "{e}");
         let vjp6 = ClosureVjp::new(6, 4, 1, |_, _, _| {});
-        assert!(volume_step(&rays, &t, &field, &vjp6, &settings, None).is_err());
+        assert!(stepped(&rays, &t, &field, &vjp6, &settings, StepOptions::default()).is_err());
         let bad = VolumeSettings {
             samples: 0,
             ..settings
         };
-        assert!(volume_step(&rays, &t, &field, &vjp, &bad, None).is_err());
-        assert!(volume_step(&RayBatch::default(), &[], &field, &vjp, &settings, None).is_err());
+        assert!(stepped(&rays, &t, &field, &vjp, &bad, StepOptions::default()).is_err());
+        assert!(stepped(
+            &RayBatch::default(),
+            &[],
+            &field,
+            &vjp,
+            &settings,
+            StepOptions::default()
+        )
+        .is_err());
         let mut broken = rays.clone();
         broken.oy.pop();
-        assert!(volume_step(&broken, &t, &field, &vjp, &settings, None).is_err());
+        assert!(stepped(&broken, &t, &field, &vjp, &settings, StepOptions::default()).is_err());
     }
 }
