@@ -20,22 +20,34 @@ pub use crate::settings::values::AdamSettings;
 use crate::settings::values::{grid_seed, grid_update, minutes_list, optimizer, schedule, GridUpdate};
 use crate::training::appearance::Appearance;
 use crate::training::data_source::{data_path, data_set, DataKind, DataSet};
+use crate::training::metrics_log::{log_record, LogRecord};
 use crate::training::regularizers::{occupied_points, uniform_points, RegularizerKernels, Regularizers};
 use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 use nerfjit_field::{VolumeField, VolumeFields};
 
-/// The columns of a volume training run's metrics log.
-pub(crate) const LOG_COLUMNS: &[&str] = &[
-    "step",
-    "train_seconds",
-    "lr",
-    "loss",
-    "psnr",
-    "eikonal",
-    "distortion",
-    "val_psnr",
-    "val_ssim",
-];
+log_record! {
+    /// A line of a volume training's metrics log: a step's figures, or a validation's scores.
+    pub(crate) struct VolumeRecord {
+        /// Steps done.
+        step: u32,
+        /// Seconds of training.
+        train_seconds: f64,
+        /// The step's learning rate.
+        lr: Option<f32>,
+        /// The step's loss.
+        loss: Option<f32>,
+        /// The PSNR of the step's rays.
+        psnr: Option<f32>,
+        /// The step's eikonal term, if it has one.
+        eikonal: Option<f32>,
+        /// The step's distortion loss (its weighted part of the loss), if it has one.
+        distortion: Option<f32>,
+        /// The validation's mean PSNR.
+        val_psnr: Option<f64>,
+        /// The validation's mean SSIM.
+        val_ssim: Option<f64>,
+    }
+}
 
 /// The most samples (rays × samples per ray) one training step may evaluate: their buffers must fit in
 /// memory.
@@ -562,7 +574,7 @@ impl TrainPlan {
             resume,
             log: self.log.as_deref(),
             tensorboard: self.tensorboard.as_deref(),
-            log_columns: LOG_COLUMNS,
+            log_columns: VolumeRecord::COLUMNS,
             verb: "training",
             bars,
         };
@@ -789,18 +801,13 @@ impl VolumeObjective<'_> {
             "step": p.done, "train_seconds": p.train_seconds, "val_psnr": psnr, "val_ssim": ssim,
             "val_masked_psnr": means.masked_psnr,
         }));
-        let (step, seconds) = (Some(f64::from(p.done)), Some(p.train_seconds));
-        ui.record(&[
-            step,
-            seconds,
-            None,
-            None,
-            None,
-            None,
-            None,
-            Some(psnr),
-            Some(ssim),
-        ])
+        ui.record(&VolumeRecord {
+            step: p.done,
+            train_seconds: p.train_seconds,
+            val_psnr: Some(psnr),
+            val_ssim: Some(ssim),
+            ..VolumeRecord::default()
+        })
     }
 
     /// The progress record of `p`'s step (every 10th step and the last), logged and shown on the bar.
@@ -815,23 +822,17 @@ impl VolumeObjective<'_> {
             "val_psnr": val_psnr, "train_seconds": p.train_seconds, "steps_per_s": steps_per_s,
             "eta_seconds": f64::from(p.steps - p.done) / steps_per_s,
         });
-        let eikonal = self
-            .plan
-            .eikonal
-            .is_some()
-            .then_some(f64::from(self.eikonal_loss));
-        let distortion = (self.plan.distortion > 0.0).then_some(f64::from(self.distortion_loss));
-        ui.record(&[
-            Some(f64::from(p.done)),
-            Some(p.train_seconds),
-            Some(f64::from(p.lr)),
-            Some(f64::from(p.loss)),
-            Some(f64::from(self.psnr)),
+        let eikonal = self.plan.eikonal.is_some().then_some(self.eikonal_loss);
+        ui.record(&VolumeRecord {
+            step: p.done,
+            train_seconds: p.train_seconds,
+            lr: Some(p.lr),
+            loss: Some(p.loss),
+            psnr: Some(self.psnr),
             eikonal,
-            distortion,
-            None,
-            None,
-        ])?;
+            distortion: (self.plan.distortion > 0.0).then_some(self.distortion_loss),
+            ..VolumeRecord::default()
+        })?;
         ui.message(format!(
             "loss {:.5} PSNR {:.2} dB{}{} {:.0}k rays/s",
             p.loss,
@@ -886,11 +887,8 @@ impl Objective for VolumeObjective<'_> {
         Ok(())
     }
 
-    fn before_step(&mut self, step: u32, params: &[f32], ui: &Ui) -> Result<()> {
-        self.update_grid(step, params, ui)
-    }
-
-    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32], ui: &Ui) -> Result<Gradient<'_>> {
+        self.update_grid(step, params, ui)?;
         let plan = self.plan;
         let view = match plan.views {
             ViewChoice::Random => self.step_rng.below(self.views.len() as u64) as usize,

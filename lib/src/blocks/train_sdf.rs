@@ -23,11 +23,29 @@ use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
 use crate::settings::schema::Kind;
 use crate::training::clearance::Clearance;
+use crate::training::metrics_log::{log_record, LogRecord};
 use crate::training::regularizers::{uniform_points, RegularizerKernels, Regularizers};
 use crate::training::train_loop::{self, Gradient, LoopSettings, Objective, Progress, Ui};
 
-/// The columns of a point-cloud fit's metrics log.
-const LOG_COLUMNS: &[&str] = &["step", "seconds", "lr", "loss", "surface", "near", "eikonal"];
+log_record! {
+    /// A line of a neural SDF's metrics log: a step's rate, loss and its three terms.
+    struct SdfRecord {
+        /// Steps done.
+        step: u32,
+        /// Seconds of training.
+        seconds: f64,
+        /// The step's learning rate.
+        lr: Option<f32>,
+        /// The step's loss.
+        loss: Option<f32>,
+        /// Its surface term.
+        surface: Option<f32>,
+        /// Its near-surface term.
+        near: Option<f32>,
+        /// Its eikonal term.
+        eikonal: Option<f32>,
+    }
+}
 
 /// A checked `train sdf` block.
 pub struct TrainSdfPlan {
@@ -263,7 +281,7 @@ impl TrainSdfPlan {
             resume,
             log: self.log.as_deref(),
             tensorboard: self.tensorboard.as_deref(),
-            log_columns: LOG_COLUMNS,
+            log_columns: SdfRecord::COLUMNS,
             verb: "fitting",
             bars,
         };
@@ -472,7 +490,7 @@ struct SdfObjective<'a> {
 }
 
 impl Objective for SdfObjective<'_> {
-    fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
+    fn gradient(&mut self, step: u32, _lr: f32, params: &[f32], _ui: &Ui) -> Result<Gradient<'_>> {
         let (plan, k, threads) = (self.plan, self.kernels, self.threads);
         let grads = &mut self.grads;
         grads.clear();
@@ -503,14 +521,15 @@ impl Objective for SdfObjective<'_> {
             return Ok(());
         }
         let terms = self.terms;
-        let mut record = vec![
-            Some(f64::from(p.done)),
-            Some(p.train_seconds),
-            Some(f64::from(p.lr)),
-            Some(f64::from(p.loss)),
-        ];
-        record.extend(terms.map(|t| Some(f64::from(t))));
-        ui.record(&record)?;
+        ui.record(&SdfRecord {
+            step: p.done,
+            seconds: p.train_seconds,
+            lr: Some(p.lr),
+            loss: Some(p.loss),
+            surface: Some(terms[0]),
+            near: Some(terms[1]),
+            eikonal: Some(terms[2]),
+        })?;
         let pretraining = if p.done <= self.plan.pretrain_steps {
             " (pre-training)"
         } else {

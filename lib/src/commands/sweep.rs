@@ -239,7 +239,7 @@ fn markdown(axes: &[Axis], results: &[serde_json::Value]) -> String {
         }
     }
     // The step first, then the losses and scores in the order of the metrics log.
-    let order = crate::blocks::train::LOG_COLUMNS;
+    let order = <crate::blocks::train::VolumeRecord as crate::training::metrics_log::LogRecord>::COLUMNS;
     let rank = |c: &String| order.iter().position(|o| metric(c) == *o).unwrap_or(order.len());
     columns.sort_by_key(|c| (c.rsplit_once('.').map(|(log, _)| log.to_string()), rank(c)));
     let mut text = String::from("| run |");

@@ -9,6 +9,66 @@ use std::path::{Path, PathBuf};
 use crate::failure::{Failure, Result};
 use crate::training::tensorboard::EventWriter;
 
+/// A line of a metrics log, named: a struct declared with [`log_record!`], whose fields are the log's
+/// columns (the step first), so that no caller writes a row by position.
+pub trait LogRecord {
+    /// The log's columns: the record's field names, in order.
+    const COLUMNS: &'static [&'static str];
+    /// This line's value in each column (`None`: empty on this line).
+    fn values(&self) -> Vec<Option<f64>>;
+}
+
+/// A value a log record holds: a number, or an optional one (empty on lines without it).
+pub trait LogValue {
+    /// The value as written, if there is one.
+    fn value(&self) -> Option<f64>;
+}
+
+impl LogValue for u32 {
+    fn value(&self) -> Option<f64> {
+        Some(f64::from(*self))
+    }
+}
+
+impl LogValue for f64 {
+    fn value(&self) -> Option<f64> {
+        Some(*self)
+    }
+}
+
+impl LogValue for Option<f32> {
+    fn value(&self) -> Option<f64> {
+        self.map(f64::from)
+    }
+}
+
+impl LogValue for Option<f64> {
+    fn value(&self) -> Option<f64> {
+        *self
+    }
+}
+
+/// Declares a [`LogRecord`]: a struct of public fields, each a column of the log (named as the field; the
+/// step first), each a [`LogValue`].
+macro_rules! log_record {
+    ($(#[$meta:meta])* $vis:vis struct $name:ident { $($(#[$doc:meta])* $field:ident: $ty:ty,)* }) => {
+        $(#[$meta])*
+        #[derive(Clone, Copy, Debug, Default)]
+        $vis struct $name {
+            $($(#[$doc])* pub $field: $ty,)*
+        }
+
+        impl $crate::training::metrics_log::LogRecord for $name {
+            const COLUMNS: &'static [&'static str] = &[$(stringify!($field)),*];
+
+            fn values(&self) -> Vec<Option<f64>> {
+                vec![$($crate::training::metrics_log::LogValue::value(&self.$field)),*]
+            }
+        }
+    };
+}
+pub(crate) use log_record;
+
 /// Where a run's records go: the metrics file and TensorBoard, each if asked for. The first column is the
 /// step; TensorBoard gets every other column as a scalar of that name.
 pub struct RunLog {
@@ -31,6 +91,11 @@ impl RunLog {
             board: board.map(EventWriter::create).transpose()?,
             columns,
         })
+    }
+
+    /// The columns of the records.
+    pub fn columns(&self) -> &'static [&'static str] {
+        self.columns
     }
 
     /// Writes one record: a value (or nothing) per column, the step first.

@@ -6,7 +6,8 @@
 //! records and a live viewer after it).
 //!
 //! Per step k from the first (0, or the checkpoint's step when resuming) to `steps`:
-//! 1. [`Objective::before_step`], then [`Objective::gradient`] at the params;
+//! 1. [`Objective::gradient`] at the params (with what belongs to the step's time, such as an occupancy
+//!    grid's update, first);
 //! 2. Adam at the schedule's rate for step k, whose pass over the params also checks them: a non-finite
 //!    loss or gradient stops the run with [`crate::checkpoint::diverged`] (the checkpoint on disk is the
 //!    last good one: it is only ever written after a finite step), and so does a param that would become
@@ -26,7 +27,7 @@ use crate::failure::{Failure, Result};
 use crate::interrupt::Watch;
 use crate::observe::{BarKind, ProgressBar, ProgressBars};
 use crate::settings::values::AdamSettings;
-use crate::training::metrics_log::RunLog;
+use crate::training::metrics_log::{LogRecord, RunLog};
 
 /// How a block trains, whatever it trains.
 pub struct LoopSettings<'a> {
@@ -48,7 +49,7 @@ pub struct LoopSettings<'a> {
     pub log: Option<&'a Path>,
     /// A TensorBoard folder the metrics also go to.
     pub tensorboard: Option<&'a Path>,
-    /// The columns of the metrics log, the step first.
+    /// The columns of the metrics log, the step first: the [`LogRecord::COLUMNS`] of the objective's records.
     pub log_columns: &'static [&'static str],
     /// What the progress bar says the run is doing ("training", "fitting").
     pub verb: &'a str,
@@ -108,9 +109,10 @@ impl Ui {
         self.bar.set_message(message);
     }
 
-    /// Writes one record to the metrics log: a value (or nothing) per column, the step first.
-    pub fn record(&mut self, values: &[Option<f64>]) -> Result<()> {
-        self.log.record(values)
+    /// Writes one record to the metrics log (whose columns are the record's, [`LoopSettings::log_columns`]).
+    pub fn record<R: LogRecord>(&mut self, record: &R) -> Result<()> {
+        debug_assert_eq!(R::COLUMNS, self.log.columns(), "a record of another log");
+        self.log.record(&record.values())
     }
 
     /// The run's claim on Ctrl-C (a live viewer's pause ends when it is pressed).
@@ -126,14 +128,10 @@ pub trait Objective {
         Ok(())
     }
 
-    /// Work before step `step` that belongs to the step's time (e.g. updating an occupancy grid).
-    fn before_step(&mut self, _step: u32, _params: &[f32], _ui: &Ui) -> Result<()> {
-        Ok(())
-    }
-
-    /// The loss of step `step` at `params` and its gradient; `lr` is the step's learning rate, for what
-    /// the objective trains itself beside the params.
-    fn gradient(&mut self, step: u32, lr: f32, params: &[f32]) -> Result<Gradient<'_>>;
+    /// The loss of step `step` at `params` and its gradient, after the work that belongs to the step's
+    /// time (e.g. updating an occupancy grid, which may report to `ui`); `lr` is the step's learning rate,
+    /// for what the objective trains itself beside the params.
+    fn gradient(&mut self, step: u32, lr: f32, params: &[f32], ui: &Ui) -> Result<Gradient<'_>>;
 
     /// Work after each step, outside the training time: log records, validation, previews, viewers.
     fn after_step(&mut self, progress: &Progress, params: &[f32], ui: &mut Ui) -> Result<()>;
@@ -290,13 +288,12 @@ pub fn train(
     let mut tail = 0.0;
     for step in first..settings.steps {
         let step_start = Instant::now();
-        objective.before_step(step, params, &ui)?;
         let lr = schedule.lr(step, run_fraction(step, finished.train_seconds));
         let Gradient {
             mut loss,
             grads,
             samples,
-        } = objective.gradient(step, lr, params)?;
+        } = objective.gradient(step, lr, params, &ui)?;
         // Data parallel: every rank takes the mean of the ranks' gradients, losses and clocks, and stops when
         // any rank is interrupted, so that the params stay the same on every rank.
         let mut agreed = None;
@@ -555,7 +552,7 @@ mod tests {
             Ok(())
         }
 
-        fn gradient(&mut self, step: u32, _lr: f32, params: &[f32]) -> Result<Gradient<'_>> {
+        fn gradient(&mut self, step: u32, _lr: f32, params: &[f32], _ui: &Ui) -> Result<Gradient<'_>> {
             let diff: Vec<f32> = params.iter().zip(self.target).map(|(p, t)| p - t).collect();
             self.grads = diff.iter().map(|d| 2.0 * d).collect();
             if self.poison == Some(step) {
