@@ -12,7 +12,7 @@
 //! The elementwise code and the rest of the step (ray set-up, compositing, gradient sums) have no such
 //! single limit. The random accesses are uniform over a level's table; the corners of one cell share cache
 //! lines and nearby points share cells, so the grid's phases could beat these limits where their points
-//! are coherent (none did in the sittings of docs/BENCHMARKS.md).
+//! are coherent (none did in the sittings of docs/LOG.md).
 
 use nerfjit_jit::bf16;
 use nerfjit_jit::profile::{Phase, Times};

@@ -14,8 +14,8 @@
 //! backward passes can hold their scatters back ([`KeptPasses::hold_scatters`]), no task writes the
 //! table's gradient, the accumulators are summed outside it, and after the tasks each level of the table
 //! is scattered on its own thread, every task's points in task order, into the first accumulator. A
-//! step then writes one table-sized gradient instead of four and sums none (docs/BENCHMARKS.md measures
-//! what that saves).
+//! step then writes one table-sized gradient instead of four and sums none (docs/LOG.md measures what
+//! that saved).
 
 use std::ops::Range;
 
