@@ -16,6 +16,7 @@ use crate::failure::{Failure, Result};
 use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
+use crate::settings::typed::typed_settings;
 pub use crate::settings::values::AdamSettings;
 use crate::settings::values::{grid_seed, grid_update, minutes_list, optimizer, schedule, GridUpdate};
 use crate::training::appearance::Appearance;
@@ -46,6 +47,56 @@ log_record! {
         val_psnr: Option<f64>,
         /// The validation's mean SSIM.
         val_ssim: Option<f64>,
+    }
+}
+
+typed_settings! {
+    /// The settings of a `train` block, as read.
+    pub struct TrainSettings for crate::settings::schema::TRAIN {
+        data: required,
+        near: number,
+        far: number,
+        samples: whole,
+        background: triple,
+        steps: whole,
+        batch: whole,
+        batch_samples: whole_or_none,
+        lr: number,
+        schedule: value,
+        views: choice,
+        jitter: flag,
+        random_background: flag,
+        appearance: flag,
+        distortion: number,
+        seed: whole,
+        checkpoint: output,
+        checkpoint_every: whole,
+        summary: output,
+        preview: output,
+        preview_every: whole,
+        sdf: function,
+        eikonal_weight: number,
+        eikonal_points: whole,
+        eikonal_bounds: number,
+        eikonal_sampling: choice,
+        val: value,
+        val_every: whole,
+        val_views: whole_or_none,
+        val_minutes: value,
+        importance: whole,
+        skip_empty: value,
+        products: choice,
+        recompute_forward: flag,
+        grid_every: whole,
+        grid_warmup: whole,
+        grid_update: value,
+        grid_seed: value,
+        minutes: number,
+        early_termination: number,
+        spacing: value,
+        optimizer: value,
+        log: output,
+        tensorboard: output,
     }
 }
 
@@ -211,89 +262,56 @@ pub fn data_cameras(program: &Program, script_dir: &Path) -> Option<Vec<nerfjit_
 impl TrainPlan {
     /// Reads and checks a `train` block.
     pub fn new(mut b: Block) -> Result<TrainPlan> {
-        let data_v = b.required("data")?;
-        let data = data_set(&data_v, b.script_dir()).map_err(|d| b.error(d))?;
-        let (near, far) = b.near_far()?;
-        let lr = b.number("lr")? as f32;
-        let samples = b.whole("samples")? as usize;
-        let spacing = b.spacing(near, far)?;
-        let steps = b.whole("steps")? as u32;
-        let minutes = b.number("minutes")?;
-        let time_limit = (minutes > 0.0).then_some(60.0 * minutes);
-        let batch = b.whole("batch")? as usize;
+        let s = TrainSettings::read(&mut b)?;
+        let data = data_set(&s.data, b.script_dir()).map_err(|d| b.error(d))?;
+        let (near, far) = b.interval(s.near, s.far)?;
+        let samples = s.samples as usize;
+        let spacing = b.spacing_of(s.spacing.as_ref(), near, far)?;
+        let batch = s.batch as usize;
         if batch * samples > MAX_SAMPLES_PER_STEP {
             return Err(b.block_error(format!(
                 "{batch} rays × {samples} samples is too many for one step (the limit is {MAX_SAMPLES_PER_STEP} samples)"
             )));
         }
-        let batch_samples = b.whole_or_none("batch_samples")?.map(|n| n as usize);
-        let seed = b.whole("seed")?;
-        let checkpoint_every = b.whole("checkpoint_every")? as u32;
-        let preview_every = b.whole("preview_every")? as u32;
-        let eikonal_weight = b.number("eikonal_weight")? as f32;
-        let eikonal_points = b.whole("eikonal_points")? as usize;
-        let eikonal_bounds = b.number("eikonal_bounds")? as f32;
-        let sdf = b.function("sdf")?;
-        let occupied = b.choice("eikonal_sampling")?.as_deref() == Some("occupied");
-        let eikonal = (eikonal_weight > 0.0).then_some(Eikonal {
-            sdf,
+        let eikonal_weight = s.eikonal_weight as f32;
+        let eikonal = (eikonal_weight > 0.0).then(|| Eikonal {
+            sdf: s.sdf,
             regularizers: Regularizers {
-                points: eikonal_points,
-                bound: eikonal_bounds,
+                points: s.eikonal_points as usize,
+                bound: s.eikonal_bounds as f32,
                 near_weight: 0.0,
                 near_sharpness: 0.0,
                 eikonal_weight,
             },
-            occupied,
+            occupied: s.eikonal_sampling.as_deref() == Some("occupied"),
         });
-        let background = b.triple("background")?;
-        let schedule = schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
-        let optimizer = optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
-        let views = match b.choice("views")?.as_deref() {
+        let schedule = schedule(s.schedule, s.lr as f32).map_err(|d| b.error(d))?;
+        let optimizer = optimizer(s.optimizer).map_err(|d| b.error(d))?;
+        let views = match s.views.as_deref() {
             Some("random") => ViewChoice::Random,
             Some("all") => ViewChoice::All,
             _ => ViewChoice::Cycle,
         };
-        let jitter = b.flag("jitter")?;
-        let random_background = b.flag("random_background")?;
-        let appearance = b.flag("appearance")?;
-        let checkpoint = b.output("checkpoint")?;
-        let log = b.output("log")?;
-        let tensorboard = b.output("tensorboard")?;
-        let summary = b.output("summary")?;
-        let preview = b.output("preview")?;
-        let validation = match b.take("val") {
-            Some(v) => {
-                let held_out = held_out(&v, &data, b.script_dir()).map_err(|d| b.error(d))?;
-                let every = b.whole("val_every")? as u32;
-                let views = b.whole_or_none("val_views")?.map(|n| n as usize);
-                let at_seconds = match b.take("val_minutes") {
-                    Some(v) => minutes_list(&v).map_err(|d| b.error(d))?,
+        let validation = match &s.val {
+            Some(v) => Some(Validation {
+                held_out: held_out(v, &data, b.script_dir()).map_err(|d| b.error(d))?,
+                every: s.val_every as u32,
+                at_seconds: match &s.val_minutes {
+                    Some(v) => minutes_list(v).map_err(|d| b.error(d))?,
                     None => Vec::new(),
-                };
-                Some(Validation {
-                    held_out,
-                    every,
-                    at_seconds,
-                    views,
-                })
-            }
+                },
+                views: s.val_views.map(|n| n as usize),
+            }),
             None => None,
         };
-        let importance = b.whole("importance")? as usize;
-        let products = b.products()?;
-        let recompute_forward = b.flag("recompute_forward")?;
-        let distortion = b.number("distortion")? as f32;
-        let skip_empty = match b.take("skip_empty") {
+        let skip_empty = match &s.skip_empty {
             None => None,
-            Some(v) => crate::settings::values::skip_empty(&v).map_err(|d| b.error(d))?,
+            Some(v) => crate::settings::values::skip_empty(v).map_err(|d| b.error(d))?,
         };
-        let every = b.whole("grid_every")? as u32;
-        let warmup = b.whole("grid_warmup")? as u32;
-        let update = grid_update(b.take("grid_update")).map_err(|d| b.error(d))?;
-        let grid_seeding = match b.take("grid_seed") {
+        let update = grid_update(s.grid_update).map_err(|d| b.error(d))?;
+        let grid_seeding = match &s.grid_seed {
             Some(v) => {
-                let seed = grid_seed(&v).map_err(|d| b.error(d))?;
+                let seed = grid_seed(v).map_err(|d| b.error(d))?;
                 if seed.is_some() && !matches!(data.kind, DataKind::Colmap(..)) {
                     return Err(b.error(
                         Diagnostic::new(v.span, "only a COLMAP model has sparse points to seed the grid")
@@ -312,20 +330,19 @@ impl TrainPlan {
         };
         let grid = skip_empty.map(|grid| TrainingGrid {
             grid,
-            every,
-            warmup,
+            every: s.grid_every as u32,
+            warmup: s.grid_warmup as u32,
             update,
             seed: grid_seeding,
         });
-        let early_termination = b.number("early_termination")? as f32;
-        if appearance && views == ViewChoice::All {
+        if s.appearance && views == ViewChoice::All {
             return Err(b.block_error(
                 "appearance: true learns a colour transform per view from steps whose rays come from one view; \
                  views: all draws each ray from any view: choose views: random or cycle"
                     .into(),
             ));
         }
-        if appearance && checkpoint.as_deref().is_some_and(crate::checkpoint::is_json) {
+        if s.appearance && s.checkpoint.as_deref().is_some_and(crate::checkpoint::is_json) {
             return Err(b.block_error(
                 "a JSON checkpoint cannot keep the colour transforms of appearance: true; name the checkpoint \
                  *.safetensors"
@@ -333,6 +350,7 @@ impl TrainPlan {
             ));
         }
         b.finish()?;
+        let early_termination = s.early_termination as f32;
         Ok(TrainPlan {
             early_termination: (early_termination > 0.0).then_some(early_termination),
             data,
@@ -340,31 +358,35 @@ impl TrainPlan {
             far,
             samples,
             spacing,
-            background,
-            steps,
-            time_limit,
+            background: s.background,
+            steps: s.steps as u32,
+            time_limit: (s.minutes > 0.0).then_some(60.0 * s.minutes),
             batch,
-            batch_samples,
+            batch_samples: s.batch_samples.map(|n| n as usize),
             schedule,
             optimizer,
             views,
-            random_background,
-            appearance,
-            distortion,
-            jitter,
-            seed,
-            checkpoint,
-            checkpoint_every,
-            log,
-            tensorboard,
-            summary,
-            preview,
-            preview_every,
+            random_background: s.random_background,
+            appearance: s.appearance,
+            distortion: s.distortion as f32,
+            jitter: s.jitter,
+            seed: s.seed,
+            checkpoint: s.checkpoint,
+            checkpoint_every: s.checkpoint_every as u32,
+            log: s.log,
+            tensorboard: s.tensorboard,
+            summary: s.summary,
+            preview: s.preview,
+            preview_every: s.preview_every as u32,
             eikonal,
             validation,
-            importance,
-            products,
-            recompute_forward,
+            importance: s.importance as usize,
+            products: s
+                .products
+                .as_deref()
+                .and_then(Precision::named)
+                .unwrap_or_default(),
+            recompute_forward: s.recompute_forward,
             grid,
         })
     }

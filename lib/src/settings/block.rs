@@ -123,6 +123,12 @@ impl<'p> Block<'p> {
         self.settings.take(key)
     }
 
+    /// Takes setting `key`, if given, checked against its form in the schema (a value with a grammar of its
+    /// own by the schema's check, where it has one).
+    pub fn value(&mut self, key: &str) -> Result<Option<Spanned>> {
+        self.take_checked(key)
+    }
+
     /// Takes setting `key`, if given, checked against its form in the schema.
     fn take_checked(&mut self, key: &str) -> Result<Option<Spanned>> {
         let setting = self.setting(key);
@@ -171,8 +177,13 @@ impl<'p> Block<'p> {
 
     /// Settings `near` and `far`, far beyond near.
     pub fn near_far(&mut self) -> Result<(f32, f32)> {
-        let near = self.number("near")? as f32;
-        let far = self.number("far")? as f32;
+        let (near, far) = (self.number("near")?, self.number("far")?);
+        self.interval(near, far)
+    }
+
+    /// The interval of settings `near` and `far` as read, far beyond near.
+    pub fn interval(&self, near: f64, far: f64) -> Result<(f32, f32)> {
+        let (near, far) = (near as f32, far as f32);
         if far <= near {
             return Err(self.block_error(format!("far ({far}) must exceed near ({near})")));
         }
@@ -181,10 +192,21 @@ impl<'p> Block<'p> {
 
     /// The `spacing` setting for sampling [near, far] (linear by default), checked against the interval.
     pub fn spacing(&mut self, near: f32, far: f32) -> Result<nerfjit_runtime::DepthSpacing> {
-        let Some(v) = self.take_checked("spacing")? else {
+        let spacing = self.take_checked("spacing")?;
+        self.spacing_of(spacing.as_ref(), near, far)
+    }
+
+    /// The `spacing` setting `v` as read (linear when absent), checked against [near, far].
+    pub fn spacing_of(
+        &self,
+        v: Option<&Spanned>,
+        near: f32,
+        far: f32,
+    ) -> Result<nerfjit_runtime::DepthSpacing> {
+        let Some(v) = v else {
             return Ok(nerfjit_runtime::DepthSpacing::Linear);
         };
-        let spacing = crate::settings::values::depth_spacing(&v).map_err(|d| self.error(d))?;
+        let spacing = crate::settings::values::depth_spacing(v).map_err(|d| self.error(d))?;
         spacing.check(near, far).map_err(|e| {
             self.error(Diagnostic::new(v.span, e.to_string()).with_hint("raise near above 0 or the split"))
         })?;
