@@ -16,6 +16,7 @@ use crate::failure::{Failure, Result};
 use crate::settings::block::Block;
 use crate::settings::camera::turntable;
 use crate::settings::primitives::CallArgs;
+use crate::settings::typed::typed_settings;
 use nerfjit_field::{check_signature, Compiler, JitFn, Kind, Specializer};
 
 /// What to extract and where to write it.
@@ -358,20 +359,32 @@ pub struct MeshPlan {
     compare: Option<(PathBuf, Option<String>)>,
 }
 
+typed_settings! {
+    /// The settings of a `mesh` block, as read.
+    pub struct MeshSettings for crate::settings::schema::MESH {
+        function: function,
+        resolution: whole,
+        bounds: number,
+        level: number,
+        out: required_output,
+        gif: output,
+        up: choice,
+        compare: value,
+    }
+}
+
 impl MeshPlan {
     /// Reads and checks a `mesh` block.
     pub fn new(mut b: Block) -> Result<MeshPlan> {
-        let function = b.function("function")?;
-        let resolution = b.whole("resolution")? as usize;
-        let bound = b.number("bounds")? as f32;
-        let level = b.number("level")? as f32;
-        let out = b.required_output("out")?;
-        let gif = b.output("gif")?;
-        let up = b.choice("up")?.as_deref().and_then(Up::named).unwrap_or(Up::Y);
-        let compare = match b.take("compare") {
+        let s = MeshSettings::read(&mut b)?;
+        let (function, resolution) = (s.function, s.resolution as usize);
+        let (bound, level) = (s.bounds as f32, s.level as f32);
+        let (out, gif) = (s.out, s.gif);
+        let up = s.up.as_deref().and_then(Up::named).unwrap_or(Up::Y);
+        let compare = match &s.compare {
             None => None,
             Some(v) => {
-                let a = CallArgs::new(&v, &["file", "key"]).map_err(|d| b.error(d))?;
+                let a = CallArgs::new(v, &["file", "key"]).map_err(|d| b.error(d))?;
                 let file = a.string("file").map_err(|d| b.error(d))?;
                 let key = a
                     .raw("key")

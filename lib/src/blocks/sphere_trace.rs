@@ -17,6 +17,7 @@ use crate::diagnostics::steepness;
 use crate::failure::{Failure, Result};
 use crate::frame_files::write_images;
 use crate::settings::block::Block;
+use crate::settings::typed::typed_settings;
 use crate::settings::values::bounding_sphere;
 use nerfjit_field::{Compiler, JitFn, Kind};
 
@@ -56,27 +57,48 @@ pub struct SphereTracePlan {
     pub lipschitz: f32,
 }
 
+typed_settings! {
+    /// The settings of a `render sphere_trace` block, as read.
+    pub struct SphereTraceSettings for crate::settings::schema::RENDER_SPHERE_TRACE {
+        camera: required,
+        size: size,
+        near: number,
+        far: number,
+        eps: number,
+        max_steps: whole,
+        lipschitz: number,
+        background: triple,
+        shading: choice,
+        light: triple,
+        albedo: triple,
+        bounds: value,
+        out: required_output,
+        depth: output,
+        normals: output,
+        frame_ms: whole,
+    }
+}
+
 impl SphereTracePlan {
     /// Reads and checks a `render sphere_trace` block.
     pub fn new(mut b: Block) -> Result<SphereTracePlan> {
-        let cameras = b.cameras()?;
-        let size = b.size()?;
+        let s = SphereTraceSettings::read(&mut b)?;
+        let cameras = b.cameras_of(&s.camera)?;
+        let size = s.size;
         b.check_pixels(cameras.len(), size)?;
-        let (near, far) = b.near_far()?;
-        let eps = b.number("eps")? as f32;
-        let max_steps = b.whole("max_steps")? as u32;
-        let lipschitz = b.number("lipschitz")? as f32;
-        let background = b.triple("background")?.expect("a default");
-        let bounds = match b.take("bounds") {
+        let (near, far) = b.interval(s.near, s.far)?;
+        let (eps, max_steps, lipschitz) = (s.eps as f32, s.max_steps as u32, s.lipschitz as f32);
+        let background = s.background.expect("a default");
+        let bounds = match &s.bounds {
             None => None,
-            Some(v) => Some(bounding_sphere(&v).map_err(|d| b.error(d))?),
+            Some(v) => Some(bounding_sphere(v).map_err(|d| b.error(d))?),
         };
         let has_color = b.program().signature("color").is_some();
-        let shading = b
-            .choice("shading")?
+        let shading = s
+            .shading
             .unwrap_or_else(|| if has_color { "color" } else { "lambert" }.to_string());
-        let light = Vec3::from_array(b.triple("light")?.expect("a default"));
-        let albedo = b.triple("albedo")?.expect("a default");
+        let light = Vec3::from_array(s.light.expect("a default"));
+        let albedo = s.albedo.expect("a default");
         let shading = if shading == "color" {
             if !has_color {
                 return Err(Failure::Message(
@@ -87,10 +109,7 @@ impl SphereTracePlan {
         } else {
             ShadingChoice::Lambert { light, albedo }
         };
-        let out = b.required_output("out")?;
-        let depth = b.output("depth")?;
-        let normals = b.output("normals")?;
-        let frame_ms = b.whole("frame_ms")? as u32;
+        let (out, depth, normals, frame_ms) = (s.out, s.depth, s.normals, s.frame_ms as u32);
         b.finish()?;
         Ok(SphereTracePlan {
             cameras,

@@ -22,6 +22,7 @@ use crate::observe::{NoBars, ProgressBars};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
 use crate::settings::schema::Kind;
+use crate::settings::typed::typed_settings;
 use crate::training::clearance::Clearance;
 use crate::training::metrics_log::{log_record, LogRecord};
 use crate::training::regularizers::{uniform_points, RegularizerKernels, Regularizers};
@@ -118,11 +119,42 @@ pub fn fitted_frame(program: &Program, script_dir: &str) -> Result<Option<PointF
     TrainSdfPlan::new(first()?)?.normalized_frame()
 }
 
+typed_settings! {
+    /// The settings of a `train sdf` block, as read.
+    pub struct TrainSdfSettings for crate::settings::schema::TRAIN_SDF {
+        data: required,
+        function: function,
+        products: choice,
+        steps: whole,
+        batch: whole,
+        random: whole,
+        bounds: number,
+        lr: number,
+        schedule: value,
+        optimizer: value,
+        near_weight: number,
+        near_sharpness: number,
+        eikonal_weight: number,
+        clearance_weight: number,
+        eikonal_jitter: number,
+        pretrain_steps: whole,
+        pretrain_radius: number,
+        seed: whole,
+        checkpoint: output,
+        checkpoint_every: whole,
+        log: output,
+        tensorboard: output,
+        summary: output,
+        points_gif: output,
+    }
+}
+
 impl TrainSdfPlan {
     /// Reads and checks a `train sdf` block.
     pub fn new(mut b: Block) -> Result<TrainSdfPlan> {
-        let data_v = b.required("data")?;
-        let (file, key, normalize) = CallArgs::new(&data_v, POINTS_ARGS)
+        let s = TrainSdfSettings::read(&mut b)?;
+        let data_v = &s.data;
+        let (file, key, normalize) = CallArgs::new(data_v, POINTS_ARGS)
             .and_then(|a| {
                 Ok((
                     a.string("file")?,
@@ -138,36 +170,38 @@ impl TrainSdfPlan {
                     .with_hint("paths are relative to the working folder or to the script"),
             ));
         }
-        let function = b.function("function")?;
-        let lr = b.number("lr")? as f32;
-        let schedule = crate::settings::values::schedule(b.take("schedule"), lr).map_err(|d| b.error(d))?;
-        let optimizer = crate::settings::values::optimizer(b.take("optimizer")).map_err(|d| b.error(d))?;
+        let schedule = crate::settings::values::schedule(s.schedule, s.lr as f32).map_err(|d| b.error(d))?;
+        let optimizer = crate::settings::values::optimizer(s.optimizer).map_err(|d| b.error(d))?;
         let plan = TrainSdfPlan {
             data,
             key,
             normalize,
-            function,
-            steps: b.whole("steps")? as u32,
-            batch: b.whole("batch")? as usize,
-            random: b.whole("random")? as usize,
-            bound: b.number("bounds")? as f32,
+            function: s.function,
+            steps: s.steps as u32,
+            batch: s.batch as usize,
+            random: s.random as usize,
+            bound: s.bounds as f32,
             schedule,
             optimizer,
-            near_weight: b.number("near_weight")? as f32,
-            near_sharpness: b.number("near_sharpness")? as f32,
-            eikonal_weight: b.number("eikonal_weight")? as f32,
-            clearance_weight: b.number("clearance_weight")? as f32,
-            eikonal_jitter: b.number("eikonal_jitter")? as f32,
-            pretrain_steps: b.whole("pretrain_steps")? as u32,
-            pretrain_radius: b.number("pretrain_radius")? as f32,
-            seed: b.whole("seed")?,
-            checkpoint: b.output("checkpoint")?,
-            checkpoint_every: b.whole("checkpoint_every")? as u32,
-            log: b.output("log")?,
-            tensorboard: b.output("tensorboard")?,
-            summary: b.output("summary")?,
-            points_gif: b.output("points_gif")?,
-            products: b.products()?,
+            near_weight: s.near_weight as f32,
+            near_sharpness: s.near_sharpness as f32,
+            eikonal_weight: s.eikonal_weight as f32,
+            clearance_weight: s.clearance_weight as f32,
+            eikonal_jitter: s.eikonal_jitter as f32,
+            pretrain_steps: s.pretrain_steps as u32,
+            pretrain_radius: s.pretrain_radius as f32,
+            seed: s.seed,
+            checkpoint: s.checkpoint,
+            checkpoint_every: s.checkpoint_every as u32,
+            log: s.log,
+            tensorboard: s.tensorboard,
+            summary: s.summary,
+            points_gif: s.points_gif,
+            products: s
+                .products
+                .as_deref()
+                .and_then(Precision::named)
+                .unwrap_or_default(),
         };
         b.finish()?;
         Ok(plan)

@@ -11,6 +11,7 @@ use nerfjit_runtime::{save_png, Camera};
 
 use crate::failure::Result;
 use crate::settings::block::Block;
+use crate::settings::typed::typed_settings;
 
 /// A checked `viz` block.
 pub struct VizPlan {
@@ -23,21 +24,35 @@ pub struct VizPlan {
     points_out: Option<PathBuf>,
 }
 
+typed_settings! {
+    /// The settings of a `viz` block, as read.
+    pub struct VizSettings for crate::settings::schema::VIZ {
+        camera: required,
+        view: value,
+        size: size,
+        near: number,
+        far: number,
+        samples: whole,
+        rays: whole,
+        grid: output,
+        directions: output,
+        points: output,
+    }
+}
+
 impl VizPlan {
     /// Reads and checks a `viz` block.
     pub fn new(mut b: Block) -> Result<VizPlan> {
-        let camera = b.cameras()?.remove(0);
-        let view = match b.take("view") {
-            Some(v) => Some(b.cameras_of(&v)?.remove(0)),
+        let s = VizSettings::read(&mut b)?;
+        let camera = b.cameras_of(&s.camera)?.remove(0);
+        let view = match &s.view {
+            Some(v) => Some(b.cameras_of(v)?.remove(0)),
             None => None,
         };
-        let size = b.size()?;
-        let (near, far) = b.near_far()?;
-        let samples = b.whole("samples")? as usize;
-        let rays = b.whole("rays")? as usize;
-        let grid = b.output("grid")?;
-        let directions = b.output("directions")?;
-        let points_out = b.output("points")?;
+        let size = s.size;
+        let (near, far) = b.interval(s.near, s.far)?;
+        let (samples, rays) = (s.samples as usize, s.rays as usize);
+        let (grid, directions, points_out) = (s.grid, s.directions, s.points);
         if grid.is_none() && directions.is_none() && points_out.is_none() {
             return Err(b.error(
                 Diagnostic::new(b.span(), "this viz block draws nothing: it names no output image")

@@ -13,6 +13,7 @@ use crate::diagnostics::nonfinite::{self, ProbeRays};
 use crate::failure::{Failure, Result};
 use crate::frame_files::write_images;
 use crate::settings::block::Block;
+use crate::settings::typed::typed_settings;
 use crate::settings::values::skip_empty;
 pub use crate::settings::values::SkipEmpty;
 use nerfjit_field::{VolumeField, VolumeFields};
@@ -49,26 +50,49 @@ pub struct VolumePlan {
     pub frame_ms: u32,
 }
 
+typed_settings! {
+    /// The settings of a `render volume` block, as read.
+    pub struct RenderVolumeSettings for crate::settings::schema::RENDER_VOLUME {
+        camera: required,
+        size: size,
+        near: number,
+        far: number,
+        samples: whole,
+        background: triple,
+        early_termination: number,
+        spacing: value,
+        skip_empty: value,
+        importance: whole,
+        products: choice,
+        out: required_output,
+        depth: output,
+        frame_ms: whole,
+    }
+}
+
 impl VolumePlan {
     /// Reads and checks a `render volume` block.
     pub fn new(mut b: Block) -> Result<VolumePlan> {
-        let cameras = b.cameras()?;
-        let size = b.size()?;
+        let s = RenderVolumeSettings::read(&mut b)?;
+        let cameras = b.cameras_of(&s.camera)?;
+        let size = s.size;
         b.check_pixels(cameras.len(), size)?;
-        let (near, far) = b.near_far()?;
-        let samples = b.whole("samples")? as usize;
-        let early = b.number("early_termination")? as f32;
-        let spacing = b.spacing(near, far)?;
-        let background = b.triple("background")?;
-        let skip_empty = match b.take("skip_empty") {
+        let (near, far) = b.interval(s.near, s.far)?;
+        let samples = s.samples as usize;
+        let early = s.early_termination as f32;
+        let spacing = b.spacing_of(s.spacing.as_ref(), near, far)?;
+        let background = s.background;
+        let skip_empty = match &s.skip_empty {
             None => None,
-            Some(v) => skip_empty(&v).map_err(|d| b.error(d))?,
+            Some(v) => skip_empty(v).map_err(|d| b.error(d))?,
         };
-        let out = b.required_output("out")?;
-        let depth = b.output("depth")?;
-        let frame_ms = b.whole("frame_ms")? as u32;
-        let importance = b.whole("importance")? as usize;
-        let products = b.products()?;
+        let (out, depth, frame_ms) = (s.out, s.depth, s.frame_ms as u32);
+        let importance = s.importance as usize;
+        let products = s
+            .products
+            .as_deref()
+            .and_then(Precision::named)
+            .unwrap_or_default();
         b.finish()?;
         Ok(VolumePlan {
             cameras,

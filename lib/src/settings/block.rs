@@ -8,7 +8,6 @@ use std::rc::Rc;
 use nerfjit_dsl::ast::ConfigBlock;
 use nerfjit_dsl::config::{Settings, Spanned, Value};
 use nerfjit_dsl::{Diagnostic, Program, Span};
-use nerfjit_jit::Precision;
 use nerfjit_runtime::Camera;
 
 use crate::failure::{at, Failure, Result};
@@ -175,12 +174,6 @@ impl<'p> Block<'p> {
             .unwrap_or_else(|| panic!("'{key}' has no default in the schema")))
     }
 
-    /// Settings `near` and `far`, far beyond near.
-    pub fn near_far(&mut self) -> Result<(f32, f32)> {
-        let (near, far) = (self.number("near")?, self.number("far")?);
-        self.interval(near, far)
-    }
-
     /// The interval of settings `near` and `far` as read, far beyond near.
     pub fn interval(&self, near: f64, far: f64) -> Result<(f32, f32)> {
         let (near, far) = (near as f32, far as f32);
@@ -188,12 +181,6 @@ impl<'p> Block<'p> {
             return Err(self.block_error(format!("far ({far}) must exceed near ({near})")));
         }
         Ok((near, far))
-    }
-
-    /// The `spacing` setting for sampling [near, far] (linear by default), checked against the interval.
-    pub fn spacing(&mut self, near: f32, far: f32) -> Result<nerfjit_runtime::DepthSpacing> {
-        let spacing = self.take_checked("spacing")?;
-        self.spacing_of(spacing.as_ref(), near, far)
     }
 
     /// The `spacing` setting `v` as read (linear when absent), checked against [near, far].
@@ -235,14 +222,6 @@ impl<'p> Block<'p> {
         }
     }
 
-    /// Setting `products`: the arithmetic of dense products.
-    pub fn products(&mut self) -> Result<Precision> {
-        Ok(self
-            .choice("products")?
-            .and_then(|name| Precision::named(&name))
-            .unwrap_or_default())
-    }
-
     /// Setting `key`, `true` or `false`, or its default.
     pub fn flag(&mut self, key: &str) -> Result<bool> {
         Ok(self.choice(key)?.as_deref() == Some("true"))
@@ -263,12 +242,6 @@ impl<'p> Block<'p> {
             return Err(self.error(d));
         }
         Ok(name.to_string())
-    }
-
-    /// Setting `camera`: the cameras of a path or a file.
-    pub fn cameras(&mut self) -> Result<Vec<Camera>> {
-        let v = self.required("camera")?;
-        self.cameras_of(&v)
     }
 
     /// The cameras a camera value describes (at least one).
@@ -293,12 +266,12 @@ impl<'p> Block<'p> {
         Ok(())
     }
 
-    /// Setting `size`: `N` or `[width, height]`, or its default.
-    pub fn size(&mut self) -> Result<(u32, u32)> {
-        let Form::Size { default } = self.setting("size").form else {
-            panic!("'size' is not a size in the schema")
+    /// Size setting `key`: `N` or `[width, height]`, or its default.
+    pub fn size(&mut self, key: &str) -> Result<(u32, u32)> {
+        let Form::Size { default } = self.setting(key).form else {
+            panic!("'{key}' is not a size in the schema")
         };
-        match self.take_checked("size")? {
+        match self.take_checked(key)? {
             Some(v) => read::size(&v, schema::MAX_SIDE).map_err(|d| self.error(d)),
             None => Ok((default, default)),
         }

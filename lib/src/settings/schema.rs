@@ -2,8 +2,9 @@
 //! and docs: one registry, read by the blocks (which take their settings' ranges and defaults from it and
 //! reject any setting not in it), by `nerfjit check` (which checks names, required settings and every
 //! value that needs no file without running anything), by `nerfjit settings` (the help text), and by a
-//! test that keeps the tables of `docs/LANGUAGE.md` in step with it. A block that reads a setting missing
-//! here, or reads one as another form, fails loudly in every test that runs it.
+//! test that keeps the tables of `docs/LANGUAGE.md` in step with it. Each block kind's plan reads its
+//! settings into a typed struct ([`crate::settings::typed`]) with a field per setting here, which a test
+//! checks against this schema name by name and form by form.
 
 use nerfjit_dsl::ast::ConfigBlock;
 use nerfjit_dsl::config::{Settings, Spanned};

@@ -1,14 +1,15 @@
 //! Typed settings: a block's settings read once into a struct with a field per setting of its schema, so
-//! that plans read fields, not names. [`typed_settings!`] declares the struct from the schema's names (the
+//! that plans read fields, not names. `typed_settings!` declares the struct from the schema's names (the
 //! field is named as the setting) and the reader of each setting's form; a test checks every such struct
 //! against its schema, name by name and form by form, so the schema stays the one list of settings.
 
 /// Declares a block's typed settings: `struct Name for SCHEMA { setting: reader, ... }`, one field per
 /// setting of `SCHEMA` in its order, each read by the [`Block`](crate::settings::block::Block) method of
 /// its form: `number` (`f64`), `whole` (`u64`), `whole_or_none` (`Option<u64>`), `flag` (`bool`), `choice`
-/// (`Option<String>`), `triple` (`Option<[f32; 3]>`), `function` (`String`), `output` (`Option<PathBuf>`),
-/// `required` (a value that must be given) or `value` (a value with a grammar of its own, parsed by the
-/// plan with its diagnostics). Absent settings take the schema's defaults.
+/// (`Option<String>`), `triple` (`Option<[f32; 3]>`), `size` (`(u32, u32)`), `function` (`String`), `output`
+/// (`Option<PathBuf>`), `required_output` (`PathBuf`), `required` (a value that must be given) or `value` (a
+/// value with a grammar of its own, parsed by the plan with its diagnostics). Absent settings take the
+/// schema's defaults.
 macro_rules! typed_settings {
     ($(#[$meta:meta])* $vis:vis struct $name:ident for $schema:path { $($field:ident: $reader:ident,)* }) => {
         $(#[$meta])*
@@ -42,8 +43,10 @@ macro_rules! typed_settings {
     (@type flag) => { bool };
     (@type choice) => { Option<String> };
     (@type triple) => { Option<[f32; 3]> };
+    (@type size) => { (u32, u32) };
     (@type function) => { String };
     (@type output) => { Option<std::path::PathBuf> };
+    (@type required_output) => { std::path::PathBuf };
     (@type required) => { nerfjit_dsl::config::Spanned };
     (@type value) => { Option<nerfjit_dsl::config::Spanned> };
     (@read $b:ident, value, $key:expr) => { $b.value($key)? };
@@ -51,7 +54,7 @@ macro_rules! typed_settings {
 }
 pub(crate) use typed_settings;
 
-/// What a struct of [`typed_settings!`] says of itself, for the test against its schema.
+/// What a struct of `typed_settings!` says of itself, for the test against its schema.
 pub trait TypedSettings {
     /// The schema of the block kind.
     const SCHEMA: &'static crate::settings::schema::BlockSchema;
@@ -74,8 +77,9 @@ mod tests {
             Form::Choice { .. } => reader == "choice" || reader == "value",
             Form::Triple { .. } => reader == "triple",
             Form::Function { .. } => reader == "function",
+            Form::Output { .. } if required => reader == "required_output",
             Form::Output { .. } => reader == "output",
-            Form::Size { .. } => reader == "value",
+            Form::Size { .. } => reader == "size",
             Form::Value { .. } if required => reader == "required",
             Form::Value { .. } => reader == "value",
         }
@@ -98,6 +102,11 @@ mod tests {
 
     #[test]
     fn every_typed_struct_matches_its_schema() {
+        matches_its_schema::<crate::blocks::sphere_trace::SphereTraceSettings>();
+        matches_its_schema::<crate::blocks::volume::RenderVolumeSettings>();
         matches_its_schema::<crate::blocks::train::TrainSettings>();
+        matches_its_schema::<crate::blocks::train_sdf::TrainSdfSettings>();
+        matches_its_schema::<crate::blocks::mesh::MeshSettings>();
+        matches_its_schema::<crate::blocks::viz::VizSettings>();
     }
 }

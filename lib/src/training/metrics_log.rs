@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use crate::failure::{Failure, Result};
 use crate::training::tensorboard::EventWriter;
 
-/// A line of a metrics log, named: a struct declared with [`log_record!`], whose fields are the log's
+/// A line of a metrics log, named: a struct declared with `log_record!`, whose fields are the log's
 /// columns (the step first), so that no caller writes a row by position.
 pub trait LogRecord {
     /// The log's columns: the record's field names, in order.
