@@ -250,16 +250,49 @@ impl std::ops::AddAssign for TileTotals {
     }
 }
 
-/// Runs rays `first..first + n` of the step: adds their gradient to `grads`, returns their
-/// totals. Jitter, if any, comes from a generator per ray seeded with the ray's entry of `seeds`.
+/// The rays of a tile: `first..first + n` of the step's.
+#[derive(Clone, Copy)]
+struct TileRays {
+    first: usize,
+    n: usize,
+}
+
+/// A field a pass evaluates and its backward pass, at depths shared by every ray when given.
+struct PassField<'a> {
+    field: &'a dyn BatchFn,
+    vjp: &'a dyn BatchVjp,
+    shared_depths: Option<SharedDepths<'a>>,
+}
+
+/// Where a pass adds its gradients: the params' (through its kept passes, when it has them) and the
+/// colour transform's.
+struct PassGrads<'g, 'k> {
+    params: &'g mut [f32],
+    kept: Option<&'g mut (dyn KeptPasses + 'k)>,
+    appearance: &'g mut [f64; TRANSFORM_VALUES],
+}
+
+/// What one pass over a tile adds to the step.
+struct PassTotals {
+    /// Summed squared error of the rays' colours.
+    squared_error: f64,
+    /// Summed distortion loss, times its weight over the rays.
+    distortion: f64,
+    /// Samples evaluated.
+    samples: usize,
+}
+
+/// Runs the tile's rays of the step: adds their gradient to `grads`, returns their totals. Jitter, if
+/// any, comes from a generator per ray seeded with the ray's entry of `seeds`.
 fn train_tile(
     job: &Job,
     s: &mut Scratch,
-    (first, n): (usize, usize),
+    rays: TileRays,
     seeds: &[u64],
     grads: &mut [f32],
     kept: &mut Kept,
 ) -> TileTotals {
+    let n = rays.n;
     let samples = job.settings.samples;
     let len = n * samples;
     s.reserve(len, n);
@@ -288,58 +321,68 @@ fn train_tile(
         .as_ref()
         .map(|(t, delta)| SharedDepths { t, delta });
     let mut appearance_grads = [0.0; TRANSFORM_VALUES];
-    let (coarse, coarse_distortion, coarse_samples) = run_pass(
-        job,
-        (job.field, job.vjp, shared),
-        job.settings,
-        s,
-        (first, n),
-        (grads, kept.coarse.as_deref_mut(), &mut appearance_grads),
-    );
+    let coarse_field = PassField {
+        field: job.field,
+        vjp: job.vjp,
+        shared_depths: shared,
+    };
+    let coarse_grads = PassGrads {
+        params: grads,
+        kept: kept.coarse.as_deref_mut(),
+        appearance: &mut appearance_grads,
+    };
+    let coarse = run_pass(job, coarse_field, job.settings, s, rays, coarse_grads);
     let Some((fine, fine_settings)) = &job.fine else {
         return TileTotals {
-            squared_error: [coarse, 0.0],
-            distortion: coarse_distortion,
-            samples: coarse_samples,
+            squared_error: [coarse.squared_error, 0.0],
+            distortion: coarse.distortion,
+            samples: coarse.samples,
             appearance_grads,
         };
     };
     let jitter = job.fixed_depths.is_none().then_some(rngs.as_mut_slice());
     pass::draw_fine_depths(job.settings, fine.importance, s, n, jitter);
-    let (fine_error, fine_distortion, fine_samples) = run_pass(
-        job,
-        (fine.field, fine.vjp, None),
-        fine_settings,
-        s,
-        (first, n),
-        (grads, kept.fine.as_deref_mut(), &mut appearance_grads),
-    );
+    let fine_field = PassField {
+        field: fine.field,
+        vjp: fine.vjp,
+        shared_depths: None,
+    };
+    let fine_grads = PassGrads {
+        params: grads,
+        kept: kept.fine.as_deref_mut(),
+        appearance: &mut appearance_grads,
+    };
+    let fine = run_pass(job, fine_field, fine_settings, s, rays, fine_grads);
     TileTotals {
-        squared_error: [coarse, fine_error],
-        distortion: coarse_distortion + fine_distortion,
-        samples: coarse_samples + fine_samples,
+        squared_error: [coarse.squared_error, fine.squared_error],
+        distortion: coarse.distortion + fine.distortion,
+        samples: coarse.samples + fine.samples,
         appearance_grads,
     }
 }
 
-/// Evaluates `field` at the depths in `s.depths` of rays `first..first + n` (the same as
-/// `shared_depths` on every ray, when given), composites, and adds the gradient of the MSE through
-/// `vjp` to `grads`; returns the summed squared error, the distortion loss (summed, times the job's
-/// weight) and the number of samples evaluated. With `kept`
-/// passes (a pass that evaluates every sample in one call), the forward pass is theirs and the backward
-/// pass goes on from what it kept. With the view's colour transform, adds its gradient to `appearance_grads`.
+/// Evaluates the pass's field at the depths in `s.depths` of the tile's rays (the same shared depths on
+/// every ray, when given), composites, and adds the gradient of the MSE through its backward pass to the
+/// params' gradient; returns the summed squared error, the distortion loss (summed, times the job's
+/// weight) and the number of samples evaluated. With kept passes (a pass that evaluates every sample in
+/// one call), the forward pass is theirs and the backward pass goes on from what it kept. With the view's
+/// colour transform, adds its gradient to the transform's.
 fn run_pass(
     job: &Job,
-    (field, vjp, shared_depths): (&dyn BatchFn, &dyn BatchVjp, Option<SharedDepths>),
+    PassField {
+        field,
+        vjp,
+        shared_depths,
+    }: PassField,
     settings: &VolumeSettings,
     s: &mut Scratch,
-    (first, n): (usize, usize),
-    (grads, kept, appearance_grads): (
-        &mut [f32],
-        Option<&mut (dyn KeptPasses + '_)>,
-        &mut [f64; TRANSFORM_VALUES],
-    ),
-) -> (f64, f64, usize) {
+    TileRays { first, n }: TileRays,
+    PassGrads {
+        params: grads,
+        kept,
+        appearance: appearance_grads,
+    }: PassGrads,
+) -> PassTotals {
     let len = n * settings.samples;
     let kept = kept.map(|k| KeptForward::new(k, field.n_inputs(), field.n_outputs()));
     let pass = Pass {
@@ -416,7 +459,11 @@ fn run_pass(
                 kept.backward(index.len(), &cotangents, grads);
             }
         }
-        return (squared_error, distortion, samples);
+        return PassTotals {
+            squared_error,
+            distortion,
+            samples,
+        };
     }
     let backward = evaluated.map(|mut index| {
         // In order, for the cache; samples past a ray's end have all-zero cotangents: leaving them out
@@ -428,7 +475,11 @@ fn run_pass(
         index
     });
     pass::backward(vjp, &inputs, backward.as_deref(), &cotangents, grads);
-    (squared_error, distortion, samples)
+    PassTotals {
+        squared_error,
+        distortion,
+        samples,
+    }
 }
 
 /// One training step on `rays` with target colors `targets` (one per ray): samples each ray
@@ -573,7 +624,8 @@ pub fn volume_step_with(
                         let first = t * tile;
                         let n = tile.min(rays.len() - first);
                         let seeds = &seeds[first..first + n];
-                        totals += train_tile(&job, s, (first, n), seeds, &mut grads, &mut kept);
+                        let rays = TileRays { first, n };
+                        totals += train_tile(&job, s, rays, seeds, &mut grads, &mut kept);
                     }
                 }
             });
