@@ -74,19 +74,41 @@ impl StepWorkspace {
         &mut self.grads
     }
 
-    /// A zeroed accumulator of `n` floats: a kept one of that length if there is one, else the last
-    /// step's gradient cleared, else fresh memory.
-    fn accumulator(&mut self, n: usize) -> Vec<f32> {
+    /// An accumulator of `n` floats for a step's task: a kept one of that length if there is one, else
+    /// the last step's gradient, to be cleared by the task that takes it (beside the other tasks), else
+    /// none (the task allocates zeroed memory).
+    fn accumulator(&mut self, n: usize) -> Accumulator {
         self.zeroed.retain(|a| a.len() == n);
         if let Some(grads) = self.zeroed.pop() {
-            return grads;
+            return Accumulator::Zeroed(grads);
         }
         match std::mem::take(&mut self.grads) {
-            mut grads if grads.len() == n => {
+            grads if grads.len() == n => Accumulator::ToClear(grads),
+            _ => Accumulator::Fresh,
+        }
+    }
+}
+
+/// The memory a step's task sums its gradient into, as the workspace hands it out.
+enum Accumulator {
+    /// All zeros.
+    Zeroed(Vec<f32>),
+    /// Last step's gradient, to be cleared.
+    ToClear(Vec<f32>),
+    /// None kept: fresh memory.
+    Fresh,
+}
+
+impl Accumulator {
+    /// The accumulator, all zeros, of `n` floats.
+    fn cleared(self, n: usize) -> Vec<f32> {
+        match self {
+            Accumulator::Zeroed(grads) => grads,
+            Accumulator::ToClear(mut grads) => {
                 grads.fill(0.0);
                 grads
             }
-            _ => vec![0.0; n],
+            Accumulator::Fresh => vec![0.0; n],
         }
     }
 }
@@ -597,11 +619,12 @@ pub fn volume_step_with(
     let n_chunks = n_tiles.div_ceil(tiles_per_chunk);
     let n_tasks = n_chunks.min(ACCUMULATORS);
     let n_params = vjp.n_params();
-    let accumulators: Vec<Vec<f32>> = (0..n_tasks).map(|_| workspace.accumulator(n_params)).collect();
+    let accumulators: Vec<Accumulator> = (0..n_tasks).map(|_| workspace.accumulator(n_params)).collect();
     let tasks: Vec<(TileTotals, Vec<f32>, Kept)> = accumulators
         .into_par_iter()
         .enumerate()
-        .map(|(task, mut grads)| {
+        .map(|(task, accumulator)| {
+            let mut grads = accumulator.cleared(n_params);
             let mut totals = TileTotals::default();
             let mut kept = Kept {
                 coarse: job.keep.then(|| job.vjp.kept_passes()).flatten(),
