@@ -8,7 +8,8 @@
 //! chunks of about [`CHUNK_POINTS`] points; chunk c adds its gradients to accumulator
 //! c mod [`ACCUMULATORS`], whose chunks run in order in one parallel task, and the accumulators are
 //! summed in order, so a step's result does not depend on the number of threads. The accumulators and
-//! the gradient they sum to live in the caller's [`StepWorkspace`], reused from step to step.
+//! the gradient they sum to live in the caller's [`StepWorkspace`], reused from step to step; `gradients`
+//! holds it and the sum.
 //!
 //! A hash grid's table is most of a field's params, and its gradient is scattered: where the field's
 //! backward passes can hold their scatters back ([`KeptPasses::hold_scatters`]), no task writes the
@@ -17,7 +18,9 @@
 //! step then writes one table-sized gradient instead of four and sums none (docs/LOG.md measures what
 //! that saved).
 
-use std::ops::Range;
+mod gradients;
+
+pub use gradients::StepWorkspace;
 
 use rayon::prelude::*;
 
@@ -32,6 +35,7 @@ use crate::volume::occupancy::OccupancyGrid;
 use crate::volume::pass::{self, with_scratch, Depths, Output, Pass, Scratch};
 use crate::volume::render::{check_field, VolumeSettings};
 use crate::volume::sampler::jittered_depth;
+use gradients::{complement, sum_into, windows, Accumulator};
 
 /// Sample points per chunk of tiles.
 pub const CHUNK_POINTS: usize = 32768;
@@ -49,125 +53,6 @@ pub const KEPT_TILE_BYTES: usize = 32 << 20;
 
 /// Gradient accumulators of a step at most (its parallel tasks).
 pub const ACCUMULATORS: usize = 4;
-
-/// The memory a run's training steps share, passed to each step: the gradient of the last step, and
-/// accumulators kept from earlier steps (a hash grid's gradient has millions of entries: fresh memory
-/// every step would be faulted in page by page). The sum of a step's accumulators zeroes each one it
-/// adds as it reads it, so the next step need not clear them in a pass of its own.
-#[derive(Debug, Default)]
-pub struct StepWorkspace {
-    /// ∂loss/∂θ of the last step (empty before the first).
-    grads: Vec<f32>,
-    /// Accumulators for the next step: all zeros.
-    zeroed: Vec<Vec<f32>>,
-}
-
-impl StepWorkspace {
-    /// The last step's gradient of its loss in the field's parameters (empty before the first step).
-    pub fn grads(&self) -> &[f32] {
-        &self.grads
-    }
-
-    /// The last step's gradient, for a caller to add terms of its own loss to (and to lengthen while an
-    /// all-reduce carries more values with it).
-    pub fn grads_mut(&mut self) -> &mut Vec<f32> {
-        &mut self.grads
-    }
-
-    /// An accumulator of `n` floats for a step's task: a kept one of that length if there is one, else
-    /// the last step's gradient, to be cleared by the task that takes it (beside the other tasks), else
-    /// none (the task allocates zeroed memory).
-    fn accumulator(&mut self, n: usize) -> Accumulator {
-        self.zeroed.retain(|a| a.len() == n);
-        if let Some(grads) = self.zeroed.pop() {
-            return Accumulator::Zeroed(grads);
-        }
-        match std::mem::take(&mut self.grads) {
-            grads if grads.len() == n => Accumulator::ToClear(grads),
-            _ => Accumulator::Fresh,
-        }
-    }
-}
-
-/// The memory a step's task sums its gradient into, as the workspace hands it out.
-enum Accumulator {
-    /// All zeros.
-    Zeroed(Vec<f32>),
-    /// Last step's gradient, to be cleared.
-    ToClear(Vec<f32>),
-    /// None kept: fresh memory.
-    Fresh,
-}
-
-impl Accumulator {
-    /// The accumulator, all zeros, of `n` floats.
-    fn cleared(self, n: usize) -> Vec<f32> {
-        match self {
-            Accumulator::Zeroed(grads) => grads,
-            Accumulator::ToClear(mut grads) => {
-                grads.fill(0.0);
-                grads
-            }
-            Accumulator::Fresh => vec![0.0; n],
-        }
-    }
-}
-
-/// The stretches of `0..n` outside the sorted, disjoint `ranges`.
-fn complement(ranges: &[Range<usize>], n: usize) -> Vec<Range<usize>> {
-    let mut out = Vec::with_capacity(ranges.len() + 1);
-    let mut start = 0;
-    for r in ranges {
-        if r.start > start {
-            out.push(start..r.start);
-        }
-        start = start.max(r.end);
-    }
-    if start < n {
-        out.push(start..n);
-    }
-    out
-}
-
-/// The stretches `ranges` (sorted, disjoint, within `values`) of `values`, each its own slice.
-fn windows<'v>(mut values: &'v mut [f32], ranges: &[Range<usize>]) -> Vec<&'v mut [f32]> {
-    let mut out = Vec::with_capacity(ranges.len());
-    let mut at = 0;
-    for r in ranges {
-        let (_, rest) = std::mem::take(&mut values).split_at_mut(r.start - at);
-        let (window, rest) = rest.split_at_mut(r.len());
-        out.push(window);
-        values = rest;
-        at = r.end;
-    }
-    out
-}
-
-/// Adds `parts` to `total` on the stretches `ranges` (sorted, disjoint), element by element in the
-/// parts' order: the same sums on any number of threads. Each part is zeroed as it is added, while it
-/// is in cache, so that the next step need not clear it.
-fn sum_into(total: &mut [f32], parts: &mut [Vec<f32>], ranges: &[Range<usize>]) {
-    const BLOCK: usize = 1 << 16;
-    let mut parts: Vec<Vec<&mut [f32]>> = parts.iter_mut().map(|g| windows(g, ranges)).collect();
-    let mut blocks: Vec<(&mut [f32], Vec<&mut [f32]>)> = Vec::new();
-    for (i, total) in windows(total, ranges).into_iter().enumerate() {
-        let mut chunks: Vec<_> = parts
-            .iter_mut()
-            .map(|p| std::mem::take(&mut p[i]).chunks_mut(BLOCK))
-            .collect();
-        for total in total.chunks_mut(BLOCK) {
-            blocks.push((total, chunks.iter_mut().filter_map(Iterator::next).collect()));
-        }
-    }
-    blocks.into_par_iter().for_each(|(total, parts)| {
-        for part in parts {
-            for (t, g) in total.iter_mut().zip(part) {
-                *t += *g;
-                *g = 0.0;
-            }
-        }
-    });
-}
 
 /// The outcome of [`volume_step`].
 #[derive(Debug, Clone, PartialEq)]
