@@ -24,7 +24,8 @@
 //! course's box from Rust. Its modules, from the bottom up (each uses only those before it, as
 //! `.ci/check_cycles.py` checks): [`failure`] and [`cluster`] (errors and the MPI job), [`console`],
 //! [`interrupt`] and [`observe`] (what the program says, Ctrl-C, progress), [`script`], [`settings`] (the
-//! schema of every block setting and their parsers), [`frame_files`] and [`diagnostics`], [`checkpoint`],
+//! schema of every block setting and their parsers), [`frame_files`], [`diagnostics`] and [`folder_lock`]
+//! (one training run a folder), [`checkpoint`],
 //! [`training`] (both kinds of training run [`training::train_loop::train`], each block an
 //! [`training::train_loop::Objective`]; validation; logs), [`blocks`] (what each kind of block does),
 //! [`session`] and [`commands`] (the work of the other commands). The JIT's kernels reach the runtime as
@@ -39,6 +40,7 @@ mod conformance;
 pub mod console;
 pub mod diagnostics;
 pub mod failure;
+pub mod folder_lock;
 pub mod frame_files;
 pub mod interrupt;
 

@@ -970,6 +970,43 @@ fn a_run_killed_at_any_moment_leaves_a_checkpoint_that_resumes() {
     }
 }
 
+/// Two runs training into one folder: the second refuses before it writes anything, naming the first (its
+/// pid and command line), and the first trains on untouched; once the first is killed (`kill -9`) its lock is
+/// gone with it and a run resumes there.
+#[test]
+fn a_second_run_in_a_training_folder_refuses_and_a_killed_run_leaves_no_lock() {
+    let dir = scratch("two-runs");
+    let mut first = start_long_run(&dir, 5);
+    let log = dir.join("train.metrics.jsonl");
+    let before = std::fs::read_to_string(&log).unwrap().lines().count();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(!ok, "the second run trained");
+    assert!(err.contains("is in use by another training run"), "{err}");
+    assert!(err.contains(&format!("pid {}: ", first.id())), "{err}");
+    assert!(err.contains("run train.sdf"), "{err}");
+    // The first run's log was neither truncated nor written by the second, and goes on growing.
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let after = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        after.lines().count() > before,
+        "the first run stopped writing its log"
+    );
+    let complete = after.rsplit_once('\n').map_or("", |(lines, _)| lines);
+    assert!(
+        complete
+            .lines()
+            .all(|l| serde_json::from_str::<serde_json::Value>(l).is_ok()),
+        "{after}"
+    );
+    first.kill().expect("SIGKILL");
+    first.wait().expect("reaped");
+    let step = checkpoint_step(&dir);
+    std::fs::write(dir.join("train.sdf"), trainer(step + 3)).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("trained 3 steps"), "{out}");
+}
+
 /// `nerfjit sweep`: a 2 × 2 grid of the box's training (learning rate × steps) runs each combination in
 /// its own folder, and its table holds each run's settings and final metrics, the same as the run's own
 /// summary; a combination that does not check stops the sweep before any run.

@@ -13,6 +13,7 @@ use nerfjit_runtime::{
 };
 
 use crate::failure::{Failure, Result};
+use crate::folder_lock::lock_run_folders;
 use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
@@ -537,6 +538,8 @@ impl TrainPlan {
         bars: &dyn ProgressBars,
     ) -> Result<Trained> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
+        // Before anything is read or written: a second run in the folder refuses here, naming the first.
+        let _locks = lock_run_folders(self.checkpoint.iter().chain(&self.log).map(PathBuf::as_path))?;
         for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
             crate::console::note(&line);
         }
