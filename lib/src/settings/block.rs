@@ -125,11 +125,6 @@ impl<'p> Block<'p> {
     /// Takes setting `key`, if given, checked against its form in the schema (a value with a grammar of its
     /// own by the schema's check, where it has one).
     pub fn value(&mut self, key: &str) -> Result<Option<Spanned>> {
-        self.take_checked(key)
-    }
-
-    /// Takes setting `key`, if given, checked against its form in the schema.
-    fn take_checked(&mut self, key: &str) -> Result<Option<Spanned>> {
         let setting = self.setting(key);
         let Some(v) = self.settings.take(key) else {
             return Ok(None);
@@ -150,7 +145,7 @@ impl<'p> Block<'p> {
         let Form::Number { default, .. } = self.setting(key).form else {
             panic!("'{key}' is not a number in the schema")
         };
-        match self.take_checked(key)? {
+        match self.value(key)? {
             Some(v) => v.number().map_err(|d| self.error(d)),
             None => Ok(default),
         }
@@ -161,7 +156,7 @@ impl<'p> Block<'p> {
         let Form::Whole { default, .. } = self.setting(key).form else {
             panic!("'{key}' is not a whole number in the schema")
         };
-        match self.take_checked(key)? {
+        match self.value(key)? {
             Some(v) => v.number().map(|x| Some(x as u64)).map_err(|d| self.error(d)),
             None => Ok(default),
         }
@@ -205,7 +200,7 @@ impl<'p> Block<'p> {
         let Form::Triple { default } = self.setting(key).form else {
             panic!("'{key}' is not three numbers in the schema")
         };
-        match self.take_checked(key)? {
+        match self.value(key)? {
             Some(v) => triple(&v).map(Some).map_err(|d| self.error(d)),
             None => Ok(default),
         }
@@ -232,7 +227,7 @@ impl<'p> Block<'p> {
         let Form::Function { default } = self.setting(key).form else {
             panic!("'{key}' is not a function name in the schema")
         };
-        let Some(v) = self.take_checked(key)? else {
+        let Some(v) = self.value(key)? else {
             return Ok(default.to_string());
         };
         let name = v.string().map_err(|d| self.error(d))?;
@@ -271,7 +266,7 @@ impl<'p> Block<'p> {
         let Form::Size { default } = self.setting(key).form else {
             panic!("'{key}' is not a size in the schema")
         };
-        match self.take_checked(key)? {
+        match self.value(key)? {
             Some(v) => read::size(&v, schema::MAX_SIDE).map_err(|d| self.error(d)),
             None => Ok((default, default)),
         }

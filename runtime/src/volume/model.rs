@@ -90,44 +90,21 @@ impl TrainableModel<'_> {
         jitter: Option<&mut Rng>,
         workspace: &mut StepWorkspace,
     ) -> Result<StepResult> {
-        let fine = self.coarse.map(|coarse| {
-            let fine = FinePass {
-                field: self.field,
-                vjp: self.vjp,
-                importance: coarse.importance,
-            };
-            (coarse, fine)
+        // With hierarchical sampling the step samples the coarse field, and the fine pass follows it.
+        let fine = self.coarse.map(|coarse| FinePass {
+            field: self.field,
+            vjp: self.vjp,
+            importance: coarse.importance,
         });
-        let options = |fine| StepOptions {
+        let (field, vjp) = self.coarse.map_or((self.field, self.vjp), |c| (c.field, c.vjp));
+        let options = StepOptions {
             jitter,
-            fine,
+            fine: fine.as_ref(),
             grid,
             recompute_forward: self.recompute_forward,
             appearance: self.appearance,
             distortion: self.distortion,
         };
-        match &fine {
-            None => volume_step_with(
-                rays,
-                targets,
-                self.field,
-                self.vjp,
-                settings,
-                options(None),
-                workspace,
-            ),
-            Some((coarse, fine)) => {
-                let options = options(Some(fine));
-                volume_step_with(
-                    rays,
-                    targets,
-                    coarse.field,
-                    coarse.vjp,
-                    settings,
-                    options,
-                    workspace,
-                )
-            }
-        }
+        volume_step_with(rays, targets, field, vjp, settings, options, workspace)
     }
 }
