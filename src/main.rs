@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 
-use clap::{CommandFactory, Parser, Subcommand};
+use clap::{Args, CommandFactory, Parser, Subcommand};
 use nerfjit::blocks::mesh;
 use nerfjit::commands::{
     check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, sweep, transmittance,
@@ -41,6 +41,46 @@ struct Cli {
     command: Command,
 }
 
+/// What the viewer's server gives its clients (`nerfjit view`, `nerfjit run --view`).
+#[derive(Args)]
+struct ServerLimits {
+    /// The viewer's open connections at once; the next is answered 503 and closed.
+    #[arg(long, default_value_t = viewer::Limits::default().connections, value_parser = at_least_one())]
+    max_connections: usize,
+    /// The viewer's open pages at once (each renders on a thread of its own); the next is answered 503.
+    #[arg(long, default_value_t = viewer::Limits::default().pages, value_parser = at_least_one())]
+    max_pages: usize,
+    /// Seconds the viewer waits for a request's head, a silent page (pinged a third of this apart) or a
+    /// page that does not read what it is sent, before it closes the connection.
+    #[arg(long, default_value_t = viewer::Limits::default().idle.as_secs_f64(), value_parser = positive_seconds)]
+    idle_timeout: f64,
+}
+
+impl From<ServerLimits> for viewer::Limits {
+    fn from(limits: ServerLimits) -> viewer::Limits {
+        viewer::Limits {
+            connections: limits.max_connections,
+            pages: limits.max_pages,
+            idle: std::time::Duration::from_secs_f64(limits.idle_timeout),
+        }
+    }
+}
+
+/// A whole number from 1.
+fn at_least_one() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::new().range(1..)
+}
+
+/// A number of seconds above 0 and at most a day.
+fn positive_seconds(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text.parse().map_err(|e| format!("{e}"))?;
+    if seconds > 0.0 && seconds <= 86_400.0 {
+        Ok(seconds)
+    } else {
+        Err("seconds above 0 and at most 86400".into())
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run a script: its `train` and `render` blocks, in order.
@@ -67,6 +107,8 @@ enum Command {
         /// With --view: the port (0: any free one).
         #[arg(long, default_value_t = 7007, requires = "view")]
         port: u16,
+        #[command(flatten)]
+        limits: ServerLimits,
     },
     /// Run a script once for every combination of values of its consts and block settings (a grid search),
     /// each run in its own folder; writes a table of every run's final metrics (sweep.json, sweep.md).
@@ -280,6 +322,8 @@ enum Command {
         /// The port (0: any free one).
         #[arg(long, default_value_t = 7007)]
         port: u16,
+        #[command(flatten)]
+        limits: ServerLimits,
     },
     /// Convert an f-rep model in the text format of fidget and MPR (`.vm`: one operation per line) into a
     /// script defining `fn sdf(p: vec3) -> f32` and a turntable render.
@@ -516,11 +560,13 @@ fn run_command(cli: Cli) -> ExitCode {
             view,
             host,
             port,
+            limits,
         } => {
             let view = view.then_some(viewer::ViewArgs {
                 source: &script,
                 host,
                 port,
+                limits: limits.into(),
             });
             run_script(&script, &set, out.as_deref(), resume, view.as_ref())
         }
@@ -639,10 +685,16 @@ fn run_command(cli: Cli) -> ExitCode {
             out,
         } => compare::compare(&view.args(""), &cameras, format, index, &columns, &rows, &out)
             .map(|text| emit(&format!("{text}\n"))),
-        Command::View { source, host, port } => viewer::run(&viewer::ViewArgs {
+        Command::View {
+            source,
+            host,
+            port,
+            limits,
+        } => viewer::run(&viewer::ViewArgs {
             source: &source,
             host,
             port,
+            limits: limits.into(),
         }),
         Command::Import { model, out } => {
             import::run(&model, out.as_deref()).map(|text| emit(&format!("{text}\n")))

@@ -17,6 +17,7 @@ use std::net::{IpAddr, SocketAddr, TcpListener};
 use std::sync::Arc;
 
 pub use live::Live;
+pub use server::Limits;
 
 use nerfjit_dsl::{Program, Type};
 
@@ -30,6 +31,8 @@ pub struct ViewArgs<'a> {
     pub host: IpAddr,
     /// The port (0: any free one).
     pub port: u16,
+    /// What the server gives its clients.
+    pub limits: Limits,
 }
 
 /// The script a page starts from and, for a checkpoint, its trained params.
@@ -127,17 +130,18 @@ fn open(args: &ViewArgs, document: &Document) -> Result<(TcpListener, String)> {
 pub fn run(args: &ViewArgs) -> Result<()> {
     let document = Document::load(args.source)?;
     let (listener, token) = open(args, &document)?;
-    server::serve(listener, document, token, None)
+    server::serve(listener, document, token, None, args.limits)
 }
 
 /// `nerfjit run --view`: serves the page of a training run from a thread of its own, for as long as the
 /// process lives; prints its URL first.
 pub fn attach(args: &ViewArgs, document: Document, live: Arc<Live>) -> Result<()> {
     let (listener, token) = open(args, &document)?;
+    let limits = args.limits;
     std::thread::Builder::new()
         .name("nerfjit view server".into())
         .spawn(move || {
-            if let Err(failure) = server::serve(listener, document, token, Some(live)) {
+            if let Err(failure) = server::serve(listener, document, token, Some(live), limits) {
                 eprint!("{failure}");
             }
         })

@@ -1,17 +1,26 @@
 //! The viewer's HTTP server: the page (HTML, JS and CSS embedded in the binary) and a WebSocket per open
-//! page, each with a renderer thread of its own. Nothing answers without the access token.
+//! page, each with a renderer thread of its own. Nothing answers without the access token, and no client
+//! holds more than [`Limits`] gives it: connections past the limit are answered 503 at once, a request's
+//! head must arrive within the idle time, a page that neither sends nor answers the server's pings for that
+//! long (or does not read what is sent to it) is closed, and a WebSocket message is at most 2 MB.
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
-use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
+use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use glam::Vec3;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::service::TowerToHyperService;
 use serde_json::{json, Value};
+use tokio::io::AsyncWriteExt;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::export::Export;
 use super::mailbox::{ExportRequest, FrameRequest, Mailbox};
@@ -27,11 +36,40 @@ const STYLE: &str = include_str!("page/viewer.css");
 /// The longest script a page may send, in bytes.
 const MAX_SOURCE_BYTES: usize = 1 << 20;
 
+/// The largest WebSocket message (and frame) a page may send, in bytes: a script and its JSON.
+const MAX_MESSAGE_BYTES: usize = 2 * MAX_SOURCE_BYTES;
+
+/// How much the server gives its clients (`--max-connections`, `--max-pages`, `--idle-timeout`).
+#[derive(Clone, Copy, Debug)]
+pub struct Limits {
+    /// Open HTTP connections at once (a page's WebSocket counts among the pages instead); the next is
+    /// answered 503 and closed.
+    pub connections: usize,
+    /// Open pages (WebSockets, each with a renderer thread) at once; the next is answered 503.
+    pub pages: usize,
+    /// How long a request's head may take to arrive, a page may stay silent (it answers the server's
+    /// pings, sent a third of this apart) and a message to a page may wait to be read.
+    pub idle: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Limits {
+        Limits {
+            connections: 256,
+            pages: 8,
+            idle: Duration::from_secs(30),
+        }
+    }
+}
+
 #[derive(Clone)]
 struct Shared {
     document: Arc<Document>,
     token: Arc<str>,
     live: Option<Arc<Live>>,
+    /// The pages that may still open.
+    pages: Arc<Semaphore>,
+    limits: Limits,
 }
 
 /// Serves the page on `listener` until the process ends; with a training run, pages follow it.
@@ -40,6 +78,7 @@ pub fn serve(
     document: Document,
     token: String,
     live: Option<Arc<Live>>,
+    limits: Limits,
 ) -> Result<()> {
     let failed = |e: std::io::Error| Failure::Message(format!("the viewer's server failed: {e}"));
     listener.set_nonblocking(true).map_err(failed)?;
@@ -52,6 +91,8 @@ pub fn serve(
         document: Arc::new(document),
         token: token.into(),
         live,
+        pages: Arc::new(Semaphore::new(limits.pages)),
+        limits,
     };
     let app = Router::new()
         .route("/", get(page))
@@ -63,9 +104,60 @@ pub fn serve(
     runtime
         .block_on(async move {
             let listener = tokio::net::TcpListener::from_std(listener)?;
-            axum::serve(listener, app).await
+            accept(listener, app, limits).await
         })
         .map_err(failed)
+}
+
+/// Accepts connections for ever: each within the limit is served on a task of its own; one past it is
+/// answered 503 and closed. Failing accepts (out of file descriptors, say) are retried after a pause.
+async fn accept(listener: tokio::net::TcpListener, app: Router, limits: Limits) -> std::io::Result<()> {
+    let connections = Arc::new(Semaphore::new(limits.connections));
+    loop {
+        let stream = match listener.accept().await {
+            Ok((stream, _)) => stream,
+            Err(_) => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        match Arc::clone(&connections).try_acquire_owned() {
+            Ok(permit) => {
+                tokio::spawn(connection(stream, app.clone(), limits.idle, permit));
+            }
+            Err(_) => {
+                tokio::spawn(refuse(stream, limits.connections));
+            }
+        }
+    }
+}
+
+/// Serves one connection (HTTP/1.1, upgraded to a WebSocket for a page) while it holds `_permit`.
+async fn connection(
+    stream: tokio::net::TcpStream,
+    app: Router,
+    idle: Duration,
+    _permit: OwnedSemaphorePermit,
+) {
+    let service = TowerToHyperService::new(app);
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(TokioTimer::new()).header_read_timeout(idle);
+    // Errors here are the client's (a broken or slow request): the connection ends, nothing else does.
+    let _ = http
+        .serve_connection(TokioIo::new(stream), service)
+        .with_upgrades()
+        .await;
+}
+
+/// Answers a connection past the limit with 503 (or gives up on a client that will not read it).
+async fn refuse(mut stream: tokio::net::TcpStream, limit: usize) {
+    let body =
+        format!("nerfjit view: {limit} connections are open, the most it serves at once; try again later\n");
+    let response = format!(
+        "HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    let _ = tokio::time::timeout(Duration::from_secs(1), stream.write_all(response.as_bytes())).await;
 }
 
 /// Whether the query carries the token (compared in time independent of where they differ).
@@ -104,19 +196,88 @@ async fn page(State(shared): State<Shared>, Query(query): Query<HashMap<String, 
 async fn socket(
     State(shared): State<Shared>,
     Query(query): Query<HashMap<String, String>>,
-    upgrade: WebSocketUpgrade,
+    upgrade: std::result::Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Response {
     if !authorized(&query, &shared.token) {
         return forbidden();
     }
+    let upgrade = match upgrade {
+        Ok(upgrade) => upgrade,
+        Err(rejection) => return rejection.into_response(),
+    };
+    let Ok(page) = Arc::clone(&shared.pages).try_acquire_owned() else {
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!(
+                "nerfjit view: {} pages are open, the most it serves at once (--max-pages); close one\n",
+                shared.limits.pages
+            ),
+        )
+            .into_response();
+    };
+    let idle = shared.limits.idle;
     upgrade
-        .max_message_size(2 * MAX_SOURCE_BYTES)
-        .on_upgrade(move |socket| session(socket, shared.document, shared.live))
+        .max_message_size(MAX_MESSAGE_BYTES)
+        .max_frame_size(MAX_MESSAGE_BYTES)
+        .on_upgrade(move |socket| async move {
+            let page = Page {
+                socket,
+                idle,
+                _permit: page,
+            };
+            session(page, shared.document, shared.live).await;
+        })
+}
+
+/// An open page's WebSocket: sends that give up on a page that does not read them within the idle time.
+struct Page {
+    socket: WebSocket,
+    idle: Duration,
+    /// The page's place among the open pages.
+    _permit: OwnedSemaphorePermit,
+}
+
+impl Page {
+    /// Sends `message`; false when the page has gone or has not read for the idle time.
+    async fn send(&mut self, message: Message) -> bool {
+        matches!(
+            tokio::time::timeout(self.idle, self.socket.send(message)).await,
+            Ok(Ok(()))
+        )
+    }
+
+    /// Sends a JSON message.
+    async fn send_json(&mut self, message: &Value) -> bool {
+        self.send(Message::Text(message.to_string().into())).await
+    }
+
+    /// Closes the socket with `code` and `reason` (if the page still reads).
+    async fn close(&mut self, code: u16, reason: &str) {
+        let frame = CloseFrame {
+            code,
+            reason: reason.into(),
+        };
+        self.send(Message::Close(Some(frame))).await;
+    }
+}
+
+/// The WebSocket close code and reason for a broken message from a page; none when the connection
+/// itself failed (there is nobody to tell).
+fn close_for(error: axum::Error) -> Option<(u16, String)> {
+    let error = error.into_inner().downcast::<tungstenite::Error>().ok()?;
+    let code = match *error {
+        tungstenite::Error::Capacity(_) => close_code::SIZE,
+        tungstenite::Error::Utf8(_) => close_code::INVALID,
+        tungstenite::Error::Protocol(_) => close_code::PROTOCOL,
+        _ => return None,
+    };
+    Some((code, error.to_string()))
 }
 
 /// One open page: its requests go to its renderer thread, the renderer's messages to the page, and a
-/// training run's progress records to the page as they come.
-async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Arc<Live>>) {
+/// training run's progress records to the page as they come. The server pings a page a third of the idle
+/// time apart and closes it when nothing (not even a pong) came for the idle time.
+async fn session(mut page: Page, document: Arc<Document>, live: Option<Arc<Live>>) {
     let mailbox = Arc::new(Mailbox::default());
     let (outbox, mut outgoing) = tokio::sync::mpsc::unbounded_channel();
     let mut progress = live.as_ref().map(|l| l.subscribe());
@@ -127,11 +288,7 @@ async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Ar
         "checkpoint": document.trained.is_some(),
         "training": live.as_ref().map(|l| json!({"history": l.history(), "paused": l.paused()})),
     });
-    if socket
-        .send(Message::Text(hello.to_string().into()))
-        .await
-        .is_err()
-    {
+    if !page.send_json(&hello).await {
         return;
     }
     if let Some(live) = &live {
@@ -150,26 +307,48 @@ async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Ar
     };
     if let Err(e) = worker {
         let message = json!({"type": "error", "message": format!("cannot start a renderer: {e}")});
-        let _ = socket.send(Message::Text(message.to_string().into())).await;
+        page.send_json(&message).await;
         return;
     }
+    let mut heard = Instant::now();
+    let mut pings = tokio::time::interval(page.idle / 3);
     loop {
         tokio::select! {
-            incoming = socket.recv() => match incoming {
-                Some(Ok(Message::Text(text))) => {
-                    if let Err(message) = post(&text, &mailbox, live.as_deref()) {
-                        let error = json!({"type": "error", "message": message});
-                        if socket.send(Message::Text(error.to_string().into())).await.is_err() {
-                            break;
+            incoming = page.socket.recv() => {
+                heard = Instant::now();
+                match incoming {
+                    Some(Ok(Message::Text(text))) => {
+                        if let Err(message) = post(&text, &mailbox, live.as_deref()) {
+                            if !page.send_json(&json!({"type": "error", "message": message})).await {
+                                break;
+                            }
                         }
                     }
+                    Some(Ok(Message::Binary(_))) => {
+                        page.close(close_code::UNSUPPORTED, "the viewer takes JSON text messages").await;
+                        break;
+                    }
+                    Some(Ok(Message::Close(_))) | None => break,
+                    Some(Ok(_)) => {}
+                    Some(Err(error)) => {
+                        if let Some((code, reason)) = close_for(error) {
+                            page.close(code, &reason).await;
+                        }
+                        break;
+                    }
                 }
-                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => break,
-                Some(Ok(_)) => {}
-            },
+            }
+            _ = pings.tick() => {
+                if heard.elapsed() >= page.idle {
+                    page.close(close_code::POLICY, "nothing heard from the page for the idle time").await;
+                    break;
+                }
+                if !page.send(Message::Ping(Default::default())).await {
+                    break;
+                }
+            }
             Some(record) = next_record(&mut progress) => {
-                let message = json!({"type": "progress", "record": record});
-                if socket.send(Message::Text(message.to_string().into())).await.is_err() {
+                if !page.send_json(&json!({"type": "progress", "record": record})).await {
                     break;
                 }
             }
@@ -180,7 +359,7 @@ async fn session(mut socket: WebSocket, document: Arc<Document>, live: Option<Ar
                     // The renderer has ended (it panicked: its message is on stderr).
                     None => break,
                 };
-                if socket.send(message).await.is_err() {
+                if !page.send(message).await {
                     break;
                 }
             }

@@ -11,6 +11,8 @@ use serde_json::{json, Value};
 
 use tungstenite::{Message, WebSocket};
 
+mod hostile_clients;
+
 /// A `nerfjit view` process, stopped when dropped.
 struct Viewer {
     child: Child,
