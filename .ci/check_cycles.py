@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # other. The crate root (`lib.rs`) sits above them all.
 LAYERS = {
     "runtime": [
-        "error rng", "input", "json", "cameras", "data", "output", "field", "surfaces", "training", "volume",
+        "error rng", "input whole_file", "json", "cameras", "data", "output", "field", "surfaces", "training", "volume",
     ],
     "lib": [
         "failure cluster city_model", "console", "interrupt", "observe", "script", "settings",

@@ -1,5 +1,6 @@
-//! The lock of the folder a training run writes into. Two runs writing their checkpoint and logs into one
-//! folder at once would overwrite each other's files, so the second refuses, naming the first. The lock is
+//! The lock of the folder a training run or a render writes into. Two of them writing into one folder at
+//! once would overwrite each other's files (a checkpoint, a log, frames), so the second refuses, naming the
+//! first. The lock is
 //! the operating system's advisory lock (`flock`) on `<folder>/.nerfjit.lock`: it ends with the process that
 //! holds it, however the process ends (`kill -9` and crashes included), so no lock is ever left stuck. The
 //! file stays (removing it could let two runs lock two different files); its text says who holds it.
@@ -48,8 +49,8 @@ impl FolderLock {
                     text => text.to_string(),
                 };
                 Err(Failure::Message(format!(
-                    "'{}' is in use by another training run ({holder}): a second run there would overwrite its \
-                     checkpoint and logs; wait for it to end, or write this one into another folder (--out DIR)",
+                    "'{}' is in use by another nerfjit run or render ({holder}): writing there too would overwrite \
+                     its files; wait for it to end, or write into another folder (--out DIR)",
                     folder.display()
                 )))
             }
@@ -58,10 +59,11 @@ impl FolderLock {
     }
 }
 
-/// Locks the folders that a training run's `files` (its checkpoint, its metrics log) are written into, each
-/// once, for this process's command line. On the ranks of an MPI job other than rank 0, which write none of
-/// them, nothing is locked; a folder that does not exist yet is not either (writing into it fails first).
-pub fn lock_run_folders<'a>(files: impl IntoIterator<Item = &'a Path>) -> Result<Vec<FolderLock>> {
+/// Locks the folders that `files` (a training run's checkpoint and metrics log, a render's frames) are
+/// written into, each once, for this process's command line. On the ranks of an MPI job other than rank 0,
+/// which write none of them, nothing is locked; a folder that does not exist yet is not either (nobody
+/// else writes there yet).
+pub fn lock_output_folders<'a>(files: impl IntoIterator<Item = &'a Path>) -> Result<Vec<FolderLock>> {
     if crate::cluster::current().rank() != 0 {
         return Ok(Vec::new());
     }
@@ -95,7 +97,7 @@ mod tests {
         let err = FolderLock::take(dir.path(), "nerfjit run second.sdf")
             .unwrap_err()
             .to_string();
-        assert!(err.contains("in use by another training run"), "{err}");
+        assert!(err.contains("in use by another nerfjit run or render"), "{err}");
         assert!(
             err.contains(&format!("pid {}: nerfjit run first.sdf", std::process::id())),
             "{err}"
@@ -111,13 +113,15 @@ mod tests {
     fn a_run_locks_each_folder_of_its_files_once() {
         let dir = tempfile::tempdir().unwrap();
         let (checkpoint, log) = (dir.path().join("run.ckpt"), dir.path().join(".").join("run.log"));
-        let locks = lock_run_folders([checkpoint.as_path(), log.as_path()]).unwrap();
+        let locks = lock_output_folders([checkpoint.as_path(), log.as_path()]).unwrap();
         assert_eq!(locks.len(), 1);
-        let err = lock_run_folders([checkpoint.as_path()]).unwrap_err().to_string();
-        assert!(err.contains("in use by another training run"), "{err}");
+        let err = lock_output_folders([checkpoint.as_path()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("in use by another nerfjit run or render"), "{err}");
         drop(locks);
-        assert_eq!(lock_run_folders([log.as_path()]).unwrap().len(), 1);
+        assert_eq!(lock_output_folders([log.as_path()]).unwrap().len(), 1);
         let missing = dir.path().join("not yet").join("run.ckpt");
-        assert!(lock_run_folders([missing.as_path()]).unwrap().is_empty());
+        assert!(lock_output_folders([missing.as_path()]).unwrap().is_empty());
     }
 }

@@ -31,6 +31,7 @@ pub mod rng;
 pub mod surfaces;
 pub mod training;
 pub mod volume;
+pub mod whole_file;
 
 pub use cameras::camera::{Camera, NdcScale, PixelIntrinsics};
 pub use cameras::camera_files::{load_blender_cameras, load_box_cameras, CameraFormat, CameraSet};
@@ -73,3 +74,4 @@ pub use volume::render::{render_volume, VolumeFrame, VolumeSettings};
 pub use volume::sampler::{sample_depths, sample_points, DepthRange, DepthSpacing, Spacing};
 pub use volume::train::{volume_step, volume_step_with, FinePass, StepOptions, StepResult, StepWorkspace};
 pub use volume::transmittance::{Medium, Segment, Transmittance};
+pub use whole_file::{write_whole, OutputFile};

@@ -970,8 +970,8 @@ fn a_run_killed_at_any_moment_leaves_a_checkpoint_that_resumes() {
     }
 }
 
-/// Two runs training into one folder: the second refuses before it writes anything, naming the first (its
-/// pid and command line), and the first trains on untouched; once the first is killed (`kill -9`) its lock is
+/// Two runs training into one folder: the second (or a render there) refuses before it writes anything,
+/// naming the first (its pid and command line), and the first trains on untouched; once the first is killed (`kill -9`) its lock is
 /// gone with it and a run resumes there.
 #[test]
 fn a_second_run_in_a_training_folder_refuses_and_a_killed_run_leaves_no_lock() {
@@ -981,9 +981,29 @@ fn a_second_run_in_a_training_folder_refuses_and_a_killed_run_leaves_no_lock() {
     let before = std::fs::read_to_string(&log).unwrap().lines().count();
     let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
     assert!(!ok, "the second run trained");
-    assert!(err.contains("is in use by another training run"), "{err}");
+    assert!(
+        err.contains("is in use by another nerfjit run or render"),
+        "{err}"
+    );
     assert!(err.contains(&format!("pid {}: ", first.id())), "{err}");
     assert!(err.contains("run train.sdf"), "{err}");
+    // A render into the run's folder refuses as well; into another folder it renders.
+    let render = [
+        "render",
+        "truth.sdf",
+        "--cameras",
+        "cams.json",
+        "--size",
+        "8",
+        "--out",
+    ];
+    let (ok, _, err) = run(&dir, &[&render[..], &["."]].concat());
+    assert!(
+        !ok && err.contains("is in use by another nerfjit run or render"),
+        "{err}"
+    );
+    let (ok, _, err) = run(&dir, &[&render[..], &["elsewhere"]].concat());
+    assert!(ok, "{err}");
     // The first run's log was neither truncated nor written by the second, and goes on growing.
     std::thread::sleep(std::time::Duration::from_millis(300));
     let after = std::fs::read_to_string(&log).unwrap();
@@ -1005,6 +1025,31 @@ fn a_second_run_in_a_training_folder_refuses_and_a_killed_run_leaves_no_lock() {
     let (ok, out, err) = run(&dir, &["run", "train.sdf", "--resume"]);
     assert!(ok, "{err}");
     assert!(out.contains("trained 3 steps"), "{out}");
+}
+
+/// A checkpoint read while a run rewrites it every step is always whole: the old one or the new one, its
+/// tensors covering its data exactly (it is written to a temporary file and renamed into place).
+#[test]
+fn a_checkpoint_read_while_a_run_rewrites_it_is_never_half_written() {
+    let dir = scratch("read-while-written");
+    let mut child = start_long_run(&dir, 1);
+    let path = dir.join("train.ckpt.safetensors");
+    let mut steps = std::collections::BTreeSet::new();
+    let start = std::time::Instant::now();
+    let mut reads = 0;
+    while steps.len() < 30 && start.elapsed() < std::time::Duration::from_secs(30) {
+        reads += 1;
+        let header = safetensors_header(&path);
+        steps.insert(header["__metadata__"]["step"].as_str().unwrap().to_string());
+    }
+    child.kill().expect("SIGKILL");
+    child.wait().expect("reaped");
+    assert_eq!(
+        steps.len(),
+        30,
+        "{reads} reads saw only {} checkpoints",
+        steps.len()
+    );
 }
 
 /// `nerfjit sweep`: a 2 × 2 grid of the box's training (learning rate × steps) runs each combination in

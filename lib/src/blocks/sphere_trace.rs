@@ -15,6 +15,7 @@ use nerfjit_runtime::{
 use crate::diagnostics::nonfinite::{self, ProbeRays};
 use crate::diagnostics::steepness;
 use crate::failure::{Failure, Result};
+use crate::folder_lock::lock_output_folders;
 use crate::frame_files::write_images;
 use crate::settings::block::Block;
 use crate::settings::typed::typed_settings;
@@ -145,6 +146,7 @@ impl SphereTracePlan {
         cache: &KernelCache,
         progress: &(dyn Fn(usize) + Sync),
     ) -> Result<String> {
+        let _locks = lock_output_folders(std::iter::once(self.out.as_path()).chain(self.depth.as_deref()))?;
         let compiler = Compiler {
             program,
             params,

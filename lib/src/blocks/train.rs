@@ -13,7 +13,7 @@ use nerfjit_runtime::{
 };
 
 use crate::failure::{Failure, Result};
-use crate::folder_lock::lock_run_folders;
+use crate::folder_lock::lock_output_folders;
 use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
@@ -539,7 +539,7 @@ impl TrainPlan {
     ) -> Result<Trained> {
         crate::cluster::check_batch(self.batch, "the train block's batch").map_err(Failure::Message)?;
         // Before anything is read or written: a second run in the folder refuses here, naming the first.
-        let _locks = lock_run_folders(self.checkpoint.iter().chain(&self.log).map(PathBuf::as_path))?;
+        let _locks = lock_output_folders(self.checkpoint.iter().chain(&self.log).map(PathBuf::as_path))?;
         for line in [self.aabb_warning()?, self.near_warning()?].into_iter().flatten() {
             crate::console::note(&line);
         }
@@ -638,7 +638,10 @@ impl TrainPlan {
                 "appearance": objective.appearance.as_ref().map(Appearance::summary),
                 "params": params_json(program, params),
             });
-            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+            nerfjit_runtime::write_whole(
+                path,
+                serde_json::to_string_pretty(&json).unwrap_or_default().as_bytes(),
+            )?;
         }
         end.stopped(self.checkpoint.as_deref())?;
         let rays = match self.batch_samples {

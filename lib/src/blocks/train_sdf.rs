@@ -18,7 +18,7 @@ use nerfjit_jit::{Kernel, KernelCache, Options, Precision};
 use nerfjit_runtime::{bounding_box, read_points, render_points, PointFrame, Rng, Schedule};
 
 use crate::failure::{Failure, Result};
-use crate::folder_lock::lock_run_folders;
+use crate::folder_lock::lock_output_folders;
 use crate::observe::{NoBars, ProgressBars};
 use crate::settings::block::Block;
 use crate::settings::primitives::CallArgs;
@@ -286,7 +286,7 @@ impl TrainSdfPlan {
         crate::cluster::check_batch(self.batch, "train sdf's batch").map_err(Failure::Message)?;
         crate::cluster::check_batch(self.random, "train sdf's random").map_err(Failure::Message)?;
         // Before anything is written: a second run in the folder refuses here, naming the first.
-        let _locks = lock_run_folders(self.checkpoint.iter().chain(&self.log).map(PathBuf::as_path))?;
+        let _locks = lock_output_folders(self.checkpoint.iter().chain(&self.log).map(PathBuf::as_path))?;
         let input = read_points(&self.data, self.key.as_deref())?;
         let frame = self.frame_of(&input)?;
         let cloud: Vec<[f32; 3]> = input.iter().map(|&p| frame.to_frame(p)).collect();
@@ -347,7 +347,10 @@ impl TrainSdfPlan {
                 "compile_seconds": compile_s,
                 "params": crate::blocks::train::params_json(program, params),
             });
-            crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&json).unwrap_or_default())?;
+            nerfjit_runtime::write_whole(
+                path,
+                serde_json::to_string_pretty(&json).unwrap_or_default().as_bytes(),
+            )?;
         }
         end.stopped(self.checkpoint.as_deref())?;
         Ok(format!(

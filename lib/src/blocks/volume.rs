@@ -11,6 +11,7 @@ use nerfjit_runtime::{
 
 use crate::diagnostics::nonfinite::{self, ProbeRays};
 use crate::failure::{Failure, Result};
+use crate::folder_lock::lock_output_folders;
 use crate::frame_files::write_images;
 use crate::settings::block::Block;
 use crate::settings::typed::typed_settings;
@@ -137,6 +138,7 @@ impl VolumePlan {
         trained: Option<&OccupancyGrid>,
         progress: &dyn Fn(usize),
     ) -> Result<String> {
+        let _locks = lock_output_folders(std::iter::once(self.out.as_path()).chain(self.depth.as_deref()))?;
         let t = Instant::now();
         let fields = VolumeFields::compile(program, cache, self.importance, self.products)?;
         let field = &fields.fine;

@@ -78,14 +78,6 @@ pub struct Saved {
     pub run_fraction: Option<f64>,
 }
 
-/// Writes `text` to `path` atomically.
-pub fn write_atomic(path: &Path, text: &str) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    let fail = |e: std::io::Error| Failure::Message(format!("cannot write '{}': {e}", path.display()));
-    std::fs::write(&tmp, text).map_err(fail)?;
-    std::fs::rename(&tmp, path).map_err(fail)
-}
-
 /// Whether `path` names a JSON checkpoint.
 pub fn is_json(path: &Path) -> bool {
     path.extension().is_some_and(|e| e == "json")
@@ -115,10 +107,8 @@ pub fn write(
     kept: Kept,
 ) -> Result<()> {
     if is_json(path) {
-        write_atomic(
-            path,
-            &json_format::encode(&Script::of(program), step, params, adam, kept.run_fraction),
-        )
+        let text = json_format::encode(&Script::of(program), step, params, adam, kept.run_fraction);
+        Ok(nerfjit_runtime::write_whole(path, text.as_bytes())?)
     } else {
         binary_format::write(path, program, step, params, adam, kept)
     }

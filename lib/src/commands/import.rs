@@ -261,8 +261,7 @@ pub fn operations(script: &str) -> usize {
 pub fn run(input: &Path, out: Option<&Path>) -> Result<String> {
     let imported = script_of(input)?;
     let out = out.map_or_else(|| input.with_extension("sdf"), Path::to_path_buf);
-    std::fs::write(&out, &imported.script)
-        .map_err(|e| Failure::Message(format!("cannot write '{}': {e}", out.display())))?;
+    nerfjit_runtime::write_whole(&out, imported.script.as_bytes())?;
     let traced = imported.lipschitz.map_or(String::new(), |bound| {
         format!(" (not a distance: traced as sdf / {bound})")
     });

@@ -15,6 +15,7 @@ use nerfjit_runtime::{
 };
 
 use crate::failure::{at, Failure, Result};
+use crate::folder_lock::lock_output_folders;
 use crate::frame_files::write_images;
 use crate::settings::block::MAX_PIXELS;
 use crate::settings::camera::FrameSize;
@@ -404,6 +405,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
             .map_err(|e| Failure::Message(format!("cannot create output folder '{}': {e}", out.display())))?;
         out.join(if gif { "views.gif" } else { "view.png" })
     };
+    let _locks = lock_output_folders([target.as_path()])?;
     let view = FieldViews::new(program, params, args)?;
     let rendering = view.rendering;
     let start = Instant::now();
@@ -564,7 +566,12 @@ pub fn eval(
             })),
             "render_seconds": seconds,
         });
-        crate::checkpoint::write_atomic(path, &serde_json::to_string_pretty(&report).unwrap_or_default())?;
+        nerfjit_runtime::write_whole(
+            path,
+            serde_json::to_string_pretty(&report)
+                .unwrap_or_default()
+                .as_bytes(),
+        )?;
     }
     Ok(lines)
 }

@@ -187,8 +187,7 @@ pub fn sweep(script: &str, axes: &[Axis], out: &Path, bars: &dyn ProgressBars) -
 }
 
 fn write(path: &Path, text: &str) -> Result<()> {
-    std::fs::write(path, text)
-        .map_err(|e| Failure::Message(format!("cannot write '{}': {e}", path.display())))
+    Ok(nerfjit_runtime::write_whole(path, text.as_bytes())?)
 }
 
 /// The last value of each column of every metrics log (`*.metrics.jsonl`) in `folder`, the columns named

@@ -375,7 +375,7 @@ pub fn write_npy_f32(path: &Path, shape: &[usize], values: &[f32]) -> Result<()>
         bytes.extend_from_slice(&v.to_le_bytes());
     }
     check_output_folder(path)?;
-    std::fs::write(path, bytes).map_err(|e| Error::write(path, e))
+    crate::whole_file::write_whole(path, &bytes)
 }
 
 #[cfg(test)]

@@ -1,14 +1,13 @@
 //! Turning frames into 8-bit images and writing them as PNG files and looping GIFs.
 
-use std::fs::File;
-use std::io::BufWriter;
 use std::path::Path;
 
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, DynamicImage, GrayImage, ImageFormat, Rgb, RgbImage};
 
-use crate::error::{check_output_folder, Error, Result};
+use crate::error::{Error, Result};
 use crate::output::frame::Frame;
+use crate::whole_file::OutputFile;
 
 /// How a float channel in [0, 1] becomes a byte (values are clamped to [0, 1] first, NaN
 /// becomes 0).
@@ -86,21 +85,14 @@ pub fn normal_image(frame: &Frame) -> Result<RgbImage> {
     }))
 }
 
-/// Creates `path` for writing, with an error naming a missing folder.
-pub(crate) fn create(path: &Path) -> Result<BufWriter<File>> {
-    check_output_folder(path)?;
-    File::create(path)
-        .map(BufWriter::new)
-        .map_err(|e| Error::write(path, e))
-}
-
-/// Writes an image (e.g. an [`RgbImage`] or a [`GrayImage`]) as a PNG file.
+/// Writes an image (e.g. an [`RgbImage`] or a [`GrayImage`]) as a PNG file, whole or not at all.
 pub fn save_png(path: &Path, image: impl Into<DynamicImage>) -> Result<()> {
-    let mut file = create(path)?;
+    let mut file = OutputFile::create(path)?;
     image
         .into()
         .write_to(&mut file, ImageFormat::Png)
-        .map_err(|e| Error::write(path, e))
+        .map_err(|e| Error::write(path, e))?;
+    file.finish()
 }
 
 /// The size of `frames`, which must be at least one and all of one size (for an animation at `path`).
@@ -141,7 +133,8 @@ pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
             ),
         ));
     }
-    let mut encoder = GifEncoder::new_with_speed(create(path)?, GIF_SPEED);
+    let mut file = OutputFile::create(path)?;
+    let mut encoder = GifEncoder::new_with_speed(&mut file, GIF_SPEED);
     let delay = Delay::from_numer_denom_ms(delay_ms, 1);
     encoder
         .set_repeat(Repeat::Infinite)
@@ -152,7 +145,9 @@ pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
             .encode_frame(image::Frame::from_parts(rgba, 0, 0, delay))
             .map_err(|e| Error::write(path, e))?;
     }
-    Ok(())
+    // The encoder writes the GIF's trailer when dropped.
+    drop(encoder);
+    file.finish()
 }
 
 #[cfg(test)]
@@ -222,7 +217,7 @@ mod tests {
             .map(|k| RgbImage::from_pixel(8, 6, Rgb([k * 100, 50, 200])))
             .collect();
         save_gif(&path, &frames, 40).unwrap();
-        let file = std::io::BufReader::new(File::open(&path).unwrap());
+        let file = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
         let decoded = image::codecs::gif::GifDecoder::new(file)
             .unwrap()
             .into_frames()

@@ -2,7 +2,6 @@
 //! system ffmpeg is needed) and muxed into an MP4 file (the `mp4` crate) that players, browsers and
 //! ffprobe open.
 
-use std::io::BufWriter;
 use std::path::Path;
 
 use image::RgbImage;
@@ -12,7 +11,8 @@ use openh264::formats::{RgbSliceU8, YUVBuffer};
 use openh264::OpenH264API;
 
 use crate::error::{Error, Result};
-use crate::output::image_out::{create, frame_size};
+use crate::output::image_out::frame_size;
+use crate::whole_file::OutputFile;
 
 /// Ticks per second of the video track's clock.
 const TIMESCALE: u32 = 1000;
@@ -80,7 +80,7 @@ pub fn save_mp4(path: &Path, frames: &[RgbImage], frame_ms: u32) -> Result<()> {
         compatible_brands: brands.to_vec(),
         timescale: TIMESCALE,
     };
-    let mut mp4 = Mp4Writer::write_start(BufWriter::new(create(path)?), &header).map_err(|e| fail(&e))?;
+    let mut mp4 = Mp4Writer::write_start(OutputFile::create(path)?, &header).map_err(|e| fail(&e))?;
     let track = TrackConfig {
         track_type: TrackType::Video,
         timescale: TIMESCALE,
@@ -96,7 +96,8 @@ pub fn save_mp4(path: &Path, frames: &[RgbImage], frame_ms: u32) -> Result<()> {
     for sample in &samples {
         mp4.write_sample(1, sample).map_err(|e| fail(&e))?;
     }
-    mp4.write_end().map_err(|e| fail(&e))
+    mp4.write_end().map_err(|e| fail(&e))?;
+    mp4.into_writer().finish()
 }
 
 /// `nal` without its Annex B start code (00 00 01 or 00 00 00 01).

@@ -205,7 +205,7 @@ impl Mesh {
             }
         }
         check_output_folder(path)?;
-        std::fs::write(path, bytes).map_err(|e| Error::write(path, e))
+        crate::whole_file::write_whole(path, &bytes)
     }
 
     /// Writes the mesh as a Wavefront OBJ file with `v`, `vn` and `f v//vn` lines; numbers are
@@ -238,7 +238,7 @@ impl Mesh {
             let _ = writeln!(text, "f {a}//{a} {b}//{b} {c}//{c}");
         }
         check_output_folder(path)?;
-        std::fs::write(path, text).map_err(|e| Error::write(path, e))
+        crate::whole_file::write_whole(path, text.as_bytes())
     }
 
     /// Writes the mesh as binary STL (triangles with their facet normals; STL has no vertex colors).
@@ -264,7 +264,7 @@ impl Mesh {
             bytes.extend_from_slice(&0u16.to_le_bytes());
         }
         check_output_folder(path)?;
-        std::fs::write(path, bytes).map_err(|e| Error::write(path, e))
+        crate::whole_file::write_whole(path, &bytes)
     }
 
     /// Reads a PLY mesh (ASCII or binary little-endian): vertex `x y z`, normals from
