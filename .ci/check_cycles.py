@@ -28,11 +28,11 @@ ROOT = Path(__file__).resolve().parent.parent
 # other. The crate root (`lib.rs`) sits above them all.
 LAYERS = {
     "runtime": [
-        "error rng", "input whole_file", "json", "cameras", "data", "output", "field", "surfaces", "training", "volume",
+        "error rng", "input whole_file", "json", "cameras", "data", "output", "field", "surfaces", "training", "volume", "splats",
     ],
     "lib": [
         "failure cluster city_model", "console", "interrupt", "observe", "script", "settings",
-        "frame_files diagnostics folder_lock", "checkpoint", "training", "blocks", "session", "commands", "conformance",
+        "frame_files diagnostics folder_lock bake_file", "checkpoint", "training", "blocks", "session", "commands", "conformance",
     ],
 }
 

@@ -7,7 +7,8 @@ use std::sync::Arc;
 use clap::{Args, CommandFactory, Parser, Subcommand};
 use nerfjit::blocks::mesh;
 use nerfjit::commands::{
-    check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, sweep, transmittance,
+    bake, check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, sweep,
+    transmittance,
 };
 use nerfjit::observe::TrainingObserver;
 use nerfjit::settings::schema;
@@ -245,23 +246,24 @@ enum Command {
         #[arg(long)]
         gif: bool,
     },
-    /// A colored point cloud (PLY) of a script's volume field (or a checkpoint's): every view rendered,
-    /// each pixel of enough opacity placed at its expected depth with its color.
-    Points {
-        /// A script, or a checkpoint written by a train block.
-        source: String,
-        /// Without --cameras or --path: the cameras of the data the script trains on.
-        #[command(flatten)]
-        cameras: CameraChoice,
-        #[command(flatten)]
-        view: ViewOptions,
-        /// Pixels below this opacity give no point.
-        #[arg(long, default_value_t = 0.5)]
-        min_opacity: f32,
-        /// The PLY file to write.
+    /// Bake a trained volume field (a checkpoint) into Gaussian splats (a .bake file) that `render`,
+    /// `eval-views` and `export` take and the CPU draws in milliseconds.
+    Bake(SeenPixels),
+    /// Export a baked scene (.bake) as a file other tools open: `splat-ply`, the 3D Gaussian splatting
+    /// .ply that splat viewers read.
+    Export {
+        /// The .bake file.
+        scene: PathBuf,
+        /// The format to write.
+        #[arg(long, value_parser = export_format)]
+        format: bake::ExportFormat,
+        /// The file to write.
         #[arg(long)]
         out: PathBuf,
     },
+    /// A colored point cloud (PLY) of a script's volume field (or a checkpoint's): every view rendered,
+    /// each pixel of enough opacity placed at its expected depth with its color.
+    Points(SeenPixels),
     /// Score a script's volume field (or a checkpoint's) on the views of a camera file: PSNR and SSIM per
     /// view and their means.
     EvalViews {
@@ -375,6 +377,40 @@ enum DataCommand {
 
 /// How `render`, `eval-views` and `compare` render views. Settings not given are those the script's
 /// train block trains with (a checkpoint holds its script), else near 2, far 6, 128 samples, black.
+/// A volume field seen from cameras, pixel by pixel (`points`, `bake`).
+#[derive(clap::Args)]
+struct SeenPixels {
+    /// A checkpoint written by a train block, or a script.
+    source: String,
+    /// Without --cameras or --path: the cameras of the data the field trains on.
+    #[command(flatten)]
+    cameras: CameraChoice,
+    #[command(flatten)]
+    view: ViewOptions,
+    /// Pixels below this opacity are left out.
+    #[arg(long, default_value_t = 0.5)]
+    min_opacity: f32,
+    /// The file to write: the cloud's .ply, or the .bake.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+impl SeenPixels {
+    /// The library's arguments, the views rendered at `size`² (if given) unless --size says.
+    fn args(&self, size: Option<u32>) -> point_cloud::PointsArgs<'_> {
+        let view = self.view.args(&self.source);
+        point_cloud::PointsArgs {
+            view: render_views::ViewArgs {
+                size: view.size.or(size),
+                ..view
+            },
+            cameras: self.cameras.source(),
+            min_opacity: self.min_opacity,
+            out: &self.out,
+        }
+    }
+}
+
 /// Where a command takes its cameras from.
 #[derive(clap::Args)]
 struct CameraChoice {
@@ -391,6 +427,14 @@ struct CameraChoice {
     /// [default: the one the field's training read there, else the most specific].
     #[arg(long, value_parser = layout_arg, requires = "cameras")]
     format: Option<Layout>,
+}
+
+/// An export `--format`.
+fn export_format(text: &str) -> Result<bake::ExportFormat, String> {
+    match text {
+        "splat-ply" => Ok(bake::ExportFormat::SplatPly),
+        _ => Err(format!("'{text}' is not an export format: splat-ply")),
+    }
 }
 
 /// A `--format` value: the layout it names.
@@ -654,27 +698,23 @@ fn run_command(cli: Cli) -> ExitCode {
             gif,
         } => render_views::render(&view.args(&source), cameras.source(), &out, gif)
             .map(|text| emit(&format!("{text}\n"))),
-        Command::Points {
-            source,
-            cameras,
-            view,
-            min_opacity,
-            out,
-        } => point_cloud::run(&point_cloud::PointsArgs {
-            view: view.args(&source),
-            cameras: cameras.source(),
-            min_opacity,
-            out: &out,
-        })
-        .map(|text| emit(&format!("{text}\n"))),
+        // Views of 400² make splats the size of a pixel at 800².
+        Command::Bake(seen) => bake::run(&seen.args(Some(400))).map(|text| emit(&format!("{text}\n"))),
+        Command::Export { scene, format, out } => {
+            bake::export(&scene, format, &out).map(|text| emit(&format!("{text}\n")))
+        }
+        Command::Points(seen) => point_cloud::run(&seen.args(None)).map(|text| emit(&format!("{text}\n"))),
         Command::EvalViews {
             source,
             cameras,
             format,
             view,
             json,
-        } => render_views::eval(&view.args(&source), cameras.as_deref(), format, json.as_deref())
-            .map(|text| emit(&text)),
+        } => match nerfjit::bake_file::is_bake(std::path::Path::new(&source)) {
+            true => bake::eval(&view.args(&source), cameras.as_deref(), format, json.as_deref()),
+            false => render_views::eval(&view.args(&source), cameras.as_deref(), format, json.as_deref()),
+        }
+        .map(|text| emit(&text)),
         Command::Compare {
             cameras,
             format,

@@ -1,15 +1,18 @@
 //! The `frames` workload: renders of a trained checkpoint at 800² (the published tables' resolution) and
 //! 400² (the live viewer's full-size frame), as `nerfjit render` and `eval-views` make them (the
 //! checkpoint's occupancy grid, early termination, the settings its script trains with), from the views
-//! its training holds out (else its script's camera path).
+//! its training holds out (else its script's camera path). Given a baked scene (`.bake`), its splats drawn
+//! by the CPU splat renderer from the views of the checkpoint it was baked from.
 
 use std::path::Path;
 
+use nerfjit::bake_file;
 use nerfjit::checkpoint::load_source;
 use nerfjit::commands::render_views::{held_out_views, script_cameras, ViewArgs};
 use nerfjit::failure::{Failure, Result};
 use nerfjit_field::VolumeFields;
 use nerfjit_jit::KernelCache;
+use nerfjit_runtime::splats::render_splats;
 
 /// Views rendered per repetition, spread over the cameras.
 const VIEWS: usize = 4;
@@ -19,11 +22,19 @@ const VIEWS: usize = 4;
 pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
     let Some(checkpoint) = checkpoint else {
         return Err(Failure::Message(
-            "frames renders a trained checkpoint: give --scene CKPT (e.g. instant_lego_full.ckpt.safetensors)"
+            "frames renders a trained checkpoint or its bake: give --scene CKPT (e.g. \
+             instant_lego_full.ckpt.safetensors) or --scene SCENE.bake"
                 .into(),
         ));
     };
-    let source = checkpoint.to_string_lossy();
+    let bake = match bake_file::is_bake(checkpoint) {
+        true => Some(bake_file::read(checkpoint)?),
+        false => None,
+    };
+    let source = bake
+        .as_ref()
+        .map_or(checkpoint, |b| b.source.as_path())
+        .to_string_lossy();
     let (program, params) = load_source(&source)?;
     let (cameras, described) = match held_out_views(&source, &program) {
         Ok((views, described)) => (views.cameras, described),
@@ -38,6 +49,18 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
     };
     let count = VIEWS.min(cameras.len());
     let views: Vec<_> = (0..count).map(|i| &cameras[i * cameras.len() / count]).collect();
+    if let Some(bake) = &bake {
+        nerfjit::emit(&format!(
+            "frames: {}, {} splats baked from {source}, {count} of {described}; median of {reps}\n",
+            checkpoint.display(),
+            bake.splats.len()
+        ));
+        return time_frames(reps, &views, |camera, size| {
+            render_splats(&bake.splats, camera, size, size, bake.background)
+                .map(|_| ())
+                .map_err(Into::into)
+        });
+    }
     let args = ViewArgs {
         source: &source,
         size: Some(800),
@@ -60,21 +83,35 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
         "frames: {source}, {count} of {described}, {} samples a ray, {occupied}; median of {reps}\n",
         rendering.samples
     ));
+    time_frames(reps, &views, |camera, size| {
+        fields
+            .render_with(camera, (size, size), &params, &settings, grid.as_ref())
+            .map(|_| ())
+            .map_err(Into::into)
+    })
+}
+
+/// Times `draw` of every view at 800² and 400², `reps` times, and prints the median time a frame.
+fn time_frames(
+    reps: usize,
+    views: &[&nerfjit_runtime::Camera],
+    draw: impl Fn(&nerfjit_runtime::Camera, u32) -> Result<()>,
+) -> Result<()> {
     for size in [800, 400] {
         let mut failed = None;
         let seconds = crate::time_reps(reps, || {
-            for camera in &views {
-                if let Err(e) = fields.render_with(camera, (size, size), &params, &settings, grid.as_ref()) {
+            for camera in views {
+                if let Err(e) = draw(camera, size) {
                     failed = Some(e);
                 }
             }
         });
         if let Some(e) = failed {
-            return Err(e.into());
+            return Err(e);
         }
         nerfjit::emit(&format!(
             "  {size}×{size}: {:8.1} ms a frame\n",
-            1e3 * seconds / count as f64
+            1e3 * seconds / views.len() as f64
         ));
     }
     Ok(())

@@ -24,12 +24,13 @@
 //! course's box from Rust. Its modules, from the bottom up (each uses only those before it, as
 //! `.ci/check_cycles.py` checks): [`failure`] and [`cluster`] (errors and the MPI job), [`console`],
 //! [`interrupt`] and [`observe`] (what the program says, Ctrl-C, progress), [`script`], [`settings`] (the
-//! schema of every block setting and their parsers), [`frame_files`], [`diagnostics`] and [`folder_lock`]
-//! (one training run a folder), [`checkpoint`],
+//! schema of every block setting and their parsers), [`frame_files`], [`diagnostics`], [`folder_lock`]
+//! (one run or render a folder) and [`bake_file`] (a baked scene's file), [`checkpoint`],
 //! [`training`] (both kinds of training run [`training::train_loop::train`], each block an
 //! [`training::train_loop::Objective`]; validation; logs), [`blocks`] (what each kind of block does),
 //! [`session`] and [`commands`] (the work of the other commands). The JIT's kernels reach the runtime as
 //! fields through the `nerfjit-field` crate.
+pub mod bake_file;
 pub mod blocks;
 pub mod checkpoint;
 pub mod city_model;

@@ -2,8 +2,9 @@
 //! folder per subsystem. Each folder below uses only the ones listed before it (`.ci/check_cycles.py`
 //! fails on an import that runs up this list):
 //!
-//! - [`error`], [`rng`], [`input`] and `json`: the runtime's [`Error`], its seeded [`Rng`], size-capped
-//!   reading of every input file, and typed access to JSON files.
+//! - [`error`], [`rng`], [`input`], [`whole_file`] and `json`: the runtime's [`Error`], its seeded [`Rng`],
+//!   size-capped reading of every input file, output files written whole or not at all ([`OutputFile`]),
+//!   and typed access to JSON files.
 //! - [`cameras`]: [`Camera`], camera files and paths, and [`RayBatch`], rays of a full image or of
 //!   random pixels.
 //! - [`data`]: the course's [`Views`], Blender data sets, nerfstudio, COLMAP, LLFF and DTU
@@ -19,6 +20,8 @@
 //! - [`volume`]: sampling along rays, occupancy grids ([`OccupancyGrid`], [`DensityEma`]), the
 //!   [`Compositor`], and its callers: [`render_volume`], hierarchical rendering and the training step
 //!   [`volume_step`].
+//! - [`splats`]: Gaussian [`Splats`](splats::Splats), a baked scene, drawn on the CPU into a volume render's
+//!   frame and written in the 3D Gaussian splatting `.ply` layout.
 
 pub mod cameras;
 pub mod data;
@@ -28,6 +31,7 @@ pub mod input;
 pub(crate) mod json;
 pub mod output;
 pub mod rng;
+pub mod splats;
 pub mod surfaces;
 pub mod training;
 pub mod volume;

@@ -4,6 +4,7 @@
 //! One test binary per crate (`cargo test -p CRATE --test integration MODULE::`): each module was its own
 //! binary, each linked on its own.
 
+mod bake;
 mod captures;
 mod cli;
 mod common;

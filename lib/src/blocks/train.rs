@@ -804,14 +804,13 @@ impl VolumeObjective<'_> {
         }
         // In an MPI job the ranks (which agree on the step and the training time) share the views; rank 0,
         // which alone reports and logs, gets every score.
-        let Some(scores) = crate::training::validation::score_on_ranks(
-            val,
+        let render = crate::training::validation::field_renderer(
             self.fields,
             params,
             &self.step_settings,
             self.grid.as_ref(),
-        )?
-        else {
+        );
+        let Some(scores) = crate::training::validation::score_on_ranks(val, &render)? else {
             return Ok(());
         };
         let means = crate::training::validation::means(&scores);

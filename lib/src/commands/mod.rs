@@ -1,6 +1,7 @@
 //! The work of the command line's commands that are not a block of a script: one module per command
 //! (`nerfjit run` runs a script's blocks as a [`crate::session::Session`]).
 
+pub mod bake;
 pub mod check;
 pub mod compare;
 pub mod data_check;

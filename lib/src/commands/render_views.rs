@@ -8,6 +8,7 @@ use std::time::Instant;
 use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
+use nerfjit_runtime::splats::render_splats;
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::volume::render::VolumeFrame;
 use nerfjit_runtime::{
@@ -22,7 +23,9 @@ use crate::settings::camera::FrameSize;
 use crate::settings::primitives::triple;
 use crate::settings::values::SkipEmpty;
 use crate::training::data_source::{reader_call, scored_views, DataSet, ScoredViews, DEFAULT_WIDTH};
-use crate::training::validation::{means, score_on_ranks, MeanScores};
+use crate::training::validation::{
+    field_renderer, means, score_on_ranks, MeanScores, ViewRenderer, ViewScore,
+};
 use nerfjit_field::VolumeFields;
 
 /// Where the field comes from and how to render it. Settings not given come from the script's `train`
@@ -370,11 +373,19 @@ impl FieldViews {
     }
 }
 
-/// `nerfjit render`: the field rendered from every camera of `cameras` into `out`: a `.gif` or `.mp4` file
-/// of all views, or a folder of PNGs (`view_000.png`, …; one `views.gif` with `gif`).
+/// `nerfjit render`: the field (or a baked scene, `.bake`, drawn from its splats) rendered from every camera
+/// of `cameras` into `out`: a `.gif` or `.mp4` file of all views, or a folder of PNGs (`view_000.png`, …;
+/// one `views.gif` with `gif`). A bake's cameras are read as the checkpoint it was baked from read its data.
 pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> Result<String> {
-    let (program, params) = crate::checkpoint::load_source(args.source)?;
-    let (cameras, frame) = match cameras.cameras(args.source, &program)? {
+    let bake = match crate::bake_file::is_bake(Path::new(args.source)) {
+        true => Some(crate::bake_file::read(Path::new(args.source))?),
+        false => None,
+    };
+    let source = bake.as_ref().map_or(args.source.to_string(), |b| {
+        b.source.to_string_lossy().into_owned()
+    });
+    let (program, params) = crate::checkpoint::load_source(&source)?;
+    let (cameras, frame) = match cameras.cameras(&source, &program)? {
         Some(found) => found,
         None => (
             script_cameras(&program)?.ok_or_else(|| {
@@ -406,12 +417,31 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
         out.join(if gif { "views.gif" } else { "view.png" })
     };
     let _locks = lock_output_folders([target.as_path()])?;
-    let view = FieldViews::new(program, params, args)?;
-    let rendering = view.rendering;
+    let field_args = ViewArgs {
+        source: &source,
+        ..*args
+    };
+    let (draw, how): (Box<ViewRenderer>, String) = match &bake {
+        Some(bake) => (
+            Box::new(|camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
+                Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
+            }),
+            format!("{} splats", bake.splats.len()),
+        ),
+        None => {
+            let view = FieldViews::new(program, params, &field_args)?;
+            let r = &view.rendering;
+            let how = format!("near {}, far {}, {} samples", r.near, r.far, r.samples);
+            (
+                Box::new(move |camera: &Camera, (w, h): (u32, u32)| view.render(camera, w, h)),
+                how,
+            )
+        }
+    };
     let start = Instant::now();
     // Each rank renders its share of the views; rank 0 gathers and writes them.
     let rendered = crate::cluster::split(n, |i| -> Result<Vec<u8>> {
-        let f = view.render(&cameras[i], width, height)?;
+        let f = draw(&cameras[i], (width, height))?;
         Ok(rgb_image(f.width, f.height, &f.rgb, Quantize::Truncate)?.into_raw())
     })
     .map_err(Failure::Message)?;
@@ -427,10 +457,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let per_view = seconds / n.max(1) as f64;
     let written = if animation || gif { &target } else { out };
     Ok(format!(
-        "rendered {n} views of {width}×{height} in {seconds:.2} s ({per_view:.2} s/view; near {}, far {}, {} samples) → {}",
-        rendering.near,
-        rendering.far,
-        rendering.samples,
+        "rendered {n} views of {width}×{height} in {seconds:.2} s ({per_view:.2} s/view; {how}) → {}",
         written.display()
     ))
 }
@@ -456,10 +483,61 @@ pub fn script_cameras(program: &Program) -> Result<Option<Vec<Camera>>> {
     Ok(None)
 }
 
+/// The views `nerfjit eval-views` scores, what they are, and (when they are the field's own training data
+/// with views held out) every how many it held out and how many it scored.
+pub(crate) struct ScoredSet {
+    /// The views and their images.
+    pub views: Views,
+    /// Where they come from, for the report.
+    pub described: String,
+    /// `holdout(every: n)` and its limit, when the views are the field's own data.
+    pub held_out: Option<(usize, Option<usize>)>,
+}
+
+impl ScoredSet {
+    /// With `cameras` (a file, a folder read by its layout or as `format`, or a reader call; see
+    /// [`scored_views`]) every view it holds, at `width` on `background`; without, the views the train
+    /// block of `source` (compiled as `program`) validates on.
+    pub(crate) fn read(
+        source: &str,
+        program: &Program,
+        (width, background): (Option<u32>, [f32; 3]),
+        cameras: Option<&Path>,
+        format: Option<Layout>,
+    ) -> Result<ScoredSet> {
+        let Some(file) = cameras else {
+            let (views, described) = held_out_views(source, program)?;
+            return Ok(ScoredSet {
+                views,
+                described,
+                held_out: None,
+            });
+        };
+        let trained = trained_data(source, program);
+        let read = scored_views(&ScoredViews {
+            cameras: file,
+            format,
+            width,
+            background,
+            trained: trained.as_ref(),
+        })?;
+        let held_out = match read.as_trained {
+            true => held_out_every(source, program)?,
+            false => None,
+        };
+        Ok(ScoredSet {
+            views: read.views,
+            described: format!("the views of {} ({})", file.display(), read.how),
+            held_out,
+        })
+    }
+}
+
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`). With
-/// `cameras` (a file, a folder read by its layout or as `format`, or a reader call; see
-/// [`scored_views`]) every view it holds; when those are the field's own training data with views held
-/// out, the mean over the held-out ones too (which equals its validation at its training's scale).
+/// `cameras` every view of that file; without, the views the field's training validates on (see
+/// [`ScoredSet::read`]); when those are the field's own training data with views held out, the mean over
+/// the held-out ones too (which equals its validation at its training's scale). A baked scene is scored
+/// the same way by [`crate::commands::bake::eval`].
 pub fn eval(
     args: &ViewArgs,
     cameras: Option<&Path>,
@@ -468,38 +546,51 @@ pub fn eval(
 ) -> Result<String> {
     let (program, params) = crate::checkpoint::load_source(args.source)?;
     let rendering = args.resolve(&program);
-    let (views, described, held_out) = match cameras {
-        Some(file) => {
-            let trained = trained_data(args.source, &program);
-            let read = scored_views(&ScoredViews {
-                cameras: file,
-                format,
-                width: args.size,
-                background: rendering.background,
-                trained: trained.as_ref(),
-            })?;
-            let held_out = match read.as_trained {
-                true => held_out_every(args.source, &program)?,
-                false => None,
-            };
-            let described = format!("the views of {} ({})", file.display(), read.how);
-            (read.views, described, held_out)
-        }
-        None => {
-            let (views, described) = held_out_views(args.source, &program)?;
-            (views, described, None)
-        }
-    };
+    let set = ScoredSet::read(
+        args.source,
+        &program,
+        (args.size, rendering.background),
+        cameras,
+        format,
+    )?;
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
     let start = Instant::now();
     let grid = rendering.occupancy(args.source, &fields, &params)?;
     // Each rank scores its share of the views; rank 0 reports them all.
     let settings = rendering.settings(fields.fine.mode);
-    let Some(scores) = score_on_ranks(&views, &fields, &params, &settings, grid.as_ref())? else {
+    let render = field_renderer(&fields, &params, &settings, grid.as_ref());
+    let Some(scores) = score_on_ranks(&set.views, &render)? else {
         return Ok(String::new());
     };
+    let rendered_with = serde_json::json!({
+        "near": rendering.near,
+        "far": rendering.far,
+        "samples": rendering.samples,
+        "importance": rendering.importance,
+        "occupancy_grid": grid.is_some(),
+        "early_termination": rendering.early_termination,
+    });
     let seconds = start.elapsed().as_secs_f64();
+    report(
+        args.source,
+        &set,
+        &scores,
+        (rendering.background, rendered_with, seconds),
+        json,
+    )
+}
+
+/// The table of `scores` of the views of `set` (and the JSON report in `json`, with what `rendered` says:
+/// the background, how they were rendered, in how many seconds).
+pub(crate) fn report(
+    source: &str,
+    set: &ScoredSet,
+    scores: &[ViewScore],
+    (background, rendered_with, seconds): ([f32; 3], serde_json::Value, f64),
+    json: Option<&Path>,
+) -> Result<String> {
+    let views = &set.views;
     let masked = views.masks.is_some();
     let mut lines = String::from("view  PSNR (dB)  SSIM");
     lines += if masked { "    masked PSNR (dB)\n" } else { "\n" };
@@ -512,11 +603,11 @@ pub fn eval(
         let column = masked_column(v.masked_psnr.map(f64::from));
         lines += &format!("{i:>4}  {:>9.2}  {:.4}{column}\n", v.psnr, v.ssim);
     }
-    let mean = means(&scores);
+    let mean = means(scores);
     let column = masked_column(mean.masked_psnr);
     lines += &format!("mean  {:>9.2}  {:.4}{column}\n", mean.psnr, mean.ssim);
     // The views its training held out of these, as its validation chose them.
-    let held: Option<(Vec<usize>, MeanScores)> = held_out.map(|(every, limit)| {
+    let held: Option<(Vec<usize>, MeanScores)> = set.held_out.map(|(every, limit)| {
         let chosen: Vec<usize> = (0..scores.len())
             .step_by(every)
             .take(limit.unwrap_or(usize::MAX))
@@ -535,25 +626,19 @@ pub fn eval(
         );
     }
     if let Some(path) = json {
-        let report = serde_json::json!({
-            "source": args.source,
+        let mut report = serde_json::json!({
+            "source": source,
             "protocol": {
-                "views": described,
+                "views": set.described,
                 "count": views.len(),
                 "width": views.width,
                 "height": views.height,
-                "background": rendering.background,
+                "background": background,
                 "masks": if masked { "PSNR also inside the data's object masks (mask ≥ ½)" } else { "none: whole images" },
             },
             "width": views.width,
             "height": views.height,
-            "near": rendering.near,
-            "far": rendering.far,
-            "samples": rendering.samples,
-            "importance": rendering.importance,
-            "occupancy_grid": grid.is_some(),
-            "early_termination": rendering.early_termination,
-            "background": rendering.background,
+            "background": background,
             "views": scores.iter().map(|v| serde_json::json!({
                 "psnr": v.psnr, "ssim": v.ssim, "masked_psnr": v.masked_psnr,
             })).collect::<Vec<_>>(),
@@ -566,6 +651,9 @@ pub fn eval(
             })),
             "render_seconds": seconds,
         });
+        if let (Some(fields), Some(how)) = (report.as_object_mut(), rendered_with.as_object()) {
+            fields.extend(how.clone());
+        }
         nerfjit_runtime::write_whole(
             path,
             serde_json::to_string_pretty(&report)

@@ -1,10 +1,24 @@
 //! Validation: rendering held-out views and scoring them against their images (PSNR, SSIM, PSNR inside
 //! their masks), as `train` validates and `nerfjit eval-views` scores a checkpoint.
 
-use nerfjit_runtime::{psnr, ssim, ImageF32, OccupancyGrid, Views, VolumeSettings};
+use nerfjit_runtime::{psnr, ssim, Camera, ImageF32, OccupancyGrid, Views, VolumeFrame, VolumeSettings};
 
 use crate::failure::{Failure, Result};
 use nerfjit_field::VolumeFields;
+
+/// Renders a camera's view at a size: a field's volume render, or a baked scene's.
+pub type ViewRenderer<'a> = dyn Fn(&Camera, (u32, u32)) -> Result<VolumeFrame> + 'a;
+
+/// A field's views: `fields` with `params`, rendered with `settings` (and `grid`, the occupancy grid to
+/// skip empty space with).
+pub fn field_renderer<'a>(
+    fields: &'a VolumeFields,
+    params: &'a [f32],
+    settings: &'a VolumeSettings,
+    grid: Option<&'a OccupancyGrid>,
+) -> impl Fn(&Camera, (u32, u32)) -> Result<VolumeFrame> + 'a {
+    move |camera, size| Ok(fields.render_with(camera, size, params, settings, grid)?)
+}
 
 /// One view's scores against its image.
 #[derive(Clone, Copy, Debug)]
@@ -28,19 +42,13 @@ pub struct MeanScores {
     pub masked_psnr: Option<f64>,
 }
 
-/// Renders every view of `views` with `settings` (and `grid`, the occupancy grid to skip empty space
-/// with) and scores it against its image: PSNR, SSIM, and PSNR inside its mask when the views have masks.
-/// The views are split over the ranks of the [`crate::cluster`]: every rank scores its share and rank 0 gets
-/// every view's scores, in order; the other ranks get `None` (one process gets them all).
-pub fn score_on_ranks(
-    views: &Views,
-    fields: &VolumeFields,
-    params: &[f32],
-    settings: &VolumeSettings,
-    grid: Option<&OccupancyGrid>,
-) -> Result<Option<Vec<ViewScore>>> {
+/// Renders every view of `views` with `render` and scores it against its image: PSNR, SSIM, and PSNR inside
+/// its mask when the views have masks. The views are split over the ranks of the [`crate::cluster`]: every
+/// rank scores its share and rank 0 gets every view's scores, in order; the other ranks get `None` (one
+/// process gets them all).
+pub fn score_on_ranks(views: &Views, render: &ViewRenderer) -> Result<Option<Vec<ViewScore>>> {
     let scored = crate::cluster::split(views.cameras.len(), |i| -> Result<Vec<u8>> {
-        let s = score_view(i, views, fields, params, settings, grid)?;
+        let s = score_view(i, views, render)?;
         let masked = s.masked_psnr.unwrap_or(f32::NAN);
         Ok(crate::cluster::f32_bytes(&[s.psnr, s.ssim, masked]))
     })
@@ -64,17 +72,10 @@ pub fn score_on_ranks(
 }
 
 /// View `i` rendered and scored against its image.
-fn score_view(
-    i: usize,
-    views: &Views,
-    fields: &VolumeFields,
-    params: &[f32],
-    settings: &VolumeSettings,
-    grid: Option<&OccupancyGrid>,
-) -> Result<ViewScore> {
+fn score_view(i: usize, views: &Views, render: &ViewRenderer) -> Result<ViewScore> {
     let camera = &views.cameras[i];
     let target = &views.images[i];
-    let f = fields.render_with(camera, (views.width, views.height), params, settings, grid)?;
+    let f = render(camera, (views.width, views.height))?;
     let rendered = ImageF32 {
         width: f.width,
         height: f.height,

@@ -1,0 +1,200 @@
+//! `nerfjit bake`: a trained volume field baked into Gaussian splats that the CPU draws in milliseconds
+//! ([`nerfjit_runtime::splats`]), and what is done with a bake: `nerfjit export` (the 3D Gaussian
+//! splatting `.ply`), `nerfjit render` and `nerfjit eval-views` of a `.bake` (see [`eval`]).
+//!
+//! The bake is the field's surface as its training cameras see it, as NeRF-to-splats conversions make it:
+//! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
+//! its expected depth with its color (the background taken out), and the pixels are merged in cells of the
+//! median pixel footprint: one round splat per cell, at the mean of its pixels, of their mean color and
+//! opacity, with a standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some
+//! view sees in front of what it saw there (a pixel whose expected depth fell between surfaces) is dropped
+//! ([`seen_through`]). The colors are those the field shows from the views that saw each cell, averaged: the
+//! splats look alike from every side.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use nerfjit_runtime::splats::{render_splats, write_splat_ply, Splats};
+use nerfjit_runtime::{Camera, Layout, VolumeFrame};
+
+use crate::bake_file::{self, Bake};
+use crate::commands::point_cloud::{view_cameras, PointsArgs, Surfels};
+use crate::commands::render_views::{report, ScoredSet, ViewArgs};
+use crate::failure::{Failure, Result};
+use crate::training::validation::score_on_ranks;
+
+/// A splat's standard deviation, in cells.
+pub const SPREAD: f32 = 0.6;
+
+/// How far in front of what a view saw a splat may lie before the view proves it to be in empty space,
+/// in cells.
+pub const CARVE_CELLS: f32 = 3.0;
+
+/// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats and writes them to
+/// `args.out`; returns a summary line.
+pub fn run(args: &PointsArgs) -> Result<String> {
+    if !bake_file::is_bake(args.out) {
+        return Err(Failure::Message(format!(
+            "'{}' must end in .bake (export it afterwards: nerfjit export SCENE.bake --format splat-ply)",
+            args.out.display()
+        )));
+    }
+    let start = Instant::now();
+    let (program, params) = crate::checkpoint::load_source(args.view.source)?;
+    let background = args.view.resolve(&program).background;
+    let cameras = view_cameras(args.view.source, &program, &args.cameras)?;
+    let Some(surfels) = Surfels::render(&args.view, (program, params), &cameras, args.min_opacity)? else {
+        return Ok(String::new());
+    };
+    let (splats, cell) = splats_of(&surfels, &cameras);
+    let bake = Bake {
+        splats,
+        background,
+        source: std::path::absolute(args.view.source).unwrap_or_else(|_| args.view.source.into()),
+    };
+    bake_file::write(args.out, &bake)?;
+    let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
+    let size = args.view.side();
+    Ok(format!(
+        "baked {} splats (cells of {cell:.4}) from {} pixels of {} views of {size}×{size} in {:.1} s → {} ({:.1} MB)",
+        bake.splats.len(),
+        surfels.positions.len(),
+        cameras.len(),
+        start.elapsed().as_secs_f64(),
+        args.out.display(),
+        bytes as f64 / 1e6
+    ))
+}
+
+/// Sums of the surfels that fall in one cell.
+#[derive(Default)]
+struct Cell {
+    position: [f64; 3],
+    color: [f64; 3],
+    opacity: f64,
+    count: u32,
+}
+
+/// One round splat per cell of the median footprint holding surfels, less those some view sees through
+/// ([`seen_through`]); the splats and the cell's side.
+fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, f32) {
+    let mut footprints = surfels.footprints.clone();
+    let middle = footprints.len() / 2;
+    let cell = footprints
+        .select_nth_unstable_by(middle, f32::total_cmp)
+        .1
+        .max(1e-6);
+    let mut cells: HashMap<[i32; 3], Cell> = HashMap::new();
+    for (i, p) in surfels.positions.iter().enumerate() {
+        let key = p.map(|x| (x / cell).floor() as i32);
+        let c = cells.entry(key).or_default();
+        for (sum, x) in c.position.iter_mut().zip(p) {
+            *sum += f64::from(*x);
+        }
+        for (sum, x) in c.color.iter_mut().zip(surfels.colors[i]) {
+            *sum += f64::from(x);
+        }
+        c.opacity += f64::from(surfels.opacities[i]);
+        c.count += 1;
+    }
+    let mut cells: Vec<([i32; 3], Cell)> = cells.into_iter().collect();
+    cells.sort_unstable_by_key(|(key, _)| *key);
+    let centers: Vec<[f32; 3]> = cells
+        .iter()
+        .map(|(_, c)| c.position.map(|x| (x / f64::from(c.count)) as f32))
+        .collect();
+    let margin = CARVE_CELLS * cell;
+    let kept: Vec<bool> = centers
+        .par_iter()
+        .map(|&p| !seen_through(glam::Vec3::from(p), surfels, cameras, margin))
+        .collect();
+    let mut splats = Splats::default();
+    for (((_, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
+        let n = f64::from(c.count);
+        splats.positions.push(center);
+        splats
+            .colors
+            .push(c.color.map(|x| ((x / n) as f32).clamp(0.0, 1.0)));
+        splats.opacities.push(((c.opacity / n) as f32).clamp(0.0, 1.0));
+        splats.scales.push([SPREAD * cell; 3]);
+        splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
+    }
+    (splats, cell)
+}
+
+/// Whether some view sees `p` in front of what it saw there by more than `margin`: it proves `p` to be in
+/// empty space, and a splat there would hide its surface. Such points come from pixels whose expected depth
+/// fell between surfaces (edges, thin parts, the field's haze).
+fn seen_through(p: glam::Vec3, surfels: &Surfels, cameras: &[Camera], margin: f32) -> bool {
+    let size = surfels.size;
+    cameras.iter().zip(&surfels.distances).any(|(camera, distances)| {
+        let Some((row, col)) = camera.project(p, size, size) else {
+            return false;
+        };
+        let inside = (0.0..size as f32).contains(&row) && (0.0..size as f32).contains(&col);
+        inside && {
+            let seen = distances[row as usize * size as usize + col as usize];
+            seen.is_finite() && (p - camera.position()).length() < seen - margin
+        }
+    })
+}
+
+/// `nerfjit eval-views SCENE.bake`: the bake's views drawn from its splats and scored as `eval-views`
+/// scores the field it came from — the same views (by default those its checkpoint's training validates on),
+/// at the same size, on the same background — so that the two tables compare.
+pub fn eval(
+    args: &ViewArgs,
+    cameras: Option<&Path>,
+    format: Option<Layout>,
+    json: Option<&Path>,
+) -> Result<String> {
+    let bake = bake_file::read(Path::new(args.source))?;
+    let source = bake.source.to_string_lossy().into_owned();
+    let (program, _) = crate::checkpoint::load_source(&source).map_err(|e| {
+        Failure::Message(format!(
+            "the checkpoint '{source}' that {} was baked from, whose data it is scored on: {e}",
+            args.source
+        ))
+    })?;
+    let set = ScoredSet::read(&source, &program, (args.size, bake.background), cameras, format)?;
+    let start = Instant::now();
+    let draw = |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
+        Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
+    };
+    let Some(scores) = score_on_ranks(&set.views, &draw)? else {
+        return Ok(String::new());
+    };
+    let how = serde_json::json!({ "splats": bake.splats.len(), "baked_from": source });
+    report(
+        args.source,
+        &set,
+        &scores,
+        (bake.background, how, start.elapsed().as_secs_f64()),
+        json,
+    )
+}
+
+/// The formats `nerfjit export` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExportFormat {
+    /// The 3D Gaussian splatting `.ply`.
+    SplatPly,
+}
+
+/// `nerfjit export SCENE.bake --format FORMAT --out FILE`: the bake in a file other tools open.
+pub fn export(bake: &Path, format: ExportFormat, out: &Path) -> Result<String> {
+    let scene = bake_file::read(bake)?;
+    match format {
+        ExportFormat::SplatPly => write_splat_ply(&scene.splats, out)?,
+    }
+    let bytes = std::fs::metadata(out).map_or(0, |m| m.len());
+    Ok(format!(
+        "{} splats → {} ({:.1} MB, the 3D Gaussian splatting layout)",
+        scene.splats.len(),
+        out.display(),
+        bytes as f64 / 1e6
+    ))
+}

@@ -1,0 +1,82 @@
+//! Gaussian splats: a scene as 3D Gaussians, each with a center, a color, an opacity and an oriented
+//! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
+//! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
+//! CPU, and [`write_splat_ply`] writes the `.ply` layout that splat viewers read.
+
+mod ply;
+mod raster;
+
+pub use ply::write_splat_ply;
+pub use raster::{render_splats, SplatFrameStats};
+
+use crate::error::{Error, Result};
+
+/// The most splats a scene may hold.
+pub const MAX_SPLATS: usize = 1 << 26;
+
+/// Gaussian splats, one entry per splat in each field.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Splats {
+    /// Centers, in scene units.
+    pub positions: Vec<[f32; 3]>,
+    /// Colors in [0, 1] (seen from every side alike).
+    pub colors: Vec<[f32; 3]>,
+    /// Opacities at the center, in [0, 1].
+    pub opacities: Vec<f32>,
+    /// Standard deviations along the rotated axes, in scene units (> 0).
+    pub scales: Vec<[f32; 3]>,
+    /// Unit quaternions (w, x, y, z) turning the axes.
+    pub rotations: Vec<[f32; 4]>,
+}
+
+impl Splats {
+    /// How many splats there are.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Checks that every field has one finite entry per splat, within its range; says what is wrong.
+    pub fn check(&self) -> Result<()> {
+        let n = self.len();
+        if n > MAX_SPLATS {
+            return Err(Error::Invalid(format!(
+                "{n} splats, more than the {MAX_SPLATS} a scene may hold"
+            )));
+        }
+        let lengths = [
+            ("colors", self.colors.len()),
+            ("opacities", self.opacities.len()),
+            ("scales", self.scales.len()),
+            ("rotations", self.rotations.len()),
+        ];
+        if let Some((name, len)) = lengths.iter().find(|(_, len)| *len != n) {
+            return Err(Error::Invalid(format!("{n} splat positions but {len} {name}")));
+        }
+        for i in 0..n {
+            let bad = |what: &str| Err(Error::Invalid(format!("splat {i}: {what}")));
+            if !self.positions[i].iter().all(|x| x.is_finite()) {
+                return bad("its position is not finite");
+            }
+            if !self.colors[i].iter().all(|c| (0.0..=1.0).contains(c)) {
+                return bad("its color is not in [0, 1]");
+            }
+            if !(0.0..=1.0).contains(&self.opacities[i]) {
+                return bad("its opacity is not in [0, 1]");
+            }
+            if !self.scales[i].iter().all(|s| s.is_finite() && *s > 0.0) {
+                return bad("its scales are not finite and positive");
+            }
+            let q = self.rotations[i];
+            let norm = q.iter().map(|x| x * x).sum::<f32>().sqrt();
+            if !norm.is_finite() || (norm - 1.0).abs() > 1e-3 {
+                return bad("its rotation is not a unit quaternion");
+            }
+        }
+        Ok(())
+    }
+}
