@@ -2,7 +2,7 @@
 //! covariance through the projection's Jacobian, widened by a 0.3-pixel low-pass as 3D Gaussian splatting
 //! does), binned into the 16×16 tiles they touch and sorted by distance tile by tile, and the tiles are
 //! drawn in parallel, each pixel compositing its splats front to back (alpha = opacity · the Gaussian, at
-//! most 0.99, below 1/255 skipped) until every pixel of the tile has a transmittance under 1e-4.
+//! most 0.99, below 1/255 skipped) until its transmittance falls under 1e-4.
 //!
 //! The frame is a [`VolumeFrame`], as a field's volume render gives it: composited color over the
 //! background, opacity, and the expected distance from the camera Σ wᵢ dᵢ (not normalized).
@@ -212,7 +212,7 @@ impl Viewer {
             radius,
             distance: v.length(),
             opacity: splats.opacities[i],
-            cutoff: rough_ln(MIN_ALPHA / splats.opacities[i]),
+            cutoff: (MIN_ALPHA / splats.opacities[i]).ln(),
             color: splats.colors[i],
             tiles,
         })
@@ -271,12 +271,6 @@ fn fast_exp(x: f32) -> f32 {
     f32::from_bits(((whole as i32 + 127) as u32) << 23) * fraction
 }
 
-/// ln x for x > 0, to within 0.09 (the exponent's bits read as a number): enough to tell where a splat's
-/// alpha falls under [`MIN_ALPHA`].
-fn rough_ln(x: f32) -> f32 {
-    (x.to_bits() as f32 / (1 << 23) as f32 - 127.0) * std::f32::consts::LN_2 - 0.043
-}
-
 /// The pixels of a tile: columns `x0..x1`, rows `y0..y1` of the frame.
 struct Area {
     x0: usize,
@@ -299,44 +293,43 @@ fn draw_tile(
     opacity: &mut [f32],
 ) {
     let (w, h) = (area.x1 - area.x0, area.y1 - area.y0);
-    // The pixels outside the frame (of a tile at its edge) count as saturated.
-    let mut transmittance = [0.0f32; TILE * TILE];
-    for y in 0..h {
-        transmittance[y * TILE..y * TILE + w].fill(1.0);
-    }
+    let mut transmittance = [1.0f32; TILE * TILE];
     let mut color = [[0.0f32; 3]; TILE * TILE];
     let mut distance = [0.0f32; TILE * TILE];
-    for (n, &entry) in list.iter().enumerate() {
+    let mut live = w * h;
+    for &entry in list {
         let p = &projected[entry as u32 as usize];
         let span = |center: f32, lo: usize, hi: usize| {
             let first = ((center - p.radius).floor().max(lo as f32) as usize).max(lo);
             let last = ((center + p.radius).ceil().max(0.0) as usize).min(hi);
             first..last.max(first)
         };
-        let columns = span(p.col, area.x0, area.x1);
         for y in span(p.row, area.y0, area.y1) {
             let dy = y as f32 + 0.5 - p.row;
-            let at = (y - area.y0) * TILE - area.x0;
-            for x in columns.clone() {
-                let k = at + x;
+            for x in span(p.col, area.x0, area.x1) {
+                let k = (y - area.y0) * TILE + (x - area.x0);
+                let t = transmittance[k];
+                if t < SATURATED {
+                    continue;
+                }
                 let dx = x as f32 + 0.5 - p.col;
                 let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
-                let inside = power <= 0.0 && power >= p.cutoff;
-                let alpha = if inside {
-                    (p.opacity * fast_exp(power)).min(MAX_ALPHA)
-                } else {
-                    0.0
-                };
-                let weight = alpha * transmittance[k];
+                if power > 0.0 || power < p.cutoff {
+                    continue;
+                }
+                let alpha = (p.opacity * fast_exp(power)).min(MAX_ALPHA);
+                let weight = alpha * t;
                 for (sum, c) in color[k].iter_mut().zip(p.color) {
                     *sum += weight * c;
                 }
                 distance[k] += weight * p.distance;
-                transmittance[k] *= 1.0 - alpha;
+                transmittance[k] = t * (1.0 - alpha);
+                if transmittance[k] < SATURATED {
+                    live -= 1;
+                }
             }
         }
-        // Every 32 splats: done once every pixel of the tile is saturated.
-        if n % 32 == 31 && transmittance.iter().all(|&t| t < SATURATED) {
+        if live == 0 {
             break;
         }
     }
