@@ -1,6 +1,6 @@
 //! The `.bake` file: a trained field baked into Gaussian splats by `nerfjit bake`, as a safetensors file
-//! (float32 tensors `positions` [N, 3], `colors` [N, 3], `opacities` [N], `scales` [N, 3], `rotations`
-//! [N, 4], as [`Splats`] holds them) whose metadata says its format, the background its views are drawn
+//! (float32 tensors `positions` (N, 3), `colors` (N, 3), `opacities` (N), `scales` (N, 3), `rotations`
+//! (N, 4), as [`Splats`] holds them) whose metadata says its format, the background its views are drawn
 //! on and the checkpoint it was baked from (whose data gives the views it is scored on).
 
 use std::borrow::Cow;
@@ -38,7 +38,7 @@ struct Floats {
 }
 
 impl Floats {
-    /// Rows of `W` values as an [N, W] tensor (or [N] for `W` = 1).
+    /// Rows of `W` values as an (N, W) tensor (or (N) for `W` = 1).
     fn rows<const W: usize>(rows: &[[f32; W]]) -> Floats {
         let shape = if W == 1 {
             vec![rows.len()]

@@ -8,7 +8,7 @@
 //! median pixel footprint: one round splat per cell, at the mean of its pixels, of their mean color and
 //! opacity, with a standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some
 //! view sees in front of what it saw there (a pixel whose expected depth fell between surfaces) is dropped
-//! ([`seen_through`]). The colors are those the field shows from the views that saw each cell, averaged: the
+//! (`seen_through`). The colors are those the field shows from the views that saw each cell, averaged: the
 //! splats look alike from every side.
 
 use std::collections::HashMap;

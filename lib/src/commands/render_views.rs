@@ -535,7 +535,7 @@ impl ScoredSet {
 
 /// `nerfjit eval-views`: PSNR and SSIM of every view, and their means (also as JSON in `json`). With
 /// `cameras` every view of that file; without, the views the field's training validates on (see
-/// [`ScoredSet::read`]); when those are the field's own training data with views held out, the mean over
+/// `ScoredSet::read`); when those are the field's own training data with views held out, the mean over
 /// the held-out ones too (which equals its validation at its training's scale). A baked scene is scored
 /// the same way by [`crate::commands::bake::eval`].
 pub fn eval(
