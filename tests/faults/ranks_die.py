@@ -14,6 +14,7 @@ Prints one line a fault and exits non-zero when a promise is broken.
 import argparse
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -105,27 +106,31 @@ def main():
     nerfjit = os.path.abspath(parser.parse_args().nerfjit)
     work = box_scene.make_views(nerfjit, "nerfjit-ranks-die-")
     (work / "train.sdf").write_text(TRAIN)
-    subprocess.run(mpirun(nerfjit, 2, "run", "train.sdf", "--out", "reference"), cwd=work, check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    reference = box_scene.params(work / "reference")
-    for name, fault in [("mid-step", mid_step), ("all-reduce", in_all_reduce), ("checkpoint", writing_checkpoint)]:
-        out, lost, ended, step, litter = faulted_run(nerfjit, work, name, fault)
-        resumed = {}
-        for ranks in (2, 1):
-            copy = work / f"{name}-{ranks}"
-            subprocess.run(["cp", "-r", str(out), str(copy)], check=True)
-            subprocess.run(mpirun(nerfjit, ranks, "run", "train.sdf", "--out", copy.name, "--resume"), cwd=work,
-                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            resumed[ranks] = box_scene.params(copy)
-        if resumed[2] != reference:
-            sys.exit(f"{name}: resumed over 2 ranks to {resumed[2]}, the run without the fault to {reference}")
-        steps, values = resumed[1]
-        drift = max(abs(a - b) for a, b in zip(values, reference[1]))
-        if steps != reference[0] or drift > 1e-3:
-            sys.exit(f"{name}: resumed over 1 rank to {resumed[1]}, the run without the fault to {reference}")
-        print(f"{name}: rank {lost} killed, the job ended {ended:.1f} s later naming it; the checkpoint of step "
-              f"{step} whole ({len(litter)} temporary file left: {litter}); resumed to step {STEPS}: over 2 ranks "
-              f"the same parameters bit for bit, over 1 rank within {drift:.1e}")
+    try:
+        subprocess.run(mpirun(nerfjit, 2, "run", "train.sdf", "--out", "reference"), cwd=work, check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        reference = box_scene.params(work / "reference")
+        for name, fault in [("mid-step", mid_step), ("all-reduce", in_all_reduce), ("checkpoint", writing_checkpoint)]:
+            out, lost, ended, step, litter = faulted_run(nerfjit, work, name, fault)
+            resumed = {}
+            for ranks in (2, 1):
+                copy = work / f"{name}-{ranks}"
+                subprocess.run(["cp", "-r", str(out), str(copy)], check=True)
+                subprocess.run(mpirun(nerfjit, ranks, "run", "train.sdf", "--out", copy.name, "--resume"), cwd=work,
+                               check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                resumed[ranks] = box_scene.params(copy)
+            if resumed[2] != reference:
+                sys.exit(f"{name}: resumed over 2 ranks to {resumed[2]}, the run without the fault to {reference}")
+            steps, values = resumed[1]
+            drift = max(abs(a - b) for a, b in zip(values, reference[1]))
+            if steps != reference[0] or drift > 1e-3:
+                sys.exit(f"{name}: resumed over 1 rank to {resumed[1]}, the run without the fault to {reference}")
+            print(f"{name}: rank {lost} killed, the job ended {ended:.1f} s later naming it; the checkpoint of step "
+                  f"{step} whole ({len(litter)} temporary file left: {litter}); resumed to step {STEPS}: over 2 ranks "
+                  f"the same parameters bit for bit, over 1 rank within {drift:.1e}")
+    finally:
+        # Its runs hold 25 MB checkpoints and 64 MB summaries each.
+        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":
