@@ -43,11 +43,6 @@ impl OutputFile {
         })
     }
 
-    /// The path the file will have.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
     /// Flushes every byte and renames the file into place, readable by all (as files the process creates
     /// are); says what failed (a full disk, say) and leaves nothing behind when it does.
     pub fn finish(self) -> Result<()> {
