@@ -248,7 +248,13 @@ enum Command {
     },
     /// Bake a trained volume field (a checkpoint) into Gaussian splats (a .bake file) that `render`,
     /// `eval-views` and `export` take and the CPU draws in milliseconds.
-    Bake(SeenPixels),
+    Bake {
+        #[command(flatten)]
+        seen: SeenPixels,
+        /// Seconds of fine-tuning the splats against the field's training views after baking (0: none).
+        #[arg(long, default_value_t = 0.0, value_parser = tune_seconds)]
+        tune: f64,
+    },
     /// Export a baked scene (.bake) as a file other tools open: `splat-ply`, the 3D Gaussian splatting
     /// .ply that splat viewers read.
     Export {
@@ -434,6 +440,14 @@ fn export_format(text: &str) -> Result<bake::ExportFormat, String> {
     match text {
         "splat-ply" => Ok(bake::ExportFormat::SplatPly),
         _ => Err(format!("'{text}' is not an export format: splat-ply")),
+    }
+}
+
+/// A `--tune` value: seconds, finite and not negative.
+fn tune_seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s >= 0.0 => Ok(s),
+        _ => Err(format!("'{text}' is not a number of seconds (0 or more)")),
     }
 }
 
@@ -699,7 +713,9 @@ fn run_command(cli: Cli) -> ExitCode {
         } => render_views::render(&view.args(&source), cameras.source(), &out, gif)
             .map(|text| emit(&format!("{text}\n"))),
         // Views of 400² make splats the size of a pixel at 800².
-        Command::Bake(seen) => bake::run(&seen.args(Some(400))).map(|text| emit(&format!("{text}\n"))),
+        Command::Bake { seen, tune } => {
+            bake::run(&seen.args(Some(400)), tune).map(|text| emit(&format!("{text}\n")))
+        }
         Command::Export { scene, format, out } => {
             bake::export(&scene, format, &out).map(|text| emit(&format!("{text}\n")))
         }

@@ -17,14 +17,35 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use nerfjit_runtime::splats::{render_splats, write_splat_ply, Splats};
-use nerfjit_runtime::{Camera, Layout, VolumeFrame};
+use nerfjit_dsl::Program;
+use nerfjit_runtime::splats::{
+    render_splats, splat_loss_gradients, write_splat_ply, SplatTuner, Splats, TuneRates,
+};
+use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 
 use crate::bake_file::{self, Bake};
+use crate::blocks::train::TrainPlan;
 use crate::commands::point_cloud::{view_cameras, PointsArgs, Surfels};
 use crate::commands::render_views::{report, ScoredSet, ViewArgs};
 use crate::failure::{Failure, Result};
+use crate::settings::schema::Kind;
 use crate::training::validation::score_on_ranks;
+
+/// The learning rates of fine-tuning at its start (the centers' in units of the splats' median scale).
+pub const TUNE_RATES: TuneRates = TuneRates {
+    position: 0.1,
+    color: 0.01,
+    opacity: 0.05,
+    scale: 0.005,
+    rotation: 0.001,
+};
+
+/// The share of fine-tuning's time spent on the views at half their size (four times the steps a second).
+pub const COARSE_SHARE: f64 = 0.5;
+
+/// Splats fainter than this after fine-tuning are dropped (they draw nothing: under the renderer's
+/// smallest alpha everywhere).
+pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -33,9 +54,10 @@ pub const SPREAD: f32 = 0.6;
 /// in cells.
 pub const CARVE_CELLS: f32 = 3.0;
 
-/// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats and writes them to
-/// `args.out`; returns a summary line.
-pub fn run(args: &PointsArgs) -> Result<String> {
+/// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
+/// for `tune_seconds` against its training views (see [`tune`]; 0: not at all) and writes them to
+/// `args.out`; returns a summary.
+pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
     if !bake_file::is_bake(args.out) {
         return Err(Failure::Message(format!(
             "'{}' must end in .bake (export it afterwards: nerfjit export SCENE.bake --format splat-ply)",
@@ -50,23 +72,131 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         return Ok(String::new());
     };
     let (splats, cell) = splats_of(&surfels, &cameras);
-    let bake = Bake {
+    let mut bake = Bake {
         splats,
         background,
         source: std::path::absolute(args.view.source).unwrap_or_else(|_| args.view.source.into()),
     };
-    bake_file::write(args.out, &bake)?;
-    let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
     let size = args.view.side();
-    Ok(format!(
-        "baked {} splats (cells of {cell:.4}) from {} pixels of {} views of {size}×{size} in {:.1} s → {} ({:.1} MB)",
+    let mut text = format!(
+        "baked {} splats (cells of {cell:.4}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
         bake.splats.len(),
         surfels.positions.len(),
         cameras.len(),
         start.elapsed().as_secs_f64(),
+    );
+    if tune_seconds > 0.0 {
+        let (program, _) = crate::checkpoint::load_source(args.view.source)?;
+        text += &tune(&mut bake, &program, args.view.source, tune_seconds)?;
+    }
+    bake_file::write(args.out, &bake)?;
+    let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
+    text += &format!(
+        "{} splats → {} ({:.1} MB)",
+        bake.splats.len(),
         args.out.display(),
         bytes as f64 / 1e6
-    ))
+    );
+    Ok(text)
+}
+
+/// Fine-tunes the splats of `bake` for `seconds` against the training views of `source` (a checkpoint,
+/// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
+/// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
+/// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale); splats left fainter than
+/// [`MIN_OPACITY`] are dropped. Returns what it did, a line a pass.
+pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> Result<String> {
+    let start = Instant::now();
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
+    let views = TrainPlan::new(block)?
+        .load_views()?
+        .0
+        .on_background(bake.background);
+    if views.is_empty() {
+        return Err(Failure::Message(format!(
+            "{source}'s training data holds no views to tune against"
+        )));
+    }
+    let mut text = format!(
+        "{} training views loaded in {:.1} s\n",
+        views.len(),
+        start.elapsed().as_secs_f64()
+    );
+    let start = Instant::now();
+    let mut scales: Vec<f32> = bake
+        .splats
+        .scales
+        .iter()
+        .map(|s| s[0].max(s[1]).max(s[2]))
+        .collect();
+    let middle = scales.len() / 2;
+    let median_scale = *scales.select_nth_unstable_by(middle, f32::total_cmp).1;
+    let rates = TuneRates {
+        position: TUNE_RATES.position * median_scale,
+        ..TUNE_RATES
+    };
+    let mut tuner = SplatTuner::new(bake.splats.len(), rates);
+    let mut rng = Rng::new(0x5eed);
+    let mut order: Vec<usize> = (0..views.len()).collect();
+    let coarse: Vec<Vec<[f32; 3]>> = views.images.iter().map(halved).collect();
+    let coarse_size = (views.width / 2, views.height / 2);
+    let mut steps = 0usize;
+    'passes: for pass in 1.. {
+        for k in (1..order.len()).rev() {
+            order.swap(k, rng.below(k as u64 + 1) as usize);
+        }
+        let mut error = 0.0f64;
+        for (done, &v) in order.iter().enumerate() {
+            let elapsed = start.elapsed().as_secs_f64();
+            if elapsed >= seconds {
+                if done > 0 {
+                    text += &pass_line(pass, done, error, elapsed);
+                }
+                break 'passes;
+            }
+            let fine = elapsed >= COARSE_SHARE * seconds || coarse_size.0 < 16 || coarse_size.1 < 16;
+            let (size, target) = match fine {
+                true => ((views.width, views.height), &views.images[v].pixels),
+                false => (coarse_size, &coarse[v]),
+            };
+            let (loss, gradients) =
+                splat_loss_gradients(&bake.splats, &views.cameras[v], size, bake.background, target)?;
+            error += loss;
+            let factor = 0.1f64.powf(elapsed / seconds) as f32;
+            tuner.step(&mut bake.splats, &gradients, factor)?;
+            steps += 1;
+        }
+        text += &pass_line(pass, order.len(), error, start.elapsed().as_secs_f64());
+    }
+    let dropped = bake.splats.prune(MIN_OPACITY);
+    text += &format!(
+        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {dropped} splats fainter than {MIN_OPACITY:.4} dropped\n",
+        views.len(),
+        views.width,
+        views.height,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(text)
+}
+
+/// An image at half its width and height (each pixel the mean of four; an odd last row or column left out).
+fn halved(image: &ImageF32) -> Vec<[f32; 3]> {
+    let (w, h) = (image.width as usize / 2, image.height as usize / 2);
+    let at = |x: usize, y: usize| image.pixels[y * image.width as usize + x];
+    (0..w * h)
+        .map(|k| {
+            let (x, y) = (2 * (k % w), 2 * (k / w));
+            let four = [at(x, y), at(x + 1, y), at(x, y + 1), at(x + 1, y + 1)];
+            std::array::from_fn(|c| 0.25 * four.iter().map(|p| p[c]).sum::<f32>())
+        })
+        .collect()
+}
+
+/// What a pass of tuning reached: its mean error over the views it took, as a PSNR.
+fn pass_line(pass: usize, views: usize, error: f64, elapsed: f64) -> String {
+    let psnr = -10.0 * (error / views.max(1) as f64).log10();
+    format!("tuning pass {pass}: {views} views, {psnr:.2} dB on them as they came, {elapsed:.1} s\n")
 }
 
 /// Sums of the surfels that fall in one cell.

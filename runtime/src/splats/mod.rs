@@ -1,13 +1,18 @@
 //! Gaussian splats: a scene as 3D Gaussians, each with a center, a color, an opacity and an oriented
 //! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
 //! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
-//! CPU, and [`write_splat_ply`] writes the `.ply` layout that splat viewers read.
+//! CPU, [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, and [`write_splat_ply`]
+//! writes the `.ply` layout that splat viewers read.
 
+mod gradients;
 mod ply;
 mod raster;
+mod tune;
 
+pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
 pub use raster::{render_splats, SplatFrameStats};
+pub use tune::{SplatTuner, TuneRates};
 
 use crate::error::{Error, Result};
 
@@ -38,6 +43,18 @@ impl Splats {
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty()
+    }
+
+    /// Keeps the splats whose opacity reaches `min_opacity`; returns how many went.
+    pub fn prune(&mut self, min_opacity: f32) -> usize {
+        let keep: Vec<bool> = self.opacities.iter().map(|&o| o >= min_opacity).collect();
+        let before = self.len();
+        keep_where(&mut self.positions, &keep);
+        keep_where(&mut self.colors, &keep);
+        keep_where(&mut self.opacities, &keep);
+        keep_where(&mut self.scales, &keep);
+        keep_where(&mut self.rotations, &keep);
+        before - self.len()
     }
 
     /// Checks that every field has one finite entry per splat, within its range; says what is wrong.
@@ -79,4 +96,10 @@ impl Splats {
         }
         Ok(())
     }
+}
+
+/// Keeps the values whose entry of `keep` is true.
+fn keep_where<T>(values: &mut Vec<T>, keep: &[bool]) {
+    let mut kept = keep.iter();
+    values.retain(|_| *kept.next().unwrap_or(&true));
 }

@@ -18,19 +18,19 @@ use crate::error::{check_size, Result};
 use crate::volume::render::VolumeFrame;
 
 /// The side of a tile, in pixels.
-const TILE: usize = 16;
+pub(super) const TILE: usize = 16;
 
 /// Splats nearer than this to the camera's plane are not drawn.
 const NEAR: f32 = 0.01;
 
 /// The variance (in pixels²) added to every projected splat, so that none is thinner than a pixel.
-const LOW_PASS: f32 = 0.3;
+pub(super) const LOW_PASS: f32 = 0.3;
 
 /// Alphas below this are skipped.
 const MIN_ALPHA: f32 = 1.0 / 255.0;
 
 /// No splat covers a pixel entirely.
-const MAX_ALPHA: f32 = 0.99;
+pub(super) const MAX_ALPHA: f32 = 0.99;
 
 /// A pixel whose transmittance falls below this takes no more splats.
 const SATURATED: f32 = 1e-4;
@@ -46,20 +46,23 @@ pub struct SplatFrameStats {
 
 /// A splat as the screen sees it.
 #[derive(Debug, Clone, Copy)]
-struct Projected {
+pub(super) struct Projected {
+    /// Which splat it is.
+    pub index: u32,
     /// The center's continuous pixel coordinates (pixel centers at +0.5).
-    col: f32,
-    row: f32,
+    pub col: f32,
+    pub row: f32,
     /// The inverse of the 2D covariance: (a, b, c) of [[a, b], [b, c]].
-    conic: [f32; 3],
-    /// The half-side of its square on the screen, in pixels (3 standard deviations).
-    radius: f32,
+    pub conic: [f32; 3],
+    /// The half-side of its square on the screen, in pixels: it holds every pixel where its alpha reaches
+    /// [`MIN_ALPHA`] (so that the frame changes smoothly with the splat, but at that edge).
+    pub radius: f32,
     /// Its distance from the camera.
-    distance: f32,
-    opacity: f32,
+    pub distance: f32,
+    pub opacity: f32,
     /// The Gaussian's exponent below which its alpha is under [`MIN_ALPHA`]: ln(MIN_ALPHA / opacity).
-    cutoff: f32,
-    color: [f32; 3],
+    pub cutoff: f32,
+    pub color: [f32; 3],
     /// The tiles it touches: columns `tiles[0]..tiles[2]`, rows `tiles[1]..tiles[3]`.
     tiles: [u32; 4],
 }
@@ -72,65 +75,115 @@ pub fn render_splats(
     height: u32,
     background: [f32; 3],
 ) -> Result<(VolumeFrame, SplatFrameStats)> {
-    check_size(width, height)?;
-    let (tiles_x, tiles_y) = ((width as usize).div_ceil(TILE), (height as usize).div_ceil(TILE));
-    let view = Viewer::of(camera, width, height, (tiles_x as u32, tiles_y as u32));
-    let projected: Vec<Projected> = (0..splats.len())
-        .into_par_iter()
-        .filter_map(|i| view.project(splats, i))
-        .collect();
-    let (starts, entries) = bin(&projected, tiles_x * tiles_y, tiles_x);
-    let pixels = width as usize * height as usize;
-    let mut frame = VolumeFrame {
-        width,
-        height,
-        rgb: vec![[0.0; 3]; pixels],
-        depth: vec![0.0; pixels],
-        opacity: vec![0.0; pixels],
-    };
-    let band = width as usize * TILE;
-    frame
-        .rgb
-        .par_chunks_mut(band)
-        .zip(frame.depth.par_chunks_mut(band))
-        .zip(frame.opacity.par_chunks_mut(band))
-        .enumerate()
-        .for_each(|(tile_row, ((rgb, depth), opacity))| {
-            for tile_col in 0..tiles_x {
-                let tile = tile_row * tiles_x + tile_col;
-                let list = &entries[starts[tile]..starts[tile + 1]];
-                let area = Area {
-                    x0: tile_col * TILE,
-                    x1: ((tile_col + 1) * TILE).min(width as usize),
-                    y0: tile_row * TILE,
-                    y1: ((tile_row + 1) * TILE).min(height as usize),
-                };
-                draw_tile(
-                    &projected,
-                    list,
-                    &area,
-                    width as usize,
-                    background,
-                    rgb,
-                    depth,
-                    opacity,
-                );
-            }
-        });
+    let screen = Screen::of(splats, camera, width, height)?;
+    let (frame, _) = screen.draw(background);
     let stats = SplatFrameStats {
-        visible: projected.len(),
-        entries: entries.len(),
+        visible: screen.projected.len(),
+        entries: screen.entries.len(),
     };
     Ok((frame, stats))
 }
 
+/// The splats of a frame projected and binned into its tiles: what drawing it and its gradients share.
+pub(super) struct Screen {
+    /// The camera as the projection sees it.
+    pub viewer: Viewer,
+    /// The splats on the screen.
+    pub projected: Vec<Projected>,
+    /// Tile `t`'s splats are `entries[starts[t]..starts[t + 1]]`, nearest first: each the distance's bits
+    /// over the index in `projected` (its low 32 bits).
+    pub starts: Vec<usize>,
+    pub entries: Vec<u64>,
+    pub width: usize,
+    pub height: usize,
+    pub tiles_x: usize,
+}
+
+/// The pixels of a tile: columns `x0..x1`, rows `y0..y1` of the frame.
+pub(super) struct Area {
+    pub x0: usize,
+    pub x1: usize,
+    pub y0: usize,
+    pub y1: usize,
+}
+
+impl Screen {
+    /// Projects and bins `splats` as `camera` sees them in a `width`×`height` frame.
+    pub fn of(splats: &Splats, camera: &Camera, width: u32, height: u32) -> Result<Screen> {
+        check_size(width, height)?;
+        let (tiles_x, tiles_y) = ((width as usize).div_ceil(TILE), (height as usize).div_ceil(TILE));
+        let viewer = Viewer::of(camera, width, height, (tiles_x as u32, tiles_y as u32));
+        let projected: Vec<Projected> = (0..splats.len())
+            .into_par_iter()
+            .filter_map(|i| viewer.project(splats, i))
+            .collect();
+        let (starts, entries) = bin(&projected, tiles_x * tiles_y, tiles_x);
+        Ok(Screen {
+            viewer,
+            projected,
+            starts,
+            entries,
+            width: width as usize,
+            height: height as usize,
+            tiles_x,
+        })
+    }
+
+    /// Tile `tile`'s splats (nearest first) and pixels.
+    pub fn tile(&self, tile: usize) -> (&[u64], Area) {
+        let (row, col) = (tile / self.tiles_x, tile % self.tiles_x);
+        let area = Area {
+            x0: col * TILE,
+            x1: ((col + 1) * TILE).min(self.width),
+            y0: row * TILE,
+            y1: ((row + 1) * TILE).min(self.height),
+        };
+        (&self.entries[self.starts[tile]..self.starts[tile + 1]], area)
+    }
+
+    /// The frame over `background`, and for each pixel how many of its tile's splats it took (the last
+    /// one's place in the tile's list, plus one; 0 for none).
+    pub fn draw(&self, background: [f32; 3]) -> (VolumeFrame, Vec<u32>) {
+        let pixels = self.width * self.height;
+        let mut frame = VolumeFrame {
+            width: self.width as u32,
+            height: self.height as u32,
+            rgb: vec![[0.0; 3]; pixels],
+            depth: vec![0.0; pixels],
+            opacity: vec![0.0; pixels],
+        };
+        let mut taken = vec![0u32; pixels];
+        let band = self.width * TILE;
+        frame
+            .rgb
+            .par_chunks_mut(band)
+            .zip(frame.depth.par_chunks_mut(band))
+            .zip(frame.opacity.par_chunks_mut(band))
+            .zip(taken.par_chunks_mut(band))
+            .enumerate()
+            .for_each(|(tile_row, (((rgb, depth), opacity), taken))| {
+                for tile_col in 0..self.tiles_x {
+                    let (list, area) = self.tile(tile_row * self.tiles_x + tile_col);
+                    let band = Band {
+                        rgb: &mut *rgb,
+                        depth: &mut *depth,
+                        opacity: &mut *opacity,
+                        taken: &mut *taken,
+                    };
+                    draw_tile(&self.projected, list, &area, self.width, background, band);
+                }
+            });
+        (frame, taken)
+    }
+}
+
 /// The camera as the projection needs it.
-struct Viewer {
+pub(super) struct Viewer {
     /// World to view.
-    rotation: Mat3,
-    position: Vec3,
-    fx: f32,
-    fy: f32,
+    pub rotation: Mat3,
+    pub position: Vec3,
+    pub fx: f32,
+    pub fy: f32,
     cx: f32,
     cy: f32,
     width: f32,
@@ -157,18 +210,18 @@ impl Viewer {
     /// Splat `i` on the screen; none behind the camera, off the screen or degenerate.
     fn project(&self, splats: &Splats, i: usize) -> Option<Projected> {
         let v = self.rotation * (Vec3::from(splats.positions[i]) - self.position);
-        if !v.z.is_finite() || v.z <= NEAR {
+        if !v.z.is_finite() || v.z <= NEAR || splats.opacities[i] < MIN_ALPHA {
             return None;
         }
         let inv_z = 1.0 / v.z;
         let col = self.cx - self.fx * v.x * inv_z;
         let row = self.cy - self.fy * v.y * inv_z;
-        // Off the screen by more than the splat's widest extent (a bound: 3 of its largest deviations, at
-        // the steepest the projection gets there)?
+        // Off the screen by more than the splat's widest extent (a bound: 3.4 of its largest deviations, at
+        // the steepest the projection gets there; its alpha is under MIN_ALPHA from √(2 ln 255) ≈ 3.33 on)?
         let [sx, sy, sz] = splats.scales[i];
         let widest = sx.max(sy).max(sz);
         let stretch = (1.0 + (v.x * v.x + v.y * v.y) * inv_z * inv_z).sqrt();
-        let bound = 3.0 * (widest * self.fx.max(self.fy) * inv_z * stretch + LOW_PASS.sqrt()) + 1.0;
+        let bound = 3.4 * (widest * self.fx.max(self.fy) * inv_z * stretch + LOW_PASS.sqrt()) + 1.0;
         if col + bound < 0.0 || row + bound < 0.0 || col - bound > self.width || row - bound > self.height {
             return None;
         }
@@ -193,7 +246,10 @@ impl Viewer {
         }
         let mid = 0.5 * (a + c);
         let largest = mid + (mid * mid - det).max(0.0).sqrt();
-        let radius = 3.0 * largest.sqrt();
+        // Its alpha reaches MIN_ALPHA within the ellipse where the exponent is the cutoff, whose half-width
+        // along its widest axis this is.
+        let cutoff = (MIN_ALPHA / splats.opacities[i]).ln();
+        let radius = (-2.0 * cutoff * largest).sqrt();
         if col + radius < 0.0 || row + radius < 0.0 || col - radius > self.width || row - radius > self.height
         {
             return None;
@@ -206,13 +262,14 @@ impl Viewer {
             tile(row + radius, self.tiles.1 - 1) + 1,
         ];
         Some(Projected {
+            index: i as u32,
             col,
             row,
             conic: [c / det, -b / det, a / det],
             radius,
             distance: v.length(),
             opacity: splats.opacities[i],
-            cutoff: (MIN_ALPHA / splats.opacities[i]).ln(),
+            cutoff,
             color: splats.colors[i],
             tiles,
         })
@@ -271,59 +328,70 @@ fn fast_exp(x: f32) -> f32 {
     f32::from_bits(((whole as i32 + 127) as u32) << 23) * fraction
 }
 
-/// The pixels of a tile: columns `x0..x1`, rows `y0..y1` of the frame.
-struct Area {
-    x0: usize,
-    x1: usize,
-    y0: usize,
-    y1: usize,
+/// The pixels `lo..hi` (of a row or a column) within `radius` of `center`.
+#[inline(always)]
+pub(super) fn span(center: f32, radius: f32, lo: usize, hi: usize) -> std::ops::Range<usize> {
+    let first = ((center - radius).floor().max(lo as f32) as usize).max(lo);
+    let last = ((center + radius).ceil().max(0.0) as usize).min(hi);
+    first..last.max(first)
+}
+
+/// The alpha splat `p` gives the pixel (`dx`, `dy`) from its center (at most [`MAX_ALPHA`]) and its
+/// Gaussian there; `None` where its alpha would be under [`MIN_ALPHA`].
+#[inline(always)]
+pub(super) fn alpha_at(p: &Projected, dx: f32, dy: f32) -> Option<(f32, f32)> {
+    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+    if power > 0.0 || power < p.cutoff {
+        return None;
+    }
+    let gaussian = fast_exp(power);
+    Some(((p.opacity * gaussian).min(MAX_ALPHA), gaussian))
+}
+
+/// The rows of the frame that hold a row of tiles (`width` pixels a row).
+struct Band<'a> {
+    rgb: &'a mut [[f32; 3]],
+    depth: &'a mut [f32],
+    opacity: &'a mut [f32],
+    taken: &'a mut [u32],
 }
 
 /// Composites the splats of `list` (nearest first) over the pixels of `area`, into the band of rows
-/// (`rgb`, `depth`, `opacity`, `width` pixels a row) that holds the tile.
-#[allow(clippy::too_many_arguments)]
+/// (`width` pixels a row) that holds the tile.
 fn draw_tile(
     projected: &[Projected],
     list: &[u64],
     area: &Area,
     width: usize,
     background: [f32; 3],
-    rgb: &mut [[f32; 3]],
-    depth: &mut [f32],
-    opacity: &mut [f32],
+    band: Band,
 ) {
     let (w, h) = (area.x1 - area.x0, area.y1 - area.y0);
     let mut transmittance = [1.0f32; TILE * TILE];
     let mut color = [[0.0f32; 3]; TILE * TILE];
     let mut distance = [0.0f32; TILE * TILE];
+    let mut taken = [0u32; TILE * TILE];
     let mut live = w * h;
-    for &entry in list {
+    for (place, &entry) in list.iter().enumerate() {
         let p = &projected[entry as u32 as usize];
-        let span = |center: f32, lo: usize, hi: usize| {
-            let first = ((center - p.radius).floor().max(lo as f32) as usize).max(lo);
-            let last = ((center + p.radius).ceil().max(0.0) as usize).min(hi);
-            first..last.max(first)
-        };
-        for y in span(p.row, area.y0, area.y1) {
+        for y in span(p.row, p.radius, area.y0, area.y1) {
             let dy = y as f32 + 0.5 - p.row;
-            for x in span(p.col, area.x0, area.x1) {
+            for x in span(p.col, p.radius, area.x0, area.x1) {
                 let k = (y - area.y0) * TILE + (x - area.x0);
                 let t = transmittance[k];
                 if t < SATURATED {
                     continue;
                 }
-                let dx = x as f32 + 0.5 - p.col;
-                let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
-                if power > 0.0 || power < p.cutoff {
+                let Some((alpha, _)) = alpha_at(p, x as f32 + 0.5 - p.col, dy) else {
                     continue;
-                }
-                let alpha = (p.opacity * fast_exp(power)).min(MAX_ALPHA);
+                };
                 let weight = alpha * t;
                 for (sum, c) in color[k].iter_mut().zip(p.color) {
                     *sum += weight * c;
                 }
                 distance[k] += weight * p.distance;
                 transmittance[k] = t * (1.0 - alpha);
+                taken[k] = place as u32 + 1;
                 if transmittance[k] < SATURATED {
                     live -= 1;
                 }
@@ -338,9 +406,10 @@ fn draw_tile(
             let k = y * TILE + x;
             let at = y * width + area.x0 + x;
             let t = transmittance[k];
-            rgb[at] = std::array::from_fn(|c| color[k][c] + t * background[c]);
-            depth[at] = distance[k];
-            opacity[at] = 1.0 - t;
+            band.rgb[at] = std::array::from_fn(|c| color[k][c] + t * background[c]);
+            band.depth[at] = distance[k];
+            band.opacity[at] = 1.0 - t;
+            band.taken[at] = taken[k];
         }
     }
 }
