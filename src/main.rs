@@ -293,7 +293,7 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
     },
-    /// Render several trained fields (checkpoints or scripts) from one view of a camera file as a labeled
+    /// Render several trained fields (checkpoints, scripts or bakes) from one view of a camera file as a labeled
     /// grid beside the target image, with each render's PSNR (the fewer-views comparison).
     Compare {
         /// The camera file with the views' images (any that eval-views reads).

@@ -92,6 +92,40 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
         "bake {baked:.2} dB, tuned {tuned:.2} dB"
     );
 
+    // `compare` sets the field, its bake and the tuned bake side by side, each scored as eval-views scores it.
+    let row = "box=train.ckpt.safetensors,box.bake,tuned.bake";
+    let args = [
+        "compare",
+        "--cameras",
+        "cams.json",
+        "--size",
+        "40",
+        "--columns",
+        "field,bake,tuned",
+        "--row",
+        row,
+        "--out",
+        "grid.png",
+    ];
+    let (ok, out, err) = run(&dir, &args);
+    assert!(ok, "{err}");
+    let shown = |column: &str| -> f64 {
+        let at = out
+            .find(&format!("{column}: "))
+            .unwrap_or_else(|| panic!("{out}"))
+            + column.len()
+            + 2;
+        out[at..]
+            .split(' ')
+            .next()
+            .and_then(|x| x.parse().ok())
+            .unwrap_or_else(|| panic!("{out}"))
+    };
+    assert!(
+        shown("tuned") > shown("bake") + 10.0 && dir.join("grid.png").exists(),
+        "{out}"
+    );
+
     let (ok, out, err) = run(
         &dir,
         &[

@@ -6,6 +6,7 @@ use std::path::Path;
 
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
+use nerfjit_runtime::splats::render_splats;
 use nerfjit_runtime::{mse, psnr, rgb_image, save_png, ImageF32, Layout, Quantize};
 
 use crate::commands::render_views::ViewArgs;
@@ -38,6 +39,18 @@ const SCALE: usize = 2;
 const BACKGROUND: [f32; 3] = [0.12, 0.12, 0.14];
 const INK: [f32; 3] = [0.95, 0.95, 0.95];
 
+/// The field an entry of the grid shows: a script or checkpoint itself, or the checkpoint a `.bake` was
+/// baked from.
+fn field_of(source: &str) -> Result<String> {
+    Ok(match crate::bake_file::is_bake(Path::new(source)) {
+        true => crate::bake_file::read(Path::new(source))?
+            .source
+            .to_string_lossy()
+            .into_owned(),
+        false => source.to_string(),
+    })
+}
+
 /// Renders the grid of `rows` × `columns` (plus the target column) from view `index` of `cameras` (read as
 /// `eval-views` reads them, a folder holding several layouts as `format`); settings
 /// not given in `args` come from the first entry's script (the target is composited on its background).
@@ -61,9 +74,10 @@ pub fn compare(
             columns.len()
         )));
     }
-    let (first, _) = crate::checkpoint::load_source(&rows[0].sources[0])?;
+    let first_source = field_of(&rows[0].sources[0])?;
+    let (first, _) = crate::checkpoint::load_source(&first_source)?;
     let background = args.resolve(&first).background;
-    let trained = crate::commands::render_views::trained_data(&rows[0].sources[0], &first);
+    let trained = crate::commands::render_views::trained_data(&first_source, &first);
     let views = scored_views(&ScoredViews {
         cameras,
         format,
@@ -84,21 +98,25 @@ pub fn compare(
     for row in rows {
         let mut rendered = Vec::new();
         for source in &row.sources {
-            let (program, params) = crate::checkpoint::load_source(source)?;
-            let rendering = crate::commands::render_views::Rendering {
-                background,
-                ..args.resolve(&program)
+            let f = match crate::bake_file::is_bake(Path::new(source)) {
+                true => {
+                    let bake = crate::bake_file::read(Path::new(source))?;
+                    render_splats(&bake.splats, camera, views.width, views.height, background)?.0
+                }
+                false => {
+                    let (program, params) = crate::checkpoint::load_source(source)?;
+                    let rendering = crate::commands::render_views::Rendering {
+                        background,
+                        ..args.resolve(&program)
+                    };
+                    let fields =
+                        VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
+                    let settings = rendering.settings(fields.fine.mode);
+                    let grid = rendering.occupancy(source, &fields, &params)?;
+                    let size = (views.width, views.height);
+                    fields.render_with(camera, size, &params, &settings, grid.as_ref())?
+                }
             };
-            let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
-            let settings = rendering.settings(fields.fine.mode);
-            let grid = rendering.occupancy(source, &fields, &params)?;
-            let f = fields.render_with(
-                camera,
-                (views.width, views.height),
-                &params,
-                &settings,
-                grid.as_ref(),
-            )?;
             let image = ImageF32 {
                 width: f.width,
                 height: f.height,
