@@ -1,18 +1,20 @@
-//! Adam over splats' parameters ([`SplatTuner`]): centers and colors as they are, opacities through their
-//! logit, scales through their logarithm and rotations as quaternions renormalized after each step, as 3D
-//! Gaussian splatting optimizes them. Colors are kept in [0, 1].
+//! Fine-tuning splats ([`SplatTuner`]): the runtime's [`Adam`] over each kind of parameter, as 3D Gaussian
+//! splatting optimizes them — centers and colors as they are, opacities through their logit, scales through
+//! their logarithm, rotations as quaternions renormalized after each step. Colors are kept in [0, 1].
 
 use rayon::prelude::*;
 
 use super::gradients::SplatGradients;
 use super::Splats;
 use crate::error::{Error, Result};
-
-/// Parameters a splat has, as optimized: center 3, color 3, opacity logit 1, log scales 3, rotation 4.
-const PER_SPLAT: usize = 14;
+use crate::training::optim::Adam;
 
 /// Opacities are kept this far inside (0, 1), where their logit is finite.
 const OPACITY_MARGIN: f32 = 1e-6;
+
+/// Adam's ε: the splats' gradients are means over a frame's pixels, as small as 1e-12 for a splat few
+/// pixels see, which the default (1e-8) would hold still (3D Gaussian splatting uses 1e-15 too).
+const EPSILON: f32 = 1e-15;
 
 /// Learning rates of each kind of parameter (Adam's step sizes).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -29,23 +31,32 @@ pub struct TuneRates {
     pub rotation: f32,
 }
 
-/// Adam's moments for every parameter of a set of splats.
+/// Adam's state for every parameter of a set of splats, one optimizer per kind.
 pub struct SplatTuner {
     /// The step sizes at a rate factor of 1.
     pub rates: TuneRates,
-    first: Vec<f32>,
-    second: Vec<f32>,
-    steps: i32,
+    positions: Adam,
+    colors: Adam,
+    opacities: Adam,
+    scales: Adam,
+    rotations: Adam,
 }
 
 impl SplatTuner {
     /// A tuner for `count` splats.
     pub fn new(count: usize, rates: TuneRates) -> SplatTuner {
+        let adam = |per_splat: usize| {
+            let mut adam = Adam::new(count * per_splat, 0.0);
+            adam.eps = EPSILON;
+            adam
+        };
         SplatTuner {
             rates,
-            first: vec![0.0; count * PER_SPLAT],
-            second: vec![0.0; count * PER_SPLAT],
-            steps: 0,
+            positions: adam(3),
+            colors: adam(3),
+            opacities: adam(1),
+            scales: adam(3),
+            rotations: adam(4),
         }
     }
 
@@ -53,80 +64,118 @@ impl SplatTuner {
     /// [`splat_loss_gradients`](super::splat_loss_gradients) gives them), every rate times `factor`.
     pub fn step(&mut self, splats: &mut Splats, gradients: &SplatGradients, factor: f32) -> Result<()> {
         let n = splats.len();
-        if self.first.len() != n * PER_SPLAT || gradients.positions.len() != n {
+        if self.opacities.moments().0.len() != n || gradients.positions.len() != n {
             return Err(Error::Invalid(format!(
                 "the tuner holds {} splats, the scene {n}, the gradients {}",
-                self.first.len() / PER_SPLAT,
+                self.opacities.moments().0.len(),
                 gradients.positions.len()
             )));
         }
-        self.steps += 1;
-        let (beta1, beta2, epsilon) = (0.9f32, 0.999f32, 1e-15f32);
-        let correct1 = 1.0 - beta1.powi(self.steps);
-        let correct2 = 1.0 - beta2.powi(self.steps);
         let r = self.rates;
-        let rates: [f32; PER_SPLAT] = std::array::from_fn(|k| {
-            factor
-                * match k {
-                    0..=2 => r.position,
-                    3..=5 => r.color,
-                    6 => r.opacity,
-                    7..=9 => r.scale,
-                    _ => r.rotation,
-                }
-        });
-        let Splats {
-            positions,
-            colors,
-            opacities,
-            scales,
-            rotations,
-        } = splats;
-        positions
-            .par_iter_mut()
-            .zip(colors.par_iter_mut())
-            .zip(opacities.par_iter_mut())
-            .zip(scales.par_iter_mut())
-            .zip(rotations.par_iter_mut())
-            .zip(self.first.par_chunks_mut(PER_SPLAT))
-            .zip(self.second.par_chunks_mut(PER_SPLAT))
-            .enumerate()
-            .for_each(
-                |(i, ((((((position, color), opacity), scale), rotation), m), v))| {
-                    let o = opacity.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN);
-                    let mut params = [0.0f32; PER_SPLAT];
-                    let mut grads = [0.0f32; PER_SPLAT];
-                    params[0..3].copy_from_slice(position);
-                    grads[0..3].copy_from_slice(&gradients.positions[i]);
-                    params[3..6].copy_from_slice(color);
-                    grads[3..6].copy_from_slice(&gradients.colors[i]);
-                    params[6] = (o / (1.0 - o)).ln();
-                    grads[6] = gradients.opacities[i] * o * (1.0 - o);
-                    for k in 0..3 {
-                        params[7 + k] = scale[k].ln();
-                        grads[7 + k] = gradients.scales[i][k] * scale[k];
-                    }
-                    params[10..14].copy_from_slice(rotation);
-                    grads[10..14].copy_from_slice(&gradients.rotations[i]);
-                    for k in 0..PER_SPLAT {
-                        let g = if grads[k].is_finite() { grads[k] } else { 0.0 };
-                        m[k] = beta1 * m[k] + (1.0 - beta1) * g;
-                        v[k] = beta2 * v[k] + (1.0 - beta2) * g * g;
-                        let step = (m[k] / correct1) / ((v[k] / correct2).sqrt() + epsilon);
-                        params[k] -= rates[k] * step;
-                    }
-                    position.copy_from_slice(&params[0..3]);
-                    *color = std::array::from_fn(|k| params[3 + k].clamp(0.0, 1.0));
-                    *opacity = (1.0 / (1.0 + (-params[6]).exp())).clamp(0.0, 1.0);
-                    *scale = std::array::from_fn(|k| params[7 + k].exp().max(f32::MIN_POSITIVE));
-                    let q = glam::Vec4::from_slice(&params[10..14]);
-                    let length = q.length();
-                    *rotation = match length.is_finite() && length > 0.0 {
-                        true => (q / length).to_array(),
+        let same = |x: [f32; 3]| x;
+        step_kind(
+            &mut self.positions,
+            r.position * factor,
+            &mut splats.positions,
+            &gradients.positions,
+            Raw {
+                raw: same,
+                gradient: |_, g| g,
+                back: same,
+            },
+        )?;
+        step_kind(
+            &mut self.colors,
+            r.color * factor,
+            &mut splats.colors,
+            &gradients.colors,
+            Raw {
+                raw: same,
+                gradient: |_, g| g,
+                back: |c: [f32; 3]| c.map(|x| x.clamp(0.0, 1.0)),
+            },
+        )?;
+        step_kind(
+            &mut self.scales,
+            r.scale * factor,
+            &mut splats.scales,
+            &gradients.scales,
+            Raw {
+                raw: |s: [f32; 3]| s.map(f32::ln),
+                gradient: |s: [f32; 3], g: [f32; 3]| std::array::from_fn(|k| g[k] * s[k]),
+                back: |l: [f32; 3]| l.map(|x| x.exp().max(f32::MIN_POSITIVE)),
+            },
+        )?;
+        step_kind(
+            &mut self.rotations,
+            r.rotation * factor,
+            &mut splats.rotations,
+            &gradients.rotations,
+            Raw {
+                raw: |q: [f32; 4]| q,
+                gradient: |_, g| g,
+                back: |q: [f32; 4]| {
+                    let length = glam::Vec4::from(q).length();
+                    match length.is_finite() && length > 0.0 {
+                        true => q.map(|x| x / length),
                         false => [1.0, 0.0, 0.0, 0.0],
-                    };
+                    }
                 },
-            );
+            },
+        )?;
+        let mut opacities: Vec<[f32; 1]> = splats.opacities.iter().map(|&o| [o]).collect();
+        let opacity_gradients: Vec<[f32; 1]> = gradients.opacities.iter().map(|&g| [g]).collect();
+        let inside = |o: f32| o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN);
+        step_kind(
+            &mut self.opacities,
+            r.opacity * factor,
+            &mut opacities,
+            &opacity_gradients,
+            Raw {
+                raw: |[o]: [f32; 1]| [(inside(o) / (1.0 - inside(o))).ln()],
+                gradient: |[o]: [f32; 1], [g]: [f32; 1]| [g * inside(o) * (1.0 - inside(o))],
+                back: |[l]: [f32; 1]| [(1.0 / (1.0 + (-l).exp())).clamp(0.0, 1.0)],
+            },
+        )?;
+        for (o, [new]) in splats.opacities.iter_mut().zip(opacities) {
+            *o = new;
+        }
         Ok(())
     }
+}
+
+/// How a kind of parameter is optimized: the value Adam moves (`raw`), the gradient with respect to it given
+/// the value and the gradient with respect to the value (`gradient`), and the value it stands for (`back`).
+struct Raw<R, G, B> {
+    raw: R,
+    gradient: G,
+    back: B,
+}
+
+/// One step of `adam` at rate `lr` over `values` (`K` numbers a splat) down `gradients`, as `how` says.
+fn step_kind<const K: usize, R, G, B>(
+    adam: &mut Adam,
+    lr: f32,
+    values: &mut [[f32; K]],
+    gradients: &[[f32; K]],
+    how: Raw<R, G, B>,
+) -> Result<()>
+where
+    R: Fn([f32; K]) -> [f32; K] + Sync,
+    G: Fn([f32; K], [f32; K]) -> [f32; K] + Sync,
+    B: Fn([f32; K]) -> [f32; K] + Sync,
+{
+    let mut raw: Vec<f32> = values.par_iter().flat_map_iter(|&v| (how.raw)(v)).collect();
+    let raw_gradients: Vec<f32> = values
+        .par_iter()
+        .zip(gradients)
+        .flat_map_iter(|(&v, &g)| (how.gradient)(v, g))
+        .collect();
+    adam.lr = lr;
+    adam.step(&mut raw, &raw_gradients)?;
+    values
+        .par_iter_mut()
+        .zip(raw.par_chunks_exact(K))
+        .for_each(|(v, new)| *v = (how.back)(std::array::from_fn(|k| new[k])));
+    Ok(())
 }
