@@ -1,6 +1,6 @@
 //! glTF 2.0 binary files (`.glb`) of meshes ([`write_glb`]): one mesh of indexed triangles with positions
-//! and normals and one material; with a texture [`Atlas`], each triangle has three vertices of its own with
-//! their UVs, and the atlas is a PNG inside the file, the material's base color, unlit
+//! and normals and one material; with a texture [`Atlas`], each patch's triangles (one, or two sharing a
+//! side) have vertices of their own with their UVs, and the atlas is a PNG inside the file, the material's base color, unlit
 //! (`KHR_materials_unlit`: the colors are what a camera saw, lighting included).
 //!
 //! The positions are the scene's, in its units (glTF reads them as metres). glTF's up is +y; a scene whose
@@ -19,7 +19,7 @@ use serde_json::{json, Value};
 
 use crate::cameras::paths::Up;
 use crate::error::{Error, Result};
-use crate::surfaces::atlas::Atlas;
+use crate::surfaces::atlas::{Atlas, Patch};
 use crate::surfaces::mesh::Mesh;
 
 /// The header's magic: `glTF`.
@@ -57,10 +57,21 @@ pub fn glb_bytes(mesh: &Mesh, texture: Option<&Atlas>, up: Up) -> Result<Vec<u8>
         ));
     }
     if let Some(atlas) = texture {
-        let patches = atlas.layout.columns * atlas.layout.rows;
-        if patches < mesh.triangles.len() {
+        let triangles: usize = atlas
+            .patches
+            .iter()
+            .map(|p| 1 + usize::from(p.second.is_some()))
+            .sum();
+        let n = mesh.vertices.len();
+        let in_range = |p: &Patch| {
+            p.first
+                .iter()
+                .chain(p.second.iter().flatten())
+                .all(|&v| (v as usize) < n)
+        };
+        if triangles != mesh.triangles.len() || !atlas.patches.iter().all(in_range) {
             return Err(Error::Invalid(format!(
-                "the texture has {patches} patches for {} triangles",
+                "the texture's patches hold {triangles} triangles, not the mesh's {}",
                 mesh.triangles.len()
             )));
         }
@@ -145,8 +156,8 @@ struct Attributes {
 }
 
 impl Attributes {
-    /// The mesh's own vertices; or, with a texture, each triangle's corners as vertices of their own, with
-    /// the UVs of its patch.
+    /// The mesh's own vertices; or, with a texture, each patch's corners as vertices of their own, with
+    /// their UVs: three for a triangle alone, four for a pair (see [`Patch`]).
     fn new(mesh: &Mesh, texture: Option<&Atlas>) -> Attributes {
         let unit = |k: usize| Vec3::from(mesh.normals[k]).normalize_or(Vec3::Y).to_array();
         match texture {
@@ -157,14 +168,24 @@ impl Attributes {
                 indices: mesh.triangles.iter().flatten().copied().collect(),
             },
             Some(atlas) => {
-                let corners = || mesh.triangles.iter().flatten().map(|&v| v as usize);
+                let mut vertices: Vec<(u32, [f32; 2])> = Vec::with_capacity(2 * mesh.triangles.len());
+                let mut indices = Vec::with_capacity(3 * mesh.triangles.len());
+                for (k, patch) in atlas.patches.iter().enumerate() {
+                    let base = vertices.len() as u32;
+                    let [a, b, c, d] = atlas.layout.uvs(k);
+                    let [x, y, z] = patch.first;
+                    vertices.extend([(x, a), (y, b), (z, c)]);
+                    indices.extend([base, base + 1, base + 2]);
+                    if let Some([w, ..]) = patch.second {
+                        vertices.push((w, d));
+                        indices.extend([base + 3, base + 2, base + 1]);
+                    }
+                }
                 Attributes {
-                    positions: corners().map(|v| mesh.vertices[v]).collect(),
-                    normals: corners().map(unit).collect(),
-                    uvs: (0..mesh.triangles.len())
-                        .flat_map(|t| atlas.layout.uvs(t))
-                        .collect(),
-                    indices: (0..3 * mesh.triangles.len() as u32).collect(),
+                    positions: vertices.iter().map(|&(v, _)| mesh.vertices[v as usize]).collect(),
+                    normals: vertices.iter().map(|&(v, _)| unit(v as usize)).collect(),
+                    uvs: vertices.iter().map(|&(_, uv)| uv).collect(),
+                    indices,
                 }
             }
         }
@@ -245,7 +266,7 @@ fn container(document: &Value, bin: &[u8]) -> Result<Vec<u8>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::surfaces::atlas::{bake_atlas, AtlasLayout};
+    use crate::surfaces::atlas::{bake_atlas, pair_triangles, AtlasLayout};
     use crate::ClosureFn;
     use gltf::image::Source;
     use gltf::mesh::util::ReadIndices;
@@ -351,11 +372,14 @@ mod tests {
     }
 
     #[test]
-    fn a_textured_mesh_has_each_triangle_its_uvs_and_the_atlas_as_png() {
+    fn a_textured_mesh_has_each_patch_its_uvs_and_the_atlas_as_png() {
         let mesh = cube();
-        let layout = AtlasLayout::new(mesh.triangles.len(), 4).unwrap();
+        let patches = pair_triangles(&mesh);
+        let pairs = patches.iter().filter(|p| p.second.is_some()).count();
+        assert!(pairs >= 4, "{patches:?}");
+        let layout = AtlasLayout::new(patches.len(), 4).unwrap();
         let color = ClosureFn::new(3, 3, |p, c| c.copy_from_slice(&[p[0], p[1], p[2] + 0.5]));
-        let atlas = bake_atlas(&mesh, &color, layout).unwrap();
+        let atlas = bake_atlas(&mesh, patches.clone(), &color, layout).unwrap();
         let bytes = glb_bytes(&mesh, Some(&atlas), Up::Z).unwrap();
         check_container(&bytes);
         let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
@@ -364,17 +388,42 @@ mod tests {
         let reader = primitive.reader(|_| Some(blob));
         let positions: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
         let uvs: Vec<[f32; 2]> = reader.read_tex_coords(0).unwrap().into_f32().collect();
-        assert_eq!((positions.len(), uvs.len()), (36, 36));
-        for (t, triangle) in mesh.triangles.iter().enumerate() {
-            for k in 0..3 {
-                assert_eq!(positions[3 * t + k], mesh.vertices[triangle[k] as usize]);
-                assert_eq!(uvs[3 * t + k], layout.uvs(t)[k]);
-            }
-        }
+        let n = 3 * patches.len() + pairs;
+        assert_eq!((positions.len(), uvs.len()), (n, n));
+        // The mesh's triangles, each turned to start at its smallest position, in its order of corners.
+        let turned = |t: [[f32; 3]; 3]| {
+            (0..3)
+                .map(|k| [t[k], t[(k + 1) % 3], t[(k + 2) % 3]])
+                .fold(t, |a, b| {
+                    if b.partial_cmp(&a) == Some(std::cmp::Ordering::Less) {
+                        b
+                    } else {
+                        a
+                    }
+                })
+        };
+        let corners = |t: [u32; 3]| t.map(|v| mesh.vertices[v as usize]);
+        let mut want: Vec<_> = mesh.triangles.iter().map(|&t| turned(corners(t))).collect();
         let Some(ReadIndices::U32(read)) = reader.read_indices() else {
             panic!("u32 indices")
         };
-        assert!(read.eq(0..36));
+        let indices: Vec<u32> = read.collect();
+        let mut got: Vec<_> = indices
+            .chunks_exact(3)
+            .map(|t| turned([0, 1, 2].map(|k| positions[t[k] as usize])))
+            .collect();
+        let order = |a: &[[f32; 3]; 3], b: &[[f32; 3]; 3]| a.partial_cmp(b).unwrap();
+        want.sort_by(order);
+        got.sort_by(order);
+        assert_eq!(got, want);
+        // Every vertex at its patch's corner, whose texel holds the color of its position.
+        for (k, (p, uv)) in positions.iter().zip(&uvs).enumerate() {
+            let (width, height) = atlas.image.dimensions();
+            let (x, y) = (uv[0] * width as f32, uv[1] * height as f32);
+            let texel = atlas.image.get_pixel(x as u32, y as u32).0;
+            let want = [p[0], p[1], p[2] + 0.5].map(|c| (c * 255.0).round() as u8);
+            assert_eq!(texel, want, "vertex {k} at {p:?}, {uv:?}");
+        }
         let material = primitive.material();
         assert!(material.unlit());
         assert!(gltf.extensions_used().eq(["KHR_materials_unlit"]));
