@@ -5,11 +5,14 @@ trimesh must open it with the file's vertices and triangles and, for a textured 
 the file's PNG has.
 
     python3 tests/readers/gltf_check.py FILE.glb [--up z] [--textured] [--color 'np.clip(np.abs(p), 0.02, 0.98)']
+        [--vertex-colors SAME.ply]
 
 --up z: the file was written with `--up z`, so the scene (the mesh turned by its node) must stand with the
 mesh's z along y.
 --color: a numpy expression of the vertices' positions `p` (n×3) giving the colors (n×3 in [0, 1]) that
 trimesh must read from the texture at the vertices' UVs, within 1/255 and a rounding.
+--vertex-colors: the same mesh written as a PLY with vertex colors (`--color` the same function): the texture
+must hold each vertex's color at the vertex's UVs, within 1/255 and a rounding.
 """
 
 import argparse
@@ -42,6 +45,7 @@ def main():
     parser.add_argument("--up", choices=["y", "z"], default="y", help="the scene's up axis")
     parser.add_argument("--textured", action="store_true", help="the file must have a texture")
     parser.add_argument("--color", help="numpy expression of p: the colors the texture holds at the vertices")
+    parser.add_argument("--vertex-colors", help="a PLY of the same mesh with the colors its vertices must have")
     args = parser.parse_args()
 
     validator = Path(__file__).with_name("validate_gltf.mjs")
@@ -79,12 +83,22 @@ def main():
     texture = mesh.visual.material.baseColorTexture
     print(f"trimesh: texture {texture.size[0]}×{texture.size[1]} ({texture.mode}), the file's PNG {size[0]}×{size[1]}")
     assert texture.size == size
+    got = mesh.visual.to_color().vertex_colors[:, :3] / 255.0
+    p = np.asarray(mesh.vertices)
     if args.color:
-        p = np.asarray(mesh.vertices)
         want = eval(args.color, {"np": np, "p": p})  # noqa: S307 (CI's own expression)
-        got = mesh.visual.to_color().vertex_colors[:, :3] / 255.0
         worst = float(np.abs(got - want).max())
         print(f"trimesh: the texture's colors at the {len(p)} vertices within {worst * 255:.2f}/255 of {args.color}")
+        assert worst <= 1.5 / 255, worst
+    if args.vertex_colors:
+        ply = trimesh.load(args.vertex_colors, process=False)
+        # The glTF file's vertices are the PLY's, each repeated for the patches it is a corner of.
+        index = {tuple(v): k for k, v in enumerate(np.asarray(ply.vertices, dtype=np.float32))}
+        of = np.array([index[tuple(v)] for v in p.astype(np.float32)])
+        want = ply.visual.vertex_colors[of, :3] / 255.0
+        worst = float(np.abs(got - want).max())
+        print(f"trimesh: the texture's colors at the {len(p)} vertices within {worst * 255:.2f}/255 of the colors of "
+              f"the {len(ply.vertices)} vertices of {args.vertex_colors}")
         assert worst <= 1.5 / 255, worst
 
 
