@@ -110,10 +110,10 @@ impl AtlasLayout {
     }
 }
 
-/// One patch's triangles, each as three vertices of the mesh in the order of both its corners (counter-clockwise
-/// seen from outside, as the mesh has them) and its texture coordinates: the first at the patch's texel
-/// centres (0, 0), (n − 1, 0), (0, n − 1), the second, if any, sharing the first's last two vertices in
-/// reverse (their common side), at (n − 1, n − 1), (0, n − 1), (n − 1, 0).
+/// One patch's triangles, each as three vertices of the mesh, in the order both of its corners
+/// (counter-clockwise seen from outside, as the mesh has them) and of its texture coordinates: the first at
+/// the patch's texel centres (0, 0), (n − 1, 0), (0, n − 1); the second, if any, sharing the first's last two
+/// vertices in reverse (their common side), at (n − 1, n − 1), (0, n − 1), (n − 1, 0).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Patch {
     /// The first triangle.
@@ -302,18 +302,14 @@ fn bake_row(
     let of = |patch: &Patch| &samples[usize::from(patch.second.is_some())];
     let count = row.iter().map(|p| of(p).sampled.len()).sum();
     let mut columns = vec![Vec::with_capacity(count); color.n_inputs()];
+    let vertex = |v: u32| {
+        (
+            Vec3::from(mesh.vertices[v as usize]),
+            Vec3::from(mesh.normals[v as usize]),
+        )
+    };
     for patch in row {
-        let triangles = [Some(patch.first), patch.second];
-        let corners = triangles.map(|t| {
-            t.map(|c| {
-                c.map(|v| {
-                    (
-                        Vec3::from(mesh.vertices[v as usize]),
-                        Vec3::from(mesh.normals[v as usize]),
-                    )
-                })
-            })
-        });
+        let corners = [Some(patch.first), patch.second].map(|t| t.map(|c| c.map(vertex)));
         for &(_, _, triangle, u, v) in &of(patch).sampled {
             let [(a, na), (b, nb), (c, nc)] = corners[triangle].expect("a sample of the patch's triangle");
             let p = a + u * (b - a) + v * (c - a);

@@ -1,7 +1,7 @@
 //! glTF 2.0 binary files (`.glb`) of meshes ([`write_glb`]): one mesh of indexed triangles with positions
 //! and normals and one material; with a texture [`Atlas`], each patch's triangles (one, or two sharing a
-//! side) have vertices of their own with their UVs, and the atlas is a PNG inside the file, the material's base color, unlit
-//! (`KHR_materials_unlit`: the colors are what a camera saw, lighting included).
+//! side) have vertices of their own with their UVs, and the atlas is a PNG inside the file, the material's
+//! base color, unlit (`KHR_materials_unlit`: the colors are what a camera saw, lighting included).
 //!
 //! The positions are the scene's, in its units (glTF reads them as metres). glTF's up is +y; a scene whose
 //! up is +z (Blender's, such as NeRF-synthetic's lego) is turned by its node, −90° about x, so that it
