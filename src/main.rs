@@ -211,17 +211,23 @@ enum Command {
         /// The level set to extract.
         #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
         level: f32,
-        /// The mesh file, .ply, .obj or .stl.
+        /// The mesh file, .ply, .obj, .stl or .glb (glTF 2.0 binary).
         #[arg(long)]
         out: PathBuf,
-        /// Color the vertices with this function (`fn(p: vec3) -> vec3`, or a radiance field's
-        /// `fn(p: vec3, d: vec3) -> vec3`, seen from outside along the normal); PLY and OBJ only.
+        /// Color the mesh with this function (`fn(p: vec3) -> vec3`, or a radiance field's
+        /// `fn(p: vec3, d: vec3) -> vec3`, seen from outside along the normal): vertex colors in PLY and
+        /// OBJ, a texture in glTF; not STL.
         #[arg(long)]
         color: Option<String>,
+        /// With --color into a .glb: texels along a side of each triangle's square patch of the texture
+        /// (2 to 64; by default the largest up to 8 that keeps the texture within 4096² texels).
+        #[arg(long)]
+        texels: Option<usize>,
         /// Also write a turntable GIF of the mesh.
         #[arg(long)]
         gif: Option<PathBuf>,
-        /// The turntable's axis: the scene's up direction (y, or z for Blender scenes such as lego).
+        /// The scene's up direction (y, or z for Blender scenes such as lego): the turntable's axis, and
+        /// a .glb's node turns z up to glTF's y.
         #[arg(long, default_value = "y", value_parser = ["y", "z"])]
         up: String,
         /// Evaluate the function at every grid point instead of only in the blocks of cells whose interval
@@ -683,6 +689,7 @@ fn run_command(cli: Cli) -> ExitCode {
             level,
             out,
             color,
+            texels,
             gif,
             up,
             no_prune,
@@ -699,6 +706,7 @@ fn run_command(cli: Cli) -> ExitCode {
                     up: nerfjit_runtime::Up::named(&up).unwrap_or(nerfjit_runtime::Up::Y),
                     prune: !no_prune,
                     color: color.as_deref(),
+                    texels,
                     frame: None,
                 };
                 mesh::run(&script, &args)

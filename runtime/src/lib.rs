@@ -14,8 +14,8 @@
 //! - [`field`]: [`BatchFn`], the only interface to compiled kernels (batches of points in
 //!   structure-of-arrays layout), [`BatchVjp`] (a kernel's backward pass), [`ClosureFn`] for analytic
 //!   functions, and the fused sphere tracer a compiled SDF may offer.
-//! - [`surfaces`]: the tiled, parallel sphere tracer, marching cubes, [`Mesh`]es, point-to-mesh
-//!   distances and a rasterizer for previews.
+//! - [`surfaces`]: the tiled, parallel sphere tracer, marching cubes, [`Mesh`]es and their textured glTF
+//!   files, point-to-mesh distances and a rasterizer for previews.
 //! - [`training`]: [`Adam`] and learning-rate [`Schedule`]s, PSNR and SSIM, denormal flushing.
 //! - [`volume`]: sampling along rays, occupancy grids ([`OccupancyGrid`], [`DensityEma`]), the
 //!   [`Compositor`], and its callers: [`render_volume`], hierarchical rendering and the training step

@@ -447,7 +447,7 @@ fn mesh_writes_a_closed_torus() {
     assert!(std::fs::metadata(&gif).unwrap().len() > 1_000);
     let out = nerfjit(&["mesh", "examples/torus.sdf", "--out", "x.off"], None);
     assert!(!out.status.success());
-    assert!(text(&out).1.contains("use a .ply, .obj or .stl file"));
+    assert!(text(&out).1.contains("use a .ply, .obj, .stl or .glb file"));
     let out = nerfjit(
         &["mesh", "examples/torus.sdf", "--bounds", "1,2", "--out", "x.ply"],
         None,
@@ -512,6 +512,85 @@ fn meshes_take_vertex_colors_and_write_stl() {
         stderr.contains("hint: the script defines: sdf, color") && !stderr.contains("prelude"),
         "{stderr}"
     );
+}
+
+/// A textured glTF file of the torus: the `gltf` crate reads it, and every triangle's corners and a texel
+/// inside each triangle (its texture finer than the vertices) hold torus.sdf's color(p) = clamp(abs(p), 0.02, 0.98)
+/// at their points, and `--texels` sizes the texture.
+#[test]
+fn meshes_write_textured_gltf() {
+    let dir = scratch("mesh-glb");
+    let glb = dir.join("torus.glb");
+    let mesh = |extra: &[&str]| {
+        let mut args = vec!["mesh", "examples/torus.sdf", "--res", "32", "--bounds", "1.5"];
+        args.extend(["--out", glb.to_str().unwrap()]);
+        args.extend(extra);
+        nerfjit(&args, None)
+    };
+    let out = mesh(&["--color", "color", "--texels", "5"]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stdout.contains("textured by 'color'") && stdout.contains("patches of 5²"),
+        "{stdout}"
+    );
+    let gltf = gltf::Gltf::open(&glb).unwrap();
+    let blob = gltf.blob.as_deref().unwrap();
+    let primitive = gltf.meshes().next().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(blob));
+    let positions: Vec<glam::Vec3> = reader.read_positions().unwrap().map(glam::Vec3::from).collect();
+    let uvs: Vec<glam::Vec2> = reader
+        .read_tex_coords(0)
+        .unwrap()
+        .into_f32()
+        .map(glam::Vec2::from)
+        .collect();
+    let Some(gltf::mesh::util::ReadIndices::U32(indices)) = reader.read_indices() else {
+        panic!("u32 indices")
+    };
+    let indices: Vec<usize> = indices.map(|i| i as usize).collect();
+    assert!(indices.len() > 3000 && uvs.len() == positions.len());
+    let info = primitive
+        .material()
+        .pbr_metallic_roughness()
+        .base_color_texture()
+        .unwrap();
+    let gltf::image::Source::View { view, .. } = info.texture().source().source() else {
+        panic!("an embedded image")
+    };
+    let png = &blob[view.offset()..view.offset() + view.length()];
+    let texture = image::load_from_memory(png).unwrap().to_rgb8();
+    // Patches of 5² texels.
+    assert!(texture.width().is_multiple_of(5) && texture.height().is_multiple_of(5));
+    let size = glam::Vec2::new(texture.width() as f32, texture.height() as f32);
+    let color_at = |p: glam::Vec3, uv: glam::Vec2| {
+        let texel = (uv * size).floor();
+        let got = texture.get_pixel(texel.x as u32, texel.y as u32).0;
+        let want = p.abs().clamp(glam::Vec3::splat(0.02), glam::Vec3::splat(0.98)) * 255.0;
+        for c in 0..3 {
+            assert!((f32::from(got[c]) - want[c]).abs() <= 1.0, "{p} at {uv}: {got:?}");
+        }
+    };
+    for t in indices.chunks_exact(3) {
+        let (p, uv) = ([0, 1, 2].map(|k| positions[t[k]]), [0, 1, 2].map(|k| uvs[t[k]]));
+        for k in 0..3 {
+            color_at(p[k], uv[k]);
+        }
+        // A texel a quarter of the way (4 texels a side) along two sides from the first corner.
+        let (s, r) = (0.25, 0.25);
+        color_at(
+            p[0] + s * (p[1] - p[0]) + r * (p[2] - p[0]),
+            uv[0] + s * (uv[1] - uv[0]) + r * (uv[2] - uv[0]),
+        );
+    }
+    let out = mesh(&["--texels", "4"]);
+    assert!(
+        text(&out).1.contains("only a .glb file with colors"),
+        "{}",
+        text(&out).1
+    );
+    let out = mesh(&["--color", "color", "--texels", "1"]);
+    assert!(text(&out).1.contains("use 2 to 64"), "{}", text(&out).1);
 }
 
 /// A union of spheres and a box in the text format of fidget and MPR (with a comment and a smooth term).

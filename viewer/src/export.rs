@@ -124,6 +124,7 @@ fn mesh(scene: &Scene, stem: &str) -> Result<File> {
         up: nerfjit_runtime::Up::Y,
         prune: true,
         color: None,
+        texels: None,
         frame: None,
     };
     // The viewer is served by one rank of an MPI job: it meshes alone.

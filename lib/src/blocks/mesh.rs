@@ -1,5 +1,6 @@
-//! `nerfjit mesh`: the marching-cubes mesh of a script's scalar function, as PLY, OBJ or STL, with optional
-//! vertex colors from a color function and an optional turntable GIF of the mesh.
+//! `nerfjit mesh`: the marching-cubes mesh of a script's scalar function, as PLY, OBJ, STL or glTF binary,
+//! with optional colors from a color function (the vertices' in PLY and OBJ, a texture atlas in glTF) and an
+//! optional turntable GIF of the mesh.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -7,6 +8,8 @@ use std::time::Instant;
 use glam::Vec3;
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
+use nerfjit_runtime::surfaces::atlas::{bake_atlas, pair_triangles, Atlas, AtlasLayout, DEFAULT_SIDE};
+use nerfjit_runtime::surfaces::glb::write_glb;
 use nerfjit_runtime::surfaces::marching::{extract_slab, join, Fields, Part, Pruning, Slab};
 use nerfjit_runtime::surfaces::raster::render_mesh;
 use nerfjit_runtime::surfaces::regions::Specialize;
@@ -29,11 +32,15 @@ pub struct MeshArgs<'a> {
     pub bounds: ([f32; 3], [f32; 3]),
     /// The level (0 for an SDF's surface).
     pub level: f32,
-    /// `.ply`, `.obj` or `.stl`.
+    /// `.ply`, `.obj`, `.stl` or `.glb`.
     pub out: &'a Path,
-    /// A function giving the vertices' colors (`fn(p: vec3) -> vec3`, or `fn(p: vec3, d: vec3) -> vec3` seen
-    /// from outside along the normal), written into PLY and OBJ files.
+    /// A color function (`fn(p: vec3) -> vec3`, or `fn(p: vec3, d: vec3) -> vec3` seen from outside along
+    /// the normal): the vertices' colors of PLY and OBJ files, a glTF file's texture.
     pub color: Option<&'a str>,
+    /// Texels along a side of each triangle's patch of a glTF file's texture (see
+    /// [`nerfjit_runtime::surfaces::atlas`]); `None` for the largest patches of at most 8 texels that keep
+    /// the texture within 4096² texels.
+    pub texels: Option<usize>,
     /// A turntable GIF of the mesh, if wanted.
     pub gif: Option<&'a Path>,
     /// The turntable's axis: the scene's up direction.
@@ -87,9 +94,15 @@ pub fn extract_and_write(
     cache: &KernelCache,
 ) -> Result<Option<(Mesh, String)>> {
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
-    if !matches!(ext, "ply" | "obj" | "stl") {
+    if !matches!(ext, "ply" | "obj" | "stl" | "glb") {
         return Err(Failure::Message(format!(
-            "cannot write '{}': use a .ply, .obj or .stl file",
+            "cannot write '{}': use a .ply, .obj, .stl or .glb file",
+            args.out.display()
+        )));
+    }
+    if args.texels.is_some() && (ext != "glb" || args.color.is_none()) {
+        return Err(Failure::Message(format!(
+            "cannot texture '{}': only a .glb file with colors (--color) has a texture to size",
             args.out.display()
         )));
     }
@@ -126,8 +139,21 @@ pub fn extract_and_write(
         return Ok(None);
     };
     let extract_s = t.elapsed().as_secs_f64();
-    if let Some(color) = args.color {
-        mesh.colors = vertex_colors(&compiler, color, &mesh)?;
+    let mut texture = None;
+    if ext == "glb" {
+        // glTF's front faces are counter-clockwise seen from outside.
+        mesh.face_outwards();
+    }
+    match args.color {
+        Some(color) if ext == "glb" && !mesh.triangles.is_empty() => {
+            let t = Instant::now();
+            texture = Some((
+                texture_atlas(&compiler, color, &mesh, args.texels)?,
+                t.elapsed().as_secs_f64(),
+            ));
+        }
+        Some(color) => mesh.colors = vertex_colors(&compiler, color, &mesh)?,
+        None => {}
     }
     if let Some(frame) = &args.frame {
         // A similarity: the normals keep their directions.
@@ -138,6 +164,7 @@ pub fn extract_and_write(
     match ext {
         "ply" => mesh.write_ply(args.out)?,
         "obj" => mesh.write_obj(args.out)?,
+        "glb" => write_glb(&mesh, texture.as_ref().map(|(atlas, _)| atlas), args.up, args.out)?,
         _ => mesh.write_stl(args.out)?,
     }
     if let Some(gif) = args.gif {
@@ -166,7 +193,19 @@ pub fn extract_and_write(
         args.resolution,
         pruning_summary(pruning.as_ref(), args.prune),
         mesh.vertices.len(),
-        args.color.map(|c| format!(" colored by '{c}'")).unwrap_or_default(),
+        match (&texture, args.color) {
+            (Some((atlas, seconds)), Some(c)) => format!(
+                " textured by '{c}' in {seconds:.3} s ({}×{} texels: {} patches of {}², {:.1}% of the triangles in pairs)",
+                atlas.layout.width(),
+                atlas.layout.height(),
+                atlas.patches.len(),
+                atlas.layout.patch,
+                200.0 * atlas.patches.iter().filter(|p| p.second.is_some()).count() as f64
+                    / mesh.triangles.len() as f64
+            ),
+            (None, Some(c)) => format!(" colored by '{c}'"),
+            _ => String::new(),
+        },
         mesh.triangles.len(),
         if mesh.is_closed() { "closed" } else { "open (the surface leaves the grid or is not closed)" },
         args.out.display()
@@ -295,10 +334,9 @@ pub fn level_set(
     Ok(join(vec![slab])?)
 }
 
-/// The colors of the mesh's vertices from `function`, clamped to [0, 1] (NaN as 0): `fn(p: vec3) -> vec3`, or
-/// `fn(p: vec3, d: vec3) -> vec3` (a radiance field's color) seen along the inward normal, as a camera
-/// outside the surface sees it.
-fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec<[f32; 3]>> {
+/// The kernel of a color function: `fn(p: vec3) -> vec3`, or `fn(p: vec3, d: vec3) -> vec3` (a radiance
+/// field's color).
+fn color_function(compiler: &Compiler, function: &str) -> Result<JitFn> {
     let vec3 = Type::Vec(3);
     let forms = [vec![vec3.clone()], vec![vec3.clone(), vec3.clone()]];
     check_signature(compiler.program, function, &[&forms[0], &forms[1]], &vec3)?;
@@ -307,7 +345,35 @@ fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec
         .signature(function)
         .map(|sig| sig.inputs.iter().map(|(_, t)| t.clone()).collect())
         .unwrap_or_default();
-    let f = compiler.function(function, &inputs, &vec3, Kind::Value)?;
+    Ok(compiler.function(function, &inputs, &vec3, Kind::Value)?)
+}
+
+/// The texture of `mesh` (its triangles facing outwards) from the color `function` (see [`color_function`];
+/// a radiance field seen along the inward normal): neighbouring triangles paired, each pair or triangle
+/// alone a patch of `texels`² texels, or by default the largest patches of at most 8 texels that keep it
+/// within 4096² texels.
+fn texture_atlas(compiler: &Compiler, function: &str, mesh: &Mesh, texels: Option<usize>) -> Result<Atlas> {
+    let f = color_function(compiler, function)?;
+    let patches = pair_triangles(mesh);
+    let layout = match texels {
+        Some(texels) => AtlasLayout::new(patches.len(), texels)?,
+        None => AtlasLayout::fitting(patches.len(), DEFAULT_SIDE).ok_or_else(|| {
+            Failure::Message(format!(
+                "the texture of {} triangles would be more than {DEFAULT_SIDE} texels a side: lower --res, or \
+                 ask for --texels 2 (up to {} texels a side)",
+                mesh.triangles.len(),
+                nerfjit_runtime::surfaces::atlas::MAX_SIDE
+            ))
+        })?,
+    };
+    Ok(bake_atlas(mesh, patches, &f, layout)?)
+}
+
+/// The colors of the mesh's vertices from `function` (see [`color_function`]), clamped to [0, 1] (NaN as 0);
+/// a radiance field seen along the inward normal, as a camera outside the surface sees it.
+fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec<[f32; 3]>> {
+    let f = color_function(compiler, function)?;
+    let with_direction = f.n_inputs() == 6;
     // The mesh's normals face increasing values: outwards around an SDF's surface (positive volume), inwards
     // around a density's (negative volume).
     let inward = if mesh.volume() >= 0.0 { -1.0 } else { 1.0 };
@@ -315,7 +381,7 @@ fn vertex_colors(compiler: &Compiler, function: &str, mesh: &Mesh) -> Result<Vec
     let mut columns: Vec<Vec<f32>> = (0..3)
         .map(|a| mesh.vertices.iter().map(|p| p[a]).collect())
         .collect();
-    if inputs.len() == 2 {
+    if with_direction {
         columns.extend((0..3).map(|a| mesh.normals.iter().map(|normal| inward * normal[a]).collect()));
     }
     let ins: Vec<&[f32]> = columns.iter().map(Vec::as_slice).collect();
@@ -430,6 +496,7 @@ impl MeshPlan {
             up: self.up,
             prune: true,
             color: None,
+            texels: None,
             frame,
         };
         let Some((mesh, mut summary)) = extract_and_write(program, params, &args, cache)? else {

@@ -268,7 +268,7 @@ impl BlockSchema {
 
 const IMAGES: &[&str] = &["gif", "mp4", "png"];
 const DEPTHS: &[&str] = &["gif", "mp4", "png", "npy"];
-const MESHES: &[&str] = &["ply", "obj", "stl"];
+const MESHES: &[&str] = &["ply", "obj", "stl", "glb"];
 const EVERY: u64 = u32::MAX as u64;
 const SEEDS: u64 = u64::MAX >> 1;
 
@@ -1194,6 +1194,6 @@ mod tests {
             text.contains("the mesh; required, e.g. out: \"mesh.ply\"\n"),
             "{text}"
         );
-        assert!(text.contains("a .ply, .obj or .stl file\n"), "{text}");
+        assert!(text.contains("a .ply, .obj, .stl or .glb file\n"), "{text}");
     }
 }

@@ -167,6 +167,20 @@ impl Mesh {
         sum / 6.0
     }
 
+    /// Turns the triangles and normals to face out of the volume they enclose: reverses the triangles'
+    /// order of corners and the normals when the signed volume is negative, as it is for the level set of
+    /// a density, whose triangles face towards increasing values (inwards).
+    pub fn face_outwards(&mut self) {
+        if self.volume() < 0.0 {
+            for t in &mut self.triangles {
+                t.swap(1, 2);
+            }
+            for n in &mut self.normals {
+                *n = n.map(|x| -x);
+            }
+        }
+    }
+
     /// Writes the mesh as a binary little-endian PLY file: vertices with `x y z nx ny nz`
     /// (float) and faces as `vertex_indices` lists (uchar count, int indices).
     pub fn write_ply(&self, path: &Path) -> Result<()> {
@@ -395,6 +409,19 @@ mod tests {
         open.triangles.pop();
         assert!(!open.is_closed());
         assert!(!Mesh::default().is_closed());
+        // Turned inside out, it is turned back.
+        let mut inside_out = mesh.clone();
+        for t in &mut inside_out.triangles {
+            t.swap(0, 1);
+        }
+        inside_out.normals.iter_mut().for_each(|n| *n = n.map(|x| -x));
+        assert!(inside_out.volume() < 0.0);
+        inside_out.face_outwards();
+        assert!((inside_out.volume() - 1.0).abs() < 1e-12 && inside_out.is_closed());
+        assert_eq!(inside_out.normals, mesh.normals);
+        let mut same = mesh.clone();
+        same.face_outwards();
+        assert_eq!(same, mesh);
         assert_eq!(Mesh::default().bounds(), None);
     }
 
