@@ -11,7 +11,7 @@
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
 
-use super::raster::{alpha_at, span, Projected, Screen, Viewer, MAX_ALPHA, TILE};
+use super::raster::{alpha_at, per_tile, span, Projected, Screen, Viewer, MAX_ALPHA, TILE};
 use super::Splats;
 use crate::cameras::camera::Camera;
 use crate::error::{Error, Result};
@@ -85,21 +85,15 @@ pub fn splat_loss_gradients(
 
     // Each splat-tile pair's gradient, tile by tile in parallel, then summed per splat.
     let mut per_entry = vec![[0.0f32; 9]; screen.entries.len()];
-    let mut rest: &mut [ScreenGradient] = &mut per_entry;
-    let mut lists = Vec::with_capacity(screen.starts.len() - 1);
-    for tile in 0..screen.starts.len() - 1 {
-        let (list, tail) = rest.split_at_mut(screen.starts[tile + 1] - screen.starts[tile]);
-        lists.push((tile, list));
-        rest = tail;
-    }
     let pixels = Pixels {
         transmittance: frame.opacity.iter().map(|o| 1.0 - o).collect(),
         taken,
         d_color,
         background,
     };
-    lists
+    per_tile(&mut per_entry, &screen.starts)
         .into_par_iter()
+        .enumerate()
         .for_each(|(tile, out)| tile_gradients(&screen, tile, &pixels, out));
     let mut per_projected = vec![[0.0f32; 9]; screen.projected.len()];
     for (entry, g) in screen.entries.iter().zip(&per_entry) {

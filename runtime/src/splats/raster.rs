@@ -307,15 +307,22 @@ fn bin(projected: &[Projected], tiles: usize, tiles_x: usize) -> (Vec<usize>, Ve
         })
     });
     let mut entries: Vec<u64> = entries.into_iter().map(AtomicU64::into_inner).collect();
-    let mut rest: &mut [u64] = &mut entries;
-    let mut lists = Vec::with_capacity(tiles);
-    for t in 0..tiles {
-        let (list, tail) = rest.split_at_mut(starts[t + 1] - starts[t]);
-        lists.push(list);
+    per_tile(&mut entries, &starts)
+        .into_par_iter()
+        .for_each(|list| list.sort_unstable());
+    (starts, entries)
+}
+
+/// `values` cut into each tile's part, tile `t`'s being `values[starts[t]..starts[t + 1]]`.
+pub(super) fn per_tile<'a, T>(values: &'a mut [T], starts: &[usize]) -> Vec<&'a mut [T]> {
+    let mut rest = values;
+    let mut parts = Vec::with_capacity(starts.len().saturating_sub(1));
+    for bounds in starts.windows(2) {
+        let (part, tail) = rest.split_at_mut(bounds[1] - bounds[0]);
+        parts.push(part);
         rest = tail;
     }
-    lists.into_par_iter().for_each(|list| list.sort_unstable());
-    (starts, entries)
+    parts
 }
 
 /// e^x for x in [−30, 0], to a relative error under 2e-4 (2^(x log2 e): the integer part in the exponent's
