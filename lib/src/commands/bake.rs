@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use nerfjit_dsl::Program;
 use nerfjit_runtime::splats::{
-    render_splats, splat_loss_gradients, write_splat_ply, SplatTuner, Splats, TuneRates,
+    splat_loss_gradients, write_splat_ply, SplatScene, SplatTuner, Splats, TuneRates,
 };
 use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 
@@ -291,8 +291,9 @@ pub fn eval(
     })?;
     let set = ScoredSet::read(&source, &program, (args.size, bake.background), cameras, format)?;
     let start = Instant::now();
+    let scene = SplatScene::new(&bake.splats);
     let draw = |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
-        Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
+        Ok(scene.render(camera, w, h, bake.background)?.0)
     };
     let Some(scores) = score_on_ranks(&set.views, &draw)? else {
         return Ok(String::new());

@@ -8,7 +8,7 @@ use std::time::Instant;
 use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
-use nerfjit_runtime::splats::render_splats;
+use nerfjit_runtime::splats::SplatScene;
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::volume::render::VolumeFrame;
 use nerfjit_runtime::{
@@ -422,12 +422,17 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
         ..*args
     };
     let (draw, how): (Box<ViewRenderer>, String) = match &bake {
-        Some(bake) => (
-            Box::new(|camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
-                Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
-            }),
-            format!("{} splats", bake.splats.len()),
-        ),
+        Some(bake) => {
+            let scene = SplatScene::new(&bake.splats);
+            (
+                Box::new(
+                    move |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
+                        Ok(scene.render(camera, w, h, bake.background)?.0)
+                    },
+                ),
+                format!("{} splats", bake.splats.len()),
+            )
+        }
         None => {
             let view = FieldViews::new(program, params, &field_args)?;
             let r = &view.rendering;

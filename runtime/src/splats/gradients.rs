@@ -84,20 +84,20 @@ pub fn splat_loss_gradients(
     loss /= (3 * target.len()) as f64;
 
     // Each splat-tile pair's gradient, tile by tile in parallel, then summed per splat.
-    let mut per_entry = vec![[0.0f32; 9]; screen.entries.len()];
+    let mut per_entry = vec![[0.0f32; 9]; screen.buffers.entries.len()];
     let pixels = Pixels {
         transmittance: frame.opacity.iter().map(|o| 1.0 - o).collect(),
         taken,
         d_color,
         background,
     };
-    per_tile(&mut per_entry, &screen.starts)
+    per_tile(&mut per_entry, &screen.buffers.starts)
         .into_par_iter()
         .enumerate()
         .for_each(|(tile, out)| tile_gradients(&screen, tile, &pixels, out));
-    let mut per_projected = vec![[0.0f32; 9]; screen.projected.len()];
-    for (entry, g) in screen.entries.iter().zip(&per_entry) {
-        let sum = &mut per_projected[*entry as u32 as usize];
+    let mut per_projected = vec![[0.0f32; 9]; screen.buffers.projected.len()];
+    for (entry, g) in screen.buffers.entries.iter().zip(&per_entry) {
+        let sum = &mut per_projected[*entry as usize];
         for (s, x) in sum.iter_mut().zip(g) {
             *s += x;
         }
@@ -105,6 +105,7 @@ pub fn splat_loss_gradients(
 
     let mut gradients = SplatGradients::zeros(splats.len());
     let chained: Vec<(usize, SplatGradient)> = screen
+        .buffers
         .projected
         .par_iter()
         .zip(&per_projected)
@@ -149,7 +150,7 @@ fn tile_gradients(screen: &Screen, tile: usize, pixels: &Pixels, out: &mut [Scre
         }
     }
     for (place, &entry) in list.iter().enumerate().rev() {
-        let p: &Projected = &screen.projected[entry as u32 as usize];
+        let p: &Projected = &screen.buffers.projected[entry as usize];
         let mut g = [0.0f32; 9];
         for y in span(p.row, p.radius, area.y0, area.y1) {
             let dy = y as f32 + 0.5 - p.row;

@@ -1,13 +1,15 @@
 //! The CPU splat renderer: each splat is projected to a 2D Gaussian on the screen (the ellipsoid's
 //! covariance through the projection's Jacobian, widened by a 0.3-pixel low-pass as 3D Gaussian splatting
-//! does), binned into the 16×16 tiles they touch and sorted by distance tile by tile, and the tiles are
-//! drawn in parallel, each pixel compositing its splats front to back (alpha = opacity · the Gaussian, at
-//! most 0.99, below 1/255 skipped) until its transmittance falls under 1e-4.
+//! does), the splats are sorted by distance (a radix sort) and binned in that order into the 16×16 tiles
+//! they touch, and the tiles are drawn in parallel, each pixel compositing its splats front to back (alpha =
+//! opacity · the Gaussian, at most 0.99, below 1/255 skipped) until its transmittance falls under 1e-4.
+//! A tile's pixels are composited eight at a time (a row's half, in the vector unit's lanes), each splat
+//! over the rows and halves its square covers.
 //!
 //! The frame is a [`VolumeFrame`], as a field's volume render gives it: composited color over the
 //! background, opacity, and the expected distance from the camera Σ wᵢ dᵢ (not normalized).
 
-use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
+use std::sync::Mutex;
 
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
@@ -19,6 +21,9 @@ use crate::volume::render::VolumeFrame;
 
 /// The side of a tile, in pixels.
 pub(super) const TILE: usize = 16;
+
+/// The pixels composited at once: half a tile's row.
+const LANES: usize = 8;
 
 /// Splats nearer than this to the camera's plane are not drawn.
 const NEAR: f32 = 0.01;
@@ -35,6 +40,13 @@ pub(super) const MAX_ALPHA: f32 = 0.99;
 /// A pixel whose transmittance falls below this takes no more splats.
 const SATURATED: f32 = 1e-4;
 
+/// The sort key of a splat out of sight (no positive distance's bits are these: they are a NaN's).
+const OUT_OF_SIGHT: u32 = u32::MAX;
+
+/// How many of its splats a tile composites between checks of whether all its pixels are saturated (and
+/// copies out at once).
+const SATURATION_CHECKS: usize = 32;
+
 /// What drawing a frame involved.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SplatFrameStats {
@@ -45,7 +57,7 @@ pub struct SplatFrameStats {
 }
 
 /// A splat as the screen sees it.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Projected {
     /// Which splat it is.
     pub index: u32,
@@ -63,11 +75,10 @@ pub(super) struct Projected {
     /// The Gaussian's exponent below which its alpha is under [`MIN_ALPHA`]: ln(MIN_ALPHA / opacity).
     pub cutoff: f32,
     pub color: [f32; 3],
-    /// The tiles it touches: columns `tiles[0]..tiles[2]`, rows `tiles[1]..tiles[3]`.
-    tiles: [u32; 4],
 }
 
-/// Draws `splats` as `camera` sees them in a `width`×`height` frame over `background`.
+/// Draws `splats` as `camera` sees them in a `width`×`height` frame over `background` (a [`SplatScene`]
+/// made for this one frame; to draw many, make one and keep it).
 pub fn render_splats(
     splats: &Splats,
     camera: &Camera,
@@ -75,25 +86,165 @@ pub fn render_splats(
     height: u32,
     background: [f32; 3],
 ) -> Result<(VolumeFrame, SplatFrameStats)> {
-    let screen = Screen::of(splats, camera, width, height)?;
-    let (frame, _) = screen.draw(background);
-    let stats = SplatFrameStats {
-        visible: screen.projected.len(),
-        entries: screen.entries.len(),
-    };
-    Ok((frame, stats))
+    SplatScene::new(splats).render(camera, width, height, background)
+}
+
+/// Splats made ready to draw: each splat's 3D covariance and the exponent at which its alpha falls under
+/// the smallest drawn are worked out once, so that a frame only projects, sorts and composites.
+pub struct SplatScene<'a> {
+    splats: &'a Splats,
+    /// Each splat's covariance in the world, (xx, xy, xz, yy, yz, zz): R S² Rᵀ.
+    covariances: Vec<[f32; 6]>,
+    /// Each splat's `Projected::cutoff`.
+    cutoffs: Vec<f32>,
+    /// The last frame's buffers, kept for the next: the memory of a fresh one costs page faults.
+    buffers: Mutex<Buffers>,
+}
+
+/// The memory a frame's projection and binning use.
+#[derive(Default)]
+pub(super) struct Buffers {
+    /// Every splat's projection, in the order of the splats.
+    all: Vec<Projected>,
+    /// Every splat's sort key: its distance's bits (or [`OUT_OF_SIGHT`]) and its index.
+    keys: Vec<(u32, u32)>,
+    /// The splats on the screen, nearest first.
+    pub projected: Vec<Projected>,
+    /// Tile `t`'s splats are `entries[starts[t]..starts[t + 1]]`, nearest first: their places in
+    /// `projected`.
+    pub starts: Vec<usize>,
+    pub entries: Vec<u32>,
+}
+
+impl<'a> SplatScene<'a> {
+    /// `splats` made ready to draw.
+    pub fn new(splats: &'a Splats) -> SplatScene<'a> {
+        let covariances = (0..splats.len())
+            .into_par_iter()
+            .map(|i| {
+                let [sx, sy, sz] = splats.scales[i];
+                let m = if sx == sy && sy == sz {
+                    Mat3::from_diagonal(Vec3::splat(sx))
+                } else {
+                    let [w, x, y, z] = splats.rotations[i];
+                    let axes = Mat3::from_quat(Quat::from_xyzw(x, y, z, w).normalize());
+                    axes * Mat3::from_diagonal(Vec3::new(sx, sy, sz))
+                };
+                let (r0, r1, r2) = (m.row(0), m.row(1), m.row(2));
+                [
+                    r0.dot(r0),
+                    r0.dot(r1),
+                    r0.dot(r2),
+                    r1.dot(r1),
+                    r1.dot(r2),
+                    r2.dot(r2),
+                ]
+            })
+            .collect();
+        let cutoffs = splats
+            .opacities
+            .par_iter()
+            .map(|&o| (MIN_ALPHA / o).ln())
+            .collect();
+        SplatScene {
+            splats,
+            covariances,
+            cutoffs,
+            buffers: Mutex::default(),
+        }
+    }
+
+    /// The frame `camera` sees, `width`×`height`, over `background`.
+    pub fn render(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        background: [f32; 3],
+    ) -> Result<(VolumeFrame, SplatFrameStats)> {
+        // Another thread drawing this scene at the same time takes buffers of its own.
+        let mut kept = self.buffers.try_lock();
+        let buffers = kept.as_deref_mut().map(std::mem::take).unwrap_or_default();
+        let screen = self.screen(camera, width, height, buffers)?;
+        let (frame, _) = screen.draw(background);
+        let stats = SplatFrameStats {
+            visible: screen.buffers.projected.len(),
+            entries: screen.buffers.entries.len(),
+        };
+        if let Ok(kept) = kept.as_deref_mut() {
+            *kept = screen.buffers;
+        }
+        Ok((frame, stats))
+    }
+
+    /// The splats `viewer` sees, nearest first: each projected into its place (a splat out of sight with
+    /// the largest key), the keys (the distance's bits, positive distances sorting as their bits do) sorted
+    /// by a radix sort, and the projections gathered in that order.
+    fn project(&self, viewer: &Viewer, buffers: &mut Buffers) {
+        const CHUNK: usize = 4096;
+        let n = self.splats.len();
+        let Buffers {
+            all, keys, projected, ..
+        } = buffers;
+        all.resize(n, Projected::default());
+        keys.resize(n, (OUT_OF_SIGHT, 0));
+        all.par_chunks_mut(CHUNK)
+            .zip(keys.par_chunks_mut(CHUNK))
+            .enumerate()
+            .for_each(|(chunk, (all, keys))| {
+                for (k, (slot, key)) in all.iter_mut().zip(keys).enumerate() {
+                    let i = chunk * CHUNK + k;
+                    *key = match viewer.project(self, i) {
+                        Some(p) => {
+                            *slot = p;
+                            (p.distance.to_bits(), i as u32)
+                        }
+                        None => (OUT_OF_SIGHT, i as u32),
+                    };
+                }
+            });
+        radsort::sort_by_key(keys, |&(key, _)| key);
+        let visible = keys.partition_point(|&(key, _)| key != OUT_OF_SIGHT);
+        projected.resize(visible, Projected::default());
+        projected
+            .par_chunks_mut(CHUNK)
+            .zip(keys[..visible].par_chunks(CHUNK))
+            .for_each(|(projected, keys)| {
+                for (p, &(_, i)) in projected.iter_mut().zip(keys) {
+                    *p = all[i as usize];
+                }
+            });
+    }
+
+    /// The splats projected and binned as `camera` sees them in a `width`×`height` frame, in `buffers`.
+    pub(super) fn screen(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        mut buffers: Buffers,
+    ) -> Result<Screen> {
+        check_size(width, height)?;
+        let (tiles_x, tiles_y) = ((width as usize).div_ceil(TILE), (height as usize).div_ceil(TILE));
+        let viewer = Viewer::of(camera, width, height);
+        self.project(&viewer, &mut buffers);
+        bin(&mut buffers, (tiles_x, tiles_y));
+        Ok(Screen {
+            viewer,
+            buffers,
+            width: width as usize,
+            height: height as usize,
+            tiles_x,
+        })
+    }
 }
 
 /// The splats of a frame projected and binned into its tiles: what drawing it and its gradients share.
 pub(super) struct Screen {
     /// The camera as the projection sees it.
     pub viewer: Viewer,
-    /// The splats on the screen.
-    pub projected: Vec<Projected>,
-    /// Tile `t`'s splats are `entries[starts[t]..starts[t + 1]]`, nearest first: each the distance's bits
-    /// over the index in `projected` (its low 32 bits).
-    pub starts: Vec<usize>,
-    pub entries: Vec<u64>,
+    /// The splats on the screen and the tiles' lists of them.
+    pub buffers: Buffers,
     pub width: usize,
     pub height: usize,
     pub tiles_x: usize,
@@ -110,27 +261,11 @@ pub(super) struct Area {
 impl Screen {
     /// Projects and bins `splats` as `camera` sees them in a `width`×`height` frame.
     pub fn of(splats: &Splats, camera: &Camera, width: u32, height: u32) -> Result<Screen> {
-        check_size(width, height)?;
-        let (tiles_x, tiles_y) = ((width as usize).div_ceil(TILE), (height as usize).div_ceil(TILE));
-        let viewer = Viewer::of(camera, width, height, (tiles_x as u32, tiles_y as u32));
-        let projected: Vec<Projected> = (0..splats.len())
-            .into_par_iter()
-            .filter_map(|i| viewer.project(splats, i))
-            .collect();
-        let (starts, entries) = bin(&projected, tiles_x * tiles_y, tiles_x);
-        Ok(Screen {
-            viewer,
-            projected,
-            starts,
-            entries,
-            width: width as usize,
-            height: height as usize,
-            tiles_x,
-        })
+        SplatScene::new(splats).screen(camera, width, height, Buffers::default())
     }
 
     /// Tile `tile`'s splats (nearest first) and pixels.
-    pub fn tile(&self, tile: usize) -> (&[u64], Area) {
+    pub fn tile(&self, tile: usize) -> (&[u32], Area) {
         let (row, col) = (tile / self.tiles_x, tile % self.tiles_x);
         let area = Area {
             x0: col * TILE,
@@ -138,7 +273,8 @@ impl Screen {
             y0: row * TILE,
             y1: ((row + 1) * TILE).min(self.height),
         };
-        (&self.entries[self.starts[tile]..self.starts[tile + 1]], area)
+        let b = &self.buffers;
+        (&b.entries[b.starts[tile]..b.starts[tile + 1]], area)
     }
 
     /// The frame over `background`, and for each pixel how many of its tile's splats it took (the last
@@ -170,7 +306,7 @@ impl Screen {
                         opacity: &mut *opacity,
                         taken: &mut *taken,
                     };
-                    draw_tile(&self.projected, list, &area, self.width, background, band);
+                    draw_tile(&self.buffers.projected, list, &area, self.width, background, band);
                 }
             });
         (frame, taken)
@@ -188,11 +324,10 @@ pub(super) struct Viewer {
     cy: f32,
     width: f32,
     height: f32,
-    tiles: (u32, u32),
 }
 
 impl Viewer {
-    fn of(camera: &Camera, width: u32, height: u32, tiles: (u32, u32)) -> Viewer {
+    fn of(camera: &Camera, width: u32, height: u32) -> Viewer {
         let k = camera.pixel_intrinsics(width, height);
         Viewer {
             rotation: camera.rotation().transpose(),
@@ -203,64 +338,51 @@ impl Viewer {
             cy: k.cy,
             width: width as f32,
             height: height as f32,
-            tiles,
         }
     }
 
-    /// Splat `i` on the screen; none behind the camera, off the screen or degenerate.
-    fn project(&self, splats: &Splats, i: usize) -> Option<Projected> {
+    /// Splat `i` of `scene` on the screen; none behind the camera, off the screen or degenerate.
+    fn project(&self, scene: &SplatScene, i: usize) -> Option<Projected> {
+        let splats = scene.splats;
         let v = self.rotation * (Vec3::from(splats.positions[i]) - self.position);
-        if !v.z.is_finite() || v.z <= NEAR || splats.opacities[i] < MIN_ALPHA {
+        // (Written so that a z that is not a number fails too.)
+        if !(v.z > NEAR && v.z.is_finite()) || splats.opacities[i] < MIN_ALPHA {
             return None;
         }
         let inv_z = 1.0 / v.z;
         let col = self.cx - self.fx * v.x * inv_z;
         let row = self.cy - self.fy * v.y * inv_z;
-        // Off the screen by more than the splat's widest extent (a bound: 3.4 of its largest deviations, at
-        // the steepest the projection gets there; its alpha is under MIN_ALPHA from √(2 ln 255) ≈ 3.33 on)?
-        let [sx, sy, sz] = splats.scales[i];
-        let widest = sx.max(sy).max(sz);
-        let stretch = (1.0 + (v.x * v.x + v.y * v.y) * inv_z * inv_z).sqrt();
-        let bound = 3.4 * (widest * self.fx.max(self.fy) * inv_z * stretch + LOW_PASS.sqrt()) + 1.0;
-        if col + bound < 0.0 || row + bound < 0.0 || col - bound > self.width || row - bound > self.height {
-            return None;
-        }
-        // The view-space covariance is M Mᵀ; the screen's is J M (J M)ᵀ, J the projection's Jacobian:
-        // col = cx − fx·x/z, row = cy − fy·y/z. A round splat's M Mᵀ is s² I whatever its rotation.
-        let j_col = Vec3::new(-self.fx * inv_z, 0.0, self.fx * v.x * inv_z * inv_z);
-        let j_row = Vec3::new(0.0, -self.fy * inv_z, self.fy * v.y * inv_z * inv_z);
-        let (t_col, t_row) = if sx == sy && sy == sz {
-            (j_col * sx, j_row * sx)
-        } else {
-            let [w, x, y, z] = splats.rotations[i];
-            let axes = Mat3::from_quat(Quat::from_xyzw(x, y, z, w).normalize());
-            let m = self.rotation * axes * Mat3::from_diagonal(Vec3::new(sx, sy, sz));
-            (m.transpose() * j_col, m.transpose() * j_row)
+        // The screen's covariance is J R Σ Rᵀ Jᵀ, J the projection's Jacobian (col = cx − fx·x/z,
+        // row = cy − fy·y/z) and R the view's rotation: with u = Rᵀ j for each row j of J, uᵀ Σ u.
+        let (x_axis, y_axis, z_axis) = (self.rotation.row(0), self.rotation.row(1), self.rotation.row(2));
+        let u_col = x_axis * (-self.fx * inv_z) + z_axis * (self.fx * v.x * inv_z * inv_z);
+        let u_row = y_axis * (-self.fy * inv_z) + z_axis * (self.fy * v.y * inv_z * inv_z);
+        let [xx, xy, xz, yy, yz, zz] = scene.covariances[i];
+        let times = |u: Vec3| {
+            Vec3::new(
+                xx * u.x + xy * u.y + xz * u.z,
+                xy * u.x + yy * u.y + yz * u.z,
+                xz * u.x + yz * u.y + zz * u.z,
+            )
         };
-        let a = t_col.dot(t_col) + LOW_PASS;
-        let b = t_col.dot(t_row);
-        let c = t_row.dot(t_row) + LOW_PASS;
+        let (s_col, s_row) = (times(u_col), times(u_row));
+        let a = u_col.dot(s_col) + LOW_PASS;
+        let b = u_col.dot(s_row);
+        let c = u_row.dot(s_row) + LOW_PASS;
         let det = a * c - b * b;
-        if !det.is_finite() || det <= 0.0 {
+        if !(det > 0.0 && det.is_finite()) {
             return None;
         }
         let mid = 0.5 * (a + c);
         let largest = mid + (mid * mid - det).max(0.0).sqrt();
         // Its alpha reaches MIN_ALPHA within the ellipse where the exponent is the cutoff, whose half-width
         // along its widest axis this is.
-        let cutoff = (MIN_ALPHA / splats.opacities[i]).ln();
+        let cutoff = scene.cutoffs[i];
         let radius = (-2.0 * cutoff * largest).sqrt();
         if col + radius < 0.0 || row + radius < 0.0 || col - radius > self.width || row - radius > self.height
         {
             return None;
         }
-        let tile = |p: f32, n: u32| ((p / TILE as f32).floor().max(0.0) as u32).min(n);
-        let tiles = [
-            tile(col - radius, self.tiles.0),
-            tile(row - radius, self.tiles.1),
-            tile(col + radius, self.tiles.0 - 1) + 1,
-            tile(row + radius, self.tiles.1 - 1) + 1,
-        ];
         Some(Projected {
             index: i as u32,
             col,
@@ -271,46 +393,84 @@ impl Viewer {
             opacity: splats.opacities[i],
             cutoff,
             color: splats.colors[i],
-            tiles,
         })
     }
 }
 
-/// The splats of each tile, nearest first: tile `t`'s are `entries[starts[t]..starts[t + 1]]`, each the
-/// splat's distance (its bits: distances are positive, so their bits sort as they do) over its index.
-fn bin(projected: &[Projected], tiles: usize, tiles_x: usize) -> (Vec<usize>, Vec<u64>) {
-    let counts: Vec<AtomicU32> = (0..tiles).map(|_| AtomicU32::new(0)).collect();
-    let each_tile = |p: &Projected, f: &mut dyn FnMut(usize)| {
-        for y in p.tiles[1]..p.tiles[3] {
-            for x in p.tiles[0]..p.tiles[2] {
-                f(y as usize * tiles_x + x as usize);
-            }
+/// Calls `f` with each tile (its place, row by row, of `tiles` = (columns, rows)) that `p`'s square
+/// touches.
+#[inline(always)]
+fn each_tile(p: &Projected, (tiles_x, tiles_y): (usize, usize), mut f: impl FnMut(usize)) {
+    let tile = |at: f32, n: usize| ((at / TILE as f32).floor().max(0.0) as usize).min(n);
+    let (x0, x1) = (
+        tile(p.col - p.radius, tiles_x),
+        tile(p.col + p.radius, tiles_x - 1) + 1,
+    );
+    let (y0, y1) = (
+        tile(p.row - p.radius, tiles_y),
+        tile(p.row + p.radius, tiles_y - 1) + 1,
+    );
+    for y in y0..y1 {
+        for x in x0..x1 {
+            f(y * tiles_x + x);
         }
-    };
-    projected.par_iter().for_each(|p| {
-        each_tile(p, &mut |t| {
-            counts[t].fetch_add(1, Ordering::Relaxed);
-        })
-    });
-    let mut starts = Vec::with_capacity(tiles + 1);
-    starts.push(0usize);
-    for c in &counts {
-        starts.push(starts.last().copied().unwrap_or(0) + c.load(Ordering::Relaxed) as usize);
     }
-    let cursors: Vec<AtomicUsize> = starts[..tiles].iter().map(|&s| AtomicUsize::new(s)).collect();
-    let entries: Vec<AtomicU64> = (0..starts[tiles]).map(|_| AtomicU64::new(0)).collect();
-    projected.par_iter().enumerate().for_each(|(i, p)| {
-        let key = (u64::from(p.distance.to_bits()) << 32) | i as u64;
-        each_tile(p, &mut |t| {
-            let at = cursors[t].fetch_add(1, Ordering::Relaxed);
-            entries[at].store(key, Ordering::Relaxed);
+}
+
+/// The splats of each tile, nearest first: tile `t`'s are `entries[starts[t]..starts[t + 1]]`, each its
+/// place in `projected` (nearest first). Each thread takes a share of the splats and fills its own part of
+/// each tile's entries (after the earlier shares' parts), in order.
+fn bin(buffers: &mut Buffers, tiles: (usize, usize)) {
+    let Buffers {
+        projected,
+        starts,
+        entries,
+        ..
+    } = buffers;
+    let count = tiles.0 * tiles.1;
+    let share = projected.len().div_ceil(rayon::current_num_threads()).max(1);
+    let counts: Vec<Vec<usize>> = projected
+        .par_chunks(share)
+        .map(|part| {
+            let mut counts = vec![0usize; count];
+            for p in part {
+                each_tile(p, tiles, |t| counts[t] += 1);
+            }
+            counts
         })
-    });
-    let mut entries: Vec<u64> = entries.into_iter().map(AtomicU64::into_inner).collect();
-    per_tile(&mut entries, &starts)
-        .into_par_iter()
-        .for_each(|list| list.sort_unstable());
-    (starts, entries)
+        .collect();
+    // The entries are cut tile by tile, and within a tile share by share.
+    starts.clear();
+    let mut bounds = Vec::with_capacity(count * counts.len() + 1);
+    let mut at = 0usize;
+    for t in 0..count {
+        starts.push(at);
+        for counts in &counts {
+            bounds.push(at);
+            at += counts[t];
+        }
+    }
+    starts.push(at);
+    bounds.push(at);
+    entries.resize(at, 0);
+    let mut parts: Vec<Vec<&mut [u32]>> = counts.iter().map(|_| Vec::with_capacity(count)).collect();
+    for (k, part) in per_tile(entries, &bounds).into_iter().enumerate() {
+        parts[k % counts.len()].push(part);
+    }
+    projected
+        .par_chunks(share)
+        .zip(parts)
+        .enumerate()
+        .for_each(|(k, (splats, mut parts))| {
+            let mut filled = vec![0usize; count];
+            for (i, p) in splats.iter().enumerate() {
+                let place = (k * share + i) as u32;
+                each_tile(p, tiles, |t| {
+                    parts[t][filled[t]] = place;
+                    filled[t] += 1;
+                });
+            }
+        });
 }
 
 /// `values` cut into each tile's part, tile `t`'s being `values[starts[t]..starts[t + 1]]`.
@@ -325,14 +485,24 @@ pub(super) fn per_tile<'a, T>(values: &'a mut [T], starts: &[usize]) -> Vec<&'a 
     parts
 }
 
+/// 2²³ + 2²²: a float whose last bit is worth 1, with room below and above.
+const BIASING: f32 = 12_582_912.0;
+
 /// e^x for x in [−30, 0], to a relative error under 2e-4 (2^(x log2 e): the integer part in the exponent's
 /// bits, the fraction by a cubic).
+#[inline(always)]
 fn fast_exp(x: f32) -> f32 {
-    let t = (x * std::f32::consts::LOG2_E).max(-126.0);
+    let t = x * std::f32::consts::LOG2_E;
+    let t = if t < -126.0 { -126.0 } else { t };
     let whole = t.floor();
     let f = t - whole;
     let fraction = 1.0 + f * (0.695_976_1 + f * (0.224_940_7 + f * 0.079_083_2));
-    f32::from_bits(((whole as i32 + 127) as u32) << 23) * fraction
+    // whole + 127 (in 1..=127) as the low bits of a float of 2²³ + 2²² + whole + 127, whose exponent is
+    // 2²³'s: the integer without a conversion (which the vector unit would have to guard against overflow).
+    let biased = (whole + (BIASING + 127.0))
+        .to_bits()
+        .wrapping_sub(BIASING.to_bits());
+    f32::from_bits(biased << 23) * fraction
 }
 
 /// The pixels `lo..hi` (of a row or a column) within `radius` of `center`.
@@ -343,11 +513,17 @@ pub(super) fn span(center: f32, radius: f32, lo: usize, hi: usize) -> std::ops::
     first..last.max(first)
 }
 
+/// The Gaussian's exponent at (`dx`, `dy`) from splat `p`'s center.
+#[inline(always)]
+fn power_at(p: &Projected, dx: f32, dy: f32) -> f32 {
+    -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy
+}
+
 /// The alpha splat `p` gives the pixel (`dx`, `dy`) from its center (at most [`MAX_ALPHA`]) and its
 /// Gaussian there; `None` where its alpha would be under [`MIN_ALPHA`].
 #[inline(always)]
 pub(super) fn alpha_at(p: &Projected, dx: f32, dy: f32) -> Option<(f32, f32)> {
-    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+    let power = power_at(p, dx, dy);
     if power > 0.0 || power < p.cutoff {
         return None;
     }
@@ -363,48 +539,103 @@ struct Band<'a> {
     taken: &'a mut [u32],
 }
 
+/// A tile's pixels as they composite, row by row (`TILE` a row, whatever the tile's width).
+struct TilePixels {
+    transmittance: [f32; TILE * TILE],
+    red: [f32; TILE * TILE],
+    green: [f32; TILE * TILE],
+    blue: [f32; TILE * TILE],
+    distance: [f32; TILE * TILE],
+    /// How many of the tile's splats each took (the last one's place, plus one).
+    taken: [u32; TILE * TILE],
+}
+
+impl TilePixels {
+    /// Composites splat `p`, the tile's `place`th, over the `LANES` pixels from `k` on, which lie at
+    /// columns from `x` on and row `y` of the frame. Every lane takes the same steps (a lane the splat
+    /// does not reach, or that is saturated, takes alpha 0, which changes nothing), so that the loop runs
+    /// in the vector unit.
+    #[inline(always)]
+    fn composite(&mut self, p: &Projected, place: u32, k: usize, x: usize, y: usize) {
+        let dy = y as f32 + 0.5 - p.row;
+        let [cr, cg, cb] = p.color;
+        let transmittance: &mut [f32; LANES] = (&mut self.transmittance[k..k + LANES]).try_into().unwrap();
+        let red: &mut [f32; LANES] = (&mut self.red[k..k + LANES]).try_into().unwrap();
+        let green: &mut [f32; LANES] = (&mut self.green[k..k + LANES]).try_into().unwrap();
+        let blue: &mut [f32; LANES] = (&mut self.blue[k..k + LANES]).try_into().unwrap();
+        let distance: &mut [f32; LANES] = (&mut self.distance[k..k + LANES]).try_into().unwrap();
+        let taken: &mut [u32; LANES] = (&mut self.taken[k..k + LANES]).try_into().unwrap();
+        for lane in 0..LANES {
+            let dx = (x + lane) as f32 + 0.5 - p.col;
+            let power = power_at(p, dx, dy);
+            let t = transmittance[lane];
+            let reached = power <= 0.0 && power >= p.cutoff && t >= SATURATED;
+            let alpha = (p.opacity * fast_exp(power)).min(MAX_ALPHA);
+            let alpha = if reached { alpha } else { 0.0 };
+            let weight = alpha * t;
+            red[lane] += weight * cr;
+            green[lane] += weight * cg;
+            blue[lane] += weight * cb;
+            distance[lane] += weight * p.distance;
+            transmittance[lane] = t * (1.0 - alpha);
+            taken[lane] = if reached { place + 1 } else { taken[lane] };
+        }
+    }
+
+    /// Whether every pixel of the tile is saturated (those outside the frame count as such).
+    fn saturated(&self, area: &Area) -> bool {
+        let width = area.x1 - area.x0;
+        (0..area.y1 - area.y0).all(|y| {
+            self.transmittance[y * TILE..y * TILE + width]
+                .iter()
+                .all(|&t| t < SATURATED)
+        })
+    }
+}
+
 /// Composites the splats of `list` (nearest first) over the pixels of `area`, into the band of rows
 /// (`width` pixels a row) that holds the tile.
 fn draw_tile(
     projected: &[Projected],
-    list: &[u64],
+    list: &[u32],
     area: &Area,
     width: usize,
     background: [f32; 3],
     band: Band,
 ) {
     let (w, h) = (area.x1 - area.x0, area.y1 - area.y0);
-    let mut transmittance = [1.0f32; TILE * TILE];
-    let mut color = [[0.0f32; 3]; TILE * TILE];
-    let mut distance = [0.0f32; TILE * TILE];
-    let mut taken = [0u32; TILE * TILE];
-    let mut live = w * h;
-    for (place, &entry) in list.iter().enumerate() {
-        let p = &projected[entry as u32 as usize];
-        for y in span(p.row, p.radius, area.y0, area.y1) {
-            let dy = y as f32 + 0.5 - p.row;
-            for x in span(p.col, p.radius, area.x0, area.x1) {
-                let k = (y - area.y0) * TILE + (x - area.x0);
-                let t = transmittance[k];
-                if t < SATURATED {
-                    continue;
-                }
-                let Some((alpha, _)) = alpha_at(p, x as f32 + 0.5 - p.col, dy) else {
-                    continue;
-                };
-                let weight = alpha * t;
-                for (sum, c) in color[k].iter_mut().zip(p.color) {
-                    *sum += weight * c;
-                }
-                distance[k] += weight * p.distance;
-                transmittance[k] = t * (1.0 - alpha);
-                taken[k] = place as u32 + 1;
-                if transmittance[k] < SATURATED {
-                    live -= 1;
+    let mut pixels = TilePixels {
+        transmittance: [1.0; TILE * TILE],
+        red: [0.0; TILE * TILE],
+        green: [0.0; TILE * TILE],
+        blue: [0.0; TILE * TILE],
+        distance: [0.0; TILE * TILE],
+        taken: [0; TILE * TILE],
+    };
+    // The splats are copied out a batch at a time before they are drawn: the copies' reads (spread over
+    // the frame's splats) overlap one another instead of each stalling a splat's compositing.
+    let mut batch = [Projected::default(); SATURATION_CHECKS];
+    for (first, entries) in (0..)
+        .step_by(SATURATION_CHECKS)
+        .zip(list.chunks(SATURATION_CHECKS))
+    {
+        for (copy, &entry) in batch.iter_mut().zip(entries) {
+            *copy = projected[entry as usize];
+        }
+        for (place, p) in (first..).zip(&batch[..entries.len()]) {
+            let columns = span(p.col, p.radius, area.x0, area.x1);
+            if columns.is_empty() {
+                continue;
+            }
+            let halves = (columns.start - area.x0) / LANES..(columns.end - 1 - area.x0) / LANES + 1;
+            for y in span(p.row, p.radius, area.y0, area.y1) {
+                for half in halves.clone() {
+                    let k = (y - area.y0) * TILE + half * LANES;
+                    pixels.composite(p, place, k, area.x0 + half * LANES, y);
                 }
             }
         }
-        if live == 0 {
+        if pixels.saturated(area) {
             break;
         }
     }
@@ -412,11 +643,15 @@ fn draw_tile(
         for x in 0..w {
             let k = y * TILE + x;
             let at = y * width + area.x0 + x;
-            let t = transmittance[k];
-            band.rgb[at] = std::array::from_fn(|c| color[k][c] + t * background[c]);
-            band.depth[at] = distance[k];
+            let t = pixels.transmittance[k];
+            band.rgb[at] = [
+                pixels.red[k] + t * background[0],
+                pixels.green[k] + t * background[1],
+                pixels.blue[k] + t * background[2],
+            ];
+            band.depth[at] = pixels.distance[k];
             band.opacity[at] = 1.0 - t;
-            band.taken[at] = taken[k];
+            band.taken[at] = pixels.taken[k];
         }
     }
 }
@@ -511,6 +746,56 @@ mod tests {
             let (frame, stats) = render_splats(&splats, &camera(), 16, 8, [0.25, 0.5, 1.0]).unwrap();
             assert_eq!(stats.visible, 0);
             assert!(frame.rgb.iter().all(|p| *p == [0.25, 0.5, 1.0]));
+        }
+    }
+
+    /// The tiled compositor (splats binned by tile, eight pixels at a time, rows and halves cut to each
+    /// splat's square) draws exactly what compositing every splat over every pixel on its own does, on a
+    /// frame whose sides are not whole tiles.
+    #[test]
+    fn tiles_draw_what_each_pixel_composites_alone() {
+        let mut rng = crate::Rng::new(7);
+        let mut splats = Splats::default();
+        for _ in 0..300 {
+            let mut r = || 2.0 * rng.next_f32() - 1.0;
+            splats.positions.push([1.5 * r(), 1.5 * r(), r()]);
+            splats
+                .colors
+                .push([0.5 + 0.5 * r(), 0.5 + 0.5 * r(), 0.5 + 0.5 * r()]);
+            splats.opacities.push(0.5 + 0.5 * r());
+            splats
+                .scales
+                .push([0.12 + 0.1 * r(), 0.12 + 0.1 * r(), 0.12 + 0.1 * r()]);
+            let q = glam::Vec4::new(r(), r(), r(), r()).normalize();
+            splats.rotations.push(q.to_array());
+        }
+        let (width, height, background) = (53u32, 37u32, [0.2, 0.3, 0.4]);
+        let (frame, stats) = render_splats(&splats, &camera(), width, height, background).unwrap();
+        assert!(stats.entries > stats.visible && stats.visible > 250, "{stats:?}");
+        let screen = Screen::of(&splats, &camera(), width, height).unwrap();
+        for y in 0..height as usize {
+            for x in 0..width as usize {
+                let (mut t, mut color, mut distance) = (1.0f32, [0.0f32; 3], 0.0f32);
+                for p in &screen.buffers.projected {
+                    if t < SATURATED {
+                        break;
+                    }
+                    let Some((alpha, _)) = alpha_at(p, x as f32 + 0.5 - p.col, y as f32 + 0.5 - p.row) else {
+                        continue;
+                    };
+                    let weight = alpha * t;
+                    for (sum, c) in color.iter_mut().zip(p.color) {
+                        *sum += weight * c;
+                    }
+                    distance += weight * p.distance;
+                    t *= 1.0 - alpha;
+                }
+                let at = y * width as usize + x;
+                let expected: [f32; 3] = std::array::from_fn(|c| color[c] + t * background[c]);
+                assert_eq!(frame.rgb[at], expected, "pixel ({x}, {y})");
+                assert_eq!(frame.opacity[at], 1.0 - t);
+                assert_eq!(frame.depth[at], distance);
+            }
         }
     }
 
