@@ -47,6 +47,11 @@ pub const COARSE_SHARE: f64 = 0.5;
 /// smallest alpha everywhere).
 pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 
+/// After the coarse half of fine-tuning, a splat whose weight (the sum over its pixels of its alpha times the
+/// transmittance in front of it) stays under this many pixels (at full size) in every training view is
+/// dropped: it hardly shows, and every splat costs the renderer the same to project, sort and bin.
+pub const MIN_WEIGHT: f32 = 1.0;
+
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
 
@@ -103,8 +108,9 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
 /// Fine-tunes the splats of `bake` for `seconds` against the training views of `source` (a checkpoint,
 /// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
-/// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale); splats left fainter than
-/// [`MIN_OPACITY`] are dropped. Returns what it did, a line a pass.
+/// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
+/// the time takes the views at half size; then the splats that weighed under [`MIN_WEIGHT`] in every view
+/// are dropped, and at the end those left fainter than [`MIN_OPACITY`]. Returns what it did, a line a pass.
 pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> Result<String> {
     let start = Instant::now();
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
@@ -142,6 +148,9 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
     let coarse: Vec<Vec<[f32; 3]>> = views.images.iter().map(halved).collect();
     let coarse_size = (views.width / 2, views.height / 2);
     let mut steps = 0usize;
+    // Each splat's largest weight in a view of the coarse half, in pixels at full size.
+    let mut heaviest = vec![0.0f32; bake.splats.len()];
+    let mut light = None;
     'passes: for pass in 1.. {
         for k in (1..order.len()).rev() {
             order.swap(k, rng.below(k as u64 + 1) as usize);
@@ -156,6 +165,14 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
                 break 'passes;
             }
             let fine = elapsed >= COARSE_SHARE * seconds || coarse_size.0 < 16 || coarse_size.1 < 16;
+            if fine && light.is_none() {
+                // Once every view was seen at half size, the splats that weigh next to nothing in all
+                // of them go; the tuner starts afresh for those left.
+                let seen = steps >= views.len();
+                let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= MIN_WEIGHT).collect();
+                light = Some(bake.splats.retain(&keep));
+                tuner = SplatTuner::new(bake.splats.len(), rates);
+            }
             let (size, target) = match fine {
                 true => ((views.width, views.height), &views.images[v].pixels),
                 false => (coarse_size, &coarse[v]),
@@ -165,17 +182,25 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
             error += loss;
             let factor = 0.1f64.powf(elapsed / seconds) as f32;
             tuner.step(&mut bake.splats, &gradients, factor)?;
+            if !fine {
+                let full = (views.width * views.height) as f32 / (size.0 * size.1) as f32;
+                for (h, &w) in heaviest.iter_mut().zip(&gradients.weights) {
+                    *h = h.max(w * full);
+                }
+            }
             steps += 1;
         }
         text += &pass_line(pass, order.len(), error, start.elapsed().as_secs_f64());
     }
     let dropped = bake.splats.prune(MIN_OPACITY);
     text += &format!(
-        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {dropped} splats fainter than {MIN_OPACITY:.4} dropped\n",
+        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {MIN_WEIGHT} pixel \
+         in every view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
         views.len(),
         views.width,
         views.height,
-        start.elapsed().as_secs_f64()
+        start.elapsed().as_secs_f64(),
+        light.unwrap_or(0),
     );
     Ok(text)
 }

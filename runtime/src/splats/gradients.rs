@@ -30,6 +30,10 @@ pub struct SplatGradients {
     pub scales: Vec<[f32; 3]>,
     /// With respect to the quaternions (w, x, y, z) as stored (they are normalized before use).
     pub rotations: Vec<[f32; 4]>,
+    /// Not a derivative: each splat's weight in the frame, the sum over its pixels of its alpha times the
+    /// transmittance in front of it (in pixels; 0 for a splat the frame does not show). Fine-tuning drops
+    /// splats that weigh next to nothing in every view.
+    pub weights: Vec<f32>,
 }
 
 impl SplatGradients {
@@ -41,6 +45,7 @@ impl SplatGradients {
             opacities: vec![0.0; n],
             scales: vec![[0.0; 3]; n],
             rotations: vec![[0.0; 4]; n],
+            weights: vec![0.0; n],
         }
     }
 }
@@ -85,22 +90,27 @@ pub fn splat_loss_gradients(
 
     // Each splat-tile pair's gradient, tile by tile in parallel, then summed per splat.
     let mut per_entry = vec![[0.0f32; 9]; screen.buffers.entries.len()];
+    let mut entry_weights = vec![0.0f32; screen.buffers.entries.len()];
     let pixels = Pixels {
         transmittance: frame.opacity.iter().map(|o| 1.0 - o).collect(),
         taken,
         d_color,
         background,
     };
-    per_tile(&mut per_entry, &screen.buffers.starts)
+    let starts = &screen.buffers.starts;
+    per_tile(&mut per_entry, starts)
         .into_par_iter()
+        .zip(per_tile(&mut entry_weights, starts))
         .enumerate()
         .for_each(|(tile, out)| tile_gradients(&screen, tile, &pixels, out));
     let mut per_projected = vec![[0.0f32; 9]; screen.buffers.projected.len()];
-    for (entry, g) in screen.buffers.entries.iter().zip(&per_entry) {
+    let mut weights = vec![0.0f32; screen.buffers.projected.len()];
+    for ((entry, g), w) in screen.buffers.entries.iter().zip(&per_entry).zip(&entry_weights) {
         let sum = &mut per_projected[*entry as usize];
         for (s, x) in sum.iter_mut().zip(g) {
             *s += x;
         }
+        weights[*entry as usize] += w;
     }
 
     let mut gradients = SplatGradients::zeros(splats.len());
@@ -111,6 +121,9 @@ pub fn splat_loss_gradients(
         .zip(&per_projected)
         .map(|(p, g)| (p.index as usize, chain(&screen.viewer, splats, p, g)))
         .collect();
+    for (p, w) in screen.buffers.projected.iter().zip(weights) {
+        gradients.weights[p.index as usize] = w;
+    }
     for (i, g) in chained {
         gradients.positions[i] = g.position.into();
         gradients.colors[i] = [g.screen[6], g.screen[7], g.screen[8]];
@@ -132,9 +145,14 @@ struct Pixels {
     background: [f32; 3],
 }
 
-/// The gradient of each of tile `tile`'s splats (`out[place]` for the splat at `place` in its list), its
-/// pixels walked back to front.
-fn tile_gradients(screen: &Screen, tile: usize, pixels: &Pixels, out: &mut [ScreenGradient]) {
+/// The gradient of each of tile `tile`'s splats (`out.0[place]` for the splat at `place` in its list) and
+/// its weight in the tile (`out.1[place]`), its pixels walked back to front.
+fn tile_gradients(
+    screen: &Screen,
+    tile: usize,
+    pixels: &Pixels,
+    (out, weights): (&mut [ScreenGradient], &mut [f32]),
+) {
     let (list, area) = screen.tile(tile);
     let mut transmittance = [0.0f32; TILE * TILE];
     let mut behind = [[0.0f32; 3]; TILE * TILE];
@@ -152,6 +170,7 @@ fn tile_gradients(screen: &Screen, tile: usize, pixels: &Pixels, out: &mut [Scre
     for (place, &entry) in list.iter().enumerate().rev() {
         let p: &Projected = &screen.buffers.projected[entry as usize];
         let mut g = [0.0f32; 9];
+        let mut weight_sum = 0.0f32;
         for y in span(p.row, p.radius, area.y0, area.y1) {
             let dy = y as f32 + 0.5 - p.row;
             for x in span(p.col, p.radius, area.x0, area.x1) {
@@ -165,6 +184,7 @@ fn tile_gradients(screen: &Screen, tile: usize, pixels: &Pixels, out: &mut [Scre
                 };
                 let before = transmittance[k] / (1.0 - alpha);
                 let weight = alpha * before;
+                weight_sum += weight;
                 let mut d_alpha = 0.0;
                 for c in 0..3 {
                     g[6 + c] += weight * d_color[k][c];
@@ -187,6 +207,7 @@ fn tile_gradients(screen: &Screen, tile: usize, pixels: &Pixels, out: &mut [Scre
             }
         }
         out[place] = g;
+        weights[place] = weight_sum;
     }
 }
 
@@ -438,6 +459,30 @@ mod tests {
 
     /// Splats moved, recolored, resized and made fainter find their way back to the picture of where they
     /// were: Adam on these gradients brings the error down a hundredfold.
+    /// The splats' weights share out the frame's opacity: their sum is the sum over pixels of 1 − the
+    /// transmittance left, and a splat out of sight weighs nothing.
+    #[test]
+    fn the_weights_add_up_to_the_frames_opacity() {
+        let mut splats = scene();
+        splats.positions.push([0.0, 0.0, -10.0]);
+        splats.colors.push([1.0; 3]);
+        splats.opacities.push(0.9);
+        splats.scales.push([0.2; 3]);
+        splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
+        let (_, gradients) =
+            splat_loss_gradients(&splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
+        let (frame, _) = render_splats(&splats, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
+        let opacity: f32 = frame.opacity.iter().sum();
+        let weights: f32 = gradients.weights.iter().sum();
+        assert!(opacity > 10.0, "{opacity}");
+        assert!(
+            (weights - opacity).abs() < 1e-4 * opacity,
+            "{weights} vs {opacity}"
+        );
+        assert!(gradients.weights[..4].iter().all(|&w| w > 0.0));
+        assert_eq!(gradients.weights[4], 0.0);
+    }
+
     #[test]
     fn tuning_recovers_a_picture() {
         let truth = scene();

@@ -48,12 +48,17 @@ impl Splats {
     /// Keeps the splats whose opacity reaches `min_opacity`; returns how many went.
     pub fn prune(&mut self, min_opacity: f32) -> usize {
         let keep: Vec<bool> = self.opacities.iter().map(|&o| o >= min_opacity).collect();
+        self.retain(&keep)
+    }
+
+    /// Keeps splat `i` where `keep[i]` (those past the end of `keep` too); returns how many went.
+    pub fn retain(&mut self, keep: &[bool]) -> usize {
         let before = self.len();
-        keep_where(&mut self.positions, &keep);
-        keep_where(&mut self.colors, &keep);
-        keep_where(&mut self.opacities, &keep);
-        keep_where(&mut self.scales, &keep);
-        keep_where(&mut self.rotations, &keep);
+        keep_where(&mut self.positions, keep);
+        keep_where(&mut self.colors, keep);
+        keep_where(&mut self.opacities, keep);
+        keep_where(&mut self.scales, keep);
+        keep_where(&mut self.rotations, keep);
         before - self.len()
     }
 
