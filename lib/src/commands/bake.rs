@@ -4,12 +4,17 @@
 //!
 //! The bake is the field's surface as its training cameras see it, as NeRF-to-splats conversions make it:
 //! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
-//! its expected depth with its color (the background taken out), and the pixels are merged in cells of the
-//! median pixel footprint: one round splat per cell, at the mean of its pixels, of their mean color and
-//! opacity, with a standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some
-//! view sees in front of what it saw there (a pixel whose expected depth fell between surfaces) is dropped
-//! (`seen_through`). The colors are those the field shows from the views that saw each cell, averaged: the
-//! splats look alike from every side.
+//! its expected depth with its color (the background taken out), and the pixels are merged in cells as
+//! wide as their footprints (the width of a pixel at its depth, in levels of detail whose cells double in
+//! side from the median footprint's, so that a capture's far background is merged into splats as coarse as
+//! its pixels): one round splat per cell, at the mean of its pixels, of their mean color and opacity, with a
+//! standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some view sees in front
+//! of what it saw there (a pixel whose expected depth fell between surfaces) is dropped (`seen_through`).
+//! The colors are those the field shows from the views that saw each cell, averaged: the splats look alike
+//! from every side.
+//!
+//! By default the views are those the field trained on: the views its training held out are left for
+//! scoring, as they are in fine-tuning.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -19,14 +24,14 @@ use rayon::prelude::*;
 
 use nerfjit_dsl::Program;
 use nerfjit_runtime::splats::{
-    render_splats, splat_loss_gradients, write_splat_ply, SplatTuner, Splats, TuneRates,
+    render_splats, splat_loss_gradients, write_splat_ply, SplatGradients, SplatTuner, Splats, TuneRates,
 };
 use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 
 use crate::bake_file::{self, Bake};
 use crate::blocks::train::TrainPlan;
 use crate::commands::point_cloud::{view_cameras, PointsArgs, Surfels};
-use crate::commands::render_views::{report, ScoredSet, ViewArgs};
+use crate::commands::render_views::{report, CameraSource, ScoredSet, ViewArgs};
 use crate::failure::{Failure, Result};
 use crate::settings::schema::Kind;
 use crate::training::validation::score_on_ranks;
@@ -54,6 +59,13 @@ pub const SPREAD: f32 = 0.6;
 /// in cells.
 pub const CARVE_CELLS: f32 = 3.0;
 
+/// The coarsest level of detail: cells 2²⁴ times as wide as the finest.
+pub const MAX_LEVEL: u32 = 24;
+
+/// How far beyond the frame's edges a splat's center may lie and still be drawn, as a share of the frame's
+/// width and height on each side (3D Gaussian splatting's 1.3 times the field of view's tangent).
+pub const DRAWN_BEYOND: f32 = 0.15;
+
 /// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
 /// for `tune_seconds` against its training views (see [`tune`]; 0: not at all) and writes them to
 /// `args.out`; returns a summary.
@@ -67,11 +79,11 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
     let start = Instant::now();
     let (program, params) = crate::checkpoint::load_source(args.view.source)?;
     let background = args.view.resolve(&program).background;
-    let cameras = view_cameras(args.view.source, &program, &args.cameras)?;
+    let cameras = bake_cameras(args, &program)?;
     let Some(surfels) = Surfels::render(&args.view, (program, params), &cameras, args.min_opacity)? else {
         return Ok(String::new());
     };
-    let (splats, cell) = splats_of(&surfels, &cameras);
+    let (splats, cells) = splats_of(&surfels, &cameras);
     let mut bake = Bake {
         splats,
         background,
@@ -79,7 +91,7 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
     };
     let size = args.view.side();
     let mut text = format!(
-        "baked {} splats (cells of {cell:.4}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
+        "baked {} splats ({cells}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
         bake.splats.len(),
         surfels.positions.len(),
         cameras.len(),
@@ -98,6 +110,28 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
         bytes as f64 / 1e6
     );
     Ok(text)
+}
+
+/// The cameras a bake sees the field of `args.view.source` (compiled as `program`) from: those `args`
+/// names, else the views of the data its `train` block reads less those the block holds out for scoring
+/// (`val: holdout(every: n)`).
+fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
+    let source = args.view.source;
+    let cameras = view_cameras(source, program, &args.cameras)?;
+    if !matches!(args.cameras, CameraSource::Default) {
+        return Ok(cameras);
+    }
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
+    let Some((every, _)) = TrainPlan::new(block)?.held_out_every() else {
+        return Ok(cameras);
+    };
+    Ok(cameras
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| i % every != 0)
+        .map(|(_, camera)| camera)
+        .collect())
 }
 
 /// Fine-tunes the splats of `bake` for `seconds` against the training views of `source` (a checkpoint,
@@ -161,7 +195,7 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
                 false => (coarse_size, &coarse[v]),
             };
             let (loss, gradients) =
-                splat_loss_gradients(&bake.splats, &views.cameras[v], size, bake.background, target)?;
+                loss_gradients_in_view(&bake.splats, &views.cameras[v], size, bake.background, target)?;
             error += loss;
             let factor = 0.1f64.powf(elapsed / seconds) as f32;
             tuner.step(&mut bake.splats, &gradients, factor)?;
@@ -208,19 +242,38 @@ struct Cell {
     count: u32,
 }
 
-/// One round splat per cell of the median footprint holding surfels, less those some view sees through
-/// ([`seen_through`]); the splats and the cell's side.
-fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, f32) {
+/// The level of detail of a pixel whose footprint is `footprint`: that of the widest cells no wider than
+/// it, cells doubling in side from `finest` ([`MAX_LEVEL`] at most; pixels finer than `finest` at 0).
+fn level_of(footprint: f32, finest: f32) -> u32 {
+    let doublings = (footprint / finest).max(1.0).log2().floor();
+    if doublings.is_finite() {
+        (doublings as u32).min(MAX_LEVEL)
+    } else {
+        MAX_LEVEL
+    }
+}
+
+/// The side of the cells of `level`, the finest being `finest` wide.
+fn cell_side(level: u32, finest: f32) -> f32 {
+    finest * (1u32 << level) as f32
+}
+
+/// One round splat per cell holding surfels, each surfel in the cells of its level of detail ([`level_of`]
+/// its footprint, the finest cells as wide as the median footprint), less those some view sees through
+/// ([`seen_through`]); the splats and a description of the cells.
+fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
     let mut footprints = surfels.footprints.clone();
     let middle = footprints.len() / 2;
-    let cell = footprints
+    let finest = footprints
         .select_nth_unstable_by(middle, f32::total_cmp)
         .1
         .max(1e-6);
-    let mut cells: HashMap<[i32; 3], Cell> = HashMap::new();
+    let mut cells: HashMap<[i32; 4], Cell> = HashMap::new();
     for (i, p) in surfels.positions.iter().enumerate() {
-        let key = p.map(|x| (x / cell).floor() as i32);
-        let c = cells.entry(key).or_default();
+        let level = level_of(surfels.footprints[i], finest);
+        let side = cell_side(level, finest);
+        let [x, y, z] = p.map(|x| (x / side).floor() as i32);
+        let c = cells.entry([level as i32, x, y, z]).or_default();
         for (sum, x) in c.position.iter_mut().zip(p) {
             *sum += f64::from(*x);
         }
@@ -230,29 +283,38 @@ fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, f32) {
         c.opacity += f64::from(surfels.opacities[i]);
         c.count += 1;
     }
-    let mut cells: Vec<([i32; 3], Cell)> = cells.into_iter().collect();
+    let mut cells: Vec<([i32; 4], Cell)> = cells.into_iter().collect();
     cells.sort_unstable_by_key(|(key, _)| *key);
     let centers: Vec<[f32; 3]> = cells
         .iter()
         .map(|(_, c)| c.position.map(|x| (x / f64::from(c.count)) as f32))
         .collect();
-    let margin = CARVE_CELLS * cell;
-    let kept: Vec<bool> = centers
+    let side = |key: &[i32; 4]| cell_side(key[0] as u32, finest);
+    let kept: Vec<bool> = cells
         .par_iter()
-        .map(|&p| !seen_through(glam::Vec3::from(p), surfels, cameras, margin))
+        .zip(&centers)
+        .map(|((key, _), &p)| !seen_through(glam::Vec3::from(p), surfels, cameras, CARVE_CELLS * side(key)))
         .collect();
     let mut splats = Splats::default();
-    for (((_, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
+    let mut per_level = [0usize; MAX_LEVEL as usize + 1];
+    for (((key, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
         let n = f64::from(c.count);
         splats.positions.push(center);
         splats
             .colors
             .push(c.color.map(|x| ((x / n) as f32).clamp(0.0, 1.0)));
         splats.opacities.push(((c.opacity / n) as f32).clamp(0.0, 1.0));
-        splats.scales.push([SPREAD * cell; 3]);
+        splats.scales.push([SPREAD * side(key); 3]);
         splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
+        per_level[key[0] as usize] += 1;
     }
-    (splats, cell)
+    let levels: Vec<String> = per_level
+        .iter()
+        .enumerate()
+        .filter(|(_, &n)| n > 0)
+        .map(|(level, n)| format!("{n} of {:.4}", cell_side(level as u32, finest)))
+        .collect();
+    (splats, format!("cells: {}", levels.join(", ")))
 }
 
 /// Whether some view sees `p` in front of what it saw there by more than `margin`: it proves `p` to be in
@@ -270,6 +332,76 @@ fn seen_through(p: glam::Vec3, surfels: &Surfels, cameras: &[Camera], margin: f3
             seen.is_finite() && (p - camera.position()).length() < seen - margin
         }
     })
+}
+
+/// Which of `splats` `camera` draws in a `width`×`height` frame: those in front of it whose centers lie
+/// within the frame widened by [`DRAWN_BEYOND`] on each side. The renderer linearizes the projection at
+/// each splat's center, which stretches a splat beside the camera (far off to the side, barely in front)
+/// across the whole frame; 3D Gaussian splatting clamps the linearization at 1.3 times the field of view
+/// instead, which keeps such splats off the screen as leaving them out does. A bake of a capture, whose
+/// splats surround every camera, needs it; an object's splats all lie in front of its cameras.
+pub fn in_view(splats: &Splats, camera: &Camera, (width, height): (u32, u32)) -> Vec<usize> {
+    let (w, h) = (width as f32, height as f32);
+    let (cols, rows) = (
+        -DRAWN_BEYOND * w..=(1.0 + DRAWN_BEYOND) * w,
+        -DRAWN_BEYOND * h..=(1.0 + DRAWN_BEYOND) * h,
+    );
+    (0..splats.len())
+        .into_par_iter()
+        .with_min_len(4096)
+        .filter(|&i| {
+            camera
+                .project(glam::Vec3::from(splats.positions[i]), width, height)
+                .is_some_and(|(row, col)| rows.contains(&row) && cols.contains(&col))
+        })
+        .collect()
+}
+
+/// The splats of `splats` at `indices`.
+fn subset(splats: &Splats, indices: &[usize]) -> Splats {
+    Splats {
+        positions: indices.iter().map(|&i| splats.positions[i]).collect(),
+        colors: indices.iter().map(|&i| splats.colors[i]).collect(),
+        opacities: indices.iter().map(|&i| splats.opacities[i]).collect(),
+        scales: indices.iter().map(|&i| splats.scales[i]).collect(),
+        rotations: indices.iter().map(|&i| splats.rotations[i]).collect(),
+    }
+}
+
+/// The `width`×`height` frame `camera` sees of `splats` over `background`, drawn from the splats
+/// [`in_view`].
+pub fn draw(splats: &Splats, camera: &Camera, size: (u32, u32), background: [f32; 3]) -> Result<VolumeFrame> {
+    let shown = subset(splats, &in_view(splats, camera, size));
+    Ok(render_splats(&shown, camera, size.0, size.1, background)?.0)
+}
+
+/// [`splat_loss_gradients`] of the frame [`draw`] draws: the splats not [`in_view`] take no part, and their
+/// gradients are zero.
+fn loss_gradients_in_view(
+    splats: &Splats,
+    camera: &Camera,
+    size: (u32, u32),
+    background: [f32; 3],
+    target: &[[f32; 3]],
+) -> Result<(f64, SplatGradients)> {
+    let indices = in_view(splats, camera, size);
+    let (loss, shown) = splat_loss_gradients(&subset(splats, &indices), camera, size, background, target)?;
+    let n = splats.len();
+    let mut all = SplatGradients {
+        positions: vec![[0.0; 3]; n],
+        colors: vec![[0.0; 3]; n],
+        opacities: vec![0.0; n],
+        scales: vec![[0.0; 3]; n],
+        rotations: vec![[0.0; 4]; n],
+    };
+    for (k, &i) in indices.iter().enumerate() {
+        all.positions[i] = shown.positions[k];
+        all.colors[i] = shown.colors[k];
+        all.opacities[i] = shown.opacities[k];
+        all.scales[i] = shown.scales[k];
+        all.rotations[i] = shown.rotations[k];
+    }
+    Ok((loss, all))
 }
 
 /// `nerfjit eval-views SCENE.bake`: the bake's views drawn from its splats and scored as `eval-views`
@@ -291,9 +423,7 @@ pub fn eval(
     })?;
     let set = ScoredSet::read(&source, &program, (args.size, bake.background), cameras, format)?;
     let start = Instant::now();
-    let draw = |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
-        Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
-    };
+    let draw = |camera: &Camera, size: (u32, u32)| draw(&bake.splats, camera, size, bake.background);
     let Some(scores) = score_on_ranks(&set.views, &draw)? else {
         return Ok(String::new());
     };

@@ -6,7 +6,6 @@ use std::path::Path;
 
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::output::label::{draw_text, text_height, text_width};
-use nerfjit_runtime::splats::render_splats;
 use nerfjit_runtime::{mse, psnr, rgb_image, save_png, ImageF32, Layout, Quantize};
 
 use crate::commands::render_views::ViewArgs;
@@ -101,7 +100,8 @@ pub fn compare(
             let f = match crate::bake_file::is_bake(Path::new(source)) {
                 true => {
                     let bake = crate::bake_file::read(Path::new(source))?;
-                    render_splats(&bake.splats, camera, views.width, views.height, background)?.0
+                    let size = (views.width, views.height);
+                    crate::commands::bake::draw(&bake.splats, camera, size, background)?
                 }
                 false => {
                     let (program, params) = crate::checkpoint::load_source(source)?;

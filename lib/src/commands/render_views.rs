@@ -8,7 +8,6 @@ use std::time::Instant;
 use nerfjit_dsl::config::{Settings, Value};
 use nerfjit_dsl::{Diagnostic, Program};
 use nerfjit_jit::{KernelCache, Precision};
-use nerfjit_runtime::splats::render_splats;
 use nerfjit_runtime::volume::composite::Mode;
 use nerfjit_runtime::volume::render::VolumeFrame;
 use nerfjit_runtime::{
@@ -423,8 +422,8 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     };
     let (draw, how): (Box<ViewRenderer>, String) = match &bake {
         Some(bake) => (
-            Box::new(|camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
-                Ok(render_splats(&bake.splats, camera, w, h, bake.background)?.0)
+            Box::new(|camera: &Camera, size: (u32, u32)| -> Result<VolumeFrame> {
+                crate::commands::bake::draw(&bake.splats, camera, size, bake.background)
             }),
             format!("{} splats", bake.splats.len()),
         ),
