@@ -32,7 +32,7 @@ LAYERS = {
     ],
     "lib": [
         "failure cluster city_model", "console", "interrupt", "observe", "script", "settings",
-        "frame_files diagnostics folder_lock bake_file", "checkpoint", "training", "blocks", "session", "commands", "conformance",
+        "frame_files diagnostics folder_lock bake_file bake_view", "checkpoint", "training", "blocks", "session", "commands", "conformance",
     ],
 }
 

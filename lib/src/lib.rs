@@ -31,6 +31,7 @@
 //! [`session`] and [`commands`] (the work of the other commands). The JIT's kernels reach the runtime as
 //! fields through the `nerfjit-field` crate.
 pub mod bake_file;
+pub mod bake_view;
 pub mod blocks;
 pub mod checkpoint;
 pub mod city_model;

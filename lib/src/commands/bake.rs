@@ -6,8 +6,8 @@
 //! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
 //! its expected depth with its color (the background taken out), and the pixels are merged in cells as
 //! wide as their footprints (the width of a pixel at its depth, in levels of detail whose cells double in
-//! side from the median footprint's, so that a capture's far background is merged into splats as coarse as
-//! its pixels): one round splat per cell, at the mean of its pixels, of their mean color and opacity, with a
+//! side from the median footprint's either way, so that a capture's far background is merged into splats
+//! as coarse as its pixels and its nearby object into splats as fine as its own): one round splat per cell, at the mean of its pixels, of their mean color and opacity, with a
 //! standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some view sees in front
 //! of what it saw there (a pixel whose expected depth fell between surfaces) is dropped (`seen_through`).
 //! The colors are those the field shows from the views that saw each cell, averaged: the splats look alike
@@ -16,17 +16,15 @@
 //! By default the views are those the field trained on: the views its training held out are left for
 //! scoring, as they are in fine-tuning.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 use std::time::Instant;
 
 use rayon::prelude::*;
 
 use nerfjit_dsl::Program;
-use nerfjit_runtime::splats::{
-    render_splats, splat_loss_gradients, write_splat_ply, SplatGradients, SplatTuner, Splats, TuneRates,
-};
-use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
+use nerfjit_runtime::splats::{write_splat_ply, SplatTuner, Splats, TuneRates};
+use nerfjit_runtime::{Camera, ImageF32, Layout, Rng};
 
 use crate::bake_file::{self, Bake};
 use crate::blocks::train::TrainPlan;
@@ -59,12 +57,8 @@ pub const SPREAD: f32 = 0.6;
 /// in cells.
 pub const CARVE_CELLS: f32 = 3.0;
 
-/// The coarsest level of detail: cells 2²⁴ times as wide as the finest.
-pub const MAX_LEVEL: u32 = 24;
-
-/// How far beyond the frame's edges a splat's center may lie and still be drawn, as a share of the frame's
-/// width and height on each side (3D Gaussian splatting's 1.3 times the field of view's tangent).
-pub const DRAWN_BEYOND: f32 = 0.15;
+/// The finest and the coarsest levels of detail: cells 2⁻²⁴ to 2²⁴ times as wide as the median footprint.
+pub const MAX_LEVEL: i32 = 24;
 
 /// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
 /// for `tune_seconds` against its training views (see [`tune`]; 0: not at all) and writes them to
@@ -194,8 +188,13 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
                 true => ((views.width, views.height), &views.images[v].pixels),
                 false => (coarse_size, &coarse[v]),
             };
-            let (loss, gradients) =
-                loss_gradients_in_view(&bake.splats, &views.cameras[v], size, bake.background, target)?;
+            let (loss, gradients) = crate::bake_view::loss_gradients_in_view(
+                &bake.splats,
+                &views.cameras[v],
+                size,
+                bake.background,
+                target,
+            )?;
             error += loss;
             let factor = 0.1f64.powf(elapsed / seconds) as f32;
             tuner.step(&mut bake.splats, &gradients, factor)?;
@@ -242,38 +241,39 @@ struct Cell {
     count: u32,
 }
 
-/// The level of detail of a pixel whose footprint is `footprint`: that of the widest cells no wider than
-/// it, cells doubling in side from `finest` ([`MAX_LEVEL`] at most; pixels finer than `finest` at 0).
-fn level_of(footprint: f32, finest: f32) -> u32 {
-    let doublings = (footprint / finest).max(1.0).log2().floor();
-    if doublings.is_finite() {
-        (doublings as u32).min(MAX_LEVEL)
-    } else {
-        MAX_LEVEL
+/// The level of detail of a pixel whose footprint is `footprint`: that of the cells nearest it in width
+/// (within a factor of √2), cells doubling in side from level 0, `middle` wide (levels beyond
+/// ±[`MAX_LEVEL`] and footprints that are not finite and positive taken as the nearest that is).
+fn level_of(footprint: f32, middle: f32) -> i32 {
+    let doublings = (footprint / middle).log2().round();
+    if doublings.is_nan() {
+        return 0;
     }
+    doublings.clamp(-MAX_LEVEL as f32, MAX_LEVEL as f32) as i32
 }
 
-/// The side of the cells of `level`, the finest being `finest` wide.
-fn cell_side(level: u32, finest: f32) -> f32 {
-    finest * (1u32 << level) as f32
+/// The side of the cells of `level`, those of level 0 being `middle` wide.
+fn cell_side(level: i32, middle: f32) -> f32 {
+    middle * 2f32.powi(level)
 }
 
 /// One round splat per cell holding surfels, each surfel in the cells of its level of detail ([`level_of`]
-/// its footprint, the finest cells as wide as the median footprint), less those some view sees through
-/// ([`seen_through`]); the splats and a description of the cells.
+/// its footprint, level 0 as wide as the median footprint), less those whose center lies in a finer cell
+/// and those some view sees through ([`seen_through`]); the splats and a description of the cells (how many splats of each width, finest
+/// first).
 fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
     let mut footprints = surfels.footprints.clone();
     let middle = footprints.len() / 2;
-    let finest = footprints
+    let middle = footprints
         .select_nth_unstable_by(middle, f32::total_cmp)
         .1
         .max(1e-6);
     let mut cells: HashMap<[i32; 4], Cell> = HashMap::new();
     for (i, p) in surfels.positions.iter().enumerate() {
-        let level = level_of(surfels.footprints[i], finest);
-        let side = cell_side(level, finest);
+        let level = level_of(surfels.footprints[i], middle);
+        let side = cell_side(level, middle);
         let [x, y, z] = p.map(|x| (x / side).floor() as i32);
-        let c = cells.entry([level as i32, x, y, z]).or_default();
+        let c = cells.entry([level, x, y, z]).or_default();
         for (sum, x) in c.position.iter_mut().zip(p) {
             *sum += f64::from(*x);
         }
@@ -289,14 +289,27 @@ fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
         .iter()
         .map(|(_, c)| c.position.map(|x| (x / f64::from(c.count)) as f32))
         .collect();
-    let side = |key: &[i32; 4]| cell_side(key[0] as u32, finest);
+    let side = |key: &[i32; 4]| cell_side(key[0], middle);
+    let occupied: HashSet<[i32; 4]> = cells.iter().map(|(key, _)| *key).collect();
+    let mut levels: Vec<i32> = cells.iter().map(|(key, _)| key[0]).collect();
+    levels.dedup();
+    // A cell whose center lies in a finer cell: the surface there is drawn as finely as the nearest view saw it.
+    let in_finer = |key: &[i32; 4], p: [f32; 3]| {
+        levels.iter().take_while(|&&level| level < key[0]).any(|&level| {
+            let side = cell_side(level, middle);
+            let [x, y, z] = p.map(|x| (x / side).floor() as i32);
+            occupied.contains(&[level, x, y, z])
+        })
+    };
     let kept: Vec<bool> = cells
         .par_iter()
         .zip(&centers)
-        .map(|((key, _), &p)| !seen_through(glam::Vec3::from(p), surfels, cameras, CARVE_CELLS * side(key)))
+        .map(|((key, _), &p)| {
+            !in_finer(key, p) && !seen_through(glam::Vec3::from(p), surfels, cameras, CARVE_CELLS * side(key))
+        })
         .collect();
     let mut splats = Splats::default();
-    let mut per_level = [0usize; MAX_LEVEL as usize + 1];
+    let mut per_level: BTreeMap<i32, usize> = BTreeMap::new();
     for (((key, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
         let n = f64::from(c.count);
         splats.positions.push(center);
@@ -306,13 +319,11 @@ fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
         splats.opacities.push(((c.opacity / n) as f32).clamp(0.0, 1.0));
         splats.scales.push([SPREAD * side(key); 3]);
         splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
-        per_level[key[0] as usize] += 1;
+        *per_level.entry(key[0]).or_default() += 1;
     }
     let levels: Vec<String> = per_level
         .iter()
-        .enumerate()
-        .filter(|(_, &n)| n > 0)
-        .map(|(level, n)| format!("{n} of {:.4}", cell_side(level as u32, finest)))
+        .map(|(&level, n)| format!("{n} of {:.4}", cell_side(level, middle)))
         .collect();
     (splats, format!("cells: {}", levels.join(", ")))
 }
@@ -334,76 +345,6 @@ fn seen_through(p: glam::Vec3, surfels: &Surfels, cameras: &[Camera], margin: f3
     })
 }
 
-/// Which of `splats` `camera` draws in a `width`×`height` frame: those in front of it whose centers lie
-/// within the frame widened by [`DRAWN_BEYOND`] on each side. The renderer linearizes the projection at
-/// each splat's center, which stretches a splat beside the camera (far off to the side, barely in front)
-/// across the whole frame; 3D Gaussian splatting clamps the linearization at 1.3 times the field of view
-/// instead, which keeps such splats off the screen as leaving them out does. A bake of a capture, whose
-/// splats surround every camera, needs it; an object's splats all lie in front of its cameras.
-pub fn in_view(splats: &Splats, camera: &Camera, (width, height): (u32, u32)) -> Vec<usize> {
-    let (w, h) = (width as f32, height as f32);
-    let (cols, rows) = (
-        -DRAWN_BEYOND * w..=(1.0 + DRAWN_BEYOND) * w,
-        -DRAWN_BEYOND * h..=(1.0 + DRAWN_BEYOND) * h,
-    );
-    (0..splats.len())
-        .into_par_iter()
-        .with_min_len(4096)
-        .filter(|&i| {
-            camera
-                .project(glam::Vec3::from(splats.positions[i]), width, height)
-                .is_some_and(|(row, col)| rows.contains(&row) && cols.contains(&col))
-        })
-        .collect()
-}
-
-/// The splats of `splats` at `indices`.
-fn subset(splats: &Splats, indices: &[usize]) -> Splats {
-    Splats {
-        positions: indices.iter().map(|&i| splats.positions[i]).collect(),
-        colors: indices.iter().map(|&i| splats.colors[i]).collect(),
-        opacities: indices.iter().map(|&i| splats.opacities[i]).collect(),
-        scales: indices.iter().map(|&i| splats.scales[i]).collect(),
-        rotations: indices.iter().map(|&i| splats.rotations[i]).collect(),
-    }
-}
-
-/// The `width`×`height` frame `camera` sees of `splats` over `background`, drawn from the splats
-/// [`in_view`].
-pub fn draw(splats: &Splats, camera: &Camera, size: (u32, u32), background: [f32; 3]) -> Result<VolumeFrame> {
-    let shown = subset(splats, &in_view(splats, camera, size));
-    Ok(render_splats(&shown, camera, size.0, size.1, background)?.0)
-}
-
-/// [`splat_loss_gradients`] of the frame [`draw`] draws: the splats not [`in_view`] take no part, and their
-/// gradients are zero.
-fn loss_gradients_in_view(
-    splats: &Splats,
-    camera: &Camera,
-    size: (u32, u32),
-    background: [f32; 3],
-    target: &[[f32; 3]],
-) -> Result<(f64, SplatGradients)> {
-    let indices = in_view(splats, camera, size);
-    let (loss, shown) = splat_loss_gradients(&subset(splats, &indices), camera, size, background, target)?;
-    let n = splats.len();
-    let mut all = SplatGradients {
-        positions: vec![[0.0; 3]; n],
-        colors: vec![[0.0; 3]; n],
-        opacities: vec![0.0; n],
-        scales: vec![[0.0; 3]; n],
-        rotations: vec![[0.0; 4]; n],
-    };
-    for (k, &i) in indices.iter().enumerate() {
-        all.positions[i] = shown.positions[k];
-        all.colors[i] = shown.colors[k];
-        all.opacities[i] = shown.opacities[k];
-        all.scales[i] = shown.scales[k];
-        all.rotations[i] = shown.rotations[k];
-    }
-    Ok((loss, all))
-}
-
 /// `nerfjit eval-views SCENE.bake`: the bake's views drawn from its splats and scored as `eval-views`
 /// scores the field it came from — the same views (by default those its checkpoint's training validates on),
 /// at the same size, on the same background — so that the two tables compare.
@@ -423,7 +364,9 @@ pub fn eval(
     })?;
     let set = ScoredSet::read(&source, &program, (args.size, bake.background), cameras, format)?;
     let start = Instant::now();
-    let draw = |camera: &Camera, size: (u32, u32)| draw(&bake.splats, camera, size, bake.background);
+    let draw = |camera: &Camera, size: (u32, u32)| {
+        crate::bake_view::draw(&bake.splats, camera, size, bake.background)
+    };
     let Some(scores) = score_on_ranks(&set.views, &draw)? else {
         return Ok(String::new());
     };
@@ -457,4 +400,30 @@ pub fn export(bake: &Path, format: ExportFormat, out: &Path) -> Result<String> {
         out.display(),
         bytes as f64 / 1e6
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixels_fall_in_cells_as_wide_as_their_footprints() {
+        let middle = 0.01;
+        assert_eq!(level_of(0.01, middle), 0);
+        assert_eq!(level_of(0.0072, middle), 0);
+        assert_eq!(level_of(0.014, middle), 0);
+        assert_eq!(level_of(0.0145, middle), 1);
+        assert_eq!(level_of(0.05, middle), 2);
+        assert_eq!(level_of(1.0, middle), 7);
+        assert_eq!(level_of(0.001, middle), -3);
+        assert_eq!(level_of(f32::INFINITY, middle), MAX_LEVEL);
+        assert_eq!(level_of(0.0, middle), -MAX_LEVEL);
+        assert_eq!(level_of(f32::NAN, middle), 0);
+        for level in -MAX_LEVEL..=MAX_LEVEL {
+            let side = cell_side(level, middle);
+            assert_eq!(level_of(side, middle), level);
+            assert_eq!(level_of(1.4 * side, middle), level);
+            assert_eq!(level_of(0.72 * side, middle), level);
+        }
+    }
 }

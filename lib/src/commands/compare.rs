@@ -101,7 +101,7 @@ pub fn compare(
                 true => {
                     let bake = crate::bake_file::read(Path::new(source))?;
                     let size = (views.width, views.height);
-                    crate::commands::bake::draw(&bake.splats, camera, size, background)?
+                    crate::bake_view::draw(&bake.splats, camera, size, background)?
                 }
                 false => {
                     let (program, params) = crate::checkpoint::load_source(source)?;

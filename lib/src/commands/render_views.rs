@@ -423,7 +423,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     let (draw, how): (Box<ViewRenderer>, String) = match &bake {
         Some(bake) => (
             Box::new(|camera: &Camera, size: (u32, u32)| -> Result<VolumeFrame> {
-                crate::commands::bake::draw(&bake.splats, camera, size, bake.background)
+                crate::bake_view::draw(&bake.splats, camera, size, bake.background)
             }),
             format!("{} splats", bake.splats.len()),
         ),
