@@ -213,3 +213,108 @@ fn bad_bakes_and_files_that_are_not_bakes_are_refused_with_what_is_wrong() {
         );
     }
 }
+
+/// The cells' sides a bake's summary states ("(cells: 800 of 0.0205, 120 of 0.0410)"), finest first.
+fn cell_sides(summary: &str) -> Vec<f64> {
+    let list = summary
+        .split_once("(cells: ")
+        .and_then(|(_, rest)| rest.split_once(')'))
+        .unwrap_or_else(|| panic!("no cells in {summary}"))
+        .0;
+    list.split(", ")
+        .map(|level| {
+            level
+                .split_once(" of ")
+                .and_then(|(_, side)| side.parse().ok())
+                .unwrap_or_else(|| panic!("'{level}' in {summary}"))
+        })
+        .collect()
+}
+
+/// `eval-views SOURCE --json JSON` in `dir` (the views the checkpoint's training held out): its report.
+fn held_out_scores(dir: &std::path::Path, source: &str, json: &str) -> serde_json::Value {
+    let (ok, _, err) = run(dir, &["eval-views", source, "--json", json]);
+    assert!(ok, "{source}: {err}");
+    serde_json::from_str(&std::fs::read_to_string(dir.join(json)).unwrap()).unwrap()
+}
+
+/// A surface field (the box's VolSDF density, at its true params) on a DTU scan with object masks: the bake
+/// sees it from the six views its training read (views 0 and 4 held out), eval-views scores the bake on the
+/// held-out views as it scores the field, whole and inside the masks, and fine-tuning against the six
+/// views' masked images brings the object's inside closer.
+#[test]
+fn a_surface_field_on_a_dtu_scan_bakes_and_scores_inside_its_masks() {
+    let dir = scratch("dtu_surface");
+    crate::captures::write_dtu_scan(&dir, 1.0);
+    crate::captures::train_truth(&dir, "dtu(\".\", masks: true)");
+    let field = held_out_scores(&dir, "train.ckpt.safetensors", "field.json");
+    let mut scores = Vec::new();
+    for (tune, bake) in [("0", "scan.bake"), ("5", "tuned.bake")] {
+        let args = [
+            "bake",
+            "train.ckpt.safetensors",
+            "--size",
+            "48",
+            "--tune",
+            tune,
+            "--out",
+            bake,
+        ];
+        let (ok, out, err) = run(&dir, &args);
+        assert!(ok && out.contains("of 6 views of 48×48"), "{out}{err}");
+        let baked = held_out_scores(&dir, bake, &format!("{bake}.json"));
+        assert_eq!(baked["protocol"], field["protocol"]);
+        scores.push(baked);
+    }
+    let masked = |s: &serde_json::Value| s["mean_masked_psnr"].as_f64().unwrap();
+    let whole = |s: &serde_json::Value| s["mean_psnr"].as_f64().unwrap();
+    let [baked, tuned] = [&scores[0], &scores[1]];
+    eprintln!(
+        "box on a DTU scan: the field {:.2} dB ({:.2} inside the masks), its bake {:.2} ({:.2}), tuned 5 s {:.2} ({:.2})",
+        whole(&field),
+        masked(&field),
+        whole(baked),
+        masked(baked),
+        whole(tuned),
+        masked(tuned)
+    );
+    assert!(whole(baked) > 24.0 && masked(baked) > 15.0, "{baked}");
+    assert!(masked(tuned) > masked(baked) + 6.0, "{tuned}");
+}
+
+/// A capture whose background is part of the scene (a ball inside a shell 30 units away, seen from inside
+/// the shell; a grid over contracted space): the shell, ten times farther than the ball, is merged into
+/// cells eight or more times wider, and the bake, whose splats surround every camera, is drawn and scored
+/// like the field on the views its training held out (every 5th, left out of the bake).
+#[test]
+fn a_contracted_scene_bakes_its_far_background_into_coarser_splats_around_the_cameras() {
+    let dir = scratch("unbounded");
+    crate::captures::write_unbounded_scene(&dir);
+    let trainer = crate::captures::UNBOUNDED_TRAINER
+        .replace("STEPS", "300")
+        .replace("checkpoint: none", "checkpoint: \"train.ckpt.safetensors\"");
+    std::fs::write(dir.join("train.sdf"), trainer).unwrap();
+    let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let args = [
+        "bake",
+        "train.ckpt.safetensors",
+        "--size",
+        "32",
+        "--out",
+        "scene.bake",
+    ];
+    let (ok, out, err) = run(&dir, &args);
+    assert!(ok && out.contains("of 28 views of 32×32"), "{out}{err}");
+    let sides = cell_sides(&out);
+    assert!(sides[sides.len() - 1] >= 8.0 * sides[0], "{out}");
+    let field = held_out_scores(&dir, "train.ckpt.safetensors", "field.json");
+    let baked = held_out_scores(&dir, "scene.bake", "bake.json");
+    let psnr = |s: &serde_json::Value| s["mean_psnr"].as_f64().unwrap();
+    eprintln!(
+        "unbounded scene: the field {:.2} dB, its bake {:.2} dB ({out})",
+        psnr(&field),
+        psnr(&baked)
+    );
+    assert!(psnr(&baked) > psnr(&field) - 1.5, "{out}");
+}

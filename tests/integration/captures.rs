@@ -453,7 +453,7 @@ render volume { camera: cameras(\"cams.json\"), size: 32, near: 0.5, far: 60, sa
 ";
 
 /// A dense grid over the contracted scene, sampled linearly to 5 units and in disparity beyond.
-const UNBOUNDED_TRAINER: &str = "\
+pub(crate) const UNBOUNDED_TRAINER: &str = "\
 param g: grid<3, res: 32, features: 4, bounds: 2.0> = uniform(-1e-4, 1e-4)
 fn h(p: vec3) -> vec<4> = grid(g, contract(p))
 fn density(p: vec3) -> f32 = 40.0 * sigmoid(h(p)[0] * 10.0 - 10.0)
@@ -462,9 +462,9 @@ train { data: views(\"cams.json\"), near: 0.5, far: 60, samples: 96, spacing: li
         lr: 0.05, views: random, checkpoint: none, summary: \"summary.json\", val: holdout(every: 5), val_every: 100000 }
 ";
 
-#[test]
-fn an_unbounded_scene_trains_through_the_contraction_with_disparity_spacing() {
-    let dir = scratch("unbounded");
+/// Writes the unbounded scene into `dir`: the 36 cameras (`cams.json`), the truth (`truth.sdf`) and the
+/// views it renders.
+pub(crate) fn write_unbounded_scene(dir: &Path) {
     let cameras: Vec<String> = (0..36)
         .map(|i| {
             let azimuth = i as f32 * std::f32::consts::TAU / 36.0;
@@ -487,8 +487,14 @@ fn an_unbounded_scene_trains_through_the_contraction_with_disparity_spacing() {
     );
     std::fs::write(dir.join("cams.json"), file).unwrap();
     std::fs::write(dir.join("truth.sdf"), UNBOUNDED_TRUTH).unwrap();
-    let (ok, _, err) = run(&dir, &["run", "truth.sdf"]);
+    let (ok, _, err) = run(dir, &["run", "truth.sdf"]);
     assert!(ok, "{err}");
+}
+
+#[test]
+fn an_unbounded_scene_trains_through_the_contraction_with_disparity_spacing() {
+    let dir = scratch("unbounded");
+    write_unbounded_scene(&dir);
     let val_psnr = |steps: &str| {
         std::fs::write(dir.join("train.sdf"), UNBOUNDED_TRAINER.replace("STEPS", steps)).unwrap();
         let (ok, _, err) = run(&dir, &["run", "train.sdf"]);
@@ -695,7 +701,7 @@ fn an_llff_scene_in_its_axis_order_and_image_folders_trains() {
 /// background painted gray), `mask/` (not strictly binary) and `cameras_sphere.npz` (OpenCV projections
 /// of a tilted, shifted, scaled world, and the scale matrix back to the truth's frame shrunk by `shrink`:
 /// at 1 the scan's frame is the truth's).
-fn write_dtu_scan(dir: &Path, shrink: f32) {
+pub(crate) fn write_dtu_scan(dir: &Path, shrink: f32) {
     render_truth(dir);
     std::fs::create_dir_all(dir.join("image")).unwrap();
     std::fs::create_dir_all(dir.join("mask")).unwrap();
@@ -846,7 +852,7 @@ fn a_dtu_scan_given_as_cameras_is_read_as_its_field_was_trained_on_it() {
 
 /// Trains the true box for one step (its params start at the truth) on `data`, holding out views 0 and 4
 /// and scoring them at the end; returns the last validation.
-fn train_truth(dir: &Path, data: &str) -> serde_json::Value {
+pub(crate) fn train_truth(dir: &Path, data: &str) -> serde_json::Value {
     let script = format!(
         "param center: vec3 = [0.2, -0.1, 0.1]\nparam sides: vec3 = [1.2, 0.8, 1.0]\n{FIELD}\
          train {{ data: {data}, near: 2, far: 6, samples: 48, steps: 1, batch: 64, lr: 1e-6, \

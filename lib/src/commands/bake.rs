@@ -4,14 +4,19 @@
 //!
 //! The bake is the field's surface as its training cameras see it, as NeRF-to-splats conversions make it:
 //! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
-//! its expected depth with its color (the background taken out), and the pixels are merged in cells of the
-//! median pixel footprint: one round splat per cell, at the mean of its pixels, of their mean color and
-//! opacity, with a standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some
-//! view sees in front of what it saw there (a pixel whose expected depth fell between surfaces) is dropped
-//! (`seen_through`). The colors are those the field shows from the views that saw each cell, averaged: the
-//! splats look alike from every side.
+//! its expected depth with its color (the background taken out), and the pixels are merged in cells as
+//! wide as their footprints (the width of a pixel at its depth, in levels of detail whose cells double in
+//! side from the median footprint's either way, so that a capture's far background is merged into splats
+//! as coarse as its pixels and its nearby object into splats as fine as its own): one round splat per cell, at the mean of its pixels, of their mean color and opacity, with a
+//! standard deviation of [`SPREAD`] cells so that neighbours overlap. A splat that some view sees in front
+//! of what it saw there (a pixel whose expected depth fell between surfaces) is dropped (`seen_through`).
+//! The colors are those the field shows from the views that saw each cell, averaged: the splats look alike
+//! from every side.
+//!
+//! By default the views are those the field trained on: the views its training held out are left for
+//! scoring, as they are in fine-tuning.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 use std::time::Instant;
 
@@ -26,7 +31,7 @@ use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 use crate::bake_file::{self, Bake};
 use crate::blocks::train::TrainPlan;
 use crate::commands::point_cloud::{view_cameras, PointsArgs, Surfels};
-use crate::commands::render_views::{report, ScoredSet, ViewArgs};
+use crate::commands::render_views::{report, CameraSource, ScoredSet, ViewArgs};
 use crate::failure::{Failure, Result};
 use crate::settings::schema::Kind;
 use crate::training::validation::score_on_ranks;
@@ -59,6 +64,9 @@ pub const SPREAD: f32 = 0.6;
 /// in cells.
 pub const CARVE_CELLS: f32 = 3.0;
 
+/// The finest and the coarsest levels of detail: cells 2⁻²⁴ to 2²⁴ times as wide as the median footprint.
+pub const MAX_LEVEL: i32 = 24;
+
 /// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
 /// for `tune_seconds` against its training views (see [`tune`]; 0: not at all) and writes them to
 /// `args.out`; returns a summary.
@@ -72,11 +80,11 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
     let start = Instant::now();
     let (program, params) = crate::checkpoint::load_source(args.view.source)?;
     let background = args.view.resolve(&program).background;
-    let cameras = view_cameras(args.view.source, &program, &args.cameras)?;
+    let cameras = bake_cameras(args, &program)?;
     let Some(surfels) = Surfels::render(&args.view, (program, params), &cameras, args.min_opacity)? else {
         return Ok(String::new());
     };
-    let (splats, cell) = splats_of(&surfels, &cameras);
+    let (splats, cells) = splats_of(&surfels, &cameras);
     let mut bake = Bake {
         splats,
         background,
@@ -84,7 +92,7 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
     };
     let size = args.view.side();
     let mut text = format!(
-        "baked {} splats (cells of {cell:.4}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
+        "baked {} splats ({cells}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
         bake.splats.len(),
         surfels.positions.len(),
         cameras.len(),
@@ -103,6 +111,28 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
         bytes as f64 / 1e6
     );
     Ok(text)
+}
+
+/// The cameras a bake sees the field of `args.view.source` (compiled as `program`) from: those `args`
+/// names, else the views of the data its `train` block reads less those the block holds out for scoring
+/// (`val: holdout(every: n)`).
+fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
+    let source = args.view.source;
+    let cameras = view_cameras(source, program, &args.cameras)?;
+    if !matches!(args.cameras, CameraSource::Default) {
+        return Ok(cameras);
+    }
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
+    let Some((every, _)) = TrainPlan::new(block)?.held_out_every() else {
+        return Ok(cameras);
+    };
+    Ok(cameras
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| i % every != 0)
+        .map(|(_, camera)| camera)
+        .collect())
 }
 
 /// Fine-tunes the splats of `bake` for `seconds` against the training views of `source` (a checkpoint,
@@ -233,19 +263,39 @@ struct Cell {
     count: u32,
 }
 
-/// One round splat per cell of the median footprint holding surfels, less those some view sees through
-/// ([`seen_through`]); the splats and the cell's side.
-fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, f32) {
+/// The level of detail of a pixel whose footprint is `footprint`: that of the cells nearest it in width
+/// (within a factor of √2), cells doubling in side from level 0, `middle` wide (levels beyond
+/// ±[`MAX_LEVEL`] and footprints that are not finite and positive taken as the nearest that is).
+fn level_of(footprint: f32, middle: f32) -> i32 {
+    let doublings = (footprint / middle).log2().round();
+    if doublings.is_nan() {
+        return 0;
+    }
+    doublings.clamp(-MAX_LEVEL as f32, MAX_LEVEL as f32) as i32
+}
+
+/// The side of the cells of `level`, those of level 0 being `middle` wide.
+fn cell_side(level: i32, middle: f32) -> f32 {
+    middle * 2f32.powi(level)
+}
+
+/// One round splat per cell holding surfels, each surfel in the cells of its level of detail ([`level_of`]
+/// its footprint, level 0 as wide as the median footprint), less those whose center lies in a finer cell
+/// and those some view sees through ([`seen_through`]); the splats and a description of the cells (how many splats of each width, finest
+/// first).
+fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
     let mut footprints = surfels.footprints.clone();
     let middle = footprints.len() / 2;
-    let cell = footprints
+    let middle = footprints
         .select_nth_unstable_by(middle, f32::total_cmp)
         .1
         .max(1e-6);
-    let mut cells: HashMap<[i32; 3], Cell> = HashMap::new();
+    let mut cells: HashMap<[i32; 4], Cell> = HashMap::new();
     for (i, p) in surfels.positions.iter().enumerate() {
-        let key = p.map(|x| (x / cell).floor() as i32);
-        let c = cells.entry(key).or_default();
+        let level = level_of(surfels.footprints[i], middle);
+        let side = cell_side(level, middle);
+        let [x, y, z] = p.map(|x| (x / side).floor() as i32);
+        let c = cells.entry([level, x, y, z]).or_default();
         for (sum, x) in c.position.iter_mut().zip(p) {
             *sum += f64::from(*x);
         }
@@ -255,29 +305,49 @@ fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, f32) {
         c.opacity += f64::from(surfels.opacities[i]);
         c.count += 1;
     }
-    let mut cells: Vec<([i32; 3], Cell)> = cells.into_iter().collect();
+    let mut cells: Vec<([i32; 4], Cell)> = cells.into_iter().collect();
     cells.sort_unstable_by_key(|(key, _)| *key);
     let centers: Vec<[f32; 3]> = cells
         .iter()
         .map(|(_, c)| c.position.map(|x| (x / f64::from(c.count)) as f32))
         .collect();
-    let margin = CARVE_CELLS * cell;
-    let kept: Vec<bool> = centers
+    let side = |key: &[i32; 4]| cell_side(key[0], middle);
+    let occupied: HashSet<[i32; 4]> = cells.iter().map(|(key, _)| *key).collect();
+    let mut levels: Vec<i32> = cells.iter().map(|(key, _)| key[0]).collect();
+    levels.dedup();
+    // A cell whose center lies in a finer cell: the surface there is drawn as finely as the nearest view saw it.
+    let in_finer = |key: &[i32; 4], p: [f32; 3]| {
+        levels.iter().take_while(|&&level| level < key[0]).any(|&level| {
+            let side = cell_side(level, middle);
+            let [x, y, z] = p.map(|x| (x / side).floor() as i32);
+            occupied.contains(&[level, x, y, z])
+        })
+    };
+    let kept: Vec<bool> = cells
         .par_iter()
-        .map(|&p| !seen_through(glam::Vec3::from(p), surfels, cameras, margin))
+        .zip(&centers)
+        .map(|((key, _), &p)| {
+            !in_finer(key, p) && !seen_through(glam::Vec3::from(p), surfels, cameras, CARVE_CELLS * side(key))
+        })
         .collect();
     let mut splats = Splats::default();
-    for (((_, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
+    let mut per_level: BTreeMap<i32, usize> = BTreeMap::new();
+    for (((key, c), center), _) in cells.iter().zip(centers).zip(&kept).filter(|(_, &kept)| kept) {
         let n = f64::from(c.count);
         splats.positions.push(center);
         splats
             .colors
             .push(c.color.map(|x| ((x / n) as f32).clamp(0.0, 1.0)));
         splats.opacities.push(((c.opacity / n) as f32).clamp(0.0, 1.0));
-        splats.scales.push([SPREAD * cell; 3]);
+        splats.scales.push([SPREAD * side(key); 3]);
         splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
+        *per_level.entry(key[0]).or_default() += 1;
     }
-    (splats, cell)
+    let levels: Vec<String> = per_level
+        .iter()
+        .map(|(&level, n)| format!("{n} of {:.4}", cell_side(level, middle)))
+        .collect();
+    (splats, format!("cells: {}", levels.join(", ")))
 }
 
 /// Whether some view sees `p` in front of what it saw there by more than `margin`: it proves `p` to be in
@@ -353,4 +423,30 @@ pub fn export(bake: &Path, format: ExportFormat, out: &Path) -> Result<String> {
         out.display(),
         bytes as f64 / 1e6
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixels_fall_in_cells_as_wide_as_their_footprints() {
+        let middle = 0.01;
+        assert_eq!(level_of(0.01, middle), 0);
+        assert_eq!(level_of(0.0072, middle), 0);
+        assert_eq!(level_of(0.014, middle), 0);
+        assert_eq!(level_of(0.0145, middle), 1);
+        assert_eq!(level_of(0.05, middle), 2);
+        assert_eq!(level_of(1.0, middle), 7);
+        assert_eq!(level_of(0.001, middle), -3);
+        assert_eq!(level_of(f32::INFINITY, middle), MAX_LEVEL);
+        assert_eq!(level_of(0.0, middle), -MAX_LEVEL);
+        assert_eq!(level_of(f32::NAN, middle), 0);
+        for level in -MAX_LEVEL..=MAX_LEVEL {
+            let side = cell_side(level, middle);
+            assert_eq!(level_of(side, middle), level);
+            assert_eq!(level_of(1.4 * side, middle), level);
+            assert_eq!(level_of(0.72 * side, middle), level);
+        }
+    }
 }

@@ -227,8 +227,9 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     let v = viewer.rotation * (Vec3::from(splats.positions[i]) - viewer.position);
     let inv_z = 1.0 / v.z;
     let (fx, fy) = (viewer.fx, viewer.fy);
-    let j_col = Vec3::new(-fx * inv_z, 0.0, fx * v.x * inv_z * inv_z);
-    let j_row = Vec3::new(0.0, -fy * inv_z, fy * v.y * inv_z * inv_z);
+    let ((slope_x, free_x), (slope_y, free_y)) = viewer.slopes(v);
+    let j_col = Vec3::new(-fx * inv_z, 0.0, fx * slope_x * inv_z);
+    let j_row = Vec3::new(0.0, -fy * inv_z, fy * slope_y * inv_z);
     let [w, qx, qy, qz] = splats.rotations[i];
     let stored = glam::Vec4::new(w, qx, qy, qz);
     let unit = stored.normalize();
@@ -261,13 +262,16 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     let (d_j_col, d_j_row) = (m * d_t_col, m * d_t_row);
 
     // The view-space center: through the Jacobian's entries and the pixel position
-    // (col = cx − fx·x/z, row = cy − fy·y/z, whose derivatives are j_col and j_row).
-    let mut d_v = j_col * g[0] + j_row * g[1];
+    // (col = cx − fx·x/z, row = cy − fy·y/z, whose derivatives are the unclamped j_col and j_row). The
+    // Jacobian's last entries are fx·s/z with the slope s = x/z, or a constant s where it is clamped.
+    let mut d_v = Vec3::new(-fx * inv_z, 0.0, fx * v.x * inv_z * inv_z) * g[0]
+        + Vec3::new(0.0, -fy * inv_z, fy * v.y * inv_z * inv_z) * g[1];
     let inv_z2 = inv_z * inv_z;
-    d_v.x += d_j_col.z * fx * inv_z2;
-    d_v.y += d_j_row.z * fy * inv_z2;
-    d_v.z += d_j_col.x * fx * inv_z2 - 2.0 * d_j_col.z * fx * v.x * inv_z2 * inv_z;
-    d_v.z += d_j_row.y * fy * inv_z2 - 2.0 * d_j_row.z * fy * v.y * inv_z2 * inv_z;
+    let (free_x, free_y) = (f32::from(u8::from(free_x)), f32::from(u8::from(free_y)));
+    d_v.x += d_j_col.z * fx * inv_z2 * free_x;
+    d_v.y += d_j_row.z * fy * inv_z2 * free_y;
+    d_v.z += d_j_col.x * fx * inv_z2 - d_j_col.z * fx * slope_x * inv_z2 * (1.0 + free_x);
+    d_v.z += d_j_row.y * fy * inv_z2 - d_j_row.z * fy * slope_y * inv_z2 * (1.0 + free_y);
     let position = viewer.rotation.transpose() * d_v;
 
     // M = R_view · R_q · S.
@@ -365,6 +369,23 @@ mod tests {
         }
     }
 
+    /// The scene and a fifth splat, long and beside the frame: its center lies beyond the frame's widened
+    /// edge, where the projection's Jacobian is clamped, and its tail reaches into the frame.
+    fn with_one_beside() -> Splats {
+        let mut splats = scene();
+        splats.positions.push([3.2, 0.1, 0.0]);
+        splats.colors.push([0.3, 0.6, 0.9]);
+        splats.opacities.push(0.8);
+        splats.scales.push([1.2, 0.3, 0.25]);
+        let q = Quat::from_axis_angle(Vec3::new(0.1, 0.2, 1.0).normalize(), 0.3);
+        splats.rotations.push([q.w, q.x, q.y, q.z]);
+        let screen = Screen::of(&splats, &camera(), SIZE, SIZE).unwrap();
+        let v = screen.viewer.rotation * (Vec3::from(splats.positions[4]) - screen.viewer.position);
+        let ((_, free_x), (_, free_y)) = screen.viewer.slopes(v);
+        assert!(!free_x && free_y, "the fifth splat's slope is not clamped");
+        splats
+    }
+
     /// A target image with some structure: a smooth ramp of colors.
     fn target() -> Vec<[f32; 3]> {
         (0..SIZE * SIZE)
@@ -389,8 +410,13 @@ mod tests {
     /// central difference or one of the one-sided ones (an edge lies on one side).
     #[test]
     fn gradients_match_finite_differences() {
-        let splats = scene();
-        let (_, g) = splat_loss_gradients(&splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
+        for splats in [scene(), with_one_beside()] {
+            gradients_match_differences(&splats);
+        }
+    }
+
+    fn gradients_match_differences(splats: &Splats) {
+        let (_, g) = splat_loss_gradients(splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
         type Nudge = fn(&mut Splats, usize, usize, f32);
         let kinds: [(&str, usize, Nudge, Vec<f32>); 5] = [
             (
@@ -418,6 +444,11 @@ mod tests {
         for (name, width, nudge, analytic) in kinds {
             let largest = analytic.iter().fold(0.0f32, |m, x| m.max(x.abs()));
             assert!(largest > 1e-5, "{name}: no gradient at all");
+            let last = &analytic[(splats.len() - 1) * width..];
+            assert!(
+                last.iter().any(|x| x.abs() > 0.0),
+                "{name}: none for the last splat"
+            );
             for i in 0..splats.len() {
                 for k in 0..width {
                     let at = |h: f32| {

@@ -31,6 +31,10 @@ const NEAR: f32 = 0.01;
 /// The variance (in pixels²) added to every projected splat, so that none is thinner than a pixel.
 pub(super) const LOW_PASS: f32 = 0.3;
 
+/// How far beyond the frame's edges (a share of its width and height on each side) the projection's
+/// Jacobian follows a splat's center (see [`Viewer::slopes`]).
+const BEYOND: f32 = 0.15;
+
 /// Alphas below this are skipped.
 const MIN_ALPHA: f32 = 1.0 / 255.0;
 
@@ -324,11 +328,20 @@ pub(super) struct Viewer {
     cy: f32,
     width: f32,
     height: f32,
+    /// The range of x/z and of y/z where the projection's Jacobian is taken (see [`Viewer::slopes`]).
+    slopes_x: (f32, f32),
+    slopes_y: (f32, f32),
 }
 
 impl Viewer {
     fn of(camera: &Camera, width: u32, height: u32) -> Viewer {
         let k = camera.pixel_intrinsics(width, height);
+        // col = cx − fx·x/z lies within the frame widened by BEYOND on each side where x/z is in this range.
+        let (w, h) = (width as f32, height as f32);
+        let range = |c: f32, f: f32, side: f32| {
+            let ends = ((c + BEYOND * side) / f, (c - (1.0 + BEYOND) * side) / f);
+            (ends.0.min(ends.1), ends.0.max(ends.1))
+        };
         Viewer {
             rotation: camera.rotation().transpose(),
             position: camera.position(),
@@ -336,9 +349,24 @@ impl Viewer {
             fy: k.fy,
             cx: k.cx,
             cy: k.cy,
-            width: width as f32,
-            height: height as f32,
+            width: w,
+            height: h,
+            slopes_x: range(k.cx, k.fx, w),
+            slopes_y: range(k.cy, k.fy, h),
         }
+    }
+
+    /// The slopes x/z and y/z of view-space point `v` at which the projection's Jacobian is taken, and
+    /// whether each is its own (not clamped): the Jacobian of a point beside the camera (far off the
+    /// frame, barely in front) would stretch its splat across the whole frame, so the slopes are clamped
+    /// to the frame widened by [`BEYOND`] on each side, as 3D Gaussian splatting clamps them at 1.3 times
+    /// the field of view.
+    pub(super) fn slopes(&self, v: Vec3) -> ((f32, bool), (f32, bool)) {
+        let clamp = |slope: f32, (lo, hi): (f32, f32)| {
+            let clamped = slope.clamp(lo, hi);
+            (clamped, clamped == slope)
+        };
+        (clamp(v.x / v.z, self.slopes_x), clamp(v.y / v.z, self.slopes_y))
     }
 
     /// Splat `i` of `scene` on the screen; none behind the camera, off the screen or degenerate.
@@ -354,9 +382,10 @@ impl Viewer {
         let row = self.cy - self.fy * v.y * inv_z;
         // The screen's covariance is J R Σ Rᵀ Jᵀ, J the projection's Jacobian (col = cx − fx·x/z,
         // row = cy − fy·y/z) and R the view's rotation: with u = Rᵀ j for each row j of J, uᵀ Σ u.
+        let ((slope_x, _), (slope_y, _)) = self.slopes(v);
         let (x_axis, y_axis, z_axis) = (self.rotation.row(0), self.rotation.row(1), self.rotation.row(2));
-        let u_col = x_axis * (-self.fx * inv_z) + z_axis * (self.fx * v.x * inv_z * inv_z);
-        let u_row = y_axis * (-self.fy * inv_z) + z_axis * (self.fy * v.y * inv_z * inv_z);
+        let u_col = x_axis * (-self.fx * inv_z) + z_axis * (self.fx * slope_x * inv_z);
+        let u_row = y_axis * (-self.fy * inv_z) + z_axis * (self.fy * slope_y * inv_z);
         let [xx, xy, xz, yy, yz, zz] = scene.covariances[i];
         let times = |u: Vec3| {
             Vec3::new(
@@ -797,6 +826,16 @@ mod tests {
                 assert_eq!(frame.depth[at], distance);
             }
         }
+    }
+
+    /// A splat beside the camera (far off the frame, barely in front of it) stays off the frame: the
+    /// projection's Jacobian taken at its center would stretch it over all of it.
+    #[test]
+    fn a_splat_beside_the_camera_stays_off_the_frame() {
+        let splats = one([20.0, 0.0, -3.9], 0.05, 1.0, [0.0; 3]);
+        let (frame, stats) = render_splats(&splats, &camera(), 32, 32, [1.0; 3]).unwrap();
+        assert_eq!(stats.visible, 0);
+        assert!(frame.rgb.iter().all(|p| *p == [1.0; 3]));
     }
 
     /// An elongated splat lies along its rotated axis: turned 90° about the view axis, its long side
