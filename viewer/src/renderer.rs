@@ -326,16 +326,22 @@ fn framed(header: &Value, body: &[u8]) -> Vec<u8> {
     bytes
 }
 
-/// `image` as PNG or as JPEG (quality 85).
+/// `image` as PNG or as JPEG (quality 85, by `jpeg-encoder`'s vector code).
 fn encode(image: &RgbImage, png: bool) -> Vec<u8> {
-    let mut encoded = Cursor::new(Vec::new());
-    let written = if png {
-        image.write_to(&mut encoded, ImageFormat::Png)
-    } else {
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut encoded, 85).encode_image(image)
-    };
-    written.expect("encoding into memory cannot fail");
-    encoded.into_inner()
+    if png {
+        let mut encoded = Cursor::new(Vec::new());
+        image
+            .write_to(&mut encoded, ImageFormat::Png)
+            .expect("encoding into memory cannot fail");
+        return encoded.into_inner();
+    }
+    let mut encoded = Vec::new();
+    // A side is at most MAX_SIDE (4096), within the JPEG limit of 65,535.
+    let (width, height) = (image.width() as u16, image.height() as u16);
+    jpeg_encoder::Encoder::new(&mut encoded, 85)
+        .encode(image.as_raw(), width, height, jpeg_encoder::ColorType::Rgb)
+        .expect("encoding into memory cannot fail");
+    encoded
 }
 
 /// The diagnostics of a failed compile as the page shows them: 1-based line and column of start and end
