@@ -1,16 +1,17 @@
 // A bake in the live viewer, in a real browser: headless Chromium (Debian's `chromium`) opens `nerfjit view
-// BAKE`, checks the page shows the splats (not a blank canvas) with the checkpoint's script read-only, sets
-// the canvas to SIZE×SIZE, then orbits the camera with the mouse for SECONDS without pause (the pointer
-// moved at every display refresh, around a circle) and counts the frames the page shows: the display refreshes (animation frames)
-// at which a new frame had been drawn on the canvas since the refresh before. Prints frames a second,
-// camera request → frame on screen, and the server's render and encode times (medians) as JSON, with the
-// machine's load average; fails below --min-fps.
+// BAKE`, checks the page shows the splats (not a blank canvas) with the checkpoint's script read-only, sets the
+// canvas to SIZE×SIZE, then orbits the camera with the mouse for SECONDS without pause (the pointer moved at
+// every display refresh, around a circle) and counts the frames the page shows: the display refreshes (animation
+// frames) at which a new frame had been drawn on the canvas since the refresh before. Prints frames a second,
+// camera request → frame on screen, the server's render and encode times (medians) and the cores the server and
+// the browser kept busy as JSON, with the machine's load average; fails below --min-fps, or when frames fall
+// behind the camera (they queue).
 //
 // usage: node tests/browser/bake.mjs NERFJIT_BINARY BAKE OUT_DIR [--size 800] [--seconds 5] [--min-fps 2]
 //        (after `npm ci` in tests/browser)
 
 import { spawn } from "node:child_process";
-import { mkdirSync, readFileSync } from "node:fs";
+import { mkdirSync, readdirSync, readFileSync } from "node:fs";
 import { join } from "node:path";
 import { createInterface } from "node:readline";
 import { parseArgs } from "node:util";
@@ -43,6 +44,30 @@ function quantile(values, q) {
 
 const round = (x) => Math.round(10 * x) / 10;
 const load = () => readFileSync("/proc/loadavg", "utf8").split(" ").slice(0, 3).map(Number);
+
+// The CPU seconds (user and system, at Linux's 100 ticks a second) used so far by the server (and any process
+// under it) and by the browser (every other process under this one, this one left out).
+function cpuSeconds() {
+  const processes = new Map();
+  for (const entry of readdirSync("/proc").filter((name) => /^\d+$/.test(name))) {
+    try {
+      const fields = readFileSync(`/proc/${entry}/stat`, "utf8").replace(/^.*\) /, "").split(" ");
+      processes.set(Number(entry), { parent: Number(fields[1]), ticks: Number(fields[11]) + Number(fields[12]) });
+    } catch {
+      // The process ended while the folder was read.
+    }
+  }
+  const under = (pid, root) => pid === root || (processes.has(pid) && pid > 1 && under(processes.get(pid).parent, root));
+  const used = { server: 0, browser: 0 };
+  for (const [pid, { ticks }] of processes) {
+    if (under(pid, server.pid)) {
+      used.server += ticks / 100;
+    } else if (pid !== process.pid && under(pid, process.pid)) {
+      used.browser += ticks / 100;
+    }
+  }
+  return used;
+}
 
 const server = spawn(binary, ["view", bake, "--port", "0"], { stdio: ["ignore", "pipe", "inherit"] });
 const url = await new Promise((resolve, reject) => {
@@ -139,6 +164,7 @@ try {
   });
   await page.mouse.move(cx + 120, cy);
   await page.mouse.down();
+  const cpuBefore = cpuSeconds();
   const before = await snapshot();
   await page.evaluate(([cx, cy, seconds]) => new Promise((resolve) => {
     const canvas = document.getElementById("canvas");
@@ -160,6 +186,7 @@ try {
     requestAnimationFrame(move);
   }), [cx, cy, seconds]);
   const after = await snapshot();
+  const cpuAfter = cpuSeconds();
   await page.mouse.up();
   results.load_average_after = load();
   const stats = await page.evaluate(() => window.nerfjitViewer.stats);
@@ -178,6 +205,11 @@ try {
   results.fps_shown = round(results.orbit.frames_shown / elapsed);
   results.camera_to_frame_ms = { median: round(quantile(latencies, 0.5)), p90: round(quantile(latencies, 0.9)), count: latencies.length };
   results.server_ms = { render_median: round(quantile(renders, 0.5)), encode_median: round(quantile(encodes, 0.5)) };
+  // Cores busy on average during the orbit (of the machine's two).
+  results.cores_used = {
+    server: round((cpuAfter.server - cpuBefore.server) / elapsed),
+    browser: round((cpuAfter.browser - cpuBefore.browser) / elapsed),
+  };
 
   // At rest, the last camera's frame comes as PNG.
   await waitFor(() => {
@@ -192,3 +224,9 @@ try {
 
 console.log(JSON.stringify(results));
 if (!(results.fps_shown >= minFps)) fail(`${results.fps_shown} frames a second shown, fewer than ${minFps}`);
+// Frames do not queue (the newest camera request wins): a frame answers a request made at most about one
+// frame earlier, where a queue of the 60 requests a second would fall seconds behind.
+const lagLimit = 3 * results.server_ms.render_median + 100;
+if (!(results.camera_to_frame_ms.median <= lagLimit)) {
+  fail(`camera → frame ${results.camera_to_frame_ms.median} ms, more than ${lagLimit} ms: frames queue`);
+}

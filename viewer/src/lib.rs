@@ -72,9 +72,9 @@ impl Document {
         let checkpoint = bake.source.to_string_lossy().into_owned();
         let (program, params) = nerfjit::checkpoint::load_source(&checkpoint).map_err(|failure| {
             Failure::Message(format!(
-                "'{source}' was baked from '{checkpoint}', whose script and cameras the viewer shows, and that \
-                 cannot be read (it must stay where it was when baked):\n{}",
-                failure.to_string().trim()
+                "'{source}' was baked from '{checkpoint}', whose script and cameras the viewer shows (it must \
+                 stay where it was when baked): {}",
+                failure.to_string().trim().trim_start_matches("error: ")
             ))
         })?;
         let mut document = Document::of(&program, params, true)?;
