@@ -324,10 +324,11 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Serve a live view of a script (or a checkpoint) in the browser: orbit the scene, edit the script and
-    /// see it re-compiled and re-rendered, move its consts with sliders. Prints the page's URL.
+    /// Serve a live view of a script (or a checkpoint, or a bake) in the browser: orbit the scene, edit the
+    /// script and see it re-compiled and re-rendered, move its consts with sliders. Prints the page's URL.
     View {
-        /// A script, or a checkpoint written by a train block.
+        /// A script, a checkpoint written by a train block, or a bake of one (`.bake`: its splats are drawn,
+        /// its checkpoint's script is shown read-only).
         source: String,
         /// The address to serve on. Anyone who reaches another address than the loopback default, with
         /// the printed token, runs code compiled from what they type on this machine.

@@ -1,6 +1,7 @@
 //! Files the page asks for: an orbit video around the current view and a mesh of the scene, made with the
 //! same renderer and mesher as the CLI commands the page shows beside them, and a checkpoint of the params
-//! shown with the script as edited.
+//! shown with the script as edited. A bake's video shows its splats; its mesh and checkpoint are those of
+//! the field it was baked from.
 
 use std::path::PathBuf;
 
@@ -97,7 +98,7 @@ pub fn orbit(view: &ViewCamera, frames: usize) -> Vec<ViewCamera> {
 
 fn video(scene: &Scene, view: &ViewCamera, stem: &str) -> Result<File> {
     // Volume fields render slowly: smaller frames keep the wait reasonable.
-    let side = if scene.kind() == "surface" { 256 } else { 128 };
+    let side = if scene.kind() == "volume" { 128 } else { 256 };
     let frames = orbit(view, ORBIT_FRAMES)
         .iter()
         .map(|camera| scene.render(camera, side, side, Layer::Color))

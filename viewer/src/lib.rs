@@ -1,6 +1,7 @@
 //! `nerfjit view`: a live view of a script or a checkpoint in the browser. The page orbits the scene,
 //! edits the script (re-checked, re-compiled and re-rendered on every edit, diagnostics at their line and
-//! column) and moves its consts with sliders. `nerfjit run --view` follows a training run through [`Live`],
+//! column) and moves its consts with sliders. A bake is orbited as its splats, with the script of the
+//! checkpoint it was baked from shown read-only. `nerfjit run --view` follows a training run through [`Live`],
 //! the library's [`nerfjit::observe::TrainingObserver`].
 //!
 //! The page runs native code compiled from what is typed into it, so the server binds the loopback address
@@ -14,6 +15,7 @@ mod scene;
 mod server;
 
 use std::net::{IpAddr, SocketAddr, TcpListener};
+use std::path::Path;
 use std::sync::Arc;
 
 pub use live::Live;
@@ -21,11 +23,12 @@ pub use server::Limits;
 
 use nerfjit_dsl::{Program, Type};
 
+use nerfjit::bake_file::Bake;
 use nerfjit::failure::{Failure, Result};
 
 /// What `nerfjit view` serves and where.
 pub struct ViewArgs<'a> {
-    /// A script, or a checkpoint written by a train block.
+    /// A script, a checkpoint written by a train block, or a bake (`.bake`) of one.
     pub source: &'a str,
     /// The address to bind.
     pub host: IpAddr,
@@ -35,7 +38,7 @@ pub struct ViewArgs<'a> {
     pub limits: Limits,
 }
 
-/// The script a page starts from and, for a checkpoint, its trained params.
+/// The script a page starts from and, for a checkpoint, its trained params; for a bake, the splats too.
 pub struct Document {
     /// The script's name in diagnostics.
     pub name: String,
@@ -45,6 +48,8 @@ pub struct Document {
     overrides: Vec<String>,
     /// A checkpoint's params.
     trained: Option<Trained>,
+    /// The bake shown instead of the field, with the path it was read from.
+    baked: Option<(String, Bake)>,
 }
 
 /// A checkpoint's trained params.
@@ -56,10 +61,35 @@ struct Trained {
 }
 
 impl Document {
-    /// The document of a script file (or shipped example) or a checkpoint.
+    /// The document of a script file (or shipped example), a checkpoint, or a bake (its splats, with the
+    /// script and params of the checkpoint it was baked from).
     pub fn load(source: &str) -> Result<Document> {
-        let (program, params) = nerfjit::checkpoint::load_source(source)?;
-        Document::of(&program, params, nerfjit::checkpoint::is_checkpoint(source))
+        if !nerfjit::bake_file::is_bake(Path::new(source)) {
+            let (program, params) = nerfjit::checkpoint::load_source(source)?;
+            return Document::of(&program, params, nerfjit::checkpoint::is_checkpoint(source));
+        }
+        let bake = nerfjit::bake_file::read(Path::new(source))?;
+        let checkpoint = bake.source.to_string_lossy().into_owned();
+        let (program, params) = nerfjit::checkpoint::load_source(&checkpoint).map_err(|failure| {
+            Failure::Message(format!(
+                "'{source}' was baked from '{checkpoint}', whose script and cameras the viewer shows (it must \
+                 stay where it was when baked): {}",
+                failure.to_string().trim().trim_start_matches("error: ")
+            ))
+        })?;
+        let mut document = Document::of(&program, params, true)?;
+        document.baked = Some((source.to_string(), bake));
+        Ok(document)
+    }
+
+    /// The bake shown, if the document is one.
+    pub fn bake(&self) -> Option<&Bake> {
+        self.baked.as_ref().map(|(_, bake)| bake)
+    }
+
+    /// The name the page and the commands it shows use: the bake's path for a bake, else the script's.
+    pub fn shown_name(&self) -> &str {
+        self.baked.as_ref().map_or(&self.name, |(path, _)| path)
     }
 
     /// The document of `program` (its script and `--set` overrides) with `params`, trained ones for a
@@ -84,6 +114,7 @@ impl Document {
                 layout: param_layout(program),
                 values: params,
             }),
+            baked: None,
         })
     }
 }
@@ -119,9 +150,17 @@ fn open(args: &ViewArgs, document: &Document) -> Result<(TcpListener, String)> {
             "warning: serving on {bound}: anyone who can reach it and has the token runs code on this machine"
         );
     }
+    let shown = match document.bake() {
+        Some(bake) => format!(
+            "{} ({} splats baked from {})",
+            document.shown_name(),
+            bake.splats.len(),
+            bake.source.display()
+        ),
+        None => document.name.clone(),
+    };
     nerfjit::emit(&format!(
-        "nerfjit view: {} on http://{bound}/?token={token}\n",
-        document.name
+        "nerfjit view: {shown} on http://{bound}/?token={token}\n"
     ));
     Ok((listener, token))
 }

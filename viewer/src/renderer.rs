@@ -1,6 +1,7 @@
 //! One page's renderer: compiles each script the page sends (answering with diagnostics and, when it
 //! compiles, what the scene offers) and renders each camera progressively — a coarse frame at once, finer
-//! ones while no newer request waits, the last at full size as PNG.
+//! ones while no newer request waits, the last at full size as PNG. A bake's frames are drawn at full size
+//! at once: sent as JPEG, then as PNG once the camera rests.
 
 use std::io::Cursor;
 use std::time::{Duration, Instant};
@@ -93,7 +94,7 @@ struct Renderer<'a> {
     document: &'a Document,
     outbox: &'a Outbox,
     live: Option<&'a Live>,
-    scene: Option<Scene>,
+    scene: Option<Scene<'a>>,
     source_id: u64,
     /// The training step of the params shown, with a training run.
     params_step: Option<u32>,
@@ -132,7 +133,11 @@ impl Renderer<'_> {
                 let script_dir = std::path::Path::new(&self.document.name)
                     .parent()
                     .unwrap_or(std::path::Path::new("."));
-                Scene::compile(program, &params, script_dir).map(|scene| (scene, note))
+                match self.document.bake() {
+                    Some(bake) => Scene::of_bake(program, &params, script_dir, bake),
+                    None => Scene::compile(program, &params, script_dir),
+                }
+                .map(|scene| (scene, note))
             });
         self.params_step = trained.map(|(step, _)| step);
         let compile_ms = 1e3 * start.elapsed().as_secs_f64();
@@ -176,7 +181,7 @@ impl Renderer<'_> {
                 json!({"type": "error", "message": "nothing to export: the script has not compiled yet"}),
             );
         };
-        let stem = std::path::Path::new(&self.document.name)
+        let stem = std::path::Path::new(self.document.shown_name())
             .file_stem()
             .and_then(|s| s.to_str())
             .unwrap_or("scene");
@@ -216,6 +221,9 @@ impl Renderer<'_> {
             request.width.clamp(1, MAX_SIDE),
             request.height.clamp(1, MAX_SIDE),
         );
+        if scene.draws_full_frames_at_once() {
+            return self.render_at_once(scene, request, mailbox, (width, height));
+        }
         let full = f64::from(width) * f64::from(height);
         let budget_ms = if training {
             TRAINING_FRAME_BUDGET_MS
@@ -237,19 +245,7 @@ impl Renderer<'_> {
             let seconds = start.elapsed().as_secs_f64();
             self.ns_per_pixel = (1e9 * seconds / (f64::from(w) * f64::from(h))).max(1.0);
             let last = divisor == 1;
-            let header = json!({
-                "type": "frame",
-                "camera_id": request.id,
-                "source_id": self.source_id,
-                "width": w,
-                "height": h,
-                "final": last,
-                "format": if last { "png" } else { "jpeg" },
-                "render_ms": 1e3 * seconds,
-                "params_step": self.params_step,
-            });
-            let bytes = frame_message(&header, &image, last);
-            self.outbox.send(Outgoing::Frame(bytes)).map_err(|_| Gone)?;
+            self.send_frame(request, &image, 1e3 * seconds, last)?;
             if training {
                 std::thread::sleep(Duration::from_secs_f64(seconds * (1.0 / TRAINING_SHARE - 1.0)));
                 return Ok(());
@@ -269,6 +265,56 @@ impl Renderer<'_> {
             divisor /= 2;
         }
     }
+
+    /// Draws `request` at its full `size` and sends it as JPEG, then the same frame as PNG once the
+    /// camera has rested for [`REST`] without a newer request.
+    fn render_at_once(
+        &self,
+        scene: &Scene,
+        request: &FrameRequest,
+        mailbox: &Mailbox,
+        (width, height): (u32, u32),
+    ) -> Result<(), Gone> {
+        let start = Instant::now();
+        let image = match scene.render(&request.view, width, height, request.layer) {
+            Ok(image) => image,
+            Err(failure) => return self.send_failure(&failure),
+        };
+        let render_ms = 1e3 * start.elapsed().as_secs_f64();
+        self.send_frame(request, &image, render_ms, false)?;
+        if mailbox.news_within(REST) {
+            return Ok(());
+        }
+        self.send_frame(request, &image, render_ms, true)
+    }
+
+    /// Sends `image`, the frame of `request` that took `render_ms`: the full-size one as PNG (`last`),
+    /// others as JPEG. The header says how long the encoding took.
+    fn send_frame(
+        &self,
+        request: &FrameRequest,
+        image: &RgbImage,
+        render_ms: f64,
+        last: bool,
+    ) -> Result<(), Gone> {
+        let start = Instant::now();
+        let encoded = encode(image, last);
+        let header = json!({
+            "type": "frame",
+            "camera_id": request.id,
+            "source_id": self.source_id,
+            "width": image.width(),
+            "height": image.height(),
+            "final": last,
+            "format": if last { "png" } else { "jpeg" },
+            "render_ms": render_ms,
+            "encode_ms": 1e3 * start.elapsed().as_secs_f64(),
+            "params_step": self.params_step,
+        });
+        self.outbox
+            .send(Outgoing::Frame(framed(&header, &encoded)))
+            .map_err(|_| Gone)
+    }
 }
 
 /// A binary message: the header's length (u32, little-endian), the JSON header, the body.
@@ -280,16 +326,22 @@ fn framed(header: &Value, body: &[u8]) -> Vec<u8> {
     bytes
 }
 
-/// A frame message: the header and the image (PNG or JPEG).
-fn frame_message(header: &Value, image: &RgbImage, png: bool) -> Vec<u8> {
-    let mut encoded = Cursor::new(Vec::new());
-    let written = if png {
-        image.write_to(&mut encoded, ImageFormat::Png)
-    } else {
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut encoded, 85).encode_image(image)
-    };
-    written.expect("encoding into memory cannot fail");
-    framed(header, encoded.get_ref())
+/// `image` as PNG or as JPEG (quality 85, by `jpeg-encoder`'s vector code).
+fn encode(image: &RgbImage, png: bool) -> Vec<u8> {
+    if png {
+        let mut encoded = Cursor::new(Vec::new());
+        image
+            .write_to(&mut encoded, ImageFormat::Png)
+            .expect("encoding into memory cannot fail");
+        return encoded.into_inner();
+    }
+    let mut encoded = Vec::new();
+    // A side is at most MAX_SIDE (4096), within the JPEG limit of 65,535.
+    let (width, height) = (image.width() as u16, image.height() as u16);
+    jpeg_encoder::Encoder::new(&mut encoded, 85)
+        .encode(image.as_raw(), width, height, jpeg_encoder::ColorType::Rgb)
+        .expect("encoding into memory cannot fail");
+    encoded
 }
 
 /// The diagnostics of a failed compile as the page shows them: 1-based line and column of start and end

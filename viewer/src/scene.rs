@@ -1,5 +1,6 @@
 //! What the viewer shows: a script compiled for display (sphere tracing for an `sdf`, volume rendering for
-//! a `density`/`opacity` field) and rendered from any camera at any size, as color, depth or normals.
+//! a `density`/`opacity` field) or a bake's splats, rendered from any camera at any size, as color, depth
+//! or normals.
 
 use std::path::Path;
 use std::rc::Rc;
@@ -9,10 +10,12 @@ use image::RgbImage;
 use nerfjit_dsl::config::Settings;
 use nerfjit_dsl::{Program, Type};
 use nerfjit_jit::KernelCache;
+use nerfjit_runtime::splats::SplatScene;
 use nerfjit_runtime::{
-    depth_image, normal_image, rgb_image, sphere_trace, Camera, Quantize, Shading, TraceSettings,
+    depth_image, normal_image, rgb_image, sphere_trace, Camera, Quantize, Shading, TraceSettings, VolumeFrame,
 };
 
+use nerfjit::bake_file::Bake;
 use nerfjit::blocks::sphere_trace::{ShadingChoice, SphereTracePlan, TraceFields};
 use nerfjit::commands::render_views::{script_cameras, Rendering};
 use nerfjit::failure::{at, Failure, Result};
@@ -108,7 +111,7 @@ struct Surface {
 }
 
 /// How a scene is drawn.
-enum Renderer {
+enum Renderer<'a> {
     /// A surface, sphere traced.
     Surface(Box<Surface>),
     /// Volume rendering of its `density` (or `opacity`) and `color`, with the settings it trains with.
@@ -116,14 +119,22 @@ enum Renderer {
         fields: VolumeFields,
         rendering: Rendering,
     },
+    /// A bake's splats, drawn over its background; the depth layer spans the field's near and far.
+    Splats {
+        scene: Box<SplatScene<'a>>,
+        background: [f32; 3],
+        rendering: Rendering,
+    },
 }
 
-/// A script compiled for display, with what the page offers for it.
-pub struct Scene {
+/// A script compiled for display (or a bake of it, `'a` being the bake's lifetime), with what the page
+/// offers for it.
+pub struct Scene<'a> {
     program: Program,
-    /// The params the renderer reads (a volume's follow a training run; a surface's are compiled in).
+    /// The params the renderer reads (a volume's follow a training run; a surface's are compiled in; a
+    /// bake's are those of the field it was baked from, for the mesh and checkpoint exports).
     params: Vec<f32>,
-    renderer: Renderer,
+    renderer: Renderer<'a>,
     /// The cameras of the script's first render block with a camera, then those of the data its train
     /// block trains on, each with a label.
     pub cameras: Vec<(String, ViewCamera)>,
@@ -131,10 +142,10 @@ pub struct Scene {
     pub consts: Vec<(String, f64)>,
 }
 
-impl Scene {
+impl<'a> Scene<'a> {
     /// Compiles `program` (a script in `script_dir`) for display with `params` (a checkpoint's trained
     /// values, or the script's own).
-    pub fn compile(program: Program, params: &[f32], script_dir: &Path) -> Result<Scene> {
+    pub fn compile(program: Program, params: &[f32], script_dir: &Path) -> Result<Scene<'a>> {
         let cache = KernelCache::new();
         let renderer = if program.signature("sdf").is_some() {
             surface(&program, params, &cache)?
@@ -145,6 +156,27 @@ impl Scene {
                 rendering,
             }
         };
+        Scene::with(program, params, script_dir, renderer)
+    }
+
+    /// `bake`'s splats made ready to draw, offering the cameras of `program` (in `script_dir`), the
+    /// script of the checkpoint the bake came from, with its trained `params`. Nothing is compiled.
+    pub fn of_bake(program: Program, params: &[f32], script_dir: &Path, bake: &'a Bake) -> Result<Scene<'a>> {
+        let renderer = Renderer::Splats {
+            scene: Box::new(SplatScene::new(&bake.splats)),
+            background: bake.background,
+            rendering: Rendering::of_script(&program),
+        };
+        Scene::with(program, params, script_dir, renderer)
+    }
+
+    /// The scene drawn by `renderer`, with the cameras of `program`'s render block and of its data.
+    fn with(
+        program: Program,
+        params: &[f32],
+        script_dir: &Path,
+        renderer: Renderer<'a>,
+    ) -> Result<Scene<'a>> {
         let labeled = |what: &str, cameras: Vec<Camera>| -> Vec<(String, ViewCamera)> {
             let n = cameras.len();
             let label = |i: usize| format!("{what} {} of {n}", i + 1);
@@ -181,13 +213,18 @@ impl Scene {
     /// What a mesh of the scene extracts: the function, its level and the half-side of the grid around
     /// the origin (a surface's zero level within 4 units, or a volume's density 10 or opacity ½ within
     /// 1.5, the bounds of the NeRF scenes).
+    /// A bake's mesh is that of the field it was baked from.
     pub fn mesh_settings(&self) -> (&'static str, f32, f32) {
+        const DENSITY: (&str, f32, f32) = ("density", 10.0, 1.5);
+        const OPACITY: (&str, f32, f32) = ("opacity", 0.5, 1.5);
         match &self.renderer {
             Renderer::Surface(_) => ("sdf", 0.0, 4.0),
             Renderer::Volume { fields, .. } => match fields.fine.mode {
-                nerfjit_runtime::volume::composite::Mode::Density => ("density", 10.0, 1.5),
-                _ => ("opacity", 0.5, 1.5),
+                nerfjit_runtime::volume::composite::Mode::Density => DENSITY,
+                _ => OPACITY,
             },
+            Renderer::Splats { .. } if self.program.signature("density").is_some() => DENSITY,
+            Renderer::Splats { .. } => OPACITY,
         }
     }
 
@@ -199,19 +236,26 @@ impl Scene {
         }
     }
 
-    /// `surface` (sphere traced) or `volume`.
+    /// `surface` (sphere traced), `volume` or `splats` (a bake).
     pub fn kind(&self) -> &'static str {
         match self.renderer {
             Renderer::Surface(_) => "surface",
             Renderer::Volume { .. } => "volume",
+            Renderer::Splats { .. } => "splats",
         }
+    }
+
+    /// Whether a frame at full size is cheap enough to draw at once, without coarser ones first: a bake's
+    /// time goes mostly to projecting and sorting its splats, which smaller frames do not save.
+    pub fn draws_full_frames_at_once(&self) -> bool {
+        matches!(self.renderer, Renderer::Splats { .. })
     }
 
     /// The layers the scene can show.
     pub fn layers(&self) -> &'static [&'static str] {
         match self.renderer {
             Renderer::Surface(_) => &["color", "depth", "normals"],
-            Renderer::Volume { .. } => &["color", "depth"],
+            Renderer::Volume { .. } | Renderer::Splats { .. } => &["color", "depth"],
         }
     }
 
@@ -219,7 +263,9 @@ impl Scene {
     pub fn near_far(&self) -> (f32, f32) {
         match &self.renderer {
             Renderer::Surface(surface) => (surface.trace.near, surface.trace.far),
-            Renderer::Volume { rendering, .. } => (rendering.near, rendering.far),
+            Renderer::Volume { rendering, .. } | Renderer::Splats { rendering, .. } => {
+                (rendering.near, rendering.far)
+            }
         }
     }
 
@@ -256,18 +302,21 @@ impl Scene {
                     Layer::Normals => normal_image(&frame)?,
                 })
             }
+            Renderer::Volume { .. } | Renderer::Splats { .. } if layer == Layer::Normals => Err(
+                Failure::Message("normals are shown for surfaces (scripts with an sdf) only".into()),
+            ),
             Renderer::Volume { fields, rendering } => {
-                if layer == Layer::Normals {
-                    return Err(Failure::Message(
-                        "normals are shown for surfaces (scripts with an sdf) only".into(),
-                    ));
-                }
                 let settings = rendering.settings(fields.fine.mode);
                 let frame = fields.render(&camera, width, height, &self.params, &settings)?;
-                Ok(match layer {
-                    Layer::Depth => volume_depth(&frame.depth, &frame.opacity, width, height, rendering),
-                    _ => rgb_image(width, height, &frame.rgb, Quantize::Truncate)?,
-                })
+                composited(&frame, layer, rendering)
+            }
+            Renderer::Splats {
+                scene,
+                background,
+                rendering,
+            } => {
+                let (frame, _) = scene.render(&camera, width, height, *background)?;
+                composited(&frame, layer, rendering)
             }
         }
     }
@@ -275,7 +324,7 @@ impl Scene {
 
 /// Compiles the sphere tracer of `program`'s `sdf`, shaded as its first `render sphere_trace` block says
 /// (Lambert light, far 20, 128 steps when it has none).
-fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Renderer> {
+fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Renderer<'static>> {
     let compiler = Compiler {
         program,
         params,
@@ -319,6 +368,16 @@ fn surface(program: &Program, params: &[f32], cache: &KernelCache) -> Result<Ren
         shading,
         trace,
     })))
+}
+
+/// `layer` of a composited frame (a volume's or a bake's): its color, as the CLI's render quantizes it, or
+/// its depth.
+fn composited(frame: &VolumeFrame, layer: Layer, rendering: &Rendering) -> Result<RgbImage> {
+    let (width, height) = (frame.width, frame.height);
+    Ok(match layer {
+        Layer::Depth => volume_depth(&frame.depth, &frame.opacity, width, height, rendering),
+        _ => rgb_image(width, height, &frame.rgb, Quantize::Truncate)?,
+    })
 }
 
 /// The expected depth of a volume render as gray (near white, far black; empty space black).

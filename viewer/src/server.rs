@@ -286,6 +286,11 @@ async fn session(mut page: Page, document: Arc<Document>, live: Option<Arc<Live>
         "name": document.name,
         "source": document.source,
         "checkpoint": document.trained.is_some(),
+        "bake": document.bake().map(|bake| json!({
+            "path": document.shown_name(),
+            "splats": bake.splats.len(),
+            "checkpoint": bake.source.to_string_lossy(),
+        })),
         "training": live.as_ref().map(|l| json!({"history": l.history(), "paused": l.paused()})),
     });
     if !page.send_json(&hello).await {
@@ -297,6 +302,7 @@ async fn session(mut page: Page, document: Arc<Document>, live: Option<Arc<Live>
     let worker = {
         let mailbox = Arc::clone(&mailbox);
         let live = live.clone();
+        let document = Arc::clone(&document);
         std::thread::Builder::new()
             .name("nerfjit view".into())
             .stack_size(nerfjit::WORK_STACK_BYTES)
@@ -318,7 +324,7 @@ async fn session(mut page: Page, document: Arc<Document>, live: Option<Arc<Live>
                 heard = Instant::now();
                 match incoming {
                     Some(Ok(Message::Text(text))) => {
-                        if let Err(message) = post(&text, &mailbox, live.as_deref()) {
+                        if let Err(message) = post(&text, &mailbox, live.as_deref(), &document) {
                             if !page.send_json(&json!({"type": "error", "message": message})).await {
                                 break;
                             }
@@ -379,8 +385,13 @@ async fn next_record(progress: &mut Option<tokio::sync::watch::Receiver<Value>>)
 }
 
 /// Reads one request of the page and posts it for the renderer (or, to pause or resume, to the training
-/// run); says what is wrong with a bad one.
-fn post(text: &str, mailbox: &Mailbox, live: Option<&Live>) -> std::result::Result<(), String> {
+/// run); says what is wrong with a bad one. A bake's script is read-only: the splats do not follow it.
+fn post(
+    text: &str,
+    mailbox: &Mailbox,
+    live: Option<&Live>,
+    document: &Document,
+) -> std::result::Result<(), String> {
     let request: Value =
         serde_json::from_str(text).map_err(|e| format!("a request that is not JSON: {e}"))?;
     let id = request["id"]
@@ -389,6 +400,13 @@ fn post(text: &str, mailbox: &Mailbox, live: Option<&Live>) -> std::result::Resu
     match request["type"].as_str() {
         Some("source") if live.is_some() => {
             return Err("the script is being trained: edit it once the run has ended".into());
+        }
+        Some("source") if document.bake().is_some() => {
+            return Err(format!(
+                "the script is that of the checkpoint the splats were baked from, shown read-only: to edit the \
+                 field, view the checkpoint (nerfjit view {})",
+                document.bake().map_or_else(Default::default, |b| b.source.to_string_lossy())
+            ));
         }
         Some("pause") => {
             let live = live.ok_or("only a training run (nerfjit run --view) can be paused")?;

@@ -545,3 +545,70 @@ fn a_checkpoint_is_shown_with_its_trained_params_and_an_edit_that_changes_them_s
         "trained and initial params differ"
     );
 }
+
+#[test]
+fn a_bake_is_drawn_at_full_size_as_the_cli_renders_it_with_its_script_read_only() {
+    let dir = scratch("bake");
+    crate::common::make_views(&dir);
+    std::fs::write(dir.join("train.sdf"), crate::common::trainer_with(200, "")).unwrap();
+    let (ok, _, err) = crate::common::run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    let bake = [
+        "bake",
+        "train.ckpt.safetensors",
+        "--cameras",
+        "cams.json",
+        "--size",
+        "40",
+        "--out",
+        "box.bake",
+    ];
+    let (ok, _, err) = crate::common::run(&dir, &bake);
+    assert!(ok, "{err}");
+    let viewer = serve(&["view", "box.bake", "--port", "0"], &dir);
+    let mut socket = connect(&viewer, &viewer.token).unwrap();
+    let (hello, scene) = opening(&mut socket);
+    assert_eq!(hello["bake"]["path"], "box.bake", "{hello}");
+    assert!(hello["bake"]["splats"].as_u64().unwrap() > 50, "{hello}");
+    assert!(
+        hello["source"].as_str().unwrap().contains("train {"),
+        "the checkpoint's script: {hello}"
+    );
+    assert_eq!(scene["kind"], "splats");
+    assert_eq!(scene["layers"], json!(["color", "depth"]));
+    let (eye, side) = ([-2.5, 0.8, 0.6], 48);
+    let camera = json!({"eye": eye, "target": [0, 0, 0], "up": [0, 1, 0], "focal": 1.0});
+    for (id, layer) in [(1, "color"), (2, "depth")] {
+        send(&mut socket, camera_request(id, &camera, side, side, layer));
+        let (headers, picture) = frames_until_final(&mut socket, id);
+        // No coarse frames: the full size at once as JPEG, then (the camera resting) as PNG.
+        let formats: Vec<&str> = headers.iter().map(|h| h["format"].as_str().unwrap()).collect();
+        assert_eq!(formats, ["jpeg", "png"], "{layer}");
+        assert!(headers.iter().all(|h| h["width"] == side && h["height"] == side));
+        assert!(
+            spread(&picture) > 10.0,
+            "{layer}: the box shows, not the background alone"
+        );
+        if layer == "color" {
+            // The CLI's render of the bake from the same camera, pixel for pixel.
+            let path = format!("look_at(eye: {eye:?}, at: [0, 0, 0], up: [0, 1, 0], focal: 1.0)");
+            let args = [
+                "render", "box.bake", "--path", &path, "--size", "48", "--out", "cli",
+            ];
+            let (ok, _, err) = crate::common::run(&dir, &args);
+            assert!(ok, "{err}");
+            let cli = image::open(dir.join("cli/view.png")).unwrap().to_rgb8();
+            assert_eq!(mean_difference(&picture, &cli), 0.0);
+        }
+    }
+    send(
+        &mut socket,
+        json!({"type": "source", "id": 3, "text": "fn density(p: vec3) -> f32 = 1"}),
+    );
+    let refused = json_message(&mut socket);
+    assert_eq!(refused["type"], "error");
+    assert!(
+        refused["message"].as_str().unwrap().contains("read-only"),
+        "{refused}"
+    );
+}
