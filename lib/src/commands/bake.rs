@@ -197,11 +197,11 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
             let fine = elapsed >= COARSE_SHARE * seconds || coarse_size.0 < 16 || coarse_size.1 < 16;
             if fine && light.is_none() {
                 // Once every view was seen at half size, the splats that weigh next to nothing in all
-                // of them go; the tuner starts afresh for those left.
+                // of them go.
                 let seen = steps >= views.len();
                 let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= MIN_WEIGHT).collect();
                 light = Some(bake.splats.retain(&keep));
-                tuner = SplatTuner::new(bake.splats.len(), rates);
+                tuner.retain(&keep)?;
             }
             let (size, target) = match fine {
                 true => ((views.width, views.height), &views.images[v].pixels),

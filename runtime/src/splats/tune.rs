@@ -60,6 +60,33 @@ impl SplatTuner {
         }
     }
 
+    /// Keeps the state of splat `i` where `keep[i]`, as [`Splats::retain`] keeps the splats (so that
+    /// tuning goes on where it was for those left).
+    pub fn retain(&mut self, keep: &[bool]) -> Result<()> {
+        for (adam, per_splat) in [
+            (&mut self.positions, 3),
+            (&mut self.colors, 3),
+            (&mut self.opacities, 1),
+            (&mut self.scales, 3),
+            (&mut self.rotations, 4),
+        ] {
+            let (m, v) = adam.moments();
+            let kept = |values: &[f32]| -> Vec<f32> {
+                values
+                    .chunks(per_splat)
+                    .zip(keep.iter().chain(std::iter::repeat(&true)))
+                    .filter(|(_, &keep)| keep)
+                    .flat_map(|(chunk, _)| chunk.iter().copied())
+                    .collect()
+            };
+            let (m, v) = (kept(m), kept(v));
+            let mut kept = Adam::from_moments(adam.lr, adam.steps(), m, v)?;
+            kept.eps = adam.eps;
+            *adam = kept;
+        }
+        Ok(())
+    }
+
     /// One Adam step of `splats` down `gradients` (with respect to the splats' own parameters, as
     /// [`splat_loss_gradients`](super::splat_loss_gradients) gives them), every rate times `factor`.
     pub fn step(&mut self, splats: &mut Splats, gradients: &SplatGradients, factor: f32) -> Result<()> {
