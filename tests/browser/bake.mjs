@@ -10,12 +10,10 @@
 // usage: node tests/browser/bake.mjs NERFJIT_BINARY BAKE OUT_DIR [--size 800] [--seconds 5] [--min-fps 2]
 //        (after `npm ci` in tests/browser)
 
-import { spawn } from "node:child_process";
 import { mkdirSync, readdirSync, readFileSync } from "node:fs";
 import { join } from "node:path";
-import { createInterface } from "node:readline";
 import { parseArgs } from "node:util";
-import { chromium } from "playwright-core";
+import { launchChromium, startViewer } from "./launch.mjs";
 
 const { values: options, positionals } = parseArgs({
   allowPositionals: true,
@@ -69,20 +67,8 @@ function cpuSeconds() {
   return used;
 }
 
-const server = spawn(binary, ["view", bake, "--port", "0"], { stdio: ["ignore", "pipe", "inherit"] });
-const url = await new Promise((resolve, reject) => {
-  createInterface({ input: server.stdout }).once("line", (line) => {
-    const found = line.match(/http:\/\/\S+/);
-    found ? resolve(found[0]) : reject(new Error(`no URL in ${line}`));
-  });
-  server.once("exit", (code) => reject(new Error(`nerfjit view exited with ${code}`)));
-});
-
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-  args: ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync"],
-});
+const { server, url } = await startViewer(binary, [bake]);
+const browser = await launchChromium();
 const results = { bake, size: [size, size], seconds, load_average_before: load() };
 try {
   const page = await browser.newPage({ viewport: { width: size + 900, height: size + 300 } });

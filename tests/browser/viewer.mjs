@@ -5,11 +5,10 @@
 //
 // usage: node tests/browser/viewer.mjs NERFJIT_BINARY OUT_DIR   (after `npm ci` in tests/browser)
 
-import { spawn, execFileSync } from "node:child_process";
+import { execFileSync } from "node:child_process";
 import { readFileSync, mkdirSync } from "node:fs";
 import { join } from "node:path";
-import { createInterface } from "node:readline";
-import { chromium } from "playwright-core";
+import { launchChromium, startViewer } from "./launch.mjs";
 
 const [binary, outDir] = process.argv.slice(2);
 if (!binary || !outDir) {
@@ -37,20 +36,8 @@ execFileSync(binary, [
 ], { stdio: ["ignore", "ignore", "inherit"] });
 const reference = readFileSync(join(outDir, "reference.png")).toString("base64");
 
-const server = spawn(binary, ["view", "examples/showcase.sdf", "--port", "0"], { stdio: ["ignore", "pipe", "inherit"] });
-const url = await new Promise((resolve, reject) => {
-  createInterface({ input: server.stdout }).once("line", (line) => {
-    const found = line.match(/http:\/\/\S+/);
-    found ? resolve(found[0]) : reject(new Error(`no URL in ${line}`));
-  });
-  server.once("exit", (code) => reject(new Error(`nerfjit view exited with ${code}`)));
-});
-
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-  args: ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync"],
-});
+const { server, url } = await startViewer(binary, ["examples/showcase.sdf"]);
+const browser = await launchChromium();
 const results = {};
 try {
   const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
