@@ -12,7 +12,7 @@ use nerfjit::commands::render_views::{held_out_views, script_cameras, ViewArgs};
 use nerfjit::failure::{Failure, Result};
 use nerfjit_field::VolumeFields;
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::splats::SplatScene;
+use nerfjit_runtime::splats::{SplatFrameStats, SplatScene, SPLAT_PHASES};
 
 /// Views rendered per repetition, spread over the cameras.
 const VIEWS: usize = 4;
@@ -57,12 +57,14 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
         ));
         // Made ready once, as a viewer or a video does (the covariances: ~1 ms a frame if made each time).
         let scene = SplatScene::new(&bake.splats);
-        return time_frames(reps, &views, |camera, size| {
-            scene
-                .render(camera, size, size, bake.background)
-                .map(|_| ())
-                .map_err(Into::into)
-        });
+        let phases = std::sync::Mutex::new(Vec::new());
+        time_frames(reps, &views, |camera, size| {
+            let (_, stats) = scene.render(camera, size, size, bake.background)?;
+            phases.lock().unwrap().push((size, stats));
+            Ok(())
+        })?;
+        report_phases(&phases.into_inner().unwrap());
+        return Ok(());
     }
     let args = ViewArgs {
         source: &source,
@@ -92,6 +94,31 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
             .map(|_| ())
             .map_err(Into::into)
     })
+}
+
+/// Prints the median time of each phase of the splat renderer's frames at each size, and how many splats
+/// and splat-tile pairs they drew.
+fn report_phases(frames: &[(u32, SplatFrameStats)]) {
+    for size in [800, 400] {
+        let of_size: Vec<_> = frames.iter().filter(|(s, _)| *s == size).collect();
+        let medians: Vec<String> = SPLAT_PHASES
+            .iter()
+            .enumerate()
+            .map(|(k, name)| {
+                let times = of_size.iter().map(|(_, f)| f.phases[k].as_secs_f64()).collect();
+                format!("{name} {:.1}", 1e3 * crate::median(times))
+            })
+            .collect();
+        let count = |of: fn(&SplatFrameStats) -> usize| {
+            crate::median(of_size.iter().map(|(_, f)| of(f) as f64).collect())
+        };
+        nerfjit::emit(&format!(
+            "  {size}×{size} phases (ms, medians): {}; {:.0} splats on the screen, {:.0} splat-tile pairs\n",
+            medians.join(", "),
+            count(|f| f.visible),
+            count(|f| f.entries)
+        ));
+    }
 }
 
 /// Times `draw` of every view at 800² and 400², `reps` times, and prints the median time a frame.

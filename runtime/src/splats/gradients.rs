@@ -171,9 +171,9 @@ fn tile_gradients(
         let p: &Projected = &screen.buffers.projected[entry as usize];
         let mut g = [0.0f32; 9];
         let mut weight_sum = 0.0f32;
-        for y in span(p.row, p.radius, area.y0, area.y1) {
+        for y in span(p.row, p.extent[1], area.y0, area.y1) {
             let dy = y as f32 + 0.5 - p.row;
-            for x in span(p.col, p.radius, area.x0, area.x1) {
+            for x in span(p.col, p.extent[0], area.x0, area.x1) {
                 let k = (y - area.y0) * TILE + (x - area.x0);
                 if place as u32 >= taken[k] {
                     continue;

@@ -11,7 +11,7 @@ mod tune;
 
 pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
-pub use raster::{render_splats, SplatFrameStats, SplatScene};
+pub use raster::{render_splats, SplatFrameStats, SplatScene, SPLAT_PHASES};
 pub use tune::{SplatTuner, TuneRates};
 
 use crate::error::{Error, Result};

@@ -10,6 +10,7 @@
 //! background, opacity, and the expected distance from the camera Σ wᵢ dᵢ (not normalized).
 
 use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
@@ -58,7 +59,13 @@ pub struct SplatFrameStats {
     pub visible: usize,
     /// Splat-tile pairs drawn.
     pub entries: usize,
+    /// The time each phase of the frame took: projecting every splat, sorting the visible ones by
+    /// distance (and gathering them in that order), binning them into tiles, compositing the tiles.
+    pub phases: [Duration; 4],
 }
+
+/// The names of [`SplatFrameStats::phases`].
+pub const SPLAT_PHASES: [&str; 4] = ["project", "sort", "bin", "composite"];
 
 /// A splat as the screen sees it.
 #[derive(Debug, Clone, Copy, Default)]
@@ -70,9 +77,10 @@ pub(super) struct Projected {
     pub row: f32,
     /// The inverse of the 2D covariance: (a, b, c) of [[a, b], [b, c]].
     pub conic: [f32; 3],
-    /// The half-side of its square on the screen, in pixels: it holds every pixel where its alpha reaches
-    /// [`MIN_ALPHA`] (so that the frame changes smoothly with the splat, but at that edge).
-    pub radius: f32,
+    /// The half-width (along the columns) and half-height (along the rows) of the box on the screen, in
+    /// pixels, that holds its ellipse: every pixel where its alpha reaches [`MIN_ALPHA`] (so that the frame
+    /// changes smoothly with the splat, but at that edge).
+    pub extent: [f32; 2],
     /// Its distance from the camera.
     pub distance: f32,
     pub opacity: f32,
@@ -170,10 +178,13 @@ impl<'a> SplatScene<'a> {
         let mut kept = self.buffers.try_lock();
         let buffers = kept.as_deref_mut().map(std::mem::take).unwrap_or_default();
         let screen = self.screen(camera, width, height, buffers)?;
+        let start = Instant::now();
         let (frame, _) = screen.draw(background);
+        let [project, sort, bin] = screen.phases;
         let stats = SplatFrameStats {
             visible: screen.buffers.projected.len(),
             entries: screen.buffers.entries.len(),
+            phases: [project, sort, bin, start.elapsed()],
         };
         if let Ok(kept) = kept.as_deref_mut() {
             *kept = screen.buffers;
@@ -183,8 +194,10 @@ impl<'a> SplatScene<'a> {
 
     /// The splats `viewer` sees, nearest first: each projected into its place (a splat out of sight with
     /// the largest key), the keys (the distance's bits, positive distances sorting as their bits do) sorted
-    /// by a radix sort, and the projections gathered in that order.
-    fn project(&self, viewer: &Viewer, buffers: &mut Buffers) {
+    /// by a radix sort, and the projections gathered in that order. Returns the time projecting took and
+    /// the time sorting and gathering took.
+    fn project(&self, viewer: &Viewer, buffers: &mut Buffers) -> [Duration; 2] {
+        let start = Instant::now();
         const CHUNK: usize = 4096;
         let n = self.splats.len();
         let Buffers {
@@ -207,6 +220,8 @@ impl<'a> SplatScene<'a> {
                     };
                 }
             });
+        let projecting = start.elapsed();
+        let start = Instant::now();
         radsort::sort_by_key(keys, |&(key, _)| key);
         let visible = keys.partition_point(|&(key, _)| key != OUT_OF_SIGHT);
         projected.resize(visible, Projected::default());
@@ -218,6 +233,7 @@ impl<'a> SplatScene<'a> {
                     *p = all[i as usize];
                 }
             });
+        [projecting, start.elapsed()]
     }
 
     /// The splats projected and binned as `camera` sees them in a `width`×`height` frame, in `buffers`.
@@ -231,9 +247,11 @@ impl<'a> SplatScene<'a> {
         check_size(width, height)?;
         let (tiles_x, tiles_y) = ((width as usize).div_ceil(TILE), (height as usize).div_ceil(TILE));
         let viewer = Viewer::of(camera, width, height);
-        self.project(&viewer, &mut buffers);
+        let [project, sort] = self.project(&viewer, &mut buffers);
+        let start = Instant::now();
         bin(&mut buffers, (tiles_x, tiles_y));
         Ok(Screen {
+            phases: [project, sort, start.elapsed()],
             viewer,
             buffers,
             width: width as usize,
@@ -252,6 +270,8 @@ pub(super) struct Screen {
     pub width: usize,
     pub height: usize,
     pub tiles_x: usize,
+    /// The time projecting, sorting and binning took.
+    pub phases: [Duration; 3],
 }
 
 /// The pixels of a tile: columns `x0..x1`, rows `y0..y1` of the frame.
@@ -402,13 +422,14 @@ impl Viewer {
         if !(det > 0.0 && det.is_finite()) {
             return None;
         }
-        let mid = 0.5 * (a + c);
-        let largest = mid + (mid * mid - det).max(0.0).sqrt();
-        // Its alpha reaches MIN_ALPHA within the ellipse where the exponent is the cutoff, whose half-width
-        // along its widest axis this is.
+        // Its alpha reaches MIN_ALPHA within the ellipse where the exponent is the cutoff (dᵀ Σ⁻¹ d =
+        // −2 cutoff), whose half-width along the columns is √(−2 cutoff a) and along the rows √(−2 cutoff c).
         let cutoff = scene.cutoffs[i];
-        let radius = (-2.0 * cutoff * largest).sqrt();
-        if col + radius < 0.0 || row + radius < 0.0 || col - radius > self.width || row - radius > self.height
+        let extent = [(-2.0 * cutoff * a).sqrt(), (-2.0 * cutoff * c).sqrt()];
+        if col + extent[0] < 0.0
+            || row + extent[1] < 0.0
+            || col - extent[0] > self.width
+            || row - extent[1] > self.height
         {
             return None;
         }
@@ -417,7 +438,7 @@ impl Viewer {
             col,
             row,
             conic: [c / det, -b / det, a / det],
-            radius,
+            extent,
             distance: v.length(),
             opacity: splats.opacities[i],
             cutoff,
@@ -426,19 +447,14 @@ impl Viewer {
     }
 }
 
-/// Calls `f` with each tile (its place, row by row, of `tiles` = (columns, rows)) that `p`'s square
+/// Calls `f` with each tile (its place, row by row, of `tiles` = (columns, rows)) that `p`'s box
 /// touches.
 #[inline(always)]
 fn each_tile(p: &Projected, (tiles_x, tiles_y): (usize, usize), mut f: impl FnMut(usize)) {
     let tile = |at: f32, n: usize| ((at / TILE as f32).floor().max(0.0) as usize).min(n);
-    let (x0, x1) = (
-        tile(p.col - p.radius, tiles_x),
-        tile(p.col + p.radius, tiles_x - 1) + 1,
-    );
-    let (y0, y1) = (
-        tile(p.row - p.radius, tiles_y),
-        tile(p.row + p.radius, tiles_y - 1) + 1,
-    );
+    let [wide, high] = p.extent;
+    let (x0, x1) = (tile(p.col - wide, tiles_x), tile(p.col + wide, tiles_x - 1) + 1);
+    let (y0, y1) = (tile(p.row - high, tiles_y), tile(p.row + high, tiles_y - 1) + 1);
     for y in y0..y1 {
         for x in x0..x1 {
             f(y * tiles_x + x);
@@ -652,12 +668,12 @@ fn draw_tile(
             *copy = projected[entry as usize];
         }
         for (place, p) in (first..).zip(&batch[..entries.len()]) {
-            let columns = span(p.col, p.radius, area.x0, area.x1);
+            let columns = span(p.col, p.extent[0], area.x0, area.x1);
             if columns.is_empty() {
                 continue;
             }
             let halves = (columns.start - area.x0) / LANES..(columns.end - 1 - area.x0) / LANES + 1;
-            for y in span(p.row, p.radius, area.y0, area.y1) {
+            for y in span(p.row, p.extent[1], area.y0, area.y1) {
                 for half in halves.clone() {
                     let k = (y - area.y0) * TILE + half * LANES;
                     pixels.composite(p, place, k, area.x0 + half * LANES, y);
