@@ -260,6 +260,10 @@ enum Command {
         /// Seconds of fine-tuning the splats against the field's training views after baking (0: none).
         #[arg(long, default_value_t = 0.0, value_parser = tune_seconds)]
         tune: f64,
+        /// The degree of the tuned splats' spherical harmonics: 1, colors that change with the view (the
+        /// `.ply`'s `f_rest`); 0, one color a splat (smaller files).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(0..=1))]
+        sh_degree: u8,
     },
     /// Export a baked scene (.bake) as a file other tools open: `splat-ply`, the 3D Gaussian splatting
     /// .ply that splat viewers read.
@@ -722,8 +726,16 @@ fn run_command(cli: Cli) -> ExitCode {
         } => render_views::render(&view.args(&source), cameras.source(), &out, gif)
             .map(|text| emit(&format!("{text}\n"))),
         // Views of 400² make splats the size of a pixel at 800².
-        Command::Bake { seen, tune } => {
-            bake::run(&seen.args(Some(400)), tune).map(|text| emit(&format!("{text}\n")))
+        Command::Bake {
+            seen,
+            tune,
+            sh_degree,
+        } => {
+            let tuning = bake::Tuning {
+                seconds: tune,
+                sh_degree,
+            };
+            bake::run(&seen.args(Some(400)), tuning).map(|text| emit(&format!("{text}\n")))
         }
         Command::Export { scene, format, out } => {
             bake::export(&scene, format, &out).map(|text| emit(&format!("{text}\n")))

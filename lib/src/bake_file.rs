@@ -1,6 +1,7 @@
 //! The `.bake` file: a trained field baked into Gaussian splats by `nerfjit bake`, as a safetensors file
 //! (float32 tensors `positions` (N, 3), `colors` (N, 3), `opacities` (N), `scales` (N, 3), `rotations`
-//! (N, 4), as [`Splats`] holds them) whose metadata says its format, the background its views are drawn
+//! (N, 4), as [`Splats`] holds them, and where the splats have them `sh` (N, 9), the degree-one spherical
+//! harmonics, coefficient by coefficient, each an RGB triple) whose metadata says its format, the background its views are drawn
 //! on and the checkpoint it was baked from (whose data gives the views it is scored on).
 
 use std::borrow::Cow;
@@ -83,13 +84,20 @@ pub fn write(path: &Path, bake: &Bake) -> Result<()> {
         ),
         ("source".to_string(), bake.source.to_string_lossy().into_owned()),
     ]);
-    let tensors = [
+    let mut tensors = vec![
         ("positions", Floats::rows(&s.positions)),
         ("colors", Floats::rows(&s.colors)),
         ("opacities", Floats::rows(&opacities)),
         ("scales", Floats::rows(&s.scales)),
         ("rotations", Floats::rows(&s.rotations)),
     ];
+    if !s.sh.is_empty() {
+        let flat: Vec<[f32; 9]> =
+            s.sh.iter()
+                .map(|h| std::array::from_fn(|k| h[k / 3][k % 3]))
+                .collect();
+        tensors.push(("sh", Floats::rows(&flat)));
+    }
     let bytes = safetensors::tensor::serialize(tensors, Some(metadata))
         .map_err(|e| Failure::Message(format!("cannot write '{}': {e}", path.display())))?;
     Ok(nerfjit_runtime::write_whole(path, &bytes)?)
@@ -147,6 +155,13 @@ pub fn read(path: &Path) -> Result<Bake> {
         opacities: floats("opacities", 1)?,
         scales: rows_of(floats("scales", 3)?),
         rotations: rows_of(floats("rotations", 4)?),
+        sh: match file.names().contains(&"sh") {
+            true => rows_of::<9>(floats("sh", 9)?)
+                .into_iter()
+                .map(|h| std::array::from_fn(|k| std::array::from_fn(|c| h[3 * k + c])))
+                .collect(),
+            false => Vec::new(),
+        },
     };
     splats.check().map_err(|e| bad(&e.to_string()))?;
     Ok(Bake {
@@ -168,6 +183,7 @@ mod tests {
                 opacities: vec![0.9, 0.25],
                 scales: vec![[0.01, 0.02, 0.03], [0.5, 0.5, 0.5]],
                 rotations: vec![[1.0, 0.0, 0.0, 0.0], [0.0, 0.6, 0.8, 0.0]],
+                sh: vec![[[0.1, -0.2, 0.3], [0.0, 0.5, -0.5], [1.0, 2.0, 3.0]]; 2],
             },
             background: [1.0, 1.0, 1.0],
             source: PathBuf::from("runs/lego.ckpt.safetensors"),
@@ -180,6 +196,10 @@ mod tests {
         let path = dir.path().join("scene.bake");
         write(&path, &bake()).unwrap();
         assert_eq!(read(&path).unwrap(), bake());
+        let mut alike_from_every_side = bake();
+        alike_from_every_side.splats.sh.clear();
+        write(&path, &alike_from_every_side).unwrap();
+        assert_eq!(read(&path).unwrap(), alike_from_every_side);
     }
 
     #[test]

@@ -43,6 +43,7 @@ pub const TUNE_RATES: TuneRates = TuneRates {
     opacity: 0.05,
     scale: 0.005,
     rotation: 0.001,
+    sh: 0.015,
 };
 
 /// The share of fine-tuning's time spent on the views at half their size (four times the steps a second).
@@ -67,10 +68,20 @@ pub const CARVE_CELLS: f32 = 3.0;
 /// The finest and the coarsest levels of detail: cells 2⁻²⁴ to 2²⁴ times as wide as the median footprint.
 pub const MAX_LEVEL: i32 = 24;
 
+/// How a bake is fine-tuned.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tuning {
+    /// Seconds of fine-tuning (0: none).
+    pub seconds: f64,
+    /// The degree of the spherical harmonics of the splats' colors: 0 (the same from every side) or 1
+    /// (colors that change with the view: nine more numbers a splat, learnt while tuning).
+    pub sh_degree: u8,
+}
+
 /// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
-/// for `tune_seconds` against its training views (see [`tune`]; 0: not at all) and writes them to
-/// `args.out`; returns a summary.
-pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
+/// as `tuning` says against its training views (see [`tune`]) and writes them to `args.out`; returns a
+/// summary.
+pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
     if !bake_file::is_bake(args.out) {
         return Err(Failure::Message(format!(
             "'{}' must end in .bake (export it afterwards: nerfjit export SCENE.bake --format splat-ply)",
@@ -98,9 +109,9 @@ pub fn run(args: &PointsArgs, tune_seconds: f64) -> Result<String> {
         cameras.len(),
         start.elapsed().as_secs_f64(),
     );
-    if tune_seconds > 0.0 {
+    if tuning.seconds > 0.0 {
         let (program, _) = crate::checkpoint::load_source(args.view.source)?;
-        text += &tune(&mut bake, &program, args.view.source, tune_seconds)?;
+        text += &tune(&mut bake, &program, args.view.source, tuning)?;
     }
     bake_file::write(args.out, &bake)?;
     let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
@@ -135,13 +146,17 @@ fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
         .collect())
 }
 
-/// Fine-tunes the splats of `bake` for `seconds` against the training views of `source` (a checkpoint,
+/// Fine-tunes the splats of `bake` for `tuning.seconds` against the training views of `source` (a checkpoint,
 /// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
 /// the time takes the views at half size; then the splats that weighed under [`MIN_WEIGHT`] in every view
-/// are dropped, and at the end those left fainter than [`MIN_OPACITY`]. Returns what it did, a line a pass.
-pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> Result<String> {
+/// are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
+/// without spherical harmonics get them at that point (zero: the colors unchanged), tuned with the rest in
+/// the second half.
+/// Returns what it did, a line a pass.
+pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) -> Result<String> {
+    let seconds = tuning.seconds;
     let start = Instant::now();
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
     let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
@@ -202,6 +217,13 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, seconds: f64) -> R
                 let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= MIN_WEIGHT).collect();
                 light = Some(bake.splats.retain(&keep));
                 tuner.retain(&keep)?;
+                // Colors start to change with the view once the splats have found their places (as 3D
+                // Gaussian splatting raises the harmonics' degree as it trains): from the start, they
+                // learn to make up for misplaced splats in each view, which the views held out do not
+                // share.
+                if tuning.sh_degree > 0 && bake.splats.sh.is_empty() {
+                    bake.splats.sh = vec![[[0.0; 3]; 3]; bake.splats.len()];
+                }
             }
             let (size, target) = match fine {
                 true => ((views.width, views.height), &views.images[v].pixels),

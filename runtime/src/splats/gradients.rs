@@ -12,6 +12,7 @@ use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
 
 use super::raster::{alpha_at, per_tile, span, Projected, Screen, Viewer, MAX_ALPHA, TILE};
+use super::shading::seen_color_gradient;
 use super::Splats;
 use crate::cameras::camera::Camera;
 use crate::error::{Error, Result};
@@ -30,6 +31,8 @@ pub struct SplatGradients {
     pub scales: Vec<[f32; 3]>,
     /// With respect to the quaternions (w, x, y, z) as stored (they are normalized before use).
     pub rotations: Vec<[f32; 4]>,
+    /// With respect to the degree-one spherical harmonics (empty when the splats have none).
+    pub sh: Vec<[[f32; 3]; 3]>,
     /// Not a derivative: each splat's weight in the frame, the sum over its pixels of its alpha times the
     /// transmittance in front of it (in pixels; 0 for a splat the frame does not show). Fine-tuning drops
     /// splats that weigh next to nothing in every view.
@@ -37,9 +40,10 @@ pub struct SplatGradients {
 }
 
 impl SplatGradients {
-    /// Zero gradients for `n` splats.
-    fn zeros(n: usize) -> SplatGradients {
+    /// Zero gradients for `n` splats (with spherical harmonics or not).
+    fn zeros(n: usize, sh: bool) -> SplatGradients {
         SplatGradients {
+            sh: vec![[[0.0; 3]; 3]; if sh { n } else { 0 }],
             positions: vec![[0.0; 3]; n],
             colors: vec![[0.0; 3]; n],
             opacities: vec![0.0; n],
@@ -113,7 +117,7 @@ pub fn splat_loss_gradients(
         weights[*entry as usize] += w;
     }
 
-    let mut gradients = SplatGradients::zeros(splats.len());
+    let mut gradients = SplatGradients::zeros(splats.len(), !splats.sh.is_empty());
     let chained: Vec<(usize, SplatGradient)> = screen
         .buffers
         .projected
@@ -126,7 +130,10 @@ pub fn splat_loss_gradients(
     }
     for (i, g) in chained {
         gradients.positions[i] = g.position.into();
-        gradients.colors[i] = [g.screen[6], g.screen[7], g.screen[8]];
+        gradients.colors[i] = g.color;
+        if let Some(sh) = gradients.sh.get_mut(i) {
+            *sh = g.sh;
+        }
         gradients.opacities[i] = g.screen[5];
         gradients.scales[i] = g.scale.into();
         gradients.rotations[i] = g.rotation;
@@ -216,15 +223,18 @@ struct SplatGradient {
     /// With respect to its screen-space Gaussian, opacity and color (as summed over the pixels).
     screen: ScreenGradient,
     position: Vec3,
+    color: [f32; 3],
+    sh: [[f32; 3]; 3],
     scale: Vec3,
     rotation: [f32; 4],
 }
 
-/// Carries the gradient `g` of projected splat `p` through its projection (see `Viewer::project`) to its
-/// center, scales and rotation.
+/// Carries the gradient `g` of projected splat `p` through its projection (see `Viewer::project`) and its
+/// shading (see `shading`) to its center, color, spherical harmonics, scales and rotation.
 fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) -> SplatGradient {
     let i = p.index as usize;
-    let v = viewer.rotation * (Vec3::from(splats.positions[i]) - viewer.position);
+    let offset = Vec3::from(splats.positions[i]) - viewer.position;
+    let v = viewer.rotation * offset;
     let inv_z = 1.0 / v.z;
     let (fx, fy) = (viewer.fx, viewer.fy);
     let ((slope_x, free_x), (slope_y, free_y)) = viewer.slopes(v);
@@ -272,7 +282,18 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     d_v.y += d_j_row.z * fy * inv_z2 * free_y;
     d_v.z += d_j_col.x * fx * inv_z2 - d_j_col.z * fx * slope_x * inv_z2 * (1.0 + free_x);
     d_v.z += d_j_row.y * fy * inv_z2 - d_j_row.z * fy * slope_y * inv_z2 * (1.0 + free_y);
-    let position = viewer.rotation.transpose() * d_v;
+    let mut position = viewer.rotation.transpose() * d_v;
+    let d_seen = [g[6], g[7], g[8]];
+    let (color, sh) = match splats.sh.get(i) {
+        Some(sh) => {
+            let distance = offset.length();
+            let (color, d_sh, d_center) =
+                seen_color_gradient(splats.colors[i], sh, offset / distance, distance, d_seen);
+            position += d_center;
+            (color, d_sh)
+        }
+        None => (d_seen, [[0.0; 3]; 3]),
+    };
 
     // M = R_view · R_q · S.
     let d_n = viewer.rotation.transpose() * d_m;
@@ -286,6 +307,8 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     SplatGradient {
         screen: *g,
         position,
+        color,
+        sh,
         scale,
         rotation,
     }
@@ -366,7 +389,20 @@ mod tests {
                 turn(1.3, Vec3::new(0.2, -1.0, 0.5)),
                 turn(0.2, Vec3::new(1.0, 0.0, 0.3)),
             ],
+            sh: Vec::new(),
         }
+    }
+
+    /// The scene with colors that change with the view (none clamped at this camera).
+    fn shaded() -> Splats {
+        let mut splats = scene();
+        splats.sh = vec![
+            [[0.1, -0.2, 0.05], [0.2, 0.1, -0.1], [-0.15, 0.1, 0.2]],
+            [[-0.1, 0.05, 0.1], [0.0, -0.2, 0.1], [0.2, 0.1, -0.05]],
+            [[0.15, 0.1, -0.1], [0.1, 0.1, 0.1], [-0.1, 0.0, 0.2]],
+            [[0.05, -0.1, 0.1], [-0.1, 0.2, 0.1], [0.1, -0.15, 0.05]],
+        ];
+        splats
     }
 
     /// The scene and a fifth splat, long and beside the frame: its center lies beyond the frame's widened
@@ -410,7 +446,7 @@ mod tests {
     /// central difference or one of the one-sided ones (an edge lies on one side).
     #[test]
     fn gradients_match_finite_differences() {
-        for splats in [scene(), with_one_beside()] {
+        for splats in [scene(), with_one_beside(), shaded()] {
             gradients_match_differences(&splats);
         }
     }
@@ -418,7 +454,7 @@ mod tests {
     fn gradients_match_differences(splats: &Splats) {
         let (_, g) = splat_loss_gradients(splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
         type Nudge = fn(&mut Splats, usize, usize, f32);
-        let kinds: [(&str, usize, Nudge, Vec<f32>); 5] = [
+        let mut kinds: Vec<(&str, usize, Nudge, Vec<f32>)> = vec![
             (
                 "position",
                 3,
@@ -440,6 +476,14 @@ mod tests {
                 g.rotations.concat(),
             ),
         ];
+        if !splats.sh.is_empty() {
+            kinds.push((
+                "sh",
+                9,
+                |s, i, k, h| s.sh[i][k / 3][k % 3] += h,
+                g.sh.iter().flat_map(|h| h.concat()).collect(),
+            ));
+        }
         let h = 1e-4;
         for (name, width, nudge, analytic) in kinds {
             let largest = analytic.iter().fold(0.0f32, |m, x| m.max(x.abs()));
@@ -531,6 +575,7 @@ mod tests {
             opacity: 0.05,
             scale: 0.01,
             rotation: 0.01,
+            sh: 0.01,
         };
         let mut tuner = SplatTuner::new(splats.len(), rates);
         let error = |s: &Splats| {

@@ -1,12 +1,14 @@
 //! Gaussian splats: a scene as 3D Gaussians, each with a center, a color, an opacity and an oriented
 //! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
 //! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
-//! CPU, [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, and [`write_splat_ply`]
+//! CPU (colors that change with the view by degree-one spherical harmonics, where the splats have them),
+//! [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, and [`write_splat_ply`]
 //! writes the `.ply` layout that splat viewers read.
 
 mod gradients;
 mod ply;
 mod raster;
+mod shading;
 mod tune;
 
 pub use gradients::{splat_loss_gradients, SplatGradients};
@@ -32,6 +34,10 @@ pub struct Splats {
     pub scales: Vec<[f32; 3]>,
     /// Unit quaternions (w, x, y, z) turning the axes.
     pub rotations: Vec<[f32; 4]>,
+    /// Each splat's degree-one spherical harmonics (three RGB coefficients, `f_rest` of the `.ply` layout),
+    /// by which its color changes with the direction it is seen from (see `shading`); empty when the
+    /// splats look alike from every side.
+    pub sh: Vec<[[f32; 3]; 3]>,
 }
 
 impl Splats {
@@ -59,6 +65,7 @@ impl Splats {
         keep_where(&mut self.opacities, keep);
         keep_where(&mut self.scales, keep);
         keep_where(&mut self.rotations, keep);
+        keep_where(&mut self.sh, keep);
         before - self.len()
     }
 
@@ -76,6 +83,12 @@ impl Splats {
             ("scales", self.scales.len()),
             ("rotations", self.rotations.len()),
         ];
+        if !self.sh.is_empty() && self.sh.len() != n {
+            return Err(Error::Invalid(format!(
+                "{n} splat positions but {} sets of spherical harmonics",
+                self.sh.len()
+            )));
+        }
         if let Some((name, len)) = lengths.iter().find(|(_, len)| *len != n) {
             return Err(Error::Invalid(format!("{n} splat positions but {len} {name}")));
         }
@@ -92,6 +105,13 @@ impl Splats {
             }
             if !self.scales[i].iter().all(|s| s.is_finite() && *s > 0.0) {
                 return bad("its scales are not finite and positive");
+            }
+            if self
+                .sh
+                .get(i)
+                .is_some_and(|h| !h.iter().flatten().all(|x| x.is_finite()))
+            {
+                return bad("its spherical harmonics are not finite");
             }
             let q = self.rotations[i];
             let norm = q.iter().map(|x| x * x).sum::<f32>().sqrt();

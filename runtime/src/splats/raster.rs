@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
 
+use super::shading::seen_color;
 use super::Splats;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Result};
@@ -86,6 +87,7 @@ pub(super) struct Projected {
     pub opacity: f32,
     /// The Gaussian's exponent below which its alpha is under [`MIN_ALPHA`]: ln(MIN_ALPHA / opacity).
     pub cutoff: f32,
+    /// The color it shows this camera.
     pub color: [f32; 3],
 }
 
@@ -392,7 +394,8 @@ impl Viewer {
     /// Splat `i` of `scene` on the screen; none behind the camera, off the screen or degenerate.
     fn project(&self, scene: &SplatScene, i: usize) -> Option<Projected> {
         let splats = scene.splats;
-        let v = self.rotation * (Vec3::from(splats.positions[i]) - self.position);
+        let offset = Vec3::from(splats.positions[i]) - self.position;
+        let v = self.rotation * offset;
         // (Written so that a z that is not a number fails too.)
         if !(v.z > NEAR && v.z.is_finite()) || splats.opacities[i] < MIN_ALPHA {
             return None;
@@ -433,16 +436,21 @@ impl Viewer {
         {
             return None;
         }
+        let distance = v.length();
+        let color = match splats.sh.get(i) {
+            Some(sh) => seen_color(splats.colors[i], sh, offset / distance).0,
+            None => splats.colors[i],
+        };
         Some(Projected {
             index: i as u32,
             col,
             row,
             conic: [c / det, -b / det, a / det],
             extent,
-            distance: v.length(),
+            distance,
             opacity: splats.opacities[i],
             cutoff,
-            color: splats.colors[i],
+            color,
         })
     }
 }
@@ -724,6 +732,7 @@ mod tests {
             opacities: vec![opacity],
             scales: vec![[scale; 3]],
             rotations: vec![[1.0, 0.0, 0.0, 0.0]],
+            sh: Vec::new(),
         }
     }
 
@@ -866,6 +875,7 @@ mod tests {
                 opacities: vec![1.0],
                 scales: vec![[0.4, 0.05, 0.05]],
                 rotations: vec![rotation],
+                sh: Vec::new(),
             };
             let (frame, _) = render_splats(&splats, &camera(), size as u32, size as u32, [0.0; 3]).unwrap();
             let row: f32 = (0..size).map(|x| frame.opacity[size / 2 * size + x]).sum();

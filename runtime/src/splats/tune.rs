@@ -1,6 +1,7 @@
 //! Fine-tuning splats ([`SplatTuner`]): the runtime's [`Adam`] over each kind of parameter, as 3D Gaussian
 //! splatting optimizes them — centers and colors as they are, opacities through their logit, scales through
-//! their logarithm, rotations as quaternions renormalized after each step. Colors are kept in [0, 1].
+//! their logarithm, rotations as quaternions renormalized after each step, spherical harmonics (where the
+//! splats have them) as they are. Colors are kept in [0, 1].
 
 use rayon::prelude::*;
 
@@ -29,6 +30,8 @@ pub struct TuneRates {
     pub scale: f32,
     /// Quaternions' components.
     pub rotation: f32,
+    /// Degree-one spherical harmonics' coefficients.
+    pub sh: f32,
 }
 
 /// Adam's state for every parameter of a set of splats, one optimizer per kind.
@@ -40,6 +43,7 @@ pub struct SplatTuner {
     opacities: Adam,
     scales: Adam,
     rotations: Adam,
+    sh: Adam,
 }
 
 impl SplatTuner {
@@ -57,6 +61,7 @@ impl SplatTuner {
             opacities: adam(1),
             scales: adam(3),
             rotations: adam(4),
+            sh: adam(9),
         }
     }
 
@@ -69,6 +74,7 @@ impl SplatTuner {
             (&mut self.opacities, 1),
             (&mut self.scales, 3),
             (&mut self.rotations, 4),
+            (&mut self.sh, 9),
         ] {
             let (m, v) = adam.moments();
             let kept = |values: &[f32]| -> Vec<f32> {
@@ -150,6 +156,20 @@ impl SplatTuner {
                 },
             },
         )?;
+        if !splats.sh.is_empty() {
+            if gradients.sh.len() != n {
+                return Err(Error::Invalid(format!(
+                    "{n} splats with spherical harmonics but {} gradients of them",
+                    gradients.sh.len()
+                )));
+            }
+            // Moved as they are: Adam on their numbers in place.
+            self.sh.lr = r.sh * factor;
+            self.sh.step(
+                splats.sh.as_flattened_mut().as_flattened_mut(),
+                gradients.sh.as_flattened().as_flattened(),
+            )?;
+        }
         let mut opacities: Vec<[f32; 1]> = splats.opacities.iter().map(|&o| [o]).collect();
         let opacity_gradients: Vec<[f32; 1]> = gradients.opacities.iter().map(|&g| [g]).collect();
         let inside = |o: f32| o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN);
