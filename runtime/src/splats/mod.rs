@@ -1,17 +1,19 @@
 //! Gaussian splats: a scene as 3D Gaussians, each with a center, a color, an opacity and an oriented
 //! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
 //! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
-//! CPU, [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, and [`write_splat_ply`]
-//! writes the `.ply` layout that splat viewers read.
+//! CPU, [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, [`write_splat_ply`]
+//! writes the `.ply` layout that splat viewers read, and [`splat_surface`] meshes the surface they make.
 
 mod gradients;
 mod ply;
 mod raster;
+pub mod surface;
 mod tune;
 
 pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
 pub use raster::{render_splats, SplatFrameStats, SplatScene};
+pub use surface::{splat_surface, SplatColors, SplatGrid, SurfaceOptions};
 pub use tune::{SplatTuner, TuneRates};
 
 use crate::error::{Error, Result};
