@@ -273,8 +273,8 @@ enum Command {
         /// The file to write (.ply for splat-ply, .glb for glb).
         #[arg(long)]
         out: PathBuf,
-        /// glb: grid cells along each axis [default: the longest side over twice the splats' median
-        /// scale, at most 256].
+        /// glb: grid cells along each axis [default: the longest side over twice the median scale of the
+        /// splats within the grid, at most 256].
         #[arg(long)]
         res: Option<usize>,
         /// glb: the level of the splats' accumulated opacity meshed (above 0) [default: 0.5].

@@ -108,7 +108,7 @@ fn export_glb(splats: &nerfjit_runtime::splats::Splats, out: &Path, options: Glb
     let (min, max) = grid.bounds();
     Ok(format!(
         "{} of {} splats accumulated on {}³ cells of [{:.3}, {:.3}, {:.3}]–[{:.3}, {:.3}, {:.3}] (cells {:.4} wide; the \
-         splats' median scale {:.4}; {} blocks of 8³ points stored; opacity peaking at {:.2}), meshed at level {} \
+         median scale of the splats within them {:.4}; {} blocks of 8³ points stored; opacity peaking at {:.2}), meshed at level {} \
          in {meshed_s:.2} s: {} triangles ({}), textured in {textured_s:.2} s ({}×{} texels: {} patches of {}², \
          {:.1}% of the triangles in pairs) → {} ({:.1} MB)",
         grid.splats,
@@ -121,7 +121,7 @@ fn export_glb(splats: &nerfjit_runtime::splats::Splats, out: &Path, options: Glb
         max[1],
         max[2],
         (max[0] - min[0]) / grid.resolution() as f32,
-        median_scale(splats).unwrap_or(0.0),
+        median_scale(splats, (min, max)).unwrap_or(0.0),
         grid.stored,
         grid.peak,
         options.surface.level,

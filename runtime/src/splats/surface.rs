@@ -70,8 +70,8 @@ const ENCLOSED: u32 = u32::MAX - 1;
 pub struct SurfaceOptions {
     /// The grid's corners; by default a cube around every splat's reach.
     pub bounds: Option<([f32; 3], [f32; 3])>,
-    /// Cells along each axis; by default the longest side over [`DEFAULT_CELL_SCALES`] times the splats'
-    /// median scale (see [`median_scale`]), at most [`DEFAULT_MAX_RESOLUTION`].
+    /// Cells along each axis; by default the longest side over [`DEFAULT_CELL_SCALES`] times the median
+    /// scale of the splats within the bounds (see [`median_scale`]), at most [`DEFAULT_MAX_RESOLUTION`].
     pub resolution: Option<usize>,
     /// The level of accumulated opacity meshed (> 0).
     pub level: f32,
@@ -118,13 +118,16 @@ pub struct SplatGrid {
     pub peak: f32,
 }
 
-/// The median over the splats of their middle scale (of the three standard deviations, the one between the
-/// others: the narrower width of a flat splat).
-pub fn median_scale(splats: &Splats) -> Option<f32> {
+/// The median over the splats centered within `bounds` (min and max corners) of their middle scale (of the
+/// three standard deviations, the one between the others: the narrower width of a flat splat); `None`
+/// without such splats.
+pub fn median_scale(splats: &Splats, (min, max): ([f32; 3], [f32; 3])) -> Option<f32> {
     let mut middle: Vec<f32> = splats
         .scales
         .iter()
-        .map(|s| {
+        .zip(&splats.positions)
+        .filter(|(_, p)| (0..3).all(|a| (min[a]..=max[a]).contains(&p[a])))
+        .map(|(s, _)| {
             let mut s = *s;
             s.sort_by(f32::total_cmp);
             s[1]
@@ -186,7 +189,7 @@ impl SplatGrid {
             Some(n) => n,
             None => {
                 let side = (0..3).map(|a| max[a] - min[a]).fold(0.0, f32::max);
-                let scale = median_scale(splats).unwrap_or(side);
+                let scale = median_scale(splats, (min, max)).unwrap_or(side);
                 ((side / (DEFAULT_CELL_SCALES * scale)).ceil() as usize).clamp(16, DEFAULT_MAX_RESOLUTION)
             }
         };
