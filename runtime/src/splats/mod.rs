@@ -13,8 +13,9 @@ mod tune;
 pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
 pub use raster::{render_splats, SplatFrameStats, SplatScene};
-pub use surface::{splat_surface, SplatColors, SplatGrid, SurfaceOptions};
 pub use tune::{SplatTuner, TuneRates};
+
+pub use surface::{splat_surface, SplatColors, SplatGrid, SurfaceOptions};
 
 use crate::error::{Error, Result};
 
