@@ -7,7 +7,7 @@ use std::sync::Arc;
 use clap::{Args, CommandFactory, Parser, Subcommand};
 use nerfjit::blocks::mesh;
 use nerfjit::commands::{
-    bake, check, compare, data_check, eval, import, ir_dump, point_cloud, render_views, run, sweep,
+    bake, check, compare, data_check, eval, export, import, ir_dump, point_cloud, render_views, run, sweep,
     transmittance,
 };
 use nerfjit::observe::TrainingObserver;
@@ -266,16 +266,36 @@ enum Command {
         sh_degree: u8,
     },
     /// Export a baked scene (.bake) as a file other tools open: `splat-ply`, the 3D Gaussian splatting
-    /// .ply that splat viewers read.
+    /// .ply that splat viewers read, or `glb`, a glTF 2.0 binary of the surface the splats make, textured
+    /// with their colors.
     Export {
         /// The .bake file.
         scene: PathBuf,
-        /// The format to write.
+        /// The format to write: splat-ply or glb.
         #[arg(long, value_parser = export_format)]
-        format: bake::ExportFormat,
-        /// The file to write.
+        format: export::ExportFormat,
+        /// The file to write (.ply for splat-ply, .glb for glb).
         #[arg(long)]
         out: PathBuf,
+        /// glb: grid cells along each axis [default: the longest side over twice the median scale of the
+        /// splats within the grid, at most 256].
+        #[arg(long)]
+        res: Option<usize>,
+        /// glb: the level of the splats' accumulated opacity meshed (above 0) [default: 0.5].
+        #[arg(long, allow_hyphen_values = true)]
+        level: Option<f32>,
+        /// glb: the grid, r for [-r, r]³ or x0,y0,z0,x1,y1,z1 [default: a cube around every splat's
+        /// reach]; splats outside are left out.
+        #[arg(long, allow_hyphen_values = true)]
+        bounds: Option<String>,
+        /// glb: texels along a side of each triangle's square patch of the texture (2 to 64) [default:
+        /// the largest up to 8 that keeps the texture within 4096² texels].
+        #[arg(long)]
+        texels: Option<usize>,
+        /// glb: the scene's up direction (y, or z for Blender scenes such as lego): the file's node turns
+        /// z up to glTF's y [default: y].
+        #[arg(long, value_parser = ["y", "z"])]
+        up: Option<String>,
     },
     /// A colored point cloud (PLY) of a script's volume field (or a checkpoint's): every view rendered,
     /// each pixel of enough opacity placed at its expected depth with its color.
@@ -447,10 +467,11 @@ struct CameraChoice {
 }
 
 /// An export `--format`.
-fn export_format(text: &str) -> Result<bake::ExportFormat, String> {
+fn export_format(text: &str) -> Result<export::ExportFormat, String> {
     match text {
-        "splat-ply" => Ok(bake::ExportFormat::SplatPly),
-        _ => Err(format!("'{text}' is not an export format: splat-ply")),
+        "splat-ply" => Ok(export::ExportFormat::SplatPly),
+        "glb" => Ok(export::ExportFormat::Glb),
+        _ => Err(format!("'{text}' is not an export format: splat-ply or glb")),
     }
 }
 
@@ -737,8 +758,40 @@ fn run_command(cli: Cli) -> ExitCode {
             };
             bake::run(&seen.args(Some(400)), tuning).map(|text| emit(&format!("{text}\n")))
         }
-        Command::Export { scene, format, out } => {
-            bake::export(&scene, format, &out).map(|text| emit(&format!("{text}\n")))
+        Command::Export {
+            scene,
+            format,
+            out,
+            res,
+            level,
+            bounds,
+            texels,
+            up,
+        } => {
+            let glb =
+                (res.is_some() || level.is_some() || bounds.is_some() || texels.is_some() || up.is_some())
+                    .then(|| -> Result<export::GlbOptions, failure::Failure> {
+                        let defaults = export::GlbOptions::default();
+                        Ok(export::GlbOptions {
+                            surface: nerfjit_runtime::splats::SurfaceOptions {
+                                bounds: bounds
+                                    .as_deref()
+                                    .map(mesh::parse_bounds)
+                                    .transpose()
+                                    .map_err(failure::Failure::Message)?,
+                                resolution: res,
+                                level: level.unwrap_or(defaults.surface.level),
+                            },
+                            texels,
+                            up: up
+                                .as_deref()
+                                .and_then(nerfjit_runtime::Up::named)
+                                .unwrap_or(defaults.up),
+                        })
+                    })
+                    .transpose();
+            glb.and_then(|glb| export::export(&scene, format, &out, glb.as_ref()))
+                .map(|text| emit(&format!("{text}\n")))
         }
         Command::Points(seen) => point_cloud::run(&seen.args(None)).map(|text| emit(&format!("{text}\n"))),
         Command::EvalViews {

@@ -189,6 +189,7 @@ fn bad_bakes_and_files_that_are_not_bakes_are_refused_with_what_is_wrong() {
     for command in [
         &["eval-views", "junk.bake"][..],
         &["render", "junk.bake", "--out", "v"][..],
+        &["export", "junk.bake", "--format", "glb", "--out", "x.glb"][..],
     ] {
         let (ok, _, err) = run(&dir, command);
         assert!(
@@ -317,4 +318,124 @@ fn a_contracted_scene_bakes_its_far_background_into_coarser_splats_around_the_ca
         psnr(&baked)
     );
     assert!(psnr(&baked) > psnr(&field) - 1.5, "{out}");
+}
+
+/// `count` round splats of standard deviation `scale` spread evenly over a sphere of `radius` (a Fibonacci
+/// lattice), red above z = 0 and blue below.
+fn shell_of_splats(count: usize, radius: f32, scale: f32) -> nerfjit_runtime::splats::Splats {
+    let mut splats = nerfjit_runtime::splats::Splats::default();
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    for i in 0..count {
+        let z = 1.0 - 2.0 * (i as f32 + 0.5) / count as f32;
+        let (r, phi) = ((1.0 - z * z).sqrt(), golden * i as f32);
+        splats
+            .positions
+            .push([radius * r * phi.cos(), radius * r * phi.sin(), radius * z]);
+        splats
+            .colors
+            .push(if z > 0.0 { [0.9, 0.1, 0.1] } else { [0.1, 0.1, 0.9] });
+        splats.opacities.push(0.9);
+        splats.scales.push([scale; 3]);
+        splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
+    }
+    splats
+}
+
+/// A bake of a shell of splats (radius 1, red above z = 0, blue below) exported as glTF: the `gltf` crate
+/// reads one closed surface just outside the shell (within the splats' reach; the inner wall filled), and
+/// the texture red on the upper half and blue on the lower one; bad options are refused with what is wrong.
+#[test]
+fn a_bake_exports_as_a_textured_gltf_of_its_splats_surface() {
+    let dir = scratch("glb");
+    let bake = nerfjit::bake_file::Bake {
+        splats: shell_of_splats(3000, 1.0, 0.04),
+        background: [1.0; 3],
+        source: "nowhere.ckpt.safetensors".into(),
+    };
+    nerfjit::bake_file::write(&dir.join("shell.bake"), &bake).unwrap();
+    let (ok, out, err) = run(
+        &dir,
+        &["export", "shell.bake", "--format", "glb", "--out", "shell.glb"],
+    );
+    assert!(
+        ok && out.contains("3000 of 3000 splats") && out.contains("(closed)"),
+        "{out}{err}"
+    );
+
+    let crate::common::TexturedGlb {
+        positions,
+        normals,
+        uvs,
+        indices,
+        texture,
+    } = crate::common::read_textured_glb(&dir.join("shell.glb"));
+    assert!(indices.len() > 3 * 2000, "{} triangles", indices.len() / 3);
+    // Outside the shell, within the reach of its splats (σ = 0.04, widened by half a cell), facing out.
+    for (p, n) in positions.iter().zip(&normals) {
+        assert!(
+            (1.0..1.2).contains(&p.length()),
+            "a vertex at {p}, {} from the center",
+            p.length()
+        );
+        assert!(p.normalize().dot(*n) > 0.8, "{p}: normal {n}");
+    }
+    let size = glam::Vec2::new(texture.width() as f32, texture.height() as f32);
+    let (mut red, mut blue) = (0, 0);
+    for t in indices.chunks_exact(3) {
+        let (p, uv) = ([0, 1, 2].map(|k| positions[t[k]]), [0, 1, 2].map(|k| uvs[t[k]]));
+        let (center, uv) = ((p[0] + p[1] + p[2]) / 3.0, (uv[0] + uv[1] + uv[2]) / 3.0);
+        let texel = (uv * size).floor();
+        let [r, _, b] = texture.get_pixel(texel.x as u32, texel.y as u32).0;
+        if center.z > 0.15 {
+            assert!(r > 215 && b < 40, "red above: {center} is {:?}", [r, b]);
+            red += 1;
+        } else if center.z < -0.15 {
+            assert!(b > 215 && r < 40, "blue below: {center} is {:?}", [r, b]);
+            blue += 1;
+        }
+    }
+    assert!(red > 1000 && blue > 1000, "{red} red, {blue} blue");
+
+    for (extra, want) in [
+        (&["--level", "50"][..], "no surface at level 50"),
+        (&["--level", "-1"][..], "must be above 0"),
+        (&["--res", "1"][..], "use 2 to 1024"),
+        (&["--bounds", "1,1"][..], "--bounds takes"),
+        (&["--texels", "1"][..], "use 2 to 64"),
+    ] {
+        let mut args = vec!["export", "shell.bake", "--format", "glb", "--out", "x.glb"];
+        args.extend(extra);
+        let (ok, _, err) = run(&dir, &args);
+        assert!(!ok && err.contains(want), "{extra:?}: {err}");
+        assert!(!dir.join("x.glb").exists());
+    }
+    let (ok, _, err) = run(
+        &dir,
+        &["export", "shell.bake", "--format", "glb", "--out", "x.ply"],
+    );
+    assert!(!ok && err.contains("writes a .glb file"), "{err}");
+    let (ok, _, err) = run(
+        &dir,
+        &[
+            "export",
+            "shell.bake",
+            "--format",
+            "splat-ply",
+            "--out",
+            "x.ply",
+            "--res",
+            "64",
+        ],
+    );
+    assert!(!ok && err.contains("are for --format glb"), "{err}");
+    let empty = nerfjit::bake_file::Bake {
+        splats: Default::default(),
+        ..bake
+    };
+    nerfjit::bake_file::write(&dir.join("empty.bake"), &empty).unwrap();
+    let (ok, _, err) = run(
+        &dir,
+        &["export", "empty.bake", "--format", "glb", "--out", "x.glb"],
+    );
+    assert!(!ok && err.contains("no splats"), "{err}");
 }

@@ -534,32 +534,14 @@ fn meshes_write_textured_gltf() {
         stdout.contains("textured by 'color'") && stdout.contains("patches of 5²"),
         "{stdout}"
     );
-    let gltf = gltf::Gltf::open(&glb).unwrap();
-    let blob = gltf.blob.as_deref().unwrap();
-    let primitive = gltf.meshes().next().unwrap().primitives().next().unwrap();
-    let reader = primitive.reader(|_| Some(blob));
-    let positions: Vec<glam::Vec3> = reader.read_positions().unwrap().map(glam::Vec3::from).collect();
-    let uvs: Vec<glam::Vec2> = reader
-        .read_tex_coords(0)
-        .unwrap()
-        .into_f32()
-        .map(glam::Vec2::from)
-        .collect();
-    let Some(gltf::mesh::util::ReadIndices::U32(indices)) = reader.read_indices() else {
-        panic!("u32 indices")
-    };
-    let indices: Vec<usize> = indices.map(|i| i as usize).collect();
+    let crate::common::TexturedGlb {
+        positions,
+        uvs,
+        indices,
+        texture,
+        ..
+    } = crate::common::read_textured_glb(&glb);
     assert!(indices.len() > 3000 && uvs.len() == positions.len());
-    let info = primitive
-        .material()
-        .pbr_metallic_roughness()
-        .base_color_texture()
-        .unwrap();
-    let gltf::image::Source::View { view, .. } = info.texture().source().source() else {
-        panic!("an embedded image")
-    };
-    let png = &blob[view.offset()..view.offset() + view.length()];
-    let texture = image::load_from_memory(png).unwrap().to_rgb8();
     // Patches of 5² texels.
     assert!(texture.width().is_multiple_of(5) && texture.height().is_multiple_of(5));
     let size = glam::Vec2::new(texture.width() as f32, texture.height() as f32);

@@ -1,5 +1,5 @@
-//! What the integration tests share: running nerfjit in a folder, and a small training scene (four views
-//! of a box rendered by the CLI, and a script that recovers the box from them).
+//! What the integration tests share: running nerfjit in a folder, a small training scene (four views of a
+//! box rendered by the CLI, and a script that recovers the box from them), and reading a textured glTF file.
 
 use std::ops::Deref;
 use std::path::Path;
@@ -80,4 +80,49 @@ pub fn trainer_with(steps: u32, extra: &str) -> String {
          train {{ data: views(\"cams.json\"), near: 0, far: 5, samples: 48, steps: {steps}, batch: 800, lr: 0.01, \
          schedule: exponential(gamma: 0.1, every: 400), checkpoint_every: 50, summary: \"summary.json\" {extra}}}\n"
     )
+}
+
+/// A textured glTF binary as the `gltf` crate reads it: its one primitive's positions, normals, UVs and
+/// triangles' corners, and its base color texture.
+pub struct TexturedGlb {
+    pub positions: Vec<glam::Vec3>,
+    pub normals: Vec<glam::Vec3>,
+    pub uvs: Vec<glam::Vec2>,
+    pub indices: Vec<usize>,
+    pub texture: image::RgbImage,
+}
+
+/// Reads the textured glTF binary at `path` (panics if it is not one).
+pub fn read_textured_glb(path: &Path) -> TexturedGlb {
+    let gltf = gltf::Gltf::open(path).unwrap();
+    let blob = gltf.blob.as_deref().unwrap();
+    let primitive = gltf.meshes().next().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(blob));
+    let positions = reader.read_positions().unwrap().map(glam::Vec3::from).collect();
+    let normals = reader.read_normals().unwrap().map(glam::Vec3::from).collect();
+    let uvs = reader
+        .read_tex_coords(0)
+        .unwrap()
+        .into_f32()
+        .map(glam::Vec2::from)
+        .collect();
+    let Some(gltf::mesh::util::ReadIndices::U32(indices)) = reader.read_indices() else {
+        panic!("u32 indices")
+    };
+    let info = primitive
+        .material()
+        .pbr_metallic_roughness()
+        .base_color_texture()
+        .unwrap();
+    let gltf::image::Source::View { view, .. } = info.texture().source().source() else {
+        panic!("an embedded image")
+    };
+    let png = &blob[view.offset()..view.offset() + view.length()];
+    TexturedGlb {
+        positions,
+        normals,
+        uvs,
+        indices: indices.map(|i| i as usize).collect(),
+        texture: image::load_from_memory(png).unwrap().to_rgb8(),
+    }
 }

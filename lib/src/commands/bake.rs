@@ -1,6 +1,6 @@
 //! `nerfjit bake`: a trained volume field baked into Gaussian splats that the CPU draws in milliseconds
-//! ([`nerfjit_runtime::splats`]), and what is done with a bake: `nerfjit export` (the 3D Gaussian
-//! splatting `.ply`), `nerfjit render` and `nerfjit eval-views` of a `.bake` (see [`eval`]).
+//! ([`nerfjit_runtime::splats`]), and what is done with a bake: `nerfjit render` and `nerfjit eval-views`
+//! of a `.bake` (see [`eval`]); `nerfjit export` is [`crate::commands::export`].
 //!
 //! The bake is the field's surface as its training cameras see it, as NeRF-to-splats conversions make it:
 //! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
@@ -23,9 +23,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use nerfjit_dsl::Program;
-use nerfjit_runtime::splats::{
-    splat_loss_gradients, write_splat_ply, SplatScene, SplatTuner, Splats, TuneRates,
-};
+use nerfjit_runtime::splats::{splat_loss_gradients, SplatScene, SplatTuner, Splats, TuneRates};
 use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 
 use crate::bake_file::{self, Bake};
@@ -423,28 +421,6 @@ pub fn eval(
         (bake.background, how, start.elapsed().as_secs_f64()),
         json,
     )
-}
-
-/// The formats `nerfjit export` writes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ExportFormat {
-    /// The 3D Gaussian splatting `.ply`.
-    SplatPly,
-}
-
-/// `nerfjit export SCENE.bake --format FORMAT --out FILE`: the bake in a file other tools open.
-pub fn export(bake: &Path, format: ExportFormat, out: &Path) -> Result<String> {
-    let scene = bake_file::read(bake)?;
-    match format {
-        ExportFormat::SplatPly => write_splat_ply(&scene.splats, out)?,
-    }
-    let bytes = std::fs::metadata(out).map_or(0, |m| m.len());
-    Ok(format!(
-        "{} splats → {} ({:.1} MB, the 3D Gaussian splatting layout)",
-        scene.splats.len(),
-        out.display(),
-        bytes as f64 / 1e6
-    ))
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@ pub mod check;
 pub mod compare;
 pub mod data_check;
 pub mod eval;
+pub mod export;
 pub mod import;
 pub mod ir_dump;
 pub mod point_cloud;

@@ -2,19 +2,22 @@
 //! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
 //! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
 //! CPU (colors that change with the view by degree-one spherical harmonics, where the splats have them),
-//! [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, and [`write_splat_ply`]
-//! writes the `.ply` layout that splat viewers read.
+//! [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, [`write_splat_ply`] writes
+//! the `.ply` layout that splat viewers read, and [`splat_surface`] meshes the surface they make.
 
 mod gradients;
 mod ply;
 mod raster;
 mod shading;
+pub mod surface;
 mod tune;
 
 pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
 pub use raster::{render_splats, SplatFrameStats, SplatScene, SPLAT_PHASES};
 pub use tune::{SplatTuner, TuneRates};
+
+pub use surface::{splat_surface, SplatColors, SplatGrid, SurfaceOptions};
 
 use crate::error::{Error, Result};
 
