@@ -11,7 +11,10 @@
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
 
-use super::raster::{alpha_at, per_tile, span, Projected, Screen, Viewer, MAX_ALPHA, TILE};
+use super::raster::{alpha_at, per_tile, span, Area, Projected, Screen, Viewer, MAX_ALPHA, TILE};
+
+/// How many of a tile's splats the backward pass copies out at once.
+const BATCH: usize = 32;
 use super::shading::seen_color_gradient;
 use super::Splats;
 use crate::cameras::camera::Camera;
@@ -161,21 +164,74 @@ fn tile_gradients(
     (out, weights): (&mut [ScreenGradient], &mut [f32]),
 ) {
     let (list, area) = screen.tile(tile);
-    let mut transmittance = [0.0f32; TILE * TILE];
-    let mut behind = [[0.0f32; 3]; TILE * TILE];
-    let mut d_color = [[0.0f32; 3]; TILE * TILE];
-    let mut taken = [0u32; TILE * TILE];
+    let mut tile_pixels = TileState {
+        transmittance: [0.0; TILE * TILE],
+        behind: [[0.0; 3]; TILE * TILE],
+        d_color: [[0.0; 3]; TILE * TILE],
+        taken: [0; TILE * TILE],
+    };
     for y in area.y0..area.y1 {
         for x in area.x0..area.x1 {
             let (k, at) = ((y - area.y0) * TILE + (x - area.x0), y * screen.width + x);
-            transmittance[k] = pixels.transmittance[at];
-            behind[k] = pixels.background;
-            d_color[k] = pixels.d_color[at];
-            taken[k] = pixels.taken[at];
+            tile_pixels.transmittance[k] = pixels.transmittance[at];
+            tile_pixels.behind[k] = pixels.background;
+            tile_pixels.d_color[k] = pixels.d_color[at];
+            tile_pixels.taken[k] = pixels.taken[at];
         }
     }
-    for (place, &entry) in list.iter().enumerate().rev() {
-        let p: &Projected = &screen.buffers.projected[entry as usize];
+    // The splats after the last one any pixel took touched nothing (their gradients stay zero); the others
+    // are copied out a batch at a time, as the frame was drawn, so that their reads overlap.
+    let last = tile_pixels
+        .taken
+        .iter()
+        .max()
+        .map_or(0, |&t| t as usize)
+        .min(list.len());
+    let mut batch = [Projected::default(); BATCH];
+    for first in (0..last).step_by(BATCH).rev() {
+        let entries = &list[first..(first + BATCH).min(last)];
+        for (copy, &entry) in batch.iter_mut().zip(entries) {
+            *copy = screen.buffers.projected[entry as usize];
+        }
+        for (place, p) in (first..first + entries.len()).zip(&batch).rev() {
+            splat_gradient(
+                p,
+                place,
+                &area,
+                &mut tile_pixels,
+                (&mut out[place], &mut weights[place]),
+            );
+        }
+    }
+}
+
+/// A tile's pixels as the backward pass walks them back to front: the transmittance before the splats
+/// walked so far, the color behind them, the loss's derivative with respect to each pixel's color and how
+/// many of the tile's splats it took.
+struct TileState {
+    transmittance: [f32; TILE * TILE],
+    behind: [[f32; 3]; TILE * TILE],
+    d_color: [[f32; 3]; TILE * TILE],
+    taken: [u32; TILE * TILE],
+}
+
+/// Undoes splat `p` (the `place`th of its tile, whose pixels are `area`) over the pixels it reached, and
+/// writes its gradient and its weight in the tile.
+#[inline(always)]
+fn splat_gradient(
+    p: &Projected,
+    place: usize,
+    area: &Area,
+    pixels: &mut TileState,
+    (out, weight_out): (&mut ScreenGradient, &mut f32),
+) {
+    let TileState {
+        transmittance,
+        behind,
+        d_color,
+        taken,
+    } = pixels;
+    {
         let mut g = [0.0f32; 9];
         let mut weight_sum = 0.0f32;
         for y in span(p.row, p.extent[1], area.y0, area.y1) {
@@ -213,8 +269,8 @@ fn tile_gradients(
                 }
             }
         }
-        out[place] = g;
-        weights[place] = weight_sum;
+        *out = g;
+        *weight_out = weight_sum;
     }
 }
 
