@@ -231,47 +231,45 @@ fn splat_gradient(
         d_color,
         taken,
     } = pixels;
-    {
-        let mut g = [0.0f32; 9];
-        let mut weight_sum = 0.0f32;
-        for y in span(p.row, p.extent[1], area.y0, area.y1) {
-            let dy = y as f32 + 0.5 - p.row;
-            for x in span(p.col, p.extent[0], area.x0, area.x1) {
-                let k = (y - area.y0) * TILE + (x - area.x0);
-                if place as u32 >= taken[k] {
-                    continue;
-                }
-                let dx = x as f32 + 0.5 - p.col;
-                let Some((alpha, gaussian)) = alpha_at(p, dx, dy) else {
-                    continue;
-                };
-                let before = transmittance[k] / (1.0 - alpha);
-                let weight = alpha * before;
-                weight_sum += weight;
-                let mut d_alpha = 0.0;
-                for c in 0..3 {
-                    g[6 + c] += weight * d_color[k][c];
-                    d_alpha += d_color[k][c] * (p.color[c] - behind[k][c]);
-                    behind[k][c] = alpha * p.color[c] + (1.0 - alpha) * behind[k][c];
-                }
-                d_alpha *= before;
-                transmittance[k] = before;
-                if p.opacity * gaussian < MAX_ALPHA {
-                    g[5] += d_alpha * gaussian;
-                    // power = −(a dx² + c dy²)/2 − b dx dy, dx = x + 0.5 − col, dy = y + 0.5 − row.
-                    let d_power = d_alpha * alpha;
-                    let [a, b, c] = p.conic;
-                    g[0] += d_power * (a * dx + b * dy);
-                    g[1] += d_power * (c * dy + b * dx);
-                    g[2] -= d_power * 0.5 * dx * dx;
-                    g[3] -= d_power * dx * dy;
-                    g[4] -= d_power * 0.5 * dy * dy;
-                }
+    let mut g = [0.0f32; 9];
+    let mut weight_sum = 0.0f32;
+    for y in span(p.row, p.extent[1], area.y0, area.y1) {
+        let dy = y as f32 + 0.5 - p.row;
+        for x in span(p.col, p.extent[0], area.x0, area.x1) {
+            let k = (y - area.y0) * TILE + (x - area.x0);
+            if place as u32 >= taken[k] {
+                continue;
+            }
+            let dx = x as f32 + 0.5 - p.col;
+            let Some((alpha, gaussian)) = alpha_at(p, dx, dy) else {
+                continue;
+            };
+            let before = transmittance[k] / (1.0 - alpha);
+            let weight = alpha * before;
+            weight_sum += weight;
+            let mut d_alpha = 0.0;
+            for c in 0..3 {
+                g[6 + c] += weight * d_color[k][c];
+                d_alpha += d_color[k][c] * (p.color[c] - behind[k][c]);
+                behind[k][c] = alpha * p.color[c] + (1.0 - alpha) * behind[k][c];
+            }
+            d_alpha *= before;
+            transmittance[k] = before;
+            if p.opacity * gaussian < MAX_ALPHA {
+                g[5] += d_alpha * gaussian;
+                // power = −(a dx² + c dy²)/2 − b dx dy, dx = x + 0.5 − col, dy = y + 0.5 − row.
+                let d_power = d_alpha * alpha;
+                let [a, b, c] = p.conic;
+                g[0] += d_power * (a * dx + b * dy);
+                g[1] += d_power * (c * dy + b * dx);
+                g[2] -= d_power * 0.5 * dx * dx;
+                g[3] -= d_power * dx * dy;
+                g[4] -= d_power * 0.5 * dy * dy;
             }
         }
-        *out = g;
-        *weight_out = weight_sum;
     }
+    *out = g;
+    *weight_out = weight_sum;
 }
 
 /// One splat's gradient with respect to its own parameters.
