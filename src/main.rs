@@ -264,6 +264,11 @@ enum Command {
         /// `.ply`'s `f_rest`); 0, one color a splat (smaller files).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(0..=1))]
         sh_degree: u8,
+        /// Halfway through fine-tuning, drop the splats that weighed under this many pixels in every
+        /// training view (their alpha times the transmittance in front of them, summed over a view's
+        /// pixels): fewer splats draw faster, too few lose detail.
+        #[arg(long, default_value_t = bake::MIN_WEIGHT, value_parser = min_weight)]
+        min_weight: f32,
     },
     /// Export a baked scene (.bake) as a file other tools open: `splat-ply`, the 3D Gaussian splatting
     /// .ply that splat viewers read, or `glb`, a glTF 2.0 binary of the surface the splats make, textured
@@ -480,6 +485,14 @@ fn tune_seconds(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
         Ok(s) if s.is_finite() && s >= 0.0 => Ok(s),
         _ => Err(format!("'{text}' is not a number of seconds (0 or more)")),
+    }
+}
+
+/// A `--min-weight` value: a number of pixels, 0 or more.
+fn min_weight(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(w) if w.is_finite() && w >= 0.0 => Ok(w),
+        _ => Err(format!("'{text}' is not a number of pixels (0 or more)")),
     }
 }
 
@@ -751,10 +764,12 @@ fn run_command(cli: Cli) -> ExitCode {
             seen,
             tune,
             sh_degree,
+            min_weight,
         } => {
             let tuning = bake::Tuning {
                 seconds: tune,
                 sh_degree,
+                min_weight,
             };
             bake::run(&seen.args(Some(400)), tuning).map(|text| emit(&format!("{text}\n")))
         }

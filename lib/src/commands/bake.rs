@@ -51,10 +51,9 @@ pub const COARSE_SHARE: f64 = 0.5;
 /// smallest alpha everywhere).
 pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 
-/// After the coarse half of fine-tuning, a splat whose weight (the sum over its pixels of its alpha times the
-/// transmittance in front of it) stays under this many pixels (at full size) in every training view is
-/// dropped: it hardly shows, and every splat costs the renderer the same to project, sort and bin.
-pub const MIN_WEIGHT: f32 = 1.0;
+/// The default of [`Tuning::min_weight`], in pixels: on lego, it halves the splats that a weight of one
+/// pixel keeps, for a few tenths of a dB (BAKING.md has the measured trade).
+pub const MIN_WEIGHT: f32 = 4.0;
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -74,6 +73,10 @@ pub struct Tuning {
     /// The degree of the spherical harmonics of the splats' colors: 0 (the same from every side) or 1
     /// (colors that change with the view: nine more numbers a splat, learnt while tuning).
     pub sh_degree: u8,
+    /// After the coarse half, a splat whose weight (the sum over its pixels of its alpha times the
+    /// transmittance in front of it) stayed under this many pixels (at full size) in every training view
+    /// is dropped: it hardly shows, and every splat costs the renderer the same to project, sort and bin.
+    pub min_weight: f32,
 }
 
 /// Bakes the field of `args.view.source` (seen as `nerfjit points` sees it) into splats, fine-tunes them
@@ -148,8 +151,8 @@ fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
 /// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
-/// the time takes the views at half size; then the splats that weighed under [`MIN_WEIGHT`] in every view
-/// are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
+/// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` in every
+/// view are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
 /// without spherical harmonics get them at that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.
 /// Returns what it did, a line a pass.
@@ -212,7 +215,10 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) ->
                 // Once every view was seen at half size, the splats that weigh next to nothing in all
                 // of them go.
                 let seen = steps >= views.len();
-                let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= MIN_WEIGHT).collect();
+                let keep: Vec<bool> = heaviest
+                    .iter()
+                    .map(|&h| !seen || h >= tuning.min_weight)
+                    .collect();
                 light = Some(bake.splats.retain(&keep));
                 tuner.retain(&keep)?;
                 // Colors start to change with the view once the splats have found their places (as 3D
@@ -244,13 +250,14 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) ->
     }
     let dropped = bake.splats.prune(MIN_OPACITY);
     text += &format!(
-        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {MIN_WEIGHT} pixel \
-         in every view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
+        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {} pixels in every \
+         view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
         views.len(),
         views.width,
         views.height,
         start.elapsed().as_secs_f64(),
         light.unwrap_or(0),
+        tuning.min_weight,
     );
     Ok(text)
 }

@@ -49,8 +49,8 @@ const SATURATED: f32 = 1e-4;
 /// The sort key of a splat out of sight (no positive distance's bits are these: they are a NaN's).
 const OUT_OF_SIGHT: u32 = u32::MAX;
 
-/// How many of its splats a tile composites between checks of whether all its pixels are saturated (and
-/// copies out at once).
+/// How many of its splats a tile composites between looks at which of its half rows are saturated (those
+/// take no more splats; a tile whose rows all are, stops), and copies out at once.
 const SATURATION_CHECKS: usize = 32;
 
 /// What drawing a frame involved.
@@ -181,7 +181,7 @@ impl<'a> SplatScene<'a> {
         let buffers = kept.as_deref_mut().map(std::mem::take).unwrap_or_default();
         let screen = self.screen(camera, width, height, buffers)?;
         let start = Instant::now();
-        let (frame, _) = screen.draw(background);
+        let frame = screen.picture(background);
         let [project, sort, bin] = screen.phases;
         let stats = SplatFrameStats {
             visible: screen.buffers.projected.len(),
@@ -306,6 +306,18 @@ impl Screen {
     /// The frame over `background`, and for each pixel how many of its tile's splats it took (the last
     /// one's place in the tile's list, plus one; 0 for none).
     pub fn draw(&self, background: [f32; 3]) -> (VolumeFrame, Vec<u32>) {
+        self.composite_frame::<true>(background)
+    }
+
+    /// The frame over `background` alone (as [`Screen::draw`] draws it, without counting what each pixel
+    /// took).
+    pub fn picture(&self, background: [f32; 3]) -> VolumeFrame {
+        self.composite_frame::<false>(background).0
+    }
+
+    /// The frame over `background`, and with `TAKEN` what [`Screen::draw`] says each pixel took (else an
+    /// empty list).
+    fn composite_frame<const TAKEN: bool>(&self, background: [f32; 3]) -> (VolumeFrame, Vec<u32>) {
         let pixels = self.width * self.height;
         let mut frame = VolumeFrame {
             width: self.width as u32,
@@ -314,14 +326,20 @@ impl Screen {
             depth: vec![0.0; pixels],
             opacity: vec![0.0; pixels],
         };
-        let mut taken = vec![0u32; pixels];
         let band = self.width * TILE;
+        let mut taken = vec![0u32; if TAKEN { pixels } else { 0 }];
+        let taken_bands: Vec<&mut [u32]> = match TAKEN {
+            true => taken.chunks_mut(band).collect(),
+            false => (0..self.height.div_ceil(TILE))
+                .map(|_| Default::default())
+                .collect(),
+        };
         frame
             .rgb
             .par_chunks_mut(band)
             .zip(frame.depth.par_chunks_mut(band))
             .zip(frame.opacity.par_chunks_mut(band))
-            .zip(taken.par_chunks_mut(band))
+            .zip(taken_bands)
             .enumerate()
             .for_each(|(tile_row, (((rgb, depth), opacity), taken))| {
                 for tile_col in 0..self.tiles_x {
@@ -332,7 +350,7 @@ impl Screen {
                         opacity: &mut *opacity,
                         taken: &mut *taken,
                     };
-                    draw_tile(&self.buffers.projected, list, &area, self.width, background, band);
+                    draw_tile::<TAKEN>(&self.buffers.projected, list, &area, self.width, background, band);
                 }
             });
         (frame, taken)
@@ -601,15 +619,21 @@ struct TilePixels {
     distance: [f32; TILE * TILE],
     /// How many of the tile's splats each took (the last one's place, plus one).
     taken: [u32; TILE * TILE],
+    /// Whether each half row (`LANES` pixels, row by row) may still take splats: whether a pixel of it
+    /// in the frame was not saturated when last looked at.
+    open: [bool; HALVES],
 }
+
+/// The half rows of a tile.
+const HALVES: usize = TILE * TILE / LANES;
 
 impl TilePixels {
     /// Composites splat `p`, the tile's `place`th, over the `LANES` pixels from `k` on, which lie at
     /// columns from `x` on and row `y` of the frame. Every lane takes the same steps (a lane the splat
     /// does not reach, or that is saturated, takes alpha 0, which changes nothing), so that the loop runs
-    /// in the vector unit.
+    /// in the vector unit. With `TAKEN`, each pixel the splat reaches notes its place.
     #[inline(always)]
-    fn composite(&mut self, p: &Projected, place: u32, k: usize, x: usize, y: usize) {
+    fn composite<const TAKEN: bool>(&mut self, p: &Projected, place: u32, k: usize, x: usize, y: usize) {
         let dy = y as f32 + 0.5 - p.row;
         let [cr, cg, cb] = p.color;
         let transmittance: &mut [f32; LANES] = (&mut self.transmittance[k..k + LANES]).try_into().unwrap();
@@ -631,24 +655,36 @@ impl TilePixels {
             blue[lane] += weight * cb;
             distance[lane] += weight * p.distance;
             transmittance[lane] = t * (1.0 - alpha);
-            taken[lane] = if reached { place + 1 } else { taken[lane] };
+            if TAKEN {
+                taken[lane] = if reached { place + 1 } else { taken[lane] };
+            }
         }
     }
 
-    /// Whether every pixel of the tile is saturated (those outside the frame count as such).
-    fn saturated(&self, area: &Area) -> bool {
+    /// Marks the half rows whose pixels are all saturated (those outside the frame count as such) as
+    /// closed; returns whether any is still open.
+    fn close_saturated(&mut self, area: &Area) -> bool {
         let width = area.x1 - area.x0;
-        (0..area.y1 - area.y0).all(|y| {
-            self.transmittance[y * TILE..y * TILE + width]
-                .iter()
-                .all(|&t| t < SATURATED)
-        })
+        let mut any = false;
+        for (half, open) in self.open.iter_mut().enumerate() {
+            let (y, x) = (half * LANES / TILE, half * LANES % TILE);
+            if *open {
+                let k = y * TILE + x;
+                *open = y < area.y1 - area.y0
+                    && x < width
+                    && self.transmittance[k..k + LANES.min(width - x)]
+                        .iter()
+                        .any(|&t| t >= SATURATED);
+            }
+            any |= *open;
+        }
+        any
     }
 }
 
 /// Composites the splats of `list` (nearest first) over the pixels of `area`, into the band of rows
-/// (`width` pixels a row) that holds the tile.
-fn draw_tile(
+/// (`width` pixels a row) that holds the tile; with `TAKEN`, also how many of them each pixel took.
+fn draw_tile<const TAKEN: bool>(
     projected: &[Projected],
     list: &[u32],
     area: &Area,
@@ -664,6 +700,7 @@ fn draw_tile(
         blue: [0.0; TILE * TILE],
         distance: [0.0; TILE * TILE],
         taken: [0; TILE * TILE],
+        open: [true; HALVES],
     };
     // The splats are copied out a batch at a time before they are drawn: the copies' reads (spread over
     // the frame's splats) overlap one another instead of each stalling a splat's compositing.
@@ -684,11 +721,13 @@ fn draw_tile(
             for y in span(p.row, p.extent[1], area.y0, area.y1) {
                 for half in halves.clone() {
                     let k = (y - area.y0) * TILE + half * LANES;
-                    pixels.composite(p, place, k, area.x0 + half * LANES, y);
+                    if pixels.open[k / LANES] {
+                        pixels.composite::<TAKEN>(p, place, k, area.x0 + half * LANES, y);
+                    }
                 }
             }
         }
-        if pixels.saturated(area) {
+        if !pixels.close_saturated(area) {
             break;
         }
     }
@@ -704,7 +743,9 @@ fn draw_tile(
             ];
             band.depth[at] = pixels.distance[k];
             band.opacity[at] = 1.0 - t;
-            band.taken[at] = pixels.taken[k];
+            if TAKEN {
+                band.taken[at] = pixels.taken[k];
+            }
         }
     }
 }
@@ -810,13 +851,15 @@ mod tests {
     fn tiles_draw_what_each_pixel_composites_alone() {
         let mut rng = crate::Rng::new(7);
         let mut splats = Splats::default();
-        for _ in 0..300 {
+        for i in 0..400 {
             let mut r = || 2.0 * rng.next_f32() - 1.0;
-            splats.positions.push([1.5 * r(), 1.5 * r(), r()]);
+            // A hundred of them crowd the middle, where the pixels saturate.
+            let spread = if i < 100 { 0.4 } else { 1.5 };
+            splats.positions.push([spread * r(), spread * r(), r()]);
             splats
                 .colors
                 .push([0.5 + 0.5 * r(), 0.5 + 0.5 * r(), 0.5 + 0.5 * r()]);
-            splats.opacities.push(0.5 + 0.5 * r());
+            splats.opacities.push(0.7 + 0.3 * r());
             splats
                 .scales
                 .push([0.12 + 0.1 * r(), 0.12 + 0.1 * r(), 0.12 + 0.1 * r()]);
@@ -827,6 +870,15 @@ mod tests {
         let (frame, stats) = render_splats(&splats, &camera(), width, height, background).unwrap();
         assert!(stats.entries > stats.visible && stats.visible > 250, "{stats:?}");
         let screen = Screen::of(&splats, &camera(), width, height).unwrap();
+        // The gradients' frame (which also counts what each pixel took) is the same picture.
+        let (drawn, _) = screen.draw(background);
+        assert_eq!(
+            (&drawn.rgb, &drawn.opacity, &drawn.depth),
+            (&frame.rgb, &frame.opacity, &frame.depth)
+        );
+        // Some half rows saturate and take no more splats.
+        let saturated = frame.opacity.iter().filter(|&&o| 1.0 - o < SATURATED).count();
+        assert!(saturated > 20, "{saturated} pixels saturated");
         for y in 0..height as usize {
             for x in 0..width as usize {
                 let (mut t, mut color, mut distance) = (1.0f32, [0.0f32; 3], 0.0f32);
