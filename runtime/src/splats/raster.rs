@@ -567,7 +567,7 @@ fn fast_exp(x: f32) -> f32 {
     let t = if t < -126.0 { -126.0 } else { t };
     let whole = t.floor();
     let f = t - whole;
-    let fraction = 1.0 + f * (0.695_976_1 + f * (0.224_940_7 + f * 0.079_083_2));
+    let fraction = fused(f, fused(f, fused(f, 0.079_083_2, 0.224_940_7), 0.695_976_1), 1.0);
     // whole + 127 (in 1..=127) as the low bits of a float of 2²³ + 2²² + whole + 127, whose exponent is
     // 2²³'s: the integer without a conversion (which the vector unit would have to guard against overflow).
     let biased = (whole + (BIASING + 127.0))
@@ -584,10 +584,48 @@ pub(super) fn span(center: f32, radius: f32, lo: usize, hi: usize) -> std::ops::
     first..last.max(first)
 }
 
+/// a·b + c: one fused multiply-add where this build's CPU has them, else a product and a sum. The frame and
+/// its backward pass both compute alphas with it, so that they agree bit for bit.
+#[inline(always)]
+pub(super) fn fused(a: f32, b: f32, c: f32) -> f32 {
+    #[cfg(target_feature = "fma")]
+    let sum = a.mul_add(b, c);
+    #[cfg(not(target_feature = "fma"))]
+    let sum = a * b + c;
+    sum
+}
+
+/// A splat's Gaussian exponent along a row of pixels `dy` from its center, as a polynomial in dx:
+/// −(a dx² + c dy²)/2 − b dx dy = dx (a′ dx + b′) + c′, (a, b, c) its conic.
+#[derive(Clone, Copy)]
+struct RowPower {
+    a: f32,
+    b: f32,
+    c: f32,
+}
+
+impl RowPower {
+    /// The row `dy` from `p`'s center.
+    #[inline(always)]
+    fn of(p: &Projected, dy: f32) -> RowPower {
+        RowPower {
+            a: -0.5 * p.conic[0],
+            b: -p.conic[1] * dy,
+            c: -0.5 * p.conic[2] * dy * dy,
+        }
+    }
+
+    /// The exponent `dx` from the center along the row.
+    #[inline(always)]
+    fn at(&self, dx: f32) -> f32 {
+        fused(dx, fused(self.a, dx, self.b), self.c)
+    }
+}
+
 /// The Gaussian's exponent at (`dx`, `dy`) from splat `p`'s center.
 #[inline(always)]
 fn power_at(p: &Projected, dx: f32, dy: f32) -> f32 {
-    -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy
+    RowPower::of(p, dy).at(dx)
 }
 
 /// The alpha splat `p` gives the pixel (`dx`, `dy`) from its center (at most [`MAX_ALPHA`]) and its
@@ -634,7 +672,7 @@ impl TilePixels {
     /// in the vector unit. With `TAKEN`, each pixel the splat reaches notes its place.
     #[inline(always)]
     fn composite<const TAKEN: bool>(&mut self, p: &Projected, place: u32, k: usize, x: usize, y: usize) {
-        let dy = y as f32 + 0.5 - p.row;
+        let row = RowPower::of(p, y as f32 + 0.5 - p.row);
         let [cr, cg, cb] = p.color;
         let transmittance: &mut [f32; LANES] = (&mut self.transmittance[k..k + LANES]).try_into().unwrap();
         let red: &mut [f32; LANES] = (&mut self.red[k..k + LANES]).try_into().unwrap();
@@ -644,16 +682,16 @@ impl TilePixels {
         let taken: &mut [u32; LANES] = (&mut self.taken[k..k + LANES]).try_into().unwrap();
         for lane in 0..LANES {
             let dx = (x + lane) as f32 + 0.5 - p.col;
-            let power = power_at(p, dx, dy);
+            let power = row.at(dx);
             let t = transmittance[lane];
             let reached = power <= 0.0 && power >= p.cutoff && t >= SATURATED;
             let alpha = (p.opacity * fast_exp(power)).min(MAX_ALPHA);
             let alpha = if reached { alpha } else { 0.0 };
             let weight = alpha * t;
-            red[lane] += weight * cr;
-            green[lane] += weight * cg;
-            blue[lane] += weight * cb;
-            distance[lane] += weight * p.distance;
+            red[lane] = fused(weight, cr, red[lane]);
+            green[lane] = fused(weight, cg, green[lane]);
+            blue[lane] = fused(weight, cb, blue[lane]);
+            distance[lane] = fused(weight, p.distance, distance[lane]);
             transmittance[lane] = t * (1.0 - alpha);
             if TAKEN {
                 taken[lane] = if reached { place + 1 } else { taken[lane] };
@@ -891,9 +929,9 @@ mod tests {
                     };
                     let weight = alpha * t;
                     for (sum, c) in color.iter_mut().zip(p.color) {
-                        *sum += weight * c;
+                        *sum = fused(weight, c, *sum);
                     }
-                    distance += weight * p.distance;
+                    distance = fused(weight, p.distance, distance);
                     t *= 1.0 - alpha;
                 }
                 let at = y * width as usize + x;
