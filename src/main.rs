@@ -264,9 +264,9 @@ enum Command {
         /// `.ply`'s `f_rest`); 0, one color a splat (smaller files).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(0..=1))]
         sh_degree: u8,
-        /// Halfway through fine-tuning, drop the splats that weighed under this many pixels in every
-        /// training view (their alpha times the transmittance in front of them, summed over a view's
-        /// pixels): fewer splats draw faster, too few lose detail.
+        /// Halfway through fine-tuning, drop the splats that weighed under this many pixels (of a view
+        /// --size wide) in every training view (their alpha times the transmittance in front of them,
+        /// summed over a view): fewer splats draw faster, too few lose detail.
         #[arg(long, default_value_t = bake::MIN_WEIGHT, value_parser = min_weight)]
         min_weight: f32,
     },

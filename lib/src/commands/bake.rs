@@ -51,9 +51,10 @@ pub const COARSE_SHARE: f64 = 0.5;
 /// smallest alpha everywhere).
 pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 
-/// The default of [`Tuning::min_weight`], in pixels: on lego, it halves the splats that a weight of one
-/// pixel keeps, for a few tenths of a dB (BAKING.md has the measured trade).
-pub const MIN_WEIGHT: f32 = 4.0;
+/// The default of [`Tuning::min_weight`]: a pixel of the bake's views (on lego, whose 800² views are baked
+/// at 400², four of its own: half the splats that one of its own keeps, for a few tenths of a dB; BAKING.md
+/// has the measured trade).
+pub const MIN_WEIGHT: f32 = 1.0;
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -74,8 +75,9 @@ pub struct Tuning {
     /// (colors that change with the view: nine more numbers a splat, learnt while tuning).
     pub sh_degree: u8,
     /// After the coarse half, a splat whose weight (the sum over its pixels of its alpha times the
-    /// transmittance in front of it) stayed under this many pixels (at full size) in every training view
-    /// is dropped: it hardly shows, and every splat costs the renderer the same to project, sort and bin.
+    /// transmittance in front of it) stayed under this many pixels in every training view, counted in
+    /// pixels of the views the field was baked from (one is as wide as a splat was made), is dropped: it
+    /// hardly shows, and every splat costs the renderer the same to project, sort and bin.
     pub min_weight: f32,
 }
 
@@ -112,7 +114,7 @@ pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
     );
     if tuning.seconds > 0.0 {
         let (program, _) = crate::checkpoint::load_source(args.view.source)?;
-        text += &tune(&mut bake, &program, args.view.source, tuning)?;
+        text += &tune(&mut bake, &program, args.view.source, tuning, size)?;
     }
     bake_file::write(args.out, &bake)?;
     let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
@@ -151,12 +153,18 @@ fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
 /// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
-/// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` in every
-/// view are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
+/// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` pixels of
+/// a view `baked_side` wide (the side of the views the splats were baked from) in every view are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
 /// without spherical harmonics get them at that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.
 /// Returns what it did, a line a pass.
-pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) -> Result<String> {
+pub fn tune(
+    bake: &mut Bake,
+    program: &Program,
+    source: &str,
+    tuning: Tuning,
+    baked_side: u32,
+) -> Result<String> {
     let seconds = tuning.seconds;
     let start = Instant::now();
     let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
@@ -194,8 +202,10 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) ->
     let coarse: Vec<Vec<[f32; 3]>> = views.images.iter().map(halved).collect();
     let coarse_size = (views.width / 2, views.height / 2);
     let mut steps = 0usize;
-    // Each splat's largest weight in a view of the coarse half, in pixels at full size.
+    // Each splat's largest weight in a view of the coarse half, in pixels at full size, and the least it
+    // may have.
     let mut heaviest = vec![0.0f32; bake.splats.len()];
+    let min_weight = tuning.min_weight * (views.width as f32 / baked_side.max(1) as f32).powi(2);
     let mut light = None;
     'passes: for pass in 1.. {
         for k in (1..order.len()).rev() {
@@ -215,10 +225,7 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) ->
                 // Once every view was seen at half size, the splats that weigh next to nothing in all
                 // of them go.
                 let seen = steps >= views.len();
-                let keep: Vec<bool> = heaviest
-                    .iter()
-                    .map(|&h| !seen || h >= tuning.min_weight)
-                    .collect();
+                let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= min_weight).collect();
                 light = Some(bake.splats.retain(&keep));
                 tuner.retain(&keep)?;
                 // Colors start to change with the view once the splats have found their places (as 3D
@@ -250,14 +257,13 @@ pub fn tune(bake: &mut Bake, program: &Program, source: &str, tuning: Tuning) ->
     }
     let dropped = bake.splats.prune(MIN_OPACITY);
     text += &format!(
-        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {} pixels in every \
-         view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
+        "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {min_weight:.2} pixels \
+         in every view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
         views.len(),
         views.width,
         views.height,
         start.elapsed().as_secs_f64(),
         light.unwrap_or(0),
-        tuning.min_weight,
     );
     Ok(text)
 }
