@@ -58,26 +58,9 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     assert!(splats > 100, "{out}");
 
     // Scored on the same views at the same size as the field.
-    for (source, json) in [
-        ("train.ckpt.safetensors", "field.json"),
-        ("box.bake", "bake.json"),
-    ] {
-        let args = [
-            "eval-views",
-            source,
-            "--cameras",
-            "cams.json",
-            "--size",
-            "40",
-            "--json",
-            json,
-        ];
-        let (ok, _, err) = run(&dir, &args);
-        assert!(ok, "{source}: {err}");
-    }
     let (field, baked) = (
-        mean_psnr(&dir.join("field.json")),
-        mean_psnr(&dir.join("bake.json")),
+        psnr_on_the_four_views(&dir, "train.ckpt.safetensors"),
+        psnr_on_the_four_views(&dir, "box.bake"),
     );
     eprintln!("box at 40²: the field {field:.2} dB, its bake of {splats} splats {baked:.2} dB");
     // The field renders its own views of the box almost exactly (above 60 dB); the bake, without fine-tuning,
@@ -91,19 +74,7 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     *tuned_bake.iter_mut().find(|a| **a == "box.bake").unwrap() = "tuned.bake";
     let (ok, out, err) = run(&dir, &tuned_bake);
     assert!(ok && out.contains("tuning pass 1: 4 views"), "{out}{err}");
-    let args = [
-        "eval-views",
-        "tuned.bake",
-        "--cameras",
-        "cams.json",
-        "--size",
-        "40",
-        "--json",
-        "tuned.json",
-    ];
-    let (ok, _, err) = run(&dir, &args);
-    assert!(ok, "{err}");
-    let tuned = mean_psnr(&dir.join("tuned.json"));
+    let tuned = psnr_on_the_four_views(&dir, "tuned.bake");
     eprintln!("box at 40²: fine-tuned for 5 s, {tuned:.2} dB");
     assert!(
         tuned > 40.0 && tuned > baked + 10.0,
