@@ -759,7 +759,6 @@ fn run_command(cli: Cli) -> ExitCode {
             gif,
         } => render_views::render(&view.args(&source), cameras.source(), &out, gif)
             .map(|text| emit(&format!("{text}\n"))),
-        // Views of 400² make splats the size of a pixel at 800².
         Command::Bake {
             seen,
             tune,
@@ -771,7 +770,7 @@ fn run_command(cli: Cli) -> ExitCode {
                 sh_degree,
                 min_weight,
             };
-            bake::run(&seen.args(Some(400)), tuning).map(|text| emit(&format!("{text}\n")))
+            bake::run(&seen.args(Some(bake::VIEW_SIZE)), tuning).map(|text| emit(&format!("{text}\n")))
         }
         Command::Export {
             scene,

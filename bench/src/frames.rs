@@ -66,16 +66,7 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
         report_phases(&phases.into_inner().unwrap());
         return Ok(());
     }
-    let args = ViewArgs {
-        source: &source,
-        size: Some(800),
-        near: None,
-        far: None,
-        samples: None,
-        background: None,
-        importance: None,
-        exact: false,
-    };
+    let args = ViewArgs::as_trained(&source, Some(800));
     let rendering = args.resolve(&program);
     let cache = KernelCache::new();
     let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;

@@ -18,7 +18,7 @@ use crate::value::Val;
 pub const PRELUDE: &str = include_str!("../prelude.sdf");
 
 /// The kinds of configuration block a script may hold.
-pub const BLOCK_KINDS: &[&str] = &["render", "train", "mesh", "viz"];
+pub const BLOCK_KINDS: &[&str] = &["render", "train", "mesh", "bake", "viz"];
 
 /// A learnable param of a program.
 #[derive(Clone, Debug)]

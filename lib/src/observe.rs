@@ -60,23 +60,3 @@ pub trait TrainingObserver: Sync {
     /// Ctrl-C.
     fn after_step(&self, done: u32, last: bool, params: &[f32], record: Option<Value>, watch: &Watch);
 }
-
-/// What a caller follows of a running block, and how training starts.
-#[derive(Default)]
-pub struct Observer<'a> {
-    /// Called as a render block finishes frames, with the frames done so far.
-    pub frames: Option<&'a (dyn Fn(usize) + Sync)>,
-    /// A live viewer that follows training (its progress and params).
-    pub live: Option<&'a dyn TrainingObserver>,
-    /// Training continues from the block's checkpoint when there is one.
-    pub resume: bool,
-    /// The progress bars of training (none when not given).
-    pub bars: Option<&'a dyn ProgressBars>,
-}
-
-impl Observer<'_> {
-    /// The progress bars to draw (none when not given).
-    pub fn bars(&self) -> &dyn ProgressBars {
-        self.bars.unwrap_or(&NoBars)
-    }
-}

@@ -34,7 +34,7 @@
 //! # }
 //! ```
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
 use nerfjit_dsl::config::Settings;
@@ -42,6 +42,7 @@ use nerfjit_dsl::{compile_with, Program};
 use nerfjit_jit::KernelCache;
 use nerfjit_runtime::OccupancyGrid;
 
+use crate::blocks::bake::BakePlan;
 use crate::blocks::mesh::MeshPlan;
 use crate::blocks::sphere_trace::SphereTracePlan;
 use crate::blocks::train::TrainPlan;
@@ -49,11 +50,50 @@ use crate::blocks::train_sdf::TrainSdfPlan;
 use crate::blocks::viz::VizPlan;
 use crate::blocks::volume::VolumePlan;
 use crate::failure::{at, Failure, Result};
+use crate::observe::{NoBars, ProgressBars, TrainingObserver};
 use crate::script;
 use crate::settings::block::{Block, Outputs};
 use crate::settings::schema::Kind;
 
-pub use crate::observe::Observer;
+/// The field a `bake` block bakes: the script's program with its params as they are when the block runs.
+pub struct FieldToBake<'a> {
+    /// The checked program.
+    pub program: &'a Program,
+    /// The params as they are at that point of the script.
+    pub params: &'a [f32],
+    /// The script's path: relative inputs (the train block's data) are found next to it, and the bake
+    /// records it as what it was baked from.
+    pub script: &'a Path,
+    /// The occupancy grid the last `train` block ended with, while the params are the ones it trained.
+    pub grid: Option<&'a OccupancyGrid>,
+}
+
+/// Bakes the field of a `bake` block as the block's plan says and writes the bake; returns a summary. The
+/// baking lives above the session, in the commands: `nerfjit run` gives
+/// [`crate::commands::bake::bake_block`].
+pub type Baker<'a> = dyn Fn(&BakePlan, &FieldToBake<'_>) -> Result<String> + Sync + 'a;
+
+/// What a caller follows of a running block, and how training starts and blocks bake.
+#[derive(Default)]
+pub struct Observer<'a> {
+    /// Called as a render block finishes frames, with the frames done so far.
+    pub frames: Option<&'a (dyn Fn(usize) + Sync)>,
+    /// A live viewer that follows training (its progress and params).
+    pub live: Option<&'a dyn TrainingObserver>,
+    /// Training continues from the block's checkpoint when there is one.
+    pub resume: bool,
+    /// The progress bars of training (none when not given).
+    pub bars: Option<&'a dyn ProgressBars>,
+    /// What runs `bake` blocks (without one, a `bake` block is an error).
+    pub baker: Option<&'a Baker<'a>>,
+}
+
+impl Observer<'_> {
+    /// The progress bars to draw (none when not given).
+    pub fn bars(&self) -> &dyn ProgressBars {
+        self.bars.unwrap_or(&NoBars)
+    }
+}
 
 /// What one block of a script does, with its settings read and checked.
 enum Plan {
@@ -63,11 +103,14 @@ enum Plan {
     Viz(VizPlan),
     TrainSdf(TrainSdfPlan),
     Mesh(MeshPlan),
+    Bake(BakePlan),
 }
 
 /// A checked script with its params and compiled kernels, ready to run its blocks.
 pub struct Session {
     program: Program,
+    /// The script's path (relative inputs are found next to it).
+    script: PathBuf,
     params: Vec<f32>,
     cache: KernelCache,
     plans: Vec<Plan>,
@@ -81,18 +124,19 @@ impl Session {
     /// if needed) or, without one, next to the script. Every block is checked before any runs.
     pub fn open(path: &str, overrides: &[String], out_dir: Option<&Path>) -> Result<Session> {
         let program = script::load_with(path, overrides)?;
-        let script_dir = Path::new(path).parent().unwrap_or(Path::new("."));
-        Session::of(program, script_dir, out_dir)
+        Session::of(program, Path::new(path), out_dir)
     }
 
     /// Checks the script `source` (called `name` in messages) whose relative files live in `dir`, where
     /// its outputs are written too.
     pub fn from_source(name: &str, source: &str, dir: &Path) -> Result<Session> {
         let program = compile_with(name, source, &[]).map_err(Failure::Script)?;
-        Session::of(program, dir, Some(dir))
+        Session::of(program, &dir.join(name), Some(dir))
     }
 
-    fn of(program: Program, script_dir: &Path, out_dir: Option<&Path>) -> Result<Session> {
+    /// Plans the blocks of `program`, compiled from the script at `script`.
+    fn of(program: Program, script: &Path, out_dir: Option<&Path>) -> Result<Session> {
+        let script_dir = script.parent().unwrap_or(Path::new("."));
         if let Some(dir) = out_dir {
             std::fs::create_dir_all(dir).map_err(|e| {
                 Failure::Message(format!("cannot create output folder '{}': {e}", dir.display()))
@@ -110,11 +154,13 @@ impl Session {
                 Kind::Viz => Plan::Viz(VizPlan::new(b)?),
                 Kind::TrainSdf => Plan::TrainSdf(TrainSdfPlan::new(b)?),
                 Kind::Mesh => Plan::Mesh(MeshPlan::new(b)?),
+                Kind::Bake => Plan::Bake(BakePlan::new(b)?),
             });
         }
         let params = program.param_values.clone();
         Ok(Session {
             program,
+            script: script.to_path_buf(),
             params,
             cache: KernelCache::new(),
             plans,
@@ -179,6 +225,7 @@ impl Session {
             Plan::Viz(_) => Kind::Viz,
             Plan::TrainSdf(_) => Kind::TrainSdf,
             Plan::Mesh(_) => Kind::Mesh,
+            Plan::Bake(_) => Kind::Bake,
         }
     }
 
@@ -234,6 +281,22 @@ impl Session {
                 });
                 let frame = fit.map(TrainSdfPlan::normalized_frame).transpose()?.flatten();
                 p.run(program, params, cache, frame)
+            }
+            Plan::Bake(p) => {
+                let baker = observer.baker.ok_or_else(|| {
+                    Failure::Message(format!(
+                        "block {} is a bake block, and this run has no baker: run the script with `nerfjit run` \
+                         (or give the session's Observer `nerfjit::commands::bake::bake_block` as its baker)",
+                        index + 1
+                    ))
+                })?;
+                let field = FieldToBake {
+                    program,
+                    params,
+                    script: &self.script,
+                    grid: self.trained_grid.as_ref(),
+                };
+                baker(p, &field)
             }
         }
     }
@@ -297,6 +360,41 @@ mod tests {
             (small - 0.5).abs() < 0.05 && (large - 0.8).abs() < 0.05,
             "{small} {large}"
         );
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn a_bake_block_goes_to_the_baker_with_its_settings_and_the_current_params() {
+        let out = std::env::temp_dir().join(format!("nerfjit-session-bake-{}", std::process::id()));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::write(
+            out.join("cams.json"),
+            r#"{"image_size": [8, 8], "cameras": [{"image": "v_000.png", "focal": 1.0,
+            "principal_point": [0, 0], "eye": [0, 0, -3], "scene_center": [0, 0, 0], "up": [0, 1, 0]}]}"#,
+        )
+        .unwrap();
+        let source = "param r: f32 = 0.5\nfn density(p: vec3) -> f32 = relu(r - length(p))\n\
+                      fn color(p: vec3) -> vec3 = [1, 1, 1]\n\
+                      train { data: views(\"cams.json\"), steps: 1, checkpoint: none }\n\
+                      bake { out: \"ball.bake\", tune: 2.5, sh_degree: 0, size: 64 }\n";
+        let mut s = Session::from_source("ball.sdf", source, &out).unwrap();
+        assert_eq!(s.kind(1), Kind::Bake);
+        let refused = s.run_block(1, &Observer::default()).unwrap_err().to_string();
+        assert!(refused.contains("no baker"), "{refused}");
+        s.set_param("r", &[0.75]).unwrap();
+        let baker = |plan: &BakePlan, field: &FieldToBake| -> Result<String> {
+            assert_eq!(plan.out, out.join("ball.bake"));
+            assert_eq!((plan.tune_seconds, plan.sh_degree, plan.size), (2.5, 0, 64));
+            assert_eq!((plan.min_weight, plan.min_opacity), (1.0, 0.5));
+            assert_eq!(field.script, out.join("ball.sdf"));
+            assert!(field.grid.is_none());
+            Ok(format!("baked r = {:?}", field.params))
+        };
+        let observer = Observer {
+            baker: Some(&baker),
+            ..Observer::default()
+        };
+        assert_eq!(s.run_block(1, &observer).unwrap(), "baked r = [0.75]");
         std::fs::remove_dir_all(&out).unwrap();
     }
 

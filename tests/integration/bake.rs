@@ -13,6 +13,24 @@ fn mean_psnr(path: &std::path::Path) -> f64 {
     report["mean_psnr"].as_f64().unwrap()
 }
 
+/// `eval-views SOURCE` in `dir` on the four views of the box at 40² (`cams.json`): its mean PSNR.
+fn psnr_on_the_four_views(dir: &std::path::Path, source: &str) -> f64 {
+    let json = format!("{source}.json");
+    let args = [
+        "eval-views",
+        source,
+        "--cameras",
+        "cams.json",
+        "--size",
+        "40",
+        "--json",
+        &json,
+    ];
+    let (ok, _, err) = run(dir, &args);
+    assert!(ok, "{source}: {err}");
+    mean_psnr(&dir.join(json))
+}
+
 #[test]
 fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     let dir = scratch("box");
@@ -40,26 +58,9 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     assert!(splats > 100, "{out}");
 
     // Scored on the same views at the same size as the field.
-    for (source, json) in [
-        ("train.ckpt.safetensors", "field.json"),
-        ("box.bake", "bake.json"),
-    ] {
-        let args = [
-            "eval-views",
-            source,
-            "--cameras",
-            "cams.json",
-            "--size",
-            "40",
-            "--json",
-            json,
-        ];
-        let (ok, _, err) = run(&dir, &args);
-        assert!(ok, "{source}: {err}");
-    }
     let (field, baked) = (
-        mean_psnr(&dir.join("field.json")),
-        mean_psnr(&dir.join("bake.json")),
+        psnr_on_the_four_views(&dir, "train.ckpt.safetensors"),
+        psnr_on_the_four_views(&dir, "box.bake"),
     );
     eprintln!("box at 40²: the field {field:.2} dB, its bake of {splats} splats {baked:.2} dB");
     // The field renders its own views of the box almost exactly (above 60 dB); the bake, without fine-tuning,
@@ -73,19 +74,7 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     *tuned_bake.iter_mut().find(|a| **a == "box.bake").unwrap() = "tuned.bake";
     let (ok, out, err) = run(&dir, &tuned_bake);
     assert!(ok && out.contains("tuning pass 1: 4 views"), "{out}{err}");
-    let args = [
-        "eval-views",
-        "tuned.bake",
-        "--cameras",
-        "cams.json",
-        "--size",
-        "40",
-        "--json",
-        "tuned.json",
-    ];
-    let (ok, _, err) = run(&dir, &args);
-    assert!(ok, "{err}");
-    let tuned = mean_psnr(&dir.join("tuned.json"));
+    let tuned = psnr_on_the_four_views(&dir, "tuned.bake");
     eprintln!("box at 40²: fine-tuned for 5 s, {tuned:.2} dB");
     assert!(
         tuned > 40.0 && tuned > baked + 10.0,
@@ -438,4 +427,135 @@ fn a_bake_exports_as_a_textured_gltf_of_its_splats_surface() {
         &["export", "empty.bake", "--format", "glb", "--out", "x.glb"],
     );
     assert!(!ok && err.contains("no splats"), "{err}");
+}
+
+/// A script's `bake { }` block after its `train` block bakes the params as trained, as `nerfjit bake` bakes
+/// the run's checkpoint with the same options (the same splats), records the script it was baked from, and
+/// the bake is scored and rendered like one of the command's; with `tune`, it is fine-tuned as `--tune` does.
+#[test]
+fn a_bake_block_bakes_the_trained_field_as_the_command_bakes_its_checkpoint() {
+    let dir = scratch("block");
+    make_views(&dir);
+    let script = trainer_with(400, "")
+        + "bake { out: \"block.bake\", size: 80 }\n\
+           bake { out: \"tuned.bake\", size: 80, tune: 2, sh_degree: 0 }\n";
+    std::fs::write(dir.join("train.sdf"), script).unwrap();
+    let (ok, out, err) = run(&dir, &["run", "train.sdf"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("of 4 views of 80×80"), "{out}");
+    assert!(out.contains("tuning pass 1: 4 views"), "{out}");
+
+    let block = nerfjit::bake_file::read(&dir.join("block.bake")).unwrap();
+    assert!(block.splats.len() > 100, "{} splats", block.splats.len());
+    assert_eq!(
+        std::fs::canonicalize(&block.source).unwrap(),
+        std::fs::canonicalize(dir.join("train.sdf")).unwrap()
+    );
+    let command = [
+        "bake",
+        "train.ckpt.safetensors",
+        "--size",
+        "80",
+        "--out",
+        "command.bake",
+    ];
+    let (ok, _, err) = run(&dir, &command);
+    assert!(ok, "{err}");
+    let from_checkpoint = nerfjit::bake_file::read(&dir.join("command.bake")).unwrap();
+    assert!(from_checkpoint.splats == block.splats && from_checkpoint.background == block.background);
+
+    let tuned = nerfjit::bake_file::read(&dir.join("tuned.bake")).unwrap();
+    assert!(tuned.splats.sh.is_empty() && !tuned.splats.is_empty());
+    let scores = ["block.bake", "tuned.bake"].map(|bake| psnr_on_the_four_views(&dir, bake));
+    eprintln!(
+        "box at 40²: the block's bake {:.2} dB, tuned 2 s {:.2} dB",
+        scores[0], scores[1]
+    );
+    // As the command's bake of the checkpoint (above): 26.5 dB untuned.
+    assert!(scores[0] > 24.0 && scores[1] > scores[0], "{scores:?}");
+    let render = [
+        "render",
+        "block.bake",
+        "--cameras",
+        "cams.json",
+        "--size",
+        "40",
+        "--out",
+        "views",
+    ];
+    let (ok, out, err) = run(&dir, &render);
+    let splats = format!("{} splats", block.splats.len());
+    assert!(ok && out.contains(&splats), "{out}{err}");
+    assert!(dir.join("views/view_003.png").exists());
+}
+
+/// `nerfjit check` of a script with bad `bake` blocks: each mistake at its line and column, with a caret
+/// under it and a hint; a script without a `train` block is refused before anything runs.
+#[test]
+fn bad_bake_blocks_are_refused_at_their_settings() {
+    let dir = scratch("bad_block");
+    let lines = [
+        "bake { out: \"a.bake\", tune: -1, sh_degree: 2, tnue: 3 }",
+        "bake { tune: 1 }",
+        "bake { out: \"a.ply\" }",
+    ];
+    let script = trainer_with(5, "") + &lines.join("\n") + "\n";
+    let first = script.lines().count() - lines.len() + 1;
+    std::fs::write(dir.join("bad.sdf"), &script).unwrap();
+    let (ok, _, err) = run(&dir, &["check", "bad.sdf"]);
+    assert!(!ok, "{err}");
+    for (line, what, message, hint) in [
+        (0, "-1", "-1 is out of range", "expected a number from 0 to 1e6"),
+        (
+            0,
+            "2,",
+            "2 is out of range",
+            "expected a whole number from 0 to 1",
+        ),
+        (
+            0,
+            "tnue",
+            "unknown setting 'tnue' in 'bake' block",
+            "did you mean 'tune'?",
+        ),
+        (
+            1,
+            "bake",
+            "the bake block needs 'out'",
+            "add e.g. out: \"scene.bake\"",
+        ),
+        (
+            2,
+            "\"a.ply\"",
+            "cannot write 'a.ply': unknown format",
+            "use a file ending in .bake",
+        ),
+    ] {
+        let text = lines[line];
+        let column = text.find(what).unwrap() + 1;
+        let at = format!("bad.sdf:{}:{column}", first + line);
+        let caret = format!("{text}\n  | {}^", " ".repeat(column - 1));
+        assert!(
+            err.contains(&at) && err.contains(message) && err.contains(&format!("hint: {hint}")),
+            "{at} {message}: {err}"
+        );
+        assert!(err.contains(&caret), "{caret}: {err}");
+    }
+
+    std::fs::write(
+        dir.join("untrained.sdf"),
+        format!(
+            "const center = [0, 0, 0]\nconst sides = [1, 1, 1]\n{}bake {{ out: \"a.bake\" }}\n",
+            crate::common::FIELD
+        ),
+    )
+    .unwrap();
+    let (ok, _, err) = run(&dir, &["check", "untrained.sdf"]);
+    assert!(ok, "the settings are right: {err}");
+    let (ok, _, err) = run(&dir, &["run", "untrained.sdf"]);
+    assert!(
+        !ok && err.contains("untrained.sdf:5:1") && err.contains("this script has no train block"),
+        "{err}"
+    );
+    assert!(!dir.join("a.bake").exists());
 }

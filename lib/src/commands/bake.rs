@@ -27,10 +27,12 @@ use nerfjit_runtime::splats::{splat_loss_gradients, SplatScene, SplatTuner, Spla
 use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
 
 use crate::bake_file::{self, Bake};
+use crate::blocks::bake::BakePlan;
 use crate::blocks::train::TrainPlan;
 use crate::commands::point_cloud::{view_cameras, PointsArgs, Surfels};
 use crate::commands::render_views::{report, CameraSource, ScoredSet, ViewArgs};
 use crate::failure::{Failure, Result};
+use crate::session::FieldToBake;
 use crate::settings::schema::Kind;
 use crate::training::validation::score_on_ranks;
 
@@ -55,6 +57,10 @@ pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 /// at 400², four of its own: half the splats that one of its own keeps, for a few tenths of a dB; BAKING.md
 /// has the measured trade).
 pub const MIN_WEIGHT: f32 = 1.0;
+
+/// The side of the views a bake renders by default, in pixels: views of 400² make splats the size of a pixel
+/// at 800².
+pub const VIEW_SIZE: u32 = 400;
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -85,6 +91,33 @@ pub struct Tuning {
 /// as `tuning` says against its training views (see [`tune`]) and writes them to `args.out`; returns a
 /// summary.
 pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
+    bake(args, tuning, None)
+}
+
+/// A script's `bake` block, the [`Baker`](crate::session::Baker) of `nerfjit run`: the field as it is at that
+/// point of the script baked as [`run`] bakes a checkpoint, with the block's settings as its options, from
+/// the views of the script's `train` block's data (less those it holds out). The bake records the script as
+/// what it was baked from. In an MPI job the ranks share the views' renders; rank 0 merges and tunes the
+/// splats and writes the bake (the other ranks return an empty summary).
+pub fn bake_block(plan: &BakePlan, field: &FieldToBake) -> Result<String> {
+    let script = field.script.to_string_lossy();
+    let args = PointsArgs {
+        view: ViewArgs::as_trained(&script, Some(plan.size)),
+        cameras: CameraSource::Default,
+        min_opacity: plan.min_opacity,
+        out: &plan.out,
+    };
+    let tuning = Tuning {
+        seconds: plan.tune_seconds,
+        sh_degree: plan.sh_degree,
+        min_weight: plan.min_weight,
+    };
+    bake(&args, tuning, Some(field))
+}
+
+/// [`run`] of the field `in_memory` holds (a script's `bake` block, whose script is `args.view.source`),
+/// or, without it, of the field `args.view.source` loads.
+fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> Result<String> {
     if !bake_file::is_bake(args.out) {
         return Err(Failure::Message(format!(
             "'{}' must end in .bake (export it afterwards: nerfjit export SCENE.bake --format splat-ply)",
@@ -92,10 +125,18 @@ pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
         )));
     }
     let start = Instant::now();
-    let (program, params) = crate::checkpoint::load_source(args.view.source)?;
-    let background = args.view.resolve(&program).background;
-    let cameras = bake_cameras(args, &program)?;
-    let Some(surfels) = Surfels::render(&args.view, (program, params), &cameras, args.min_opacity)? else {
+    let loaded;
+    let (program, params, trained_grid) = match in_memory {
+        Some(field) => (field.program, field.params, field.grid),
+        None => {
+            loaded = crate::checkpoint::load_source(args.view.source)?;
+            (&loaded.0, loaded.1.as_slice(), None)
+        }
+    };
+    let background = args.view.resolve(program).background;
+    let cameras = bake_cameras(args, program)?;
+    let field = (program, params);
+    let Some(surfels) = Surfels::render(&args.view, field, trained_grid, &cameras, args.min_opacity)? else {
         return Ok(String::new());
     };
     let (splats, cells) = splats_of(&surfels, &cameras);
@@ -113,8 +154,7 @@ pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
         start.elapsed().as_secs_f64(),
     );
     if tuning.seconds > 0.0 {
-        let (program, _) = crate::checkpoint::load_source(args.view.source)?;
-        text += &tune(&mut bake, &program, args.view.source, tuning, size)?;
+        text += &tune(&mut bake, program, args.view.source, tuning, size)?;
     }
     bake_file::write(args.out, &bake)?;
     let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
@@ -439,6 +479,24 @@ pub fn eval(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::settings::schema::Form;
+
+    #[test]
+    fn a_bake_block_defaults_to_the_command_lines_options() {
+        let setting = |name| {
+            crate::settings::schema::BAKE
+                .setting(name)
+                .expect("a setting of bake blocks")
+        };
+        let Form::Number { default, .. } = setting("min_weight").form else {
+            panic!("min_weight is a number")
+        };
+        assert_eq!(default as f32, MIN_WEIGHT);
+        let Form::Whole { default, .. } = setting("size").form else {
+            panic!("size is a whole number")
+        };
+        assert_eq!(default, Some(u64::from(VIEW_SIZE)));
+    }
 
     #[test]
     fn pixels_fall_in_cells_as_wide_as_their_footprints() {

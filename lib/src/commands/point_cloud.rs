@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use nerfjit_dsl::Program;
 use nerfjit_jit::KernelCache;
-use nerfjit_runtime::{Camera, Mesh};
+use nerfjit_runtime::{Camera, Mesh, OccupancyGrid};
 
 use crate::commands::render_views::{CameraSource, ViewArgs};
 use crate::failure::{Failure, Result};
@@ -34,7 +34,8 @@ pub fn run(args: &PointsArgs) -> Result<String> {
     let start = Instant::now();
     let (program, params) = crate::checkpoint::load_source(args.view.source)?;
     let cameras = view_cameras(args.view.source, &program, &args.cameras)?;
-    let Some(surfels) = Surfels::render(&args.view, (program, params), &cameras, args.min_opacity)? else {
+    let field = (&program, params.as_slice());
+    let Some(surfels) = Surfels::render(&args.view, field, None, &cameras, args.min_opacity)? else {
         return Ok(String::new());
     };
     let seconds = start.elapsed().as_secs_f64();
@@ -93,11 +94,15 @@ pub(crate) struct Surfels {
 
 impl Surfels {
     /// Renders every camera's view of the field of `view` (`program` with `params`) at `view`'s side and
-    /// keeps the pixels whose opacity reaches `min_opacity`. The ranks of an MPI job share the views; rank 0
-    /// gets the surfels, the others `None`.
+    /// keeps the pixels whose opacity reaches `min_opacity`. With an occupancy grid, the views skip the
+    /// cells of `trained_grid` (the grid the training of these params ended with) when it is the one the
+    /// script's `train` block makes, else those of the grid
+    /// [`Rendering::occupancy`](crate::commands::render_views::Rendering::occupancy) gives. The ranks of an
+    /// MPI job share the views; rank 0 gets the surfels, the others `None`.
     pub(crate) fn render(
         view: &ViewArgs,
-        (program, params): (Program, Vec<f32>),
+        (program, params): (&Program, &[f32]),
+        trained_grid: Option<&OccupancyGrid>,
         cameras: &[Camera],
         min_opacity: f32,
     ) -> Result<Option<Surfels>> {
@@ -115,14 +120,21 @@ impl Surfels {
                 "--min-opacity {min_opacity} must be in (0, 1]"
             )));
         }
-        let rendering = view.resolve(&program);
+        let rendering = view.resolve(program);
         let cache = KernelCache::new();
-        let fields = VolumeFields::compile(&program, &cache, rendering.importance, rendering.products)?;
+        let fields = VolumeFields::compile(program, &cache, rendering.importance, rendering.products)?;
         let settings = rendering.settings(fields.fine.mode);
-        let grid = rendering.occupancy(view.source, &fields, &params)?;
+        let built;
+        let grid = match trained_grid.filter(|g| rendering.skip_empty.is_some_and(|s| s.fits(g))) {
+            Some(grid) => Some(grid),
+            None => {
+                built = rendering.occupancy(view.source, &fields, params)?;
+                built.as_ref()
+            }
+        };
         // Each rank of an MPI job renders its share of the views; rank 0 gathers them.
         let rendered = crate::cluster::split(cameras.len(), |i| -> Result<Vec<u8>> {
-            let frame = fields.render_with(&cameras[i], (size, size), &params, &settings, grid.as_ref())?;
+            let frame = fields.render_with(&cameras[i], (size, size), params, &settings, grid)?;
             Ok(crate::blocks::volume::frame_bytes(&frame))
         })
         .map_err(Failure::Message)?;

@@ -75,7 +75,22 @@ pub struct Rendering {
     pub products: Precision,
 }
 
-impl ViewArgs<'_> {
+impl<'a> ViewArgs<'a> {
+    /// The field of `source` rendered at `size`, every other setting as its script's `train` block trains
+    /// (see [`ViewArgs::resolve`]).
+    pub fn as_trained(source: &'a str, size: Option<u32>) -> ViewArgs<'a> {
+        ViewArgs {
+            source,
+            size,
+            near: None,
+            far: None,
+            samples: None,
+            background: None,
+            importance: None,
+            exact: false,
+        }
+    }
+
     /// The image side (or width) asked, else [`DEFAULT_WIDTH`].
     pub fn side(&self) -> u32 {
         self.size.unwrap_or(DEFAULT_WIDTH)

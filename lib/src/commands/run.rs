@@ -33,7 +33,8 @@ pub fn run(
 }
 
 /// Runs every block of `session` in order, printing each one's summary; all blocks were checked before
-/// the first one runs. Training updates the params that later blocks render with; `live` follows it.
+/// the first one runs. Training updates the params that later blocks render and bake with (`bake` blocks
+/// by [`crate::commands::bake::bake_block`]); `live` follows it.
 pub fn run_session(
     session: &mut Session,
     resume: bool,
@@ -57,6 +58,7 @@ pub fn run_session(
             live,
             resume,
             bars: Some(bars),
+            baker: Some(&crate::commands::bake::bake_block),
         };
         let summary = session.run_block(i, &observer)?;
         if let Some(bar) = bar {

@@ -25,6 +25,8 @@ pub enum Kind {
     TrainSdf,
     /// `mesh { }`.
     Mesh,
+    /// `bake { }`.
+    Bake,
     /// `viz { }`.
     Viz,
 }
@@ -687,6 +689,47 @@ pub const MESH: BlockSchema = BlockSchema {
     ],
 };
 
+/// `bake { }`: the field baked into Gaussian splats, as `nerfjit bake` bakes a checkpoint (its CLI options as
+/// settings; the views are always those of the script's `train` block's data).
+pub const BAKE: BlockSchema = BlockSchema {
+    id: Kind::Bake,
+    kind: "bake",
+    variant: None,
+    doc: "bakes the volume field into Gaussian splats (a .bake file) and fine-tunes them against the train block's views",
+    settings: &[
+        output("out", &["bake"], "the baked splats").required("out: \"scene.bake\""),
+        number(
+            "tune",
+            0.0,
+            1e6,
+            0.0,
+            "seconds of fine-tuning the splats against the train block's views, less those it holds out (0: none)",
+        ),
+        whole(
+            "sh_degree",
+            0,
+            1,
+            1,
+            "the degree of the tuned splats' spherical harmonics: 1, colors that change with the view; 0, one color a splat",
+        ),
+        number(
+            "min_weight",
+            0.0,
+            1e6,
+            1.0,
+            "halfway through tuning, drop the splats that weighed under this many pixels (of a view `size` wide) in every view",
+        ),
+        whole("size", 1, 4096, 400, "the side of the views rendered to bake, in pixels"),
+        number(
+            "min_opacity",
+            1e-6,
+            1.0,
+            0.5,
+            "pixels of the views below this opacity are left out",
+        ),
+    ],
+};
+
 /// `viz { }`: the course's teaching images.
 pub const VIZ: BlockSchema = BlockSchema {
     id: Kind::Viz,
@@ -746,6 +789,7 @@ pub const BLOCKS: &[&BlockSchema] = &[
     &TRAIN,
     &TRAIN_SDF,
     &MESH,
+    &BAKE,
     &VIZ,
 ];
 

@@ -107,6 +107,7 @@ mod tests {
         matches_its_schema::<crate::blocks::train::TrainSettings>();
         matches_its_schema::<crate::blocks::train_sdf::TrainSdfSettings>();
         matches_its_schema::<crate::blocks::mesh::MeshSettings>();
+        matches_its_schema::<crate::blocks::bake::BakeSettings>();
         matches_its_schema::<crate::blocks::viz::VizSettings>();
     }
 }
