@@ -33,7 +33,8 @@ pub struct BakePlan {
     pub tune_seconds: f64,
     /// The degree of the tuned splats' spherical harmonics (0 or 1).
     pub sh_degree: u8,
-    /// Halfway through tuning, splats that weighed under this many pixels in every view are dropped.
+    /// Halfway through tuning, splats that weighed under this many pixels (of a view `size` wide) in
+    /// every view are dropped.
     pub min_weight: f32,
     /// The side of the views rendered to bake, in pixels.
     pub size: u32,
