@@ -56,7 +56,7 @@ pub fn frames(reps: usize, checkpoint: Option<&Path>) -> Result<()> {
             bake.splats.len()
         ));
         // Made ready once, as a viewer or a video does (the covariances: ~1 ms a frame if made each time).
-        let scene = SplatScene::new(&bake.splats);
+        let scene = SplatScene::new(&bake.splats, nerfjit_field::splat_shader()?);
         let phases = std::sync::Mutex::new(Vec::new());
         time_frames(reps, &views, |camera, size| {
             let (_, stats) = scene.render(camera, size, size, bake.background)?;

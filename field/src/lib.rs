@@ -4,6 +4,9 @@
 
 use std::sync::{Arc, OnceLock};
 
+mod splat_shader;
+pub use splat_shader::{splat_shader, JitSplatShader, SPLAT_SHADER_SOURCE};
+
 use nerfjit_dsl::ir::Op;
 use nerfjit_dsl::simplify::Simplifier;
 use nerfjit_dsl::{kernel_graphs, Lowered, Program, Report, Signature, Type};

@@ -160,10 +160,11 @@ impl<'a> Scene<'a> {
     }
 
     /// `bake`'s splats made ready to draw, offering the cameras of `program` (in `script_dir`), the
-    /// script of the checkpoint the bake came from, with its trained `params`. Nothing is compiled.
+    /// script of the checkpoint the bake came from, with its trained `params`. Only the splats' shader is
+    /// compiled (once per process).
     pub fn of_bake(program: Program, params: &[f32], script_dir: &Path, bake: &'a Bake) -> Result<Scene<'a>> {
         let renderer = Renderer::Splats {
-            scene: Box::new(SplatScene::new(&bake.splats)),
+            scene: Box::new(SplatScene::new(&bake.splats, nerfjit_field::splat_shader()?)),
             background: bake.background,
             rendering: Rendering::of_script(&program),
         };

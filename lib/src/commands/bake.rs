@@ -237,6 +237,7 @@ pub fn tune(
         ..TUNE_RATES
     };
     let mut tuner = SplatTuner::new(bake.splats.len(), rates);
+    let shader = nerfjit_field::splat_shader()?;
     let mut rng = Rng::new(0x5eed);
     let mut order: Vec<usize> = (0..views.len()).collect();
     let coarse: Vec<Vec<[f32; 3]>> = views.images.iter().map(halved).collect();
@@ -280,8 +281,14 @@ pub fn tune(
                 true => ((views.width, views.height), &views.images[v].pixels),
                 false => (coarse_size, &coarse[v]),
             };
-            let (loss, gradients) =
-                splat_loss_gradients(&bake.splats, &views.cameras[v], size, bake.background, target)?;
+            let (loss, gradients) = splat_loss_gradients(
+                &bake.splats,
+                shader,
+                &views.cameras[v],
+                size,
+                bake.background,
+                target,
+            )?;
             error += loss;
             let factor = 0.1f64.powf(elapsed / seconds) as f32;
             tuner.step(&mut bake.splats, &gradients, factor)?;
@@ -459,7 +466,7 @@ pub fn eval(
     })?;
     let set = ScoredSet::read(&source, &program, (args.size, bake.background), cameras, format)?;
     let start = Instant::now();
-    let scene = SplatScene::new(&bake.splats);
+    let scene = SplatScene::new(&bake.splats, nerfjit_field::splat_shader()?);
     let draw = |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {
         Ok(scene.render(camera, w, h, bake.background)?.0)
     };

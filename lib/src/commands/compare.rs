@@ -101,7 +101,16 @@ pub fn compare(
             let f = match crate::bake_file::is_bake(Path::new(source)) {
                 true => {
                     let bake = crate::bake_file::read(Path::new(source))?;
-                    render_splats(&bake.splats, camera, views.width, views.height, background)?.0
+                    let shader = nerfjit_field::splat_shader()?;
+                    render_splats(
+                        &bake.splats,
+                        shader,
+                        camera,
+                        views.width,
+                        views.height,
+                        background,
+                    )?
+                    .0
                 }
                 false => {
                     let (program, params) = crate::checkpoint::load_source(source)?;

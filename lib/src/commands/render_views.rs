@@ -438,7 +438,7 @@ pub fn render(args: &ViewArgs, cameras: CameraSource, out: &Path, gif: bool) -> 
     };
     let (draw, how): (Box<ViewRenderer>, String) = match &bake {
         Some(bake) => {
-            let scene = SplatScene::new(&bake.splats);
+            let scene = SplatScene::new(&bake.splats, nerfjit_field::splat_shader()?);
             (
                 Box::new(
                     move |camera: &Camera, (w, h): (u32, u32)| -> Result<VolumeFrame> {

@@ -15,7 +15,7 @@ use super::raster::{alpha_at, per_tile, span, Area, Projected, Screen, Viewer, M
 
 /// How many of a tile's splats the backward pass copies out at once.
 const BATCH: usize = 32;
-use super::shading::seen_color_gradient;
+use super::shading::{ShaderBatch, SplatShader};
 use super::Splats;
 use crate::cameras::camera::Camera;
 use crate::error::{Error, Result};
@@ -61,16 +61,18 @@ impl SplatGradients {
 /// inverse covariance (a, b, c), its opacity and its color.
 type ScreenGradient = [f32; 9];
 
-/// The mean squared error of the `width`×`height` frame that `camera` sees of `splats` over `background`
-/// against `target` (its colors row by row), over every pixel and channel, and its gradients.
+/// The mean squared error of the `width`×`height` frame that `camera` sees of `splats` (colored by
+/// `shader`) over `background` against `target` (its colors row by row), over every pixel and channel, and
+/// its gradients.
 pub fn splat_loss_gradients(
     splats: &Splats,
+    shader: &dyn SplatShader,
     camera: &Camera,
     (width, height): (u32, u32),
     background: [f32; 3],
     target: &[[f32; 3]],
 ) -> Result<(f64, SplatGradients)> {
-    let screen = Screen::of(splats, camera, width, height)?;
+    let screen = Screen::of(splats, shader, camera, width, height)?;
     if target.len() != screen.width * screen.height {
         return Err(Error::Invalid(format!(
             "the target has {} pixels, the {width}×{height} frame {}",
@@ -121,12 +123,23 @@ pub fn splat_loss_gradients(
     }
 
     let mut gradients = SplatGradients::zeros(splats.len(), !splats.sh.is_empty());
+    const CHUNK: usize = 4096;
     let chained: Vec<(usize, SplatGradient)> = screen
         .buffers
         .projected
-        .par_iter()
-        .zip(&per_projected)
-        .map(|(p, g)| (p.index as usize, chain(&screen.viewer, splats, p, g)))
+        .par_chunks(CHUNK)
+        .zip(per_projected.par_chunks(CHUNK))
+        .flat_map_iter(|(projected, per_projected)| {
+            let mut chained: Vec<(usize, SplatGradient)> = projected
+                .iter()
+                .zip(per_projected)
+                .map(|(p, g)| (p.index as usize, chain(&screen.viewer, splats, p, g)))
+                .collect();
+            if !splats.sh.is_empty() {
+                shade_backward(&screen.viewer, splats, shader, &mut chained);
+            }
+            chained
+        })
         .collect();
     for (p, w) in screen.buffers.projected.iter().zip(weights) {
         gradients.weights[p.index as usize] = w;
@@ -283,8 +296,9 @@ struct SplatGradient {
     rotation: [f32; 4],
 }
 
-/// Carries the gradient `g` of projected splat `p` through its projection (see `Viewer::project`) and its
-/// shading (see `shading`) to its center, color, spherical harmonics, scales and rotation.
+/// Carries the gradient `g` of projected splat `p` through its projection (see `Viewer::project`) to its
+/// center, scales and rotation; its color's gradient is the one of the color it showed (which
+/// [`shade_backward`] carries on through its shader, where it has one).
 fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) -> SplatGradient {
     let i = p.index as usize;
     let offset = Vec3::from(splats.positions[i]) - viewer.position;
@@ -336,18 +350,7 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     d_v.y += d_j_row.z * fy * inv_z2 * free_y;
     d_v.z += d_j_col.x * fx * inv_z2 - d_j_col.z * fx * slope_x * inv_z2 * (1.0 + free_x);
     d_v.z += d_j_row.y * fy * inv_z2 - d_j_row.z * fy * slope_y * inv_z2 * (1.0 + free_y);
-    let mut position = viewer.rotation.transpose() * d_v;
-    let d_seen = [g[6], g[7], g[8]];
-    let (color, sh) = match splats.sh.get(i) {
-        Some(sh) => {
-            let distance = offset.length();
-            let (color, d_sh, d_center) =
-                seen_color_gradient(splats.colors[i], sh, offset / distance, distance, d_seen);
-            position += d_center;
-            (color, d_sh)
-        }
-        None => (d_seen, [[0.0; 3]; 3]),
-    };
+    let position = viewer.rotation.transpose() * d_v;
 
     // M = R_view · R_q · S.
     let d_n = viewer.rotation.transpose() * d_m;
@@ -361,10 +364,32 @@ fn chain(viewer: &Viewer, splats: &Splats, p: &Projected, g: &ScreenGradient) ->
     SplatGradient {
         screen: *g,
         position,
-        color,
-        sh,
+        color: [g[6], g[7], g[8]],
+        sh: [[0.0; 3]; 3],
         scale,
         rotation,
+    }
+}
+
+/// Carries the gradients of splats with spherical harmonics from the colors they showed (`color`, as
+/// [`chain`] leaves it) through `shader` to their base colors, coefficients and centers.
+fn shade_backward(
+    viewer: &Viewer,
+    splats: &Splats,
+    shader: &dyn SplatShader,
+    chained: &mut [(usize, SplatGradient)],
+) {
+    let cotangents: Vec<[f32; 3]> = chained.iter().map(|(_, g)| g.color).collect();
+    let shaded = ShaderBatch::with(|batch| {
+        for (i, _) in chained.iter() {
+            batch.push(&viewer.seen(splats, *i, splats.sh[*i]));
+        }
+        batch.gradients(shader, &cotangents)
+    });
+    for ((_, g), d) in chained.iter_mut().zip(shaded) {
+        g.color = d.base;
+        g.sh = d.sh;
+        g.position += d.offset;
     }
 }
 
@@ -400,6 +425,7 @@ fn quaternion_gradient(unit: glam::Vec4, length: f32, d_r: Mat3) -> [f32; 4] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::splats::shading::formula::Formula;
     use crate::splats::{render_splats, SplatTuner, TuneRates};
     use glam::Vec2;
 
@@ -469,7 +495,7 @@ mod tests {
         splats.scales.push([1.2, 0.3, 0.25]);
         let q = Quat::from_axis_angle(Vec3::new(0.1, 0.2, 1.0).normalize(), 0.3);
         splats.rotations.push([q.w, q.x, q.y, q.z]);
-        let screen = Screen::of(&splats, &camera(), SIZE, SIZE).unwrap();
+        let screen = Screen::of(&splats, &Formula, &camera(), SIZE, SIZE).unwrap();
         let v = screen.viewer.rotation * (Vec3::from(splats.positions[4]) - screen.viewer.position);
         let ((_, free_x), (_, free_y)) = screen.viewer.slopes(v);
         assert!(!free_x && free_y, "the fifth splat's slope is not clamped");
@@ -488,7 +514,7 @@ mod tests {
 
     fn loss(splats: &Splats) -> f64 {
         let background = [1.0, 1.0, 1.0];
-        splat_loss_gradients(splats, &camera(), (SIZE, SIZE), background, &target())
+        splat_loss_gradients(splats, &Formula, &camera(), (SIZE, SIZE), background, &target())
             .unwrap()
             .0
     }
@@ -506,7 +532,8 @@ mod tests {
     }
 
     fn gradients_match_differences(splats: &Splats) {
-        let (_, g) = splat_loss_gradients(splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
+        let (_, g) =
+            splat_loss_gradients(splats, &Formula, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
         type Nudge = fn(&mut Splats, usize, usize, f32);
         let mut kinds: Vec<(&str, usize, Nudge, Vec<f32>)> = vec![
             (
@@ -571,7 +598,7 @@ mod tests {
     #[test]
     fn the_loss_is_the_rendered_frames_error() {
         let splats = scene();
-        let (frame, _) = render_splats(&splats, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
+        let (frame, _) = render_splats(&splats, &Formula, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
         let error: f64 = frame
             .rgb
             .iter()
@@ -599,8 +626,8 @@ mod tests {
         splats.scales.push([0.2; 3]);
         splats.rotations.push([1.0, 0.0, 0.0, 0.0]);
         let (_, gradients) =
-            splat_loss_gradients(&splats, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
-        let (frame, _) = render_splats(&splats, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
+            splat_loss_gradients(&splats, &Formula, &camera(), (SIZE, SIZE), [1.0; 3], &target()).unwrap();
+        let (frame, _) = render_splats(&splats, &Formula, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
         let opacity: f32 = frame.opacity.iter().sum();
         let weights: f32 = gradients.weights.iter().sum();
         assert!(opacity > 10.0, "{opacity}");
@@ -615,7 +642,7 @@ mod tests {
     #[test]
     fn tuning_recovers_a_picture() {
         let truth = scene();
-        let (picture, _) = render_splats(&truth, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
+        let (picture, _) = render_splats(&truth, &Formula, &camera(), SIZE, SIZE, [1.0; 3]).unwrap();
         let mut splats = truth.clone();
         for i in 0..splats.len() {
             splats.positions[i][0] += 0.08;
@@ -633,14 +660,15 @@ mod tests {
         };
         let mut tuner = SplatTuner::new(splats.len(), rates);
         let error = |s: &Splats| {
-            splat_loss_gradients(s, &camera(), (SIZE, SIZE), [1.0; 3], &picture.rgb)
+            splat_loss_gradients(s, &Formula, &camera(), (SIZE, SIZE), [1.0; 3], &picture.rgb)
                 .unwrap()
                 .0
         };
         let before = error(&splats);
         for _ in 0..300 {
             let (_, g) =
-                splat_loss_gradients(&splats, &camera(), (SIZE, SIZE), [1.0; 3], &picture.rgb).unwrap();
+                splat_loss_gradients(&splats, &Formula, &camera(), (SIZE, SIZE), [1.0; 3], &picture.rgb)
+                    .unwrap();
             tuner.step(&mut splats, &g, 1.0).unwrap();
         }
         splats.check().unwrap();
@@ -650,8 +678,15 @@ mod tests {
 
     #[test]
     fn a_target_of_the_wrong_size_is_refused() {
-        let e =
-            splat_loss_gradients(&scene(), &camera(), (SIZE, SIZE), [1.0; 3], &[[0.0; 3]; 5]).unwrap_err();
+        let e = splat_loss_gradients(
+            &scene(),
+            &Formula,
+            &camera(),
+            (SIZE, SIZE),
+            [1.0; 3],
+            &[[0.0; 3]; 5],
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("5 pixels"), "{e}");
     }
 }

@@ -1,7 +1,8 @@
 //! Gaussian splats: a scene as 3D Gaussians, each with a center, a color, an opacity and an oriented
 //! ellipsoid (standard deviations along the axes of a rotation), the representation of 3D Gaussian
 //! splatting. A trained field is baked into them (`nerfjit bake`), [`render_splats`] draws them on the
-//! CPU (colors that change with the view by degree-one spherical harmonics, where the splats have them),
+//! CPU (colors that change with the view by degree-one spherical harmonics, where the splats have them,
+//! through a [`SplatShader`] that a script function compiled by the JIT implements),
 //! [`splat_loss_gradients`] and [`SplatTuner`] fine-tune them against images, [`write_splat_ply`] writes
 //! the `.ply` layout that splat viewers read, and [`splat_surface`] meshes the surface they make.
 
@@ -15,6 +16,7 @@ mod tune;
 pub use gradients::{splat_loss_gradients, SplatGradients};
 pub use ply::write_splat_ply;
 pub use raster::{render_splats, SplatFrameStats, SplatScene, SPLAT_PHASES};
+pub use shading::{SplatShader, SHADER_INPUTS};
 pub use tune::{SplatTuner, TuneRates};
 
 pub use surface::{splat_surface, SplatColors, SplatGrid, SurfaceOptions};

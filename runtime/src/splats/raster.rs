@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use glam::{Mat3, Quat, Vec3};
 use rayon::prelude::*;
 
-use super::shading::seen_color;
+use super::shading::{Seen, ShaderBatch, SplatShader};
 use super::Splats;
 use crate::cameras::camera::Camera;
 use crate::error::{check_size, Result};
@@ -91,22 +91,25 @@ pub(super) struct Projected {
     pub color: [f32; 3],
 }
 
-/// Draws `splats` as `camera` sees them in a `width`×`height` frame over `background` (a [`SplatScene`]
-/// made for this one frame; to draw many, make one and keep it).
+/// Draws `splats` (colored by `shader`) as `camera` sees them in a `width`×`height` frame over `background`
+/// (a [`SplatScene`] made for this one frame; to draw many, make one and keep it).
 pub fn render_splats(
     splats: &Splats,
+    shader: &dyn SplatShader,
     camera: &Camera,
     width: u32,
     height: u32,
     background: [f32; 3],
 ) -> Result<(VolumeFrame, SplatFrameStats)> {
-    SplatScene::new(splats).render(camera, width, height, background)
+    SplatScene::new(splats, shader).render(camera, width, height, background)
 }
 
 /// Splats made ready to draw: each splat's 3D covariance and the exponent at which its alpha falls under
 /// the smallest drawn are worked out once, so that a frame only projects, sorts and composites.
 pub struct SplatScene<'a> {
     splats: &'a Splats,
+    /// The color each splat shows a camera (where the splats have spherical harmonics).
+    shader: &'a dyn SplatShader,
     /// Each splat's covariance in the world, (xx, xy, xz, yy, yz, zz): R S² Rᵀ.
     covariances: Vec<[f32; 6]>,
     /// Each splat's `Projected::cutoff`.
@@ -131,8 +134,8 @@ pub(super) struct Buffers {
 }
 
 impl<'a> SplatScene<'a> {
-    /// `splats` made ready to draw.
-    pub fn new(splats: &'a Splats) -> SplatScene<'a> {
+    /// `splats` made ready to draw, their colors given by `shader` where they have spherical harmonics.
+    pub fn new(splats: &'a Splats, shader: &'a dyn SplatShader) -> SplatScene<'a> {
         let covariances = (0..splats.len())
             .into_par_iter()
             .map(|i| {
@@ -162,6 +165,7 @@ impl<'a> SplatScene<'a> {
             .collect();
         SplatScene {
             splats,
+            shader,
             covariances,
             cutoffs,
             buffers: Mutex::default(),
@@ -211,16 +215,7 @@ impl<'a> SplatScene<'a> {
             .zip(keys.par_chunks_mut(CHUNK))
             .enumerate()
             .for_each(|(chunk, (all, keys))| {
-                for (k, (slot, key)) in all.iter_mut().zip(keys).enumerate() {
-                    let i = chunk * CHUNK + k;
-                    *key = match viewer.project(self, i) {
-                        Some(p) => {
-                            *slot = p;
-                            (p.distance.to_bits(), i as u32)
-                        }
-                        None => (OUT_OF_SIGHT, i as u32),
-                    };
-                }
+                ShaderBatch::with(|batch| self.project_chunk(viewer, chunk * CHUNK, all, keys, batch));
             });
         let projecting = start.elapsed();
         let start = Instant::now();
@@ -236,6 +231,40 @@ impl<'a> SplatScene<'a> {
                 }
             });
         [projecting, start.elapsed()]
+    }
+
+    /// Projects splats `first..first + all.len()` into `all` with their sort keys (see [`SplatScene::project`]),
+    /// the visible ones' colors shaded by the scene's shader in one batch.
+    fn project_chunk(
+        &self,
+        viewer: &Viewer,
+        first: usize,
+        all: &mut [Projected],
+        keys: &mut [(u32, u32)],
+        batch: &mut ShaderBatch,
+    ) {
+        let shaded = !self.splats.sh.is_empty();
+        for (k, (slot, key)) in all.iter_mut().zip(keys.iter_mut()).enumerate() {
+            let i = first + k;
+            *key = match viewer.project(self, i) {
+                Some(p) => {
+                    *slot = p;
+                    if shaded {
+                        batch.push(&viewer.seen(self.splats, i, self.splats.sh[i]));
+                    }
+                    (p.distance.to_bits(), i as u32)
+                }
+                None => (OUT_OF_SIGHT, i as u32),
+            };
+        }
+        if shaded {
+            // The batch holds the visible splats, in the chunk's order.
+            let visible = keys.iter().zip(all.iter_mut());
+            let visible = visible.filter(|(key, _)| key.0 != OUT_OF_SIGHT);
+            for ((_, slot), color) in visible.zip(batch.colors(self.shader)) {
+                slot.color = color;
+            }
+        }
     }
 
     /// The splats projected and binned as `camera` sees them in a `width`×`height` frame, in `buffers`.
@@ -285,9 +314,15 @@ pub(super) struct Area {
 }
 
 impl Screen {
-    /// Projects and bins `splats` as `camera` sees them in a `width`×`height` frame.
-    pub fn of(splats: &Splats, camera: &Camera, width: u32, height: u32) -> Result<Screen> {
-        SplatScene::new(splats).screen(camera, width, height, Buffers::default())
+    /// Projects and bins `splats` (colored by `shader`) as `camera` sees them in a `width`×`height` frame.
+    pub fn of(
+        splats: &Splats,
+        shader: &dyn SplatShader,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+    ) -> Result<Screen> {
+        SplatScene::new(splats, shader).screen(camera, width, height, Buffers::default())
     }
 
     /// Tile `tile`'s splats (nearest first) and pixels.
@@ -454,22 +489,27 @@ impl Viewer {
         {
             return None;
         }
-        let distance = v.length();
-        let color = match splats.sh.get(i) {
-            Some(sh) => seen_color(splats.colors[i], sh, offset / distance).0,
-            None => splats.colors[i],
-        };
         Some(Projected {
             index: i as u32,
             col,
             row,
             conic: [c / det, -b / det, a / det],
             extent,
-            distance,
+            distance: v.length(),
             opacity: splats.opacities[i],
             cutoff,
-            color,
+            // The shader's color where the splats have spherical harmonics (see `SplatScene::project`).
+            color: splats.colors[i],
         })
+    }
+
+    /// What splat `i`, of spherical harmonics `sh`, gives its shader for this camera.
+    pub(super) fn seen(&self, splats: &Splats, i: usize, sh: [[f32; 3]; 3]) -> Seen {
+        Seen {
+            base: splats.colors[i],
+            sh,
+            offset: Vec3::from(splats.positions[i]) - self.position,
+        }
     }
 }
 
@@ -791,6 +831,7 @@ fn draw_tile<const TAKEN: bool>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::splats::shading::formula::Formula;
     use glam::Vec2;
 
     fn camera() -> Camera {
@@ -822,7 +863,7 @@ mod tests {
         let (size, scale) = (64u32, 0.1f32);
         let camera = camera();
         let splats = one([0.0; 3], scale, 0.8, [1.0, 0.5, 0.0]);
-        let (frame, stats) = render_splats(&splats, &camera, size, size, [0.0; 3]).unwrap();
+        let (frame, stats) = render_splats(&splats, &Formula, &camera, size, size, [0.0; 3]).unwrap();
         assert_eq!(stats.visible, 1);
         // The screen's standard deviation: fx · scale / distance, with the low-pass added to its square.
         let fx = camera.pixel_intrinsics(size, size).fx;
@@ -857,7 +898,7 @@ mod tests {
         splats.opacities.extend(&near.opacities);
         splats.scales.extend(&near.scales);
         splats.rotations.extend(&near.rotations);
-        let (frame, _) = render_splats(&splats, &camera(), 32, 32, [1.0; 3]).unwrap();
+        let (frame, _) = render_splats(&splats, &Formula, &camera(), 32, 32, [1.0; 3]).unwrap();
         let center = frame.rgb[16 * 32 + 16];
         assert!(center[0] > 0.9 && center[2] < 0.05, "{center:?}");
     }
@@ -876,7 +917,8 @@ mod tests {
     fn splats_out_of_sight_draw_nothing() {
         for position in [[0.0, 0.0, -10.0], [50.0, 0.0, 0.0]] {
             let splats = one(position, 0.1, 1.0, [0.0; 3]);
-            let (frame, stats) = render_splats(&splats, &camera(), 16, 8, [0.25, 0.5, 1.0]).unwrap();
+            let (frame, stats) =
+                render_splats(&splats, &Formula, &camera(), 16, 8, [0.25, 0.5, 1.0]).unwrap();
             assert_eq!(stats.visible, 0);
             assert!(frame.rgb.iter().all(|p| *p == [0.25, 0.5, 1.0]));
         }
@@ -905,9 +947,9 @@ mod tests {
             splats.rotations.push(q.to_array());
         }
         let (width, height, background) = (53u32, 37u32, [0.2, 0.3, 0.4]);
-        let (frame, stats) = render_splats(&splats, &camera(), width, height, background).unwrap();
+        let (frame, stats) = render_splats(&splats, &Formula, &camera(), width, height, background).unwrap();
         assert!(stats.entries > stats.visible && stats.visible > 250, "{stats:?}");
-        let screen = Screen::of(&splats, &camera(), width, height).unwrap();
+        let screen = Screen::of(&splats, &Formula, &camera(), width, height).unwrap();
         // The gradients' frame (which also counts what each pixel took) is the same picture.
         let (drawn, _) = screen.draw(background);
         assert_eq!(
@@ -948,7 +990,7 @@ mod tests {
     #[test]
     fn a_splat_beside_the_camera_stays_off_the_frame() {
         let splats = one([20.0, 0.0, -3.9], 0.05, 1.0, [0.0; 3]);
-        let (frame, stats) = render_splats(&splats, &camera(), 32, 32, [1.0; 3]).unwrap();
+        let (frame, stats) = render_splats(&splats, &Formula, &camera(), 32, 32, [1.0; 3]).unwrap();
         assert_eq!(stats.visible, 0);
         assert!(frame.rgb.iter().all(|p| *p == [1.0; 3]));
     }
@@ -967,7 +1009,8 @@ mod tests {
                 rotations: vec![rotation],
                 sh: Vec::new(),
             };
-            let (frame, _) = render_splats(&splats, &camera(), size as u32, size as u32, [0.0; 3]).unwrap();
+            let (frame, _) =
+                render_splats(&splats, &Formula, &camera(), size as u32, size as u32, [0.0; 3]).unwrap();
             let row: f32 = (0..size).map(|x| frame.opacity[size / 2 * size + x]).sum();
             let column: f32 = (0..size).map(|y| frame.opacity[y * size + size / 2]).sum();
             (row, column)
