@@ -123,24 +123,18 @@ pub fn splat_loss_gradients(
     }
 
     let mut gradients = SplatGradients::zeros(splats.len(), !splats.sh.is_empty());
-    const CHUNK: usize = 4096;
-    let chained: Vec<(usize, SplatGradient)> = screen
+    let mut chained: Vec<(usize, SplatGradient)> = screen
         .buffers
         .projected
-        .par_chunks(CHUNK)
-        .zip(per_projected.par_chunks(CHUNK))
-        .flat_map_iter(|(projected, per_projected)| {
-            let mut chained: Vec<(usize, SplatGradient)> = projected
-                .iter()
-                .zip(per_projected)
-                .map(|(p, g)| (p.index as usize, chain(&screen.viewer, splats, p, g)))
-                .collect();
-            if !splats.sh.is_empty() {
-                shade_backward(&screen.viewer, splats, shader, &mut chained);
-            }
-            chained
-        })
+        .par_iter()
+        .zip(&per_projected)
+        .map(|(p, g)| (p.index as usize, chain(&screen.viewer, splats, p, g)))
         .collect();
+    if !splats.sh.is_empty() {
+        chained
+            .par_chunks_mut(4096)
+            .for_each(|chunk| shade_backward(&screen.viewer, splats, shader, chunk));
+    }
     for (p, w) in screen.buffers.projected.iter().zip(weights) {
         gradients.weights[p.index as usize] = w;
     }
