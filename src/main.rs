@@ -253,7 +253,8 @@ enum Command {
         gif: bool,
     },
     /// Bake a trained volume field (a checkpoint) into Gaussian splats (a .bake file) that `render`,
-    /// `eval-views` and `export` take and the CPU draws in milliseconds.
+    /// `eval-views` and `export` take and the CPU draws in milliseconds. Its views are rendered at --size
+    /// (by default half the training views' larger side; 400 from --cameras or --path).
     Bake {
         #[command(flatten)]
         seen: SeenPixels,
@@ -770,7 +771,7 @@ fn run_command(cli: Cli) -> ExitCode {
                 sh_degree,
                 min_weight,
             };
-            bake::run(&seen.args(Some(bake::VIEW_SIZE)), tuning).map(|text| emit(&format!("{text}\n")))
+            bake::run(&seen.args(None), tuning).map(|text| emit(&format!("{text}\n")))
         }
         Command::Export {
             scene,

@@ -384,7 +384,7 @@ mod tests {
         s.set_param("r", &[0.75]).unwrap();
         let baker = |plan: &BakePlan, field: &FieldToBake| -> Result<String> {
             assert_eq!(plan.out, out.join("ball.bake"));
-            assert_eq!((plan.tune_seconds, plan.sh_degree, plan.size), (2.5, 0, 64));
+            assert_eq!((plan.tune_seconds, plan.sh_degree, plan.size), (2.5, 0, Some(64)));
             assert_eq!((plan.min_weight, plan.min_opacity), (1.0, 0.5));
             assert_eq!(field.script, out.join("ball.sdf"));
             assert!(field.grid.is_none());

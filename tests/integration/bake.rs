@@ -141,6 +141,25 @@ fn a_trained_box_bakes_into_splats_drawn_and_scored_like_the_field() {
     let header = String::from_utf8_lossy(&ply[..header_end]);
     assert!(header.contains(&format!("element vertex {splats}\n")), "{header}");
     assert_eq!(ply.len() - header_end, splats * 17 * 4);
+
+    // Without --size, from the views the field trained on (40² here), the views baked are half as wide;
+    // from other cameras, 400².
+    let (ok, out, err) = run(&dir, &["bake", "train.ckpt.safetensors", "--out", "half.bake"]);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("views of 20×20") && out.contains("training views of 40×40 loaded"),
+        "{out}"
+    );
+    let own = [
+        "bake",
+        "train.ckpt.safetensors",
+        "--cameras",
+        "cams.json",
+        "--out",
+        "own.bake",
+    ];
+    let (ok, out, err) = run(&dir, &own);
+    assert!(ok && out.contains("views of 400×400"), "{out}{err}");
 }
 
 #[test]

@@ -19,7 +19,7 @@ typed_settings! {
         tune: number,
         sh_degree: whole,
         min_weight: number,
-        size: whole,
+        size: whole_or_none,
         min_opacity: number,
     }
 }
@@ -36,8 +36,8 @@ pub struct BakePlan {
     /// Halfway through tuning, splats that weighed under this many pixels (of a view `size` wide) in
     /// every view are dropped.
     pub min_weight: f32,
-    /// The side of the views rendered to bake, in pixels.
-    pub size: u32,
+    /// The side of the views rendered to bake, in pixels (by default half the training views' larger side).
+    pub size: Option<u32>,
     /// Pixels of the views below this opacity are left out.
     pub min_opacity: f32,
 }
@@ -65,7 +65,7 @@ impl BakePlan {
             tune_seconds: s.tune,
             sh_degree: s.sh_degree as u8,
             min_weight: s.min_weight as f32,
-            size: s.size as u32,
+            size: s.size.map(|s| s as u32),
             min_opacity: s.min_opacity as f32,
         })
     }

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 
 use nerfjit_dsl::Program;
 use nerfjit_runtime::splats::{splat_loss_gradients, SplatScene, SplatTuner, Splats, TuneRates};
-use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, VolumeFrame};
+use nerfjit_runtime::{Camera, ImageF32, Layout, Rng, Views, VolumeFrame};
 
 use crate::bake_file::{self, Bake};
 use crate::blocks::bake::BakePlan;
@@ -58,9 +58,17 @@ pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 /// has the measured trade).
 pub const MIN_WEIGHT: f32 = 1.0;
 
-/// The side of the views a bake renders by default, in pixels: views of 400² make splats the size of a pixel
-/// at 800².
+/// The side of the views a bake renders from cameras other than its training views' (`--cameras`,
+/// `--path`) unless told, in pixels. From its training views it renders at half their larger side
+/// ([`baked_side`]): 400² for lego's 800² views.
 pub const VIEW_SIZE: u32 = 400;
+
+/// The side of the views a bake renders from training views of `width`×`height` unless told: half the
+/// larger side, so that a splat starts about two of their pixels wide (measured on lego's 800² views and the
+/// room capture's 320×240: BAKING.md), at least 16.
+pub fn baked_side(width: u32, height: u32) -> u32 {
+    (width.max(height) / 2).max(16)
+}
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -102,7 +110,7 @@ pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
 pub fn bake_block(plan: &BakePlan, field: &FieldToBake) -> Result<String> {
     let script = field.script.to_string_lossy();
     let args = PointsArgs {
-        view: ViewArgs::as_trained(&script, Some(plan.size)),
+        view: ViewArgs::as_trained(&script, plan.size),
         cameras: CameraSource::Default,
         min_opacity: plan.min_opacity,
         out: &plan.out,
@@ -135,8 +143,23 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
     };
     let background = args.view.resolve(program).background;
     let cameras = bake_cameras(args, program)?;
+    // The training views, when tuning needs them or the side of the views to bake is theirs to choose.
+    let side_is_theirs = args.view.size.is_none() && matches!(args.cameras, CameraSource::Default);
+    let views = match tuning.seconds > 0.0 || side_is_theirs {
+        true => Some(training_views(program, args.view.source, background)?),
+        false => None,
+    };
+    let size = match (args.view.size, &views) {
+        (Some(size), _) => size,
+        (None, Some((views, _))) if side_is_theirs => baked_side(views.width, views.height),
+        _ => VIEW_SIZE,
+    };
+    let view = ViewArgs {
+        size: Some(size),
+        ..args.view
+    };
     let field = (program, params);
-    let Some(surfels) = Surfels::render(&args.view, field, trained_grid, &cameras, args.min_opacity)? else {
+    let Some(surfels) = Surfels::render(&view, field, trained_grid, &cameras, args.min_opacity)? else {
         return Ok(String::new());
     };
     let (splats, cells) = splats_of(&surfels, &cameras);
@@ -145,7 +168,6 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
         background,
         source: std::path::absolute(args.view.source).unwrap_or_else(|_| args.view.source.into()),
     };
-    let size = args.view.side();
     let mut text = format!(
         "baked {} splats ({cells}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
         bake.splats.len(),
@@ -153,8 +175,11 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
         cameras.len(),
         start.elapsed().as_secs_f64(),
     );
-    if tuning.seconds > 0.0 {
-        text += &tune(&mut bake, program, args.view.source, tuning, size)?;
+    if let Some((views, loaded)) = views {
+        text += &loaded;
+        if tuning.seconds > 0.0 {
+            text += &tune(&mut bake, &views, tuning, size)?;
+        }
     }
     bake_file::write(args.out, &bake)?;
     let bytes = std::fs::metadata(args.out).map_or(0, |m| m.len());
@@ -189,8 +214,31 @@ fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
         .collect())
 }
 
-/// Fine-tunes the splats of `bake` for `tuning.seconds` against the training views of `source` (a checkpoint,
-/// compiled as `program`; without the views its training holds out): one view a step, in a shuffled order
+/// The views `source` (a checkpoint or a script, compiled as `program`) trained on, without those its
+/// training holds out, on `background`; refused when there are none.
+/// Returns them and a line that says so.
+fn training_views(program: &Program, source: &str, background: [f32; 3]) -> Result<(Views, String)> {
+    let start = Instant::now();
+    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
+    let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
+    let views = TrainPlan::new(block)?.load_views()?.0.on_background(background);
+    if views.is_empty() {
+        return Err(Failure::Message(format!(
+            "{source}'s training data holds no views to bake from or tune against"
+        )));
+    }
+    let line = format!(
+        "{} training views of {}×{} loaded in {:.1} s\n",
+        views.len(),
+        views.width,
+        views.height,
+        start.elapsed().as_secs_f64()
+    );
+    Ok((views, line))
+}
+
+/// Fine-tunes the splats of `bake` for `tuning.seconds` against `views` (the training views of the field it
+/// was baked from, without those its training holds out): one view a step, in a shuffled order
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
 /// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` pixels of
@@ -198,31 +246,9 @@ fn bake_cameras(args: &PointsArgs, program: &Program) -> Result<Vec<Camera>> {
 /// without spherical harmonics get them at that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.
 /// Returns what it did, a line a pass.
-pub fn tune(
-    bake: &mut Bake,
-    program: &Program,
-    source: &str,
-    tuning: Tuning,
-    baked_side: u32,
-) -> Result<String> {
+pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> Result<String> {
     let seconds = tuning.seconds;
-    let start = Instant::now();
-    let folder = Path::new(source).parent().and_then(|p| p.to_str()).unwrap_or("");
-    let block = crate::settings::block::first_block(program, Kind::Train, folder)?;
-    let views = TrainPlan::new(block)?
-        .load_views()?
-        .0
-        .on_background(bake.background);
-    if views.is_empty() {
-        return Err(Failure::Message(format!(
-            "{source}'s training data holds no views to tune against"
-        )));
-    }
-    let mut text = format!(
-        "{} training views loaded in {:.1} s\n",
-        views.len(),
-        start.elapsed().as_secs_f64()
-    );
+    let mut text = String::new();
     let start = Instant::now();
     let mut scales: Vec<f32> = bake
         .splats
@@ -502,7 +528,10 @@ mod tests {
         let Form::Whole { default, .. } = setting("size").form else {
             panic!("size is a whole number")
         };
-        assert_eq!(default, Some(u64::from(VIEW_SIZE)));
+        assert_eq!(
+            default, None,
+            "the block's size is the training views' unless given"
+        );
     }
 
     #[test]

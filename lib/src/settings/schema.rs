@@ -719,7 +719,12 @@ pub const BAKE: BlockSchema = BlockSchema {
             1.0,
             "halfway through tuning, drop the splats that weighed under this many pixels (of a view `size` wide) in every view",
         ),
-        whole("size", 1, 4096, 400, "the side of the views rendered to bake, in pixels"),
+        whole_or_none(
+            "size",
+            1,
+            4096,
+            "the side of the views rendered to bake, in pixels; by default half the training views' larger side",
+        ),
         number(
             "min_opacity",
             1e-6,
