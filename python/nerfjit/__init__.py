@@ -12,6 +12,8 @@ on), their functions on numpy arrays, and runs of their blocks.
         print(metrics["step"], metrics["loss"])
     field = nerfjit.load("box/train_box.ckpt.safetensors")
     image, depth, opacity = field.render(c2w, focal=50.0, size=64)   # numpy (64, 64, 3), (64, 64), (64, 64)
+    bake, report = nerfjit.bake("box/train_box.ckpt.safetensors", "box.bake", tune=30)   # Gaussian splats
+    image, depth, opacity = bake.render(c2w, focal=50.0, size=64)    # drawn by the CPU splat renderer
     vertices, faces = nerfjit.Script("torus").mesh("sdf", resolution=64, bounds=1.5)
 
 `nerfjit.data.load(path)` reads a data set's cameras and images as numpy arrays. `nerfjit.torch` (imported
@@ -20,7 +22,9 @@ forward and backward passes are nerfjit's kernels.
 """
 
 from . import data
-from ._nerfjit import Field, NerfjitError, Script, ScriptError, Steps, load, run
+from ._nerfjit import Bake, Field, NerfjitError, Script, ScriptError, Steps, bake, load, run
 from .training import Trainer
 
-__all__ = ["Script", "Field", "Trainer", "Steps", "ScriptError", "NerfjitError", "load", "run", "data"]
+__all__ = [
+    "Script", "Field", "Bake", "Trainer", "Steps", "ScriptError", "NerfjitError", "load", "bake", "run", "data",
+]

@@ -1,6 +1,7 @@
 """Type stubs of the extension module (see `nerfjit/__init__.py`)."""
 
 from os import PathLike
+from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence, Union
 
 import numpy as np
@@ -76,6 +77,43 @@ def load(
     exact: bool = ...,
 ) -> Field:
     """Opens a checkpoint (or a script) as a field; the settings override what its train block renders with."""
+
+class Bake:
+    """A baked scene: the Gaussian splats of a `.bake` file, drawn by nerfjit's CPU splat renderer."""
+
+    def __init__(self, path: Union[str, PathLike[str]]) -> None:
+        """Opens a `.bake` file."""
+    def __len__(self) -> int:
+        """How many splats it holds."""
+    @property
+    def background(self) -> list[float]:
+        """The color its views are drawn on."""
+    @property
+    def baked_from(self) -> Path:
+        """The checkpoint (or script) it was baked from."""
+    @property
+    def splats(self) -> dict[str, npt.NDArray[np.float32]]:
+        """positions (N, 3), colors (N, 3), opacities (N,), scales (N, 3), rotations (N, 4) and sh (N, 3, 3)."""
+    def render(
+        self,
+        c2w: npt.ArrayLike,
+        focal: Union[float, tuple[float, float]],
+        size: Union[int, tuple[int, int]],
+        principal: Optional[tuple[float, float]] = None,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """(image (H, W, 3), depth (H, W), opacity (H, W)) seen by an OpenGL/Blender camera-to-world c2w."""
+
+def bake(
+    source: str,
+    out: Union[str, PathLike[str]],
+    *,
+    tune: float = ...,
+    size: Optional[int] = ...,
+    sh_degree: int = ...,
+    min_weight: float = ...,
+    min_opacity: float = ...,
+) -> tuple[Bake, str]:
+    """Bakes a checkpoint (or a script) into splats written to `out` as `nerfjit bake` does: (bake, report)."""
 
 def load_views(
     path: str,

@@ -91,6 +91,35 @@ impl Field {
         size: Size,
         principal: Option<(f32, f32)>,
     ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+        let View {
+            camera,
+            width,
+            height,
+        } = View::of(c2w, focal, size, principal)?;
+        let views = self.views(py)?;
+        let frame = py
+            .detach(|| views.render(&camera, width, height))
+            .map_err(to_py)?;
+        frame_arrays(py, frame)
+    }
+}
+
+/// A camera as Python gives it, and the size of its image.
+pub(crate) struct View {
+    pub camera: nerfjit_runtime::Camera,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl View {
+    /// The camera of `c2w` (4×4 or 3×4, OpenGL / Blender axes), `focal` (pixels), `size` (a side or the
+    /// width and height) and `principal` (pixels; the center by default); refused with what is wrong.
+    pub(crate) fn of(
+        c2w: &Bound<'_, PyAny>,
+        focal: Pair,
+        size: Size,
+        principal: Option<(f32, f32)>,
+    ) -> PyResult<View> {
         let c2w = crate::script::real(c2w, "c2w's entries")?;
         let matrix = c2w.as_array();
         if !matches!(matrix.shape(), [3, 4] | [4, 4]) {
@@ -124,32 +153,40 @@ impl Field {
         let intrinsics = nerfjit_runtime::PixelIntrinsics { fx, fy, cx, cy };
         let camera = nerfjit_runtime::Camera::from_pixels(c2w, intrinsics, width, height)
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
-        let views = self.views(py)?;
-        let frame = py
-            .detach(|| views.render(&camera, width, height))
-            .map_err(to_py)?;
-        let (h, w) = (height as usize, width as usize);
-        let image = numpy::ndarray::Array3::from_shape_fn((h, w, 3), |(r, c, k)| frame.rgb[r * w + c][k]);
-        let depth = Array2::from_shape_vec((h, w), frame.depth).expect("a depth per pixel");
-        let opacity = Array2::from_shape_vec((h, w), frame.opacity).expect("an opacity per pixel");
-        Ok((
-            image.into_pyarray(py).into_any(),
-            depth.into_pyarray(py).into_any(),
-            opacity.into_pyarray(py).into_any(),
-        ))
+        Ok(View {
+            camera,
+            width,
+            height,
+        })
     }
+}
+
+/// A frame as numpy arrays: its (H, W, 3) colours, (H, W) depths and (H, W) opacities.
+pub(crate) fn frame_arrays(
+    py: Python<'_>,
+    frame: nerfjit_runtime::VolumeFrame,
+) -> PyResult<(Bound<'_, PyAny>, Bound<'_, PyAny>, Bound<'_, PyAny>)> {
+    let (h, w) = (frame.height as usize, frame.width as usize);
+    let image = numpy::ndarray::Array3::from_shape_fn((h, w, 3), |(r, c, k)| frame.rgb[r * w + c][k]);
+    let depth = Array2::from_shape_vec((h, w), frame.depth).expect("a depth per pixel");
+    let opacity = Array2::from_shape_vec((h, w), frame.opacity).expect("an opacity per pixel");
+    Ok((
+        image.into_pyarray(py).into_any(),
+        depth.into_pyarray(py).into_any(),
+        opacity.into_pyarray(py).into_any(),
+    ))
 }
 
 /// A number, or two.
 #[derive(FromPyObject)]
-enum Pair {
+pub(crate) enum Pair {
     One(f32),
     Two(f32, f32),
 }
 
 /// An image's side, or its width and height.
 #[derive(FromPyObject)]
-enum Size {
+pub(crate) enum Size {
     Side(u32),
     Sides(u32, u32),
 }

@@ -1,11 +1,13 @@
 //! nerfjit from Python: the extension module `nerfjit._nerfjit`, which the package `nerfjit` re-exports.
 //!
 //! Conversions only, one module each: `script` (a compiled program with its params, whose functions run
-//! as JIT kernels — `kernels` — on numpy arrays), `field` (trained fields rendered into numpy images),
+//! as JIT kernels — `kernels` — on numpy arrays), `field` (trained fields rendered into numpy images), `bake`
+//! (fields baked into splats, drawn into numpy images),
 //! `data` (data sets as numpy arrays) and `runs` (a script's blocks run as `nerfjit run` does, their
 //! training followed step by step). Kernels run with the GIL released, over the machine's cores;
 //! compilation and runs happen on threads with the command line's deep stack.
 
+mod bake;
 mod data;
 mod field;
 mod kernels;
@@ -52,15 +54,18 @@ pub(crate) fn on_work_stack<T: Send>(work: impl FnOnce() -> T + Send) -> T {
     })
 }
 
-/// The extension module: `Script`, `Field`, `Trainer`, `run`, `load`, `load_views` and the exceptions.
+/// The extension module: `Script`, `Field`, `Bake`, `Trainer`, `run`, `load`, `bake`, `load_views` and the
+/// exceptions.
 #[pymodule]
 fn _nerfjit(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_class::<script::Script>()?;
     module.add_class::<field::Field>()?;
+    module.add_class::<bake::Bake>()?;
     module.add_class::<runs::Trainer>()?;
     module.add_class::<runs::Steps>()?;
     module.add_function(wrap_pyfunction!(runs::run, module)?)?;
     module.add_function(wrap_pyfunction!(field::load, module)?)?;
+    module.add_function(wrap_pyfunction!(bake::bake, module)?)?;
     module.add_function(wrap_pyfunction!(data::load_views, module)?)?;
     module.add("ScriptError", module.py().get_type::<ScriptError>())?;
     module.add("NerfjitError", module.py().get_type::<NerfjitError>())?;
