@@ -242,8 +242,10 @@ fn training_views(program: &Program, source: &str, background: [f32; 3]) -> Resu
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
 /// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` pixels of
-/// a view `baked_side` wide (the side of the views the splats were baked from) in every view are dropped, and at the end those left fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats
-/// without spherical harmonics get them at that point (zero: the colors unchanged), tuned with the rest in
+/// a view `baked_side` wide (the side of the views the splats were baked from) in every view are dropped
+/// (unless their centers lie outside every view's frame: no view tunes those), and at the end those left
+/// fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats without spherical harmonics get them at
+/// that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.
 /// Returns what it did, a line a pass.
 pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> Result<String> {
@@ -292,7 +294,12 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
                 // Once every view was seen at half size, the splats that weigh next to nothing in all
                 // of them go.
                 let seen = steps >= views.len();
-                let keep: Vec<bool> = heaviest.iter().map(|&h| !seen || h >= min_weight).collect();
+                let framed = in_some_frame(&bake.splats.positions, views);
+                let keep: Vec<bool> = heaviest
+                    .iter()
+                    .zip(&framed)
+                    .map(|(&h, &framed)| !seen || !framed || h >= min_weight)
+                    .collect();
                 light = Some(bake.splats.retain(&keep));
                 tuner.retain(&keep)?;
                 // Colors start to change with the view once the splats have found their places (as 3D
@@ -331,7 +338,8 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
     let dropped = bake.splats.prune(MIN_OPACITY);
     text += &format!(
         "tuned {steps} steps ({} views of {}×{}) in {:.1} s; {} splats weighing under {min_weight:.2} pixels \
-         in every view at half size and {dropped} fainter than {MIN_OPACITY:.4} dropped\n",
+         of the views in each of them (measured at half size) and {dropped} fainter than {MIN_OPACITY:.4} \
+         dropped\n",
         views.len(),
         views.width,
         views.height,
@@ -339,6 +347,24 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
         light.unwrap_or(0),
     );
     Ok(text)
+}
+
+/// Whether each of `positions` lies inside the frame of some view of `views` (in front of its camera).
+/// Pruning keeps the splats that lie in none: no view tunes them, they stay as the field showed them to
+/// the bake's views (which are square, so wider than a landscape view's height), and views held out for
+/// scoring may see them.
+fn in_some_frame(positions: &[[f32; 3]], views: &Views) -> Vec<bool> {
+    let (width, height) = (views.width as f32, views.height as f32);
+    positions
+        .par_iter()
+        .map(|&p| {
+            views.cameras.iter().any(|camera| {
+                camera
+                    .project(glam::Vec3::from(p), views.width, views.height)
+                    .is_some_and(|(row, col)| (0.0..height).contains(&row) && (0.0..width).contains(&col))
+            })
+        })
+        .collect()
 }
 
 /// An image at half its width and height (each pixel the mean of four; an odd last row or column left out).
@@ -532,6 +558,34 @@ mod tests {
             default, None,
             "the block's size is the training views' unless given"
         );
+    }
+
+    #[test]
+    fn pruning_tells_splats_in_some_frame_from_those_in_none() {
+        use glam::{Vec2, Vec3};
+        let camera = |eye: Vec3, at: Vec3| Camera::look_at(eye, at, Vec3::Y, Vec2::ONE, Vec2::ZERO).unwrap();
+        let views = |cameras: Vec<Camera>| Views {
+            cameras,
+            images: Vec::new(),
+            width: 40,
+            height: 30,
+            alpha: None,
+            masks: None,
+        };
+        // In front of the first camera at the frame's center; far above its frame; behind it; beside it.
+        let positions = [
+            [0.0, 0.0, 0.0],
+            [0.0, 20.0, 0.0],
+            [0.0, 0.0, 6.0],
+            [20.0, 0.0, 0.0],
+        ];
+        let first = camera(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
+        let one = views(vec![first]);
+        assert_eq!(in_some_frame(&positions, &one), [true, false, false, false]);
+        // A second camera, beside the first, frames the point above the first camera's frame.
+        let second = camera(Vec3::new(0.0, 20.0, 3.0), Vec3::new(0.0, 20.0, 0.0));
+        let two = views(vec![first, second]);
+        assert_eq!(in_some_frame(&positions, &two), [true, true, false, false]);
     }
 
     #[test]
