@@ -14,7 +14,10 @@ background is part of the scene. This script makes one of each from truth scenes
       python3 bench/captures/synthetic.py room --out /tmp/room
       nerfjit run examples/instant_capture.sdf --set 'train.data=nerfstudio("/tmp/room/transforms.json")'
 
-  Every 8th view held out (the recipe's `val: holdout(every: 8)`) is the score.
+  Every 8th view held out (the recipe's `val: holdout(every: 8)`) is the score. `--shape` chooses the
+  photos' shape (ROOM_SHAPES): `landscape` (320×240, the default), `portrait` (180×320: a phone held
+  upright, its 1080×1920 photos read at a sixth, the landscape lens turned) or `wide` (400×160, a
+  panorama-like crop of a wider lens).
 - `object`: a NeRF-synthetic ("Blender") scene, a toy of thin rods, a thin ring, a striped ball and a bitten
   block on a checkered plate, in the layout of `../shared/data/lego`: 80 training and 10 validation views of
   800×800 RGBA PNGs (the alpha from renders on black and on white) from the upper hemisphere at lego's
@@ -141,6 +144,14 @@ def run_nerfjit(nerfjit, folder, script):
     subprocess.run([os.path.abspath(nerfjit), "run", "truth.sdf"], cwd=folder, check=True)
 
 
+# The room capture's photo shapes: width, height and focal length in pixels.
+ROOM_SHAPES = {
+    "landscape": (320, 240, 0.62 * 320),
+    "portrait": (180, 320, 0.62 * 320),
+    "wide": (400, 160, 0.45 * 400),
+}
+
+
 def room(args):
     """The phone capture of an object in a room (see the module's docs)."""
     os.makedirs(os.path.join(args.out, "images"), exist_ok=True)
@@ -149,8 +160,7 @@ def room(args):
     # scaled by 0.37 and moved, so that nothing about the scene's own frame helps the reader.
     to_capture = 0.37 * np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
     offset = np.array([2.0, -1.0, 0.5])
-    width, height = 320, 240
-    focal = 0.62 * width
+    width, height, focal = ROOM_SHAPES[args.shape]
     frames = []
     for i in range(args.views):
         azimuth = 2.0 * math.pi * i / args.views + rng.uniform(-0.05, 0.05)
@@ -248,6 +258,7 @@ def main():
     parser.add_argument("--out", required=True, help="folder to write the data set into")
     parser.add_argument("--views", type=int, default=64, help="room: the capture's views")
     parser.add_argument("--size", type=int, default=800, help="object: the views' width and height")
+    parser.add_argument("--shape", choices=sorted(ROOM_SHAPES), default="landscape", help="room: the photos' shape")
     parser.add_argument("--nerfjit", default="target/release/nerfjit")
     args = parser.parse_args()
     os.makedirs(args.out, exist_ok=True)
