@@ -3,7 +3,8 @@
 //! of a `.bake` (see [`eval`]); `nerfjit export` is [`crate::commands::export`].
 //!
 //! The bake is the field's surface as its training cameras see it, as NeRF-to-splats conversions make it:
-//! every view is volume-rendered at `--size`, each pixel whose opacity reaches `--min-opacity` is placed at
+//! every training view is volume-rendered in its own aspect ratio with its larger side `--size` (and a
+//! [`MARGIN`] on every side, to see a little beyond its frame), each pixel whose opacity reaches `--min-opacity` is placed at
 //! its expected depth with its color (the background taken out), and the pixels are merged in cells as
 //! wide as their footprints (the width of a pixel at its depth, in levels of detail whose cells double in
 //! side from the median footprint's either way, so that a capture's far background is merged into splats
@@ -59,16 +60,34 @@ pub const MIN_OPACITY: f32 = 1.0 / 255.0;
 pub const MIN_WEIGHT: f32 = 1.0;
 
 /// The side of the views a bake renders from cameras other than its training views' (`--cameras`,
-/// `--path`) unless told, in pixels. From its training views it renders at half their larger side
-/// ([`baked_side`]): 400² for lego's 800² views.
+/// `--path`) unless told, in pixels (square views). From its training views it renders views of their own
+/// aspect ratio, whose larger side is half theirs ([`baked_side`]): 400² for lego's 800² views.
 pub const VIEW_SIZE: u32 = 400;
 
-/// The side of the views a bake renders from training views of `width`×`height` unless told: half the
-/// larger side, so that a splat starts about two of their pixels wide (measured on lego's 800² views and the
+/// The larger side of the views a bake renders from training views of `width`×`height` unless told: half
+/// theirs, so that a splat starts about two of their pixels wide (measured on lego's 800² views and the
 /// room capture's 320×240: BAKING.md), at least 16.
 pub fn baked_side(width: u32, height: u32) -> u32 {
     (width.max(height) / 2).max(16)
 }
+
+/// The width and height of the views a bake renders from training views of `width`×`height` whose larger
+/// side is to be `side`: their aspect ratio kept (a portrait or a wide capture is seen whole, not cut to a
+/// square), each side at least a pixel.
+pub fn baked_frame(width: u32, height: u32, side: u32) -> (u32, u32) {
+    let larger = f64::from(width.max(height).max(1));
+    let scaled = |x: u32| ((f64::from(x) * f64::from(side) / larger).round() as u32).max(1);
+    (scaled(width), scaled(height))
+}
+
+/// How far beyond a training view's frame the bake's view from its camera sees, on every side, as a share
+/// of the frame's larger side: held-out views may look a little beyond every training view (the room
+/// capture's lower views look higher up its walls), and the splats there stay as the field showed them.
+pub const MARGIN: f32 = 0.125;
+
+/// How near the edge of a training view's frame a splat's center lies (as a share of the frame's larger
+/// side) for pruning to treat it as beyond the frame ([`well_inside_some_frame`]).
+pub const EDGE: f32 = 0.1;
 
 /// A splat's standard deviation, in cells.
 pub const SPREAD: f32 = 0.6;
@@ -143,23 +162,39 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
     };
     let background = args.view.resolve(program).background;
     let cameras = bake_cameras(args, program)?;
-    // The training views, when tuning needs them or the side of the views to bake is theirs to choose.
-    let side_is_theirs = args.view.size.is_none() && matches!(args.cameras, CameraSource::Default);
-    let views = match tuning.seconds > 0.0 || side_is_theirs {
+    // The training views, when tuning needs them or the bake sees the field from their cameras (whose
+    // aspect ratio its views keep).
+    let from_training = matches!(args.cameras, CameraSource::Default);
+    let views = match tuning.seconds > 0.0 || from_training {
         true => Some(training_views(program, args.view.source, background)?),
         false => None,
     };
-    let size = match (args.view.size, &views) {
-        (Some(size), _) => size,
-        (None, Some((views, _))) if side_is_theirs => baked_side(views.width, views.height),
-        _ => VIEW_SIZE,
+    // The training views' frames (their aspect ratio, the larger side `--size`) and the views rendered:
+    // the same, widened by a margin on every side.
+    let (baked, margin, cameras) = match &views {
+        Some((views, _)) if from_training => {
+            let side = args.view.size.unwrap_or(baked_side(views.width, views.height));
+            let (width, height) = baked_frame(views.width, views.height, side);
+            let margin = (MARGIN * width.max(height) as f32).round() as u32;
+            let widened = cameras
+                .iter()
+                .map(|camera| camera.widened(width, height, margin))
+                .collect::<std::result::Result<Vec<_>, _>>()?;
+            ((width, height), margin, widened)
+        }
+        _ => {
+            let side = args.view.size.unwrap_or(VIEW_SIZE);
+            ((side, side), 0, cameras)
+        }
     };
+    let frame = (baked.0 + 2 * margin, baked.1 + 2 * margin);
     let view = ViewArgs {
-        size: Some(size),
+        size: Some(frame.0.max(frame.1)),
         ..args.view
     };
     let field = (program, params);
-    let Some(surfels) = Surfels::render(&view, field, trained_grid, &cameras, args.min_opacity)? else {
+    let Some(surfels) = Surfels::render(&view, field, trained_grid, &cameras, frame, args.min_opacity)?
+    else {
         return Ok(String::new());
     };
     let (splats, cells) = splats_of(&surfels, &cameras);
@@ -169,16 +204,22 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
         source: std::path::absolute(args.view.source).unwrap_or_else(|_| args.view.source.into()),
     };
     let mut text = format!(
-        "baked {} splats ({cells}) from {} pixels of {} views of {size}×{size} in {:.1} s\n",
+        "baked {} splats ({cells}) from {} pixels of {} views of {}×{}{} in {:.1} s\n",
         bake.splats.len(),
         surfels.positions.len(),
         cameras.len(),
+        baked.0,
+        baked.1,
+        match margin {
+            0 => String::new(),
+            m => format!(" (and {m} pixels beyond each side)"),
+        },
         start.elapsed().as_secs_f64(),
     );
     if let Some((views, loaded)) = views {
         text += &loaded;
         if tuning.seconds > 0.0 {
-            text += &tune(&mut bake, &views, tuning, size)?;
+            text += &tune(&mut bake, &views, tuning, baked.0)?;
         }
     }
     bake_file::write(args.out, &bake)?;
@@ -242,13 +283,13 @@ fn training_views(program: &Program, source: &str, background: [f32; 3]) -> Resu
 /// each pass, Adam on the frame's mean squared error with every rate decaying tenfold over the time
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
 /// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` pixels of
-/// a view `baked_side` wide (the side of the views the splats were baked from) in every view are dropped
-/// (unless their centers lie outside every view's frame: no view tunes those), and at the end those left
+/// a view `baked_width` wide (the width of the views the splats were baked from) in every view are dropped
+/// (unless their centers lie well inside no view's frame: see [`well_inside_some_frame`]), and at the end those left
 /// fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats without spherical harmonics get them at
 /// that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.
 /// Returns what it did, a line a pass.
-pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> Result<String> {
+pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_width: u32) -> Result<String> {
     let seconds = tuning.seconds;
     let mut text = String::new();
     let start = Instant::now();
@@ -274,7 +315,7 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
     // Each splat's largest weight in a view of the coarse half, in pixels at full size, and the least it
     // may have.
     let mut heaviest = vec![0.0f32; bake.splats.len()];
-    let min_weight = tuning.min_weight * (views.width as f32 / baked_side.max(1) as f32).powi(2);
+    let min_weight = tuning.min_weight * (views.width as f32 / baked_width.max(1) as f32).powi(2);
     let mut light = None;
     'passes: for pass in 1.. {
         for k in (1..order.len()).rev() {
@@ -294,7 +335,7 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
                 // Once every view was seen at half size, the splats that weigh next to nothing in all
                 // of them go.
                 let seen = steps >= views.len();
-                let framed = in_some_frame(&bake.splats.positions, views);
+                let framed = well_inside_some_frame(&bake.splats.positions, views);
                 let keep: Vec<bool> = heaviest
                     .iter()
                     .zip(&framed)
@@ -349,11 +390,14 @@ pub fn tune(bake: &mut Bake, views: &Views, tuning: Tuning, baked_side: u32) -> 
     Ok(text)
 }
 
-/// Whether each of `positions` lies inside the frame of some view of `views` (in front of its camera).
-/// Pruning keeps the splats that lie in none: no view tunes them, they stay as the field showed them to
-/// the bake's views (which are square, so wider than a landscape view's height), and views held out for
-/// scoring may see them.
-fn in_some_frame(positions: &[[f32; 3]], views: &Views) -> Vec<bool> {
+/// Whether each of `positions` lies well inside the frame of some view of `views` (in front of its camera,
+/// further than [`EDGE`] of the frame's larger side from its edges). Pruning keeps the splats that lie well
+/// inside none: those beyond every frame (the bake's views see a [`MARGIN`] beyond them) no view tunes, and
+/// those near the edges of every frame that holds them are tuned by parts of them at most; they stay about
+/// as the field showed them to the bake's views, and views held out for scoring, which look a little
+/// beyond the training views, see them.
+fn well_inside_some_frame(positions: &[[f32; 3]], views: &Views) -> Vec<bool> {
+    let inset = EDGE * views.width.max(views.height) as f32;
     let (width, height) = (views.width as f32, views.height as f32);
     positions
         .par_iter()
@@ -361,7 +405,9 @@ fn in_some_frame(positions: &[[f32; 3]], views: &Views) -> Vec<bool> {
             views.cameras.iter().any(|camera| {
                 camera
                     .project(glam::Vec3::from(p), views.width, views.height)
-                    .is_some_and(|(row, col)| (0.0..height).contains(&row) && (0.0..width).contains(&col))
+                    .is_some_and(|(row, col)| {
+                        (inset..height - inset).contains(&row) && (inset..width - inset).contains(&col)
+                    })
             })
         })
         .collect()
@@ -486,14 +532,14 @@ fn splats_of(surfels: &Surfels, cameras: &[Camera]) -> (Splats, String) {
 /// empty space, and a splat there would hide its surface. Such points come from pixels whose expected depth
 /// fell between surfaces (edges, thin parts, the field's haze).
 fn seen_through(p: glam::Vec3, surfels: &Surfels, cameras: &[Camera], margin: f32) -> bool {
-    let size = surfels.size;
+    let (width, height) = surfels.frame;
     cameras.iter().zip(&surfels.distances).any(|(camera, distances)| {
-        let Some((row, col)) = camera.project(p, size, size) else {
+        let Some((row, col)) = camera.project(p, width, height) else {
             return false;
         };
-        let inside = (0.0..size as f32).contains(&row) && (0.0..size as f32).contains(&col);
+        let inside = (0.0..height as f32).contains(&row) && (0.0..width as f32).contains(&col);
         inside && {
-            let seen = distances[row as usize * size as usize + col as usize];
+            let seen = distances[row as usize * width as usize + col as usize];
             seen.is_finite() && (p - camera.position()).length() < seen - margin
         }
     })
@@ -561,7 +607,18 @@ mod tests {
     }
 
     #[test]
-    fn pruning_tells_splats_in_some_frame_from_those_in_none() {
+    fn baked_views_keep_the_training_views_aspect_ratio() {
+        assert_eq!(baked_frame(800, 800, 400), (400, 400));
+        assert_eq!(baked_frame(320, 240, 160), (160, 120));
+        // A portrait phone's 1080×1920 photos read at a quarter, and a wide capture.
+        assert_eq!(baked_frame(270, 480, baked_side(270, 480)), (135, 240));
+        assert_eq!(baked_frame(400, 160, 200), (200, 80));
+        // A view thinner than a pixel at the bake's size still has one.
+        assert_eq!(baked_frame(1000, 1, 16), (16, 1));
+    }
+
+    #[test]
+    fn pruning_tells_splats_well_inside_some_frame_from_those_near_every_edge() {
         use glam::{Vec2, Vec3};
         let camera = |eye: Vec3, at: Vec3| Camera::look_at(eye, at, Vec3::Y, Vec2::ONE, Vec2::ZERO).unwrap();
         let views = |cameras: Vec<Camera>| Views {
@@ -572,20 +629,25 @@ mod tests {
             alpha: None,
             masks: None,
         };
-        // In front of the first camera at the frame's center; far above its frame; behind it; beside it.
+        // In front of the first camera at the frame's center; far above its frame; behind it; beside it;
+        // inside its frame 2 pixels from its top edge (less than EDGE of its 40 pixels); 5 pixels from it.
         let positions = [
             [0.0, 0.0, 0.0],
             [0.0, 20.0, 0.0],
             [0.0, 0.0, 6.0],
             [20.0, 0.0, 0.0],
+            [0.0, 2.6, 0.0],
+            [0.0, 2.0, 0.0],
         ];
         let first = camera(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO);
         let one = views(vec![first]);
-        assert_eq!(in_some_frame(&positions, &one), [true, false, false, false]);
+        let well_inside = well_inside_some_frame(&positions, &one);
+        assert_eq!(well_inside, [true, false, false, false, false, true]);
         // A second camera, beside the first, frames the point above the first camera's frame.
         let second = camera(Vec3::new(0.0, 20.0, 3.0), Vec3::new(0.0, 20.0, 0.0));
         let two = views(vec![first, second]);
-        assert_eq!(in_some_frame(&positions, &two), [true, true, false, false]);
+        let well_inside = well_inside_some_frame(&positions, &two);
+        assert_eq!(well_inside, [true, true, false, false, false, true]);
     }
 
     #[test]

@@ -35,7 +35,9 @@ pub fn run(args: &PointsArgs) -> Result<String> {
     let (program, params) = crate::checkpoint::load_source(args.view.source)?;
     let cameras = view_cameras(args.view.source, &program, &args.cameras)?;
     let field = (&program, params.as_slice());
-    let Some(surfels) = Surfels::render(&args.view, field, None, &cameras, args.min_opacity)? else {
+    let size = args.view.side();
+    let Some(surfels) = Surfels::render(&args.view, field, None, &cameras, (size, size), args.min_opacity)?
+    else {
         return Ok(String::new());
     };
     let seconds = start.elapsed().as_secs_f64();
@@ -46,7 +48,6 @@ pub fn run(args: &PointsArgs) -> Result<String> {
         colors: surfels.colors,
     };
     cloud.write_ply(args.out)?;
-    let size = args.view.side();
     Ok(format!(
         "{} points from {} views of {size}×{size} in {seconds:.2} s (opacity ≥ {}) → {}",
         cloud.vertices.len(),
@@ -86,15 +87,15 @@ pub(crate) struct Surfels {
     /// The width of its pixel at its depth.
     pub footprints: Vec<f32>,
     /// Each camera's view: the distance along each pixel's ray to what it saw, +∞ where it saw nothing
-    /// opaque enough (row-major, `size`² pixels).
+    /// opaque enough (row-major, `frame.0 × frame.1` pixels).
     pub distances: Vec<Vec<f32>>,
-    /// The side of every view.
-    pub size: u32,
+    /// The width and height of every view.
+    pub frame: (u32, u32),
 }
 
 impl Surfels {
-    /// Renders every camera's view of the field of `view` (`program` with `params`) at `view`'s side and
-    /// keeps the pixels whose opacity reaches `min_opacity`. With an occupancy grid, the views skip the
+    /// Renders every camera's view of the field of `view` (`program` with `params`) as `frame` (width and
+    /// height: the cameras' own aspect ratio, or a view's edges are cut off or stretched) and keeps the pixels whose opacity reaches `min_opacity`. With an occupancy grid, the views skip the
     /// cells of `trained_grid` (the grid the training of these params ended with) when it is the one the
     /// script's `train` block makes, else those of the grid
     /// [`Rendering::occupancy`](crate::commands::render_views::Rendering::occupancy) gives. The ranks of an
@@ -104,13 +105,14 @@ impl Surfels {
         (program, params): (&Program, &[f32]),
         trained_grid: Option<&OccupancyGrid>,
         cameras: &[Camera],
+        frame: (u32, u32),
         min_opacity: f32,
     ) -> Result<Option<Surfels>> {
-        let size = view.side();
-        let pixels = cameras.len() as u64 * u64::from(size) * u64::from(size);
+        let (width, height) = frame;
+        let pixels = cameras.len() as u64 * u64::from(width) * u64::from(height);
         if pixels > MAX_POINTS {
             return Err(Failure::Message(format!(
-                "{} views of {size}×{size} could give {pixels} points, more than the {MAX_POINTS} a cloud may \
+                "{} views of {width}×{height} could give {pixels} points, more than the {MAX_POINTS} a cloud may \
                  hold: lower --size",
                 cameras.len()
             )));
@@ -134,7 +136,7 @@ impl Surfels {
         };
         // Each rank of an MPI job renders its share of the views; rank 0 gathers them.
         let rendered = crate::cluster::split(cameras.len(), |i| -> Result<Vec<u8>> {
-            let frame = fields.render_with(&cameras[i], (size, size), params, &settings, grid)?;
+            let frame = fields.render_with(&cameras[i], frame, params, &settings, grid)?;
             Ok(crate::blocks::volume::frame_bytes(&frame))
         })
         .map_err(Failure::Message)?;
@@ -148,12 +150,12 @@ impl Surfels {
             directions: Vec::new(),
             footprints: Vec::new(),
             distances: Vec::new(),
-            size,
+            frame,
         };
         for (camera, bytes) in cameras.iter().zip(&rendered) {
-            let frame = crate::blocks::volume::frame_of(bytes, (size, size));
-            surfels.add(camera, size, &frame, rendering.background, min_opacity);
-            let seen = frame.opacity.iter().zip(&frame.depth);
+            let rendered = crate::blocks::volume::frame_of(bytes, frame);
+            surfels.add(camera, frame, &rendered, rendering.background, min_opacity);
+            let seen = rendered.opacity.iter().zip(&rendered.depth);
             surfels.distances.push(
                 seen.map(|(&o, &d)| if o >= min_opacity { d / o } else { f32::INFINITY })
                     .collect(),
@@ -168,22 +170,22 @@ impl Surfels {
         Ok(Some(surfels))
     }
 
-    /// Adds the opaque pixels of `frame` (rendered by `camera` at `size`²).
+    /// Adds the opaque pixels of `frame` (rendered by `camera` as `width`×`height`).
     fn add(
         &mut self,
         camera: &Camera,
-        size: u32,
+        (width, height): (u32, u32),
         frame: &nerfjit_runtime::VolumeFrame,
         background: [f32; 3],
         min_opacity: f32,
     ) {
-        let focal = camera.pixel_intrinsics(size, size).fx.abs();
+        let focal = camera.pixel_intrinsics(width, height).fx.abs();
         for (i, &opacity) in frame.opacity.iter().enumerate() {
             if opacity < min_opacity {
                 continue;
             }
-            let (row, col) = (i as u32 / size, i as u32 % size);
-            let (origin, direction) = camera.ray(row, col, size, size);
+            let (row, col) = (i as u32 / width, i as u32 % width);
+            let (origin, direction) = camera.ray(row, col, width, height);
             let depth = frame.depth[i] / opacity;
             let rgb = frame.rgb[i];
             let color = std::array::from_fn(|c| {

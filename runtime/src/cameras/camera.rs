@@ -220,6 +220,22 @@ impl Camera {
         }
     }
 
+    /// The camera whose `(width + 2·margin)`×`(height + 2·margin)` view is this camera's `width`×`height`
+    /// view with `margin` more pixels on every side: its pixel (row + margin, col + margin) sees what this
+    /// camera's pixel (row, col) sees. (A bake renders its views so, to see a little beyond every frame it
+    /// was trained on.)
+    pub fn widened(&self, width: u32, height: u32, margin: u32) -> Result<Camera> {
+        let PixelIntrinsics { fx, fy, cx, cy } = self.pixel_intrinsics(width, height);
+        let m = margin as f32;
+        let wider = PixelIntrinsics {
+            fx,
+            fy,
+            cx: cx + m,
+            cy: cy + m,
+        };
+        Camera::from_pixels(self.c2w(), wider, width + 2 * margin, height + 2 * margin)
+    }
+
     /// NDC (x, y) of continuous pixel coordinates (`row`, `col`) in a `width`×`height` image:
     /// +x left, +y up; the side chosen by the camera's [`NdcScale`] spans [−1, 1].
     pub fn pixel_ndc(&self, row: f32, col: f32, width: u32, height: u32) -> Vec2 {
@@ -327,6 +343,30 @@ mod tests {
         // Non-square: the shorter side (height 2) spans [−1, 1], the width [−2, 2].
         let (_, d) = cam.ray_at(0.0, 0.0, 4, 2);
         assert!(d.abs_diff_eq(Vec3::new(1.0, 1.0, -2.0).normalize(), 1e-6), "{d}");
+    }
+
+    #[test]
+    fn a_widened_camera_sees_the_same_rays_a_margin_further_in() {
+        let pose = Camera::from_blender(lego_pose(), 0.69).unwrap();
+        let course = course_camera();
+        for (camera, (width, height)) in [(pose, (30, 50)), (course, (40, 24)), (pose, (64, 64))] {
+            let margin = 7;
+            let wide = camera.widened(width, height, margin).unwrap();
+            let (w, h) = (width + 2 * margin, height + 2 * margin);
+            for (row, col) in [(0, 0), (height - 1, 3), (5, width - 1), (height / 2, width / 2)] {
+                let (o, d) = camera.ray(row, col, width, height);
+                let (o2, d2) = wide.ray(row + margin, col + margin, w, h);
+                assert!(
+                    o.abs_diff_eq(o2, 1e-5) && d.abs_diff_eq(d2, 1e-5),
+                    "{d} against {d2}"
+                );
+            }
+            // A point projected by both lands `margin` pixels further in.
+            let p = camera.position() + camera.rotation().z_axis * 3.0 + camera.rotation().x_axis * 0.2;
+            let (r, c) = camera.project(p, width, height).unwrap();
+            let (r2, c2) = wide.project(p, w, h).unwrap();
+            assert!((r + margin as f32 - r2).abs() < 1e-3 && (c + margin as f32 - c2).abs() < 1e-3);
+        }
     }
 
     #[test]
