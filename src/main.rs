@@ -98,6 +98,11 @@ enum Command {
         /// kind or name, the first or the i-th from 0: `render[1].size=64`, `volume.size=64`); repeatable.
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
+        /// The whole run's training time in minutes: every train block's `minutes` and every bake block's
+        /// `tune` scaled by one factor so that they add up to it (each keeps its share; loading data, baking
+        /// and validation come on top).
+        #[arg(long, value_name = "M")]
+        minutes: Option<f64>,
         /// Follow the training in the browser (`nerfjit view`'s page, with progress, a chart and pause);
         /// prints the page's URL and keeps serving after the last block until Ctrl-C.
         #[arg(long)]
@@ -253,8 +258,9 @@ enum Command {
         gif: bool,
     },
     /// Bake a trained volume field (a checkpoint) into Gaussian splats (a .bake file) that `render`,
-    /// `eval-views` and `export` take and the CPU draws in milliseconds. Its views are rendered at --size
-    /// (by default half the training views' larger side; 400 from --cameras or --path).
+    /// `eval-views` and `export` take and the CPU draws in milliseconds. Its views are rendered in the
+    /// training views' shape with the larger side --size and an eighth more on every side (by default half
+    /// the training views' larger side; square views of 400 from --cameras or --path).
     Bake {
         #[command(flatten)]
         seen: SeenPixels,
@@ -265,9 +271,10 @@ enum Command {
         /// `.ply`'s `f_rest`); 0, one color a splat (smaller files).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(0..=1))]
         sh_degree: u8,
-        /// Halfway through fine-tuning, drop the splats that weighed under this many pixels (of a view
-        /// --size wide) in every training view (their alpha times the transmittance in front of them,
-        /// summed over a view): fewer splats draw faster, too few lose detail.
+        /// Halfway through fine-tuning, drop the splats that weighed under this many pixels (of a view as
+        /// wide as those baked) in every training view (their alpha times the transmittance in front of
+        /// them, summed over a view), except those near the edges of every frame that holds them: fewer
+        /// splats draw faster, too few lose detail.
         #[arg(long, default_value_t = bake::MIN_WEIGHT, value_parser = min_weight)]
         min_weight: f32,
     },
@@ -626,11 +633,17 @@ fn bars() -> &'static dyn nerfjit::observe::ProgressBars {
 fn run_script(
     path: &str,
     overrides: &[String],
+    minutes: Option<f64>,
     out_dir: Option<&std::path::Path>,
     resume: bool,
     view: Option<&viewer::ViewArgs>,
 ) -> failure::Result<()> {
-    let mut session = run::open(path, overrides, out_dir)?;
+    let mut overrides = overrides.to_vec();
+    if let Some(minutes) = minutes {
+        let session = run::open(path, &overrides, out_dir)?;
+        overrides.extend(run::minutes_overrides(&session, minutes)?);
+    }
+    let mut session = run::open(path, &overrides, out_dir)?;
     // In an MPI job rank 0 alone serves the viewer (when it pauses, the other ranks wait at the next step).
     let live = match view.filter(|_| nerfjit::cluster::current().rank() == 0) {
         Some(args) => {
@@ -661,6 +674,7 @@ fn run_command(cli: Cli) -> ExitCode {
             out,
             resume,
             set,
+            minutes,
             view,
             host,
             port,
@@ -672,7 +686,7 @@ fn run_command(cli: Cli) -> ExitCode {
                 port,
                 limits: limits.into(),
             });
-            run_script(&script, &set, out.as_deref(), resume, view.as_ref())
+            run_script(&script, &set, minutes, out.as_deref(), resume, view.as_ref())
         }
         Command::Sweep { script, set, out } => {
             sweep::sweep(&script, &set, &out, bars()).map(|table| emit(&format!("\n{table}")))

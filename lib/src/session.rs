@@ -66,6 +66,9 @@ pub struct FieldToBake<'a> {
     pub script: &'a Path,
     /// The occupancy grid the last `train` block ended with, while the params are the ones it trained.
     pub grid: Option<&'a OccupancyGrid>,
+    /// The checkpoint the last `train` block wrote: it holds the script as it ran (`--set` overrides
+    /// included), whose data and protocol the bake records as its source.
+    pub checkpoint: Option<&'a Path>,
 }
 
 /// Bakes the field of a `bake` block as the block's plan says and writes the bake; returns a summary. The
@@ -116,6 +119,8 @@ pub struct Session {
     plans: Vec<Plan>,
     /// The occupancy grid the last `train` block ended with, while the params are the ones it trained.
     trained_grid: Option<OccupancyGrid>,
+    /// The checkpoint the last `train` block wrote (none after a `train sdf` block).
+    trained_checkpoint: Option<PathBuf>,
 }
 
 impl Session {
@@ -165,6 +170,7 @@ impl Session {
             cache: KernelCache::new(),
             plans,
             trained_grid: None,
+            trained_checkpoint: None,
         })
     }
 
@@ -238,6 +244,16 @@ impl Session {
         }
     }
 
+    /// The seconds of training block `index` is given by time: a `train` block's `minutes`, a `bake`
+    /// block's `tune` (`None` for other blocks and those without a time limit).
+    pub fn timed_seconds(&self, index: usize) -> Option<f64> {
+        match &self.plans[index] {
+            Plan::Train(p) => p.time_limit(),
+            Plan::Bake(p) => (p.tune_seconds > 0.0).then_some(p.tune_seconds),
+            _ => None,
+        }
+    }
+
     /// Runs block `index` with the current params (a training block updates them); returns its summary.
     pub fn run_block(&mut self, index: usize, observer: &Observer) -> Result<String> {
         let frames = |done: usize| {
@@ -256,6 +272,7 @@ impl Session {
             Plan::Volume(p) => p.run(program, params, cache, self.trained_grid.as_ref(), &frames),
             Plan::Train(p) => {
                 self.trained_grid = None;
+                self.trained_checkpoint = None;
                 let trained = p.run(
                     program,
                     params,
@@ -265,11 +282,13 @@ impl Session {
                     observer.bars(),
                 )?;
                 self.trained_grid = trained.occupancy;
+                self.trained_checkpoint = p.checkpoint().filter(|c| c.is_file()).map(Path::to_path_buf);
                 Ok(trained.summary)
             }
             Plan::Viz(p) => p.run(),
             Plan::TrainSdf(p) => {
                 self.trained_grid = None;
+                self.trained_checkpoint = None;
                 p.run(program, params, cache, observer.resume, observer.bars())
             }
             Plan::Mesh(p) => {
@@ -295,6 +314,7 @@ impl Session {
                     params,
                     script: &self.script,
                     grid: self.trained_grid.as_ref(),
+                    checkpoint: self.trained_checkpoint.as_deref(),
                 };
                 baker(p, &field)
             }

@@ -464,11 +464,13 @@ fn a_bake_block_bakes_the_trained_field_as_the_command_bakes_its_checkpoint() {
     assert!(out.contains("of 4 views of 80×80"), "{out}");
     assert!(out.contains("tuning pass 1: 4 views"), "{out}");
 
+    // The bake records the checkpoint the train block wrote: the script as it ran, `--set` overrides
+    // included, whose data and protocol score it.
     let block = nerfjit::bake_file::read(&dir.join("block.bake")).unwrap();
     assert!(block.splats.len() > 100, "{} splats", block.splats.len());
     assert_eq!(
         std::fs::canonicalize(&block.source).unwrap(),
-        std::fs::canonicalize(dir.join("train.sdf")).unwrap()
+        std::fs::canonicalize(dir.join("train.ckpt.safetensors")).unwrap()
     );
     let command = [
         "bake",

@@ -33,10 +33,11 @@ pub struct BakePlan {
     pub tune_seconds: f64,
     /// The degree of the tuned splats' spherical harmonics (0 or 1).
     pub sh_degree: u8,
-    /// Halfway through tuning, splats that weighed under this many pixels (of a view `size` wide) in
-    /// every view are dropped.
+    /// Halfway through tuning, splats that weighed under this many pixels (of a view as wide as those
+    /// baked) in every view are dropped (but for those near the edges of every frame that holds them).
     pub min_weight: f32,
-    /// The side of the views rendered to bake, in pixels (by default half the training views' larger side).
+    /// The larger side of the views rendered to bake, in pixels (in the training views' shape; by default half
+    /// their larger side).
     pub size: Option<u32>,
     /// Pixels of the views below this opacity are left out.
     pub min_opacity: f32,

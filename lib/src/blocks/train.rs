@@ -502,6 +502,16 @@ impl TrainPlan {
         }))
     }
 
+    /// The checkpoint it writes (`None`: `checkpoint: none`).
+    pub fn checkpoint(&self) -> Option<&Path> {
+        self.checkpoint.as_deref()
+    }
+
+    /// The seconds of training its `minutes` setting allows (`None`: no time limit).
+    pub fn time_limit(&self) -> Option<f64> {
+        self.time_limit
+    }
+
     /// Every how many views of its data the block holds out (`holdout(every: n)`) and how many of them
     /// validation scores (all if None); `None` when it validates on a file or not at all.
     pub fn held_out_every(&self) -> Option<(usize, Option<usize>)> {

@@ -86,7 +86,7 @@ pub fn baked_frame(width: u32, height: u32, side: u32) -> (u32, u32) {
 pub const MARGIN: f32 = 0.125;
 
 /// How near the edge of a training view's frame a splat's center lies (as a share of the frame's larger
-/// side) for pruning to treat it as beyond the frame ([`well_inside_some_frame`]).
+/// side) for pruning to treat it as beyond the frame (see [`tune`]).
 pub const EDGE: f32 = 0.1;
 
 /// A splat's standard deviation, in cells.
@@ -123,8 +123,9 @@ pub fn run(args: &PointsArgs, tuning: Tuning) -> Result<String> {
 
 /// A script's `bake` block, the [`Baker`](crate::session::Baker) of `nerfjit run`: the field as it is at that
 /// point of the script baked as [`run`] bakes a checkpoint, with the block's settings as its options, from
-/// the views of the script's `train` block's data (less those it holds out). The bake records the script as
-/// what it was baked from. In an MPI job the ranks share the views' renders; rank 0 merges and tunes the
+/// the views of the script's `train` block's data (less those it holds out). The bake records as what it was
+/// baked from the checkpoint the last `train` block wrote (the script as it ran, `--set` overrides included),
+/// else the script. In an MPI job the ranks share the views' renders; rank 0 merges and tunes the
 /// splats and writes the bake (the other ranks return an empty summary).
 pub fn bake_block(plan: &BakePlan, field: &FieldToBake) -> Result<String> {
     let script = field.script.to_string_lossy();
@@ -198,10 +199,16 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
         return Ok(String::new());
     };
     let (splats, cells) = splats_of(&surfels, &cameras);
+    // A bake block's field is scored on the data of the script as it ran: its train block's checkpoint holds
+    // that script, overrides included.
+    let source = match in_memory.and_then(|field| field.checkpoint) {
+        Some(checkpoint) => checkpoint,
+        None => Path::new(args.view.source),
+    };
     let mut bake = Bake {
         splats,
         background,
-        source: std::path::absolute(args.view.source).unwrap_or_else(|_| args.view.source.into()),
+        source: std::path::absolute(source).unwrap_or_else(|_| source.into()),
     };
     let mut text = format!(
         "baked {} splats ({cells}) from {} pixels of {} views of {}×{}{} in {:.1} s\n",
@@ -284,7 +291,8 @@ fn training_views(program: &Program, source: &str, background: [f32; 3]) -> Resu
 /// ([`TUNE_RATES`], the centers' rate relative to the splats' median scale). The first [`COARSE_SHARE`] of
 /// the time takes the views at half size; then the splats that weighed under `tuning.min_weight` pixels of
 /// a view `baked_width` wide (the width of the views the splats were baked from) in every view are dropped
-/// (unless their centers lie well inside no view's frame: see [`well_inside_some_frame`]), and at the end those left
+/// (unless their centers lie well inside no view's frame: beyond every frame, or within [`EDGE`] of the larger
+/// side from the edges of every frame that holds them: no view tunes them, or only parts of them), and at the end those left
 /// fainter than [`MIN_OPACITY`]. With `tuning.sh_degree` 1, splats without spherical harmonics get them at
 /// that point (zero: the colors unchanged), tuned with the rest in
 /// the second half.

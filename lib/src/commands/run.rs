@@ -20,6 +20,53 @@ pub fn open(path: &str, overrides: &[String], out_dir: Option<&Path>) -> Result<
     Ok(session)
 }
 
+/// The `--set` overrides that give `session`'s training `minutes` in all (`nerfjit run --minutes`): every
+/// `train` block's `minutes` and every `bake` block's `tune` scaled by one factor, so that each keeps its share
+/// of the time as the script divides it. Loading data, baking, validation and previews come on top. A script
+/// none of whose blocks trains for a time is refused.
+pub fn minutes_overrides(session: &Session, minutes: f64) -> Result<Vec<String>> {
+    if !(minutes.is_finite() && minutes > 0.0 && minutes <= 1e6) {
+        return Err(Failure::Message(format!(
+            "--minutes {minutes} must be a number of minutes above 0 (at most 1e6)"
+        )));
+    }
+    let timed: Vec<(usize, f64)> = (0..session.len())
+        .filter_map(|i| session.timed_seconds(i).map(|s| (i, s)))
+        .collect();
+    let total: f64 = timed.iter().map(|(_, s)| s).sum();
+    if timed.is_empty() || total <= 0.0 {
+        return Err(Failure::Message(
+            "--minutes shares the time among the train blocks' 'minutes' and the bake blocks' 'tune', and the \
+             script sets neither: set them (e.g. minutes: 5 in its train block), or use --set train.steps=N"
+                .to_string(),
+        ));
+    }
+    let factor = 60.0 * minutes / total;
+    // A block is named as `--set` names it: the i-th block of its kind (`train` and `train sdf` are both
+    // `train`).
+    let name = |index: usize| {
+        let word = match session.kind(index) {
+            Kind::Train | Kind::TrainSdf => "train",
+            Kind::Bake => "bake",
+            _ => unreachable!("only train and bake blocks train for a time"),
+        };
+        let before = (0..index)
+            .filter(|&j| match word {
+                "train" => matches!(session.kind(j), Kind::Train | Kind::TrainSdf),
+                _ => session.kind(j) == Kind::Bake,
+            })
+            .count();
+        format!("{word}[{before}]")
+    };
+    Ok(timed
+        .into_iter()
+        .map(|(i, seconds)| match session.kind(i) {
+            Kind::Bake => format!("{}.tune={}", name(i), seconds * factor),
+            _ => format!("{}.minutes={}", name(i), seconds * factor / 60.0),
+        })
+        .collect())
+}
+
 /// Runs every block of the script in order (see [`run_session`]), without progress bars.
 pub fn run(
     path: &str,
@@ -67,4 +114,56 @@ pub fn run_session(
         crate::console::emit(&format!("{summary}\n"));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A script of two train blocks (1 and 3 minutes, and a `train sdf` block between them, which takes no
+    /// time limit) and a bake tuned 60 s, in a scratch folder: its session.
+    fn session(name: &str, source: &str) -> (Session, std::path::PathBuf) {
+        let out = std::env::temp_dir().join(format!("nerfjit-minutes-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::write(
+            out.join("cams.json"),
+            r#"{"image_size": [8, 8], "cameras": [{"image": "v_000.png", "focal": 1.0,
+            "principal_point": [0, 0], "eye": [0, 0, -3], "scene_center": [0, 0, 0], "up": [0, 1, 0]}]}"#,
+        )
+        .unwrap();
+        std::fs::write(out.join("points.xyz"), "0 0 1\n0 1 0\n1 0 0\n").unwrap();
+        (Session::from_source("s.sdf", source, &out).unwrap(), out)
+    }
+
+    #[test]
+    fn minutes_are_shared_among_the_timed_blocks_as_the_script_divides_them() {
+        let source = "param r: f32 = 0.5\nfn density(p: vec3) -> f32 = relu(r - length(p))\n\
+                      fn color(p: vec3) -> vec3 = [1, 1, 1]\nfn sdf(p: vec3) -> f32 = length(p) - r\n\
+                      train { data: views(\"cams.json\"), steps: 10, minutes: 1, checkpoint: none }\n\
+                      train sdf { data: points(\"points.xyz\"), steps: 10, checkpoint: none }\n\
+                      train { data: views(\"cams.json\"), steps: 10, minutes: 3, checkpoint: none }\n\
+                      bake { out: \"ball.bake\", tune: 60 }\n";
+        let (s, out) = session("shared", source);
+        // 1 + 3 + 1 minutes given 10: twice as long each.
+        assert_eq!(
+            minutes_overrides(&s, 10.0).unwrap(),
+            ["train[0].minutes=2", "train[2].minutes=6", "bake[0].tune=120"]
+        );
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let e = minutes_overrides(&s, bad).unwrap_err().to_string();
+            assert!(e.contains("must be a number of minutes above 0"), "{e}");
+        }
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn a_script_that_trains_for_no_time_is_refused() {
+        let source = "param r: f32 = 0.5\nfn density(p: vec3) -> f32 = relu(r - length(p))\n\
+                      fn color(p: vec3) -> vec3 = [1, 1, 1]\n\
+                      train { data: views(\"cams.json\"), steps: 10, checkpoint: none }\n";
+        let (s, out) = session("untimed", source);
+        let e = minutes_overrides(&s, 5.0).unwrap_err().to_string();
+        assert!(e.contains("the script sets neither"), "{e}");
+        std::fs::remove_dir_all(&out).unwrap();
+    }
 }

@@ -717,13 +717,13 @@ pub const BAKE: BlockSchema = BlockSchema {
             0.0,
             1e6,
             1.0,
-            "halfway through tuning, drop the splats that weighed under this many pixels (of a view `size` wide) in every view",
+            "halfway through tuning, drop the splats that weighed under this many pixels (of a view as wide as those baked) in every view, but for those near the edges of every frame that holds them",
         ),
         whole_or_none(
             "size",
             1,
             4096,
-            "the side of the views rendered to bake, in pixels; by default half the training views' larger side",
+            "the larger side of the views rendered to bake (in the training views' shape), in pixels; by default half theirs",
         ),
         number(
             "min_opacity",
