@@ -330,7 +330,7 @@ impl Session {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     fn session(source: &str) -> Session {
@@ -383,9 +383,10 @@ mod tests {
         std::fs::remove_dir_all(&out).unwrap();
     }
 
-    #[test]
-    fn a_bake_block_goes_to_the_baker_with_its_settings_and_the_current_params() {
-        let out = std::env::temp_dir().join(format!("nerfjit-session-bake-{}", std::process::id()));
+    /// A new folder in the OS temp folder named after `name` holding `cams.json`: one 8×8 camera looking at
+    /// the origin (its image is not there; sessions plan without reading it).
+    pub(crate) fn folder_with_one_camera(name: &str) -> PathBuf {
+        let out = std::env::temp_dir().join(format!("nerfjit-{name}-{}", std::process::id()));
         std::fs::create_dir_all(&out).unwrap();
         std::fs::write(
             out.join("cams.json"),
@@ -393,6 +394,12 @@ mod tests {
             "principal_point": [0, 0], "eye": [0, 0, -3], "scene_center": [0, 0, 0], "up": [0, 1, 0]}]}"#,
         )
         .unwrap();
+        out
+    }
+
+    #[test]
+    fn a_bake_block_goes_to_the_baker_with_its_settings_and_the_current_params() {
+        let out = folder_with_one_camera("session-bake");
         let source = "param r: f32 = 0.5\nfn density(p: vec3) -> f32 = relu(r - length(p))\n\
                       fn color(p: vec3) -> vec3 = [1, 1, 1]\n\
                       train { data: views(\"cams.json\"), steps: 1, checkpoint: none }\n\

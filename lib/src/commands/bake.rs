@@ -189,12 +189,8 @@ fn bake(args: &PointsArgs, tuning: Tuning, in_memory: Option<&FieldToBake>) -> R
         }
     };
     let frame = (baked.0 + 2 * margin, baked.1 + 2 * margin);
-    let view = ViewArgs {
-        size: Some(frame.0.max(frame.1)),
-        ..args.view
-    };
     let field = (program, params);
-    let Some(surfels) = Surfels::render(&view, field, trained_grid, &cameras, frame, args.min_opacity)?
+    let Some(surfels) = Surfels::render(&args.view, field, trained_grid, &cameras, frame, args.min_opacity)?
     else {
         return Ok(String::new());
     };

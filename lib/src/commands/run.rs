@@ -120,21 +120,16 @@ pub fn run_session(
 mod tests {
     use super::*;
 
-    /// A script of two train blocks (1 and 3 minutes, and a `train sdf` block between them, which takes no
-    /// time limit) and a bake tuned 60 s, in a scratch folder: its session.
+    /// The session of the script `source` in a scratch folder holding a camera (`cams.json`) and a point cloud
+    /// (`points.xyz`), and the folder.
     fn session(name: &str, source: &str) -> (Session, std::path::PathBuf) {
-        let out = std::env::temp_dir().join(format!("nerfjit-minutes-{name}-{}", std::process::id()));
-        std::fs::create_dir_all(&out).unwrap();
-        std::fs::write(
-            out.join("cams.json"),
-            r#"{"image_size": [8, 8], "cameras": [{"image": "v_000.png", "focal": 1.0,
-            "principal_point": [0, 0], "eye": [0, 0, -3], "scene_center": [0, 0, 0], "up": [0, 1, 0]}]}"#,
-        )
-        .unwrap();
+        let out = crate::session::tests::folder_with_one_camera(&format!("minutes-{name}"));
         std::fs::write(out.join("points.xyz"), "0 0 1\n0 1 0\n1 0 0\n").unwrap();
         (Session::from_source("s.sdf", source, &out).unwrap(), out)
     }
 
+    /// Two train blocks of 1 and 3 minutes with a `train sdf` block between them (which takes no time limit)
+    /// and a bake tuned 60 s.
     #[test]
     fn minutes_are_shared_among_the_timed_blocks_as_the_script_divides_them() {
         let source = "param r: f32 = 0.5\nfn density(p: vec3) -> f32 = relu(r - length(p))\n\
